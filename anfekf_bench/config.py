@@ -1,0 +1,317 @@
+"""Scenario files: strict, typed validation of the YAML a user writes.
+
+Angles are written in DEGREES in YAML; every such key ends in `_deg`. The loader converts them to
+radians once (`World`, `NoiseSigmas.radians`), so the rest of the code works in radians only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Literal, Union
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegativeFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Point = tuple[float, float]
+MapSource = Union[str, list[Point]]
+
+BUILTIN_MAP = "bailey-webmap"
+
+
+class ScenarioError(Exception):
+    """A scenario cannot be used; `str()` is the one-line message shown to the user."""
+
+    def __init__(self, path: str | Path, field: str, message: str):
+        self.path = str(path)
+        self.field = field
+        self.message = message
+        where = f"{self.path}: {field}: " if field else f"{self.path}: "
+        super().__init__(where + message)
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class NoiseSigmas(_Strict):
+    """Standard deviations of control noise (V, gamma) and measurement noise (range, bearing)."""
+
+    sigma_v: PositiveFloat = Field(0.3, description="speed noise [m/s]")
+    sigma_gamma_deg: PositiveFloat = Field(3.0, description="steering noise [deg]")
+    sigma_range: PositiveFloat = Field(0.1, description="range noise [m]")
+    sigma_bearing_deg: PositiveFloat = Field(1.0, description="bearing noise [deg]")
+
+    def radians(self) -> tuple[float, float, float, float]:
+        """(sv [m/s], sg [rad], sr [m], sb [rad])."""
+        return (
+            self.sigma_v,
+            math.radians(self.sigma_gamma_deg),
+            self.sigma_range,
+            math.radians(self.sigma_bearing_deg),
+        )
+
+
+class WorldConfig(_Strict):
+    """SPEC section 1; defaults are the paper's / Bailey's simulator settings."""
+
+    landmarks: MapSource = Field(
+        BUILTIN_MAP, description="CSV path (relative to the YAML file), list of [x, y], or the builtin map"
+    )
+    waypoints: MapSource = Field(BUILTIN_MAP, description="as `landmarks`")
+    loops: int = Field(1, ge=1, le=100)
+    x0: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="x [m], y [m], phi [deg]")
+    speed: PositiveFloat = Field(3.0, description="V [m/s]")
+    wheelbase: PositiveFloat = Field(4.0, description="B [m]")
+    max_steer_deg: Annotated[float, Field(gt=0, le=90)] = 30.0
+    max_steer_rate_deg: PositiveFloat = Field(20.0, description="[deg/s]")
+    dt: PositiveFloat = Field(0.025, description="control period T [s]")
+    sensor_every: int = Field(8, ge=1, description="control steps per sensor scan")
+    max_range: PositiveFloat = Field(20.0, description="[m]")
+    fov_deg: Annotated[float, Field(gt=0, le=360)] = 180.0
+    waypoint_tolerance: PositiveFloat = Field(1.0, description="[m]: switch waypoint within this")
+    max_steps: int = Field(1_000_000, ge=1, description="safety stop for routes never completed")
+
+
+class EKFSpec(_Strict):
+    """The plain EKF with the scenario's assumed noise (`filter_noise`)."""
+
+    name: str = Field(min_length=1)
+    kind: Literal["ekf"] = "ekf"
+
+
+class OracleSpec(_Strict):
+    """The EKF given the TRUE noise: the best fixed-noise EKF, a reference."""
+
+    name: str = Field(min_length=1)
+    kind: Literal["ekf-oracle"]
+
+
+class ANFEKFSpec(_Strict):
+    """The adaptive neuro-fuzzy EKF (SPEC section 4). Defaults are shared by every scenario."""
+
+    name: str = Field(min_length=1)
+    kind: Literal["anfekf"]
+    adapt: Literal["R", "Q"] = "R"
+    window: int = Field(20, ge=2, le=10_000, description="innovations in the matching window, N")
+    learning_rate: tuple[NonNegativeFloat, NonNegativeFloat, NonNegativeFloat] = Field(
+        (0.01, 0.01, 0.05), description="steepest-descent rates for (centres, widths, singletons)"
+    )
+    singleton_scale: PositiveFloat = Field(0.1, description="a: S1..S7 = a * (-3..3)")
+    centres_d: tuple[float, float, float, float, float] = (-1.0, -0.5, 0.0, 0.5, 1.0)
+    centres_dd: tuple[float, float, float, float, float] = (-0.2, -0.1, 0.0, 0.1, 0.2)
+    width_d: PositiveFloat = 0.35
+    width_dd: PositiveFloat = 0.1
+    output_clip: PositiveFloat = Field(1.0, description="|o| limit: one step scales by <= e^clip")
+    adaptation: bool = Field(True, description="false: never change R or Q (then ANFEKF == EKF)")
+    learning: bool = Field(True, description="false: freeze the ANFIS parameters")
+
+
+FilterSpec = Annotated[Union[EKFSpec, OracleSpec, ANFEKFSpec], Field(discriminator="kind")]
+
+
+class Scenario(_Strict):
+    """One scenario file."""
+
+    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    description: str = ""
+    seed: int = Field(0, ge=0)
+    runs: int = Field(50, ge=1, le=100_000)
+    jobs: int = Field(2, ge=1, le=1024)
+    record_every: int = Field(1, ge=1, description="record every n-th control step")
+    world: WorldConfig = WorldConfig()
+    true_noise: NoiseSigmas = NoiseSigmas()
+    filter_noise: NoiseSigmas = NoiseSigmas()
+    p0: NonNegativeFloat = Field(1e-9, description="P0 = p0 * I")
+    gate_probability: Annotated[float, Field(gt=0, lt=1)] | None = Field(
+        0.999, description="chi-square validation gate (eq. 26); null switches it off"
+    )
+    filters: list[FilterSpec] = Field(
+        default_factory=lambda: [EKFSpec(name="ekf")], min_length=1
+    )
+
+    @field_validator("filters")
+    @classmethod
+    def _unique_names(cls, filters: list) -> list:
+        names = [f.name for f in filters]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ValueError(f"filter names must be unique; repeated: {', '.join(dupes)}")
+        return filters
+
+
+@dataclass(frozen=True)
+class World:
+    """The resolved world, SI units and radians, with the map loaded."""
+
+    landmarks: np.ndarray  # (n, 2)
+    waypoints: np.ndarray  # (m, 2)
+    loops: int
+    x0: np.ndarray  # (3,) radians
+    V: float
+    B: float
+    max_steer: float
+    max_steer_rate: float
+    T: float
+    sensor_every: int
+    max_range: float
+    half_fov: float
+    waypoint_tolerance: float
+    max_steps: int
+
+
+def _builtin_csv(kind: str) -> Path:
+    return Path(str(resources.files("anfekf_bench") / "data" / BUILTIN_MAP / f"{kind}.csv"))
+
+
+def read_points_csv(path: Path, *, scenario_path: str | Path, field: str) -> np.ndarray:
+    """Read `x,y` lines (comments with #) into an (n, 2) array, with a clean error on failure."""
+    if not path.is_file():
+        raise ScenarioError(scenario_path, field, f"map file not found: {path}")
+    try:
+        pts = np.loadtxt(path, delimiter=",", comments="#", ndmin=2, dtype=float)
+    except ValueError as exc:
+        first = str(exc).splitlines()[0] if str(exc) else "unreadable"
+        raise ScenarioError(
+            scenario_path, field, f"{path}: expected lines 'x,y' of numbers ({first})"
+        ) from None
+    if pts.size == 0:
+        raise ScenarioError(scenario_path, field, f"{path}: no points (need lines 'x,y')")
+    if pts.shape[1] != 2:
+        raise ScenarioError(
+            scenario_path, field, f"{path}: expected 2 columns 'x,y', found {pts.shape[1]}"
+        )
+    if not np.all(np.isfinite(pts)):
+        raise ScenarioError(scenario_path, field, f"{path}: coordinates must be finite numbers")
+    return pts
+
+
+def _resolve_points(source: MapSource, kind: str, scenario_path: Path) -> np.ndarray:
+    field = f"world.{kind}"
+    if isinstance(source, str):
+        path = _builtin_csv(kind) if source == BUILTIN_MAP else scenario_path.parent / source
+        return read_points_csv(path, scenario_path=scenario_path, field=field)
+    if len(source) == 0:
+        raise ScenarioError(scenario_path, field, "needs at least one [x, y] point")
+    pts = np.asarray(source, dtype=float)
+    if not np.all(np.isfinite(pts)):
+        raise ScenarioError(scenario_path, field, "coordinates must be finite numbers")
+    return pts
+
+
+def resolve_world(cfg: WorldConfig, scenario_path: Path) -> World:
+    """Load the map and convert degrees to radians."""
+    return World(
+        landmarks=_resolve_points(cfg.landmarks, "landmarks", scenario_path),
+        waypoints=_resolve_points(cfg.waypoints, "waypoints", scenario_path),
+        loops=cfg.loops,
+        x0=np.array([cfg.x0[0], cfg.x0[1], math.radians(cfg.x0[2])]),
+        V=cfg.speed,
+        B=cfg.wheelbase,
+        max_steer=math.radians(cfg.max_steer_deg),
+        max_steer_rate=math.radians(cfg.max_steer_rate_deg),
+        T=cfg.dt,
+        sensor_every=cfg.sensor_every,
+        max_range=cfg.max_range,
+        half_fov=math.radians(cfg.fov_deg) / 2.0,
+        waypoint_tolerance=cfg.waypoint_tolerance,
+        max_steps=cfg.max_steps,
+    )
+
+
+def _format_validation_error(exc: ValidationError) -> tuple[str, str]:
+    err = exc.errors()[0]
+    loc = [str(p) for p in err["loc"]]
+    # Drop the discriminator tag pydantic inserts for tagged unions (filters.0.anfekf.window).
+    if len(loc) >= 3 and loc[0] == "filters" and loc[2] in ("ekf", "ekf-oracle", "anfekf"):
+        loc.pop(2)
+    field = ".".join(loc) or "(top level)"
+    msg = err["msg"]
+    if err["type"] == "extra_forbidden":
+        msg = "unknown key"
+        parent = err["loc"][:-1]
+        allowed = _allowed_keys(parent)
+        if allowed:
+            msg += f" (allowed: {', '.join(allowed)})"
+    elif "input" in err and err["type"] not in ("missing",):
+        shown = repr(err["input"])
+        if len(shown) > 60:
+            shown = shown[:57] + "..."
+        msg += f" (got {shown})"
+    extra = len(exc.errors()) - 1
+    if extra:
+        msg += f" [+{extra} more error{'s' if extra > 1 else ''}]"
+    return field, msg
+
+
+def _allowed_keys(parent_loc: tuple) -> list[str]:
+    model: type[BaseModel] | None = Scenario
+    for part in parent_loc:
+        if model is None:
+            return []
+        if isinstance(part, int):
+            continue
+        if part in ("ekf", "ekf-oracle", "anfekf"):
+            model = {"ekf": EKFSpec, "ekf-oracle": OracleSpec, "anfekf": ANFEKFSpec}[part]
+            continue
+        field = model.model_fields.get(part)
+        if field is None:
+            return []
+        ann = field.annotation
+        model = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
+    return sorted(model.model_fields) if model is not None else []
+
+
+def parse_scenario(data: object, path: str | Path = "<scenario>") -> Scenario:
+    """Validate an already-parsed YAML document."""
+    if data is None:
+        raise ScenarioError(path, "", "empty file: expected a mapping of scenario keys")
+    if not isinstance(data, dict):
+        raise ScenarioError(
+            path, "", f"expected a mapping of scenario keys, found a {type(data).__name__}"
+        )
+    try:
+        return Scenario.model_validate(data)
+    except ValidationError as exc:
+        field, msg = _format_validation_error(exc)
+        raise ScenarioError(path, field, msg) from None
+
+
+def load_scenario(path: str | Path) -> tuple[Scenario, World]:
+    """Read, validate and resolve one scenario file; raises ScenarioError with a one-line message."""
+    path = Path(path)
+    if not path.exists():
+        raise ScenarioError(path, "", "scenario file does not exist")
+    if not path.is_file():
+        raise ScenarioError(path, "", "not a file")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ScenarioError(path, "", f"cannot read: {exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ScenarioError(path, "", f"YAML syntax error at {where}{problem}") from None
+    scenario = parse_scenario(data, path)
+    return scenario, resolve_world(scenario.world, path)
+
+
+def scenario_files(target: str | Path) -> list[Path]:
+    """A scenario file, or every *.yaml / *.yml in a folder (sorted)."""
+    target = Path(target)
+    if target.is_dir():
+        files = sorted(p for p in target.iterdir() if p.suffix in (".yaml", ".yml"))
+        if not files:
+            raise ScenarioError(target, "", "folder holds no *.yaml scenario files")
+        return files
+    if not target.exists():
+        raise ScenarioError(target, "", "scenario file does not exist")
+    return [target]

@@ -1,0 +1,196 @@
+"""One scenario end to end: resolve, run the batch, save every finished run, write the results.
+
+Each finished run is saved at once under <out>/<name>/.runs/ (atomically), so an interrupted batch
+loses at most the runs in flight; the next `anfekf run` into the same folder resumes from them when
+the scenario is unchanged. The result files are written last, manifest.json after everything else.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import platform
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+import joblib
+
+from .config import Scenario, World
+from .runner import run_batch, steps_frame, summary_records, update_statistics
+from .storage import (
+    MANIFEST_FILE,
+    STEPS_FILE,
+    SUMMARY_JSON,
+    SUMMARY_PARQUET,
+    write_atomic,
+    write_json,
+    write_parquet,
+)
+
+RUNS_DIR = ".runs"
+_PACKAGES = ("anfekf-bench", "numpy", "scipy", "filterpy", "pandas", "pyarrow", "joblib", "pydantic")
+
+
+class OutputExists(Exception):
+    """The output folder holds results we must not overwrite silently."""
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A scenario with the command line's overrides applied."""
+
+    scenario: Scenario
+    world: World
+    runs: int
+    seed: int
+    jobs: int
+
+    @property
+    def name(self) -> str:
+        return self.scenario.name
+
+    def fingerprint(self) -> str:
+        """Hash of everything that determines a run's bytes (not jobs: it changes nothing)."""
+        doc = {
+            "scenario": self.scenario.model_dump(mode="json", exclude={"jobs", "runs"}),
+            "seed": self.seed,
+            "landmarks": self.world.landmarks.tolist(),
+            "waypoints": self.world.waypoints.tolist(),
+        }
+        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def make_plan(
+    scenario: Scenario, world: World, runs: int | None, seed: int | None, jobs: int | None
+) -> Plan:
+    return Plan(
+        scenario=scenario,
+        world=world,
+        runs=scenario.runs if runs is None else runs,
+        seed=scenario.seed if seed is None else seed,
+        jobs=scenario.jobs if jobs is None else jobs,
+    )
+
+
+def package_versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for pkg in _PACKAGES:
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            out[pkg] = "not installed"
+    return out
+
+
+def prepare_output(plan: Plan, out_dir: Path, force: bool) -> tuple[Path, dict[int, dict], str]:
+    """Create <out>/<name>; return it, the saved runs to resume and a sentence saying what we did."""
+    target = Path(out_dir) / plan.name
+    if target.exists() and not target.is_dir():
+        raise OutputExists(f"{target}: exists and is not a folder")
+    runs_dir = target / RUNS_DIR
+    if force and target.exists():
+        shutil.rmtree(target)
+        action = "overwriting the previous results (--force)"
+    elif (target / MANIFEST_FILE).exists():
+        raise OutputExists(
+            f"{target}: holds a complete result already; use --force to overwrite it"
+            " or --out to write elsewhere"
+        )
+    else:
+        action = "new results"
+    done: dict[int, dict] = {}
+    stamp = runs_dir / "fingerprint"
+    if runs_dir.is_dir() and stamp.is_file():
+        if stamp.read_text().strip() != plan.fingerprint():
+            raise OutputExists(
+                f"{target}: holds runs of a different scenario or seed; use --force to discard them"
+            )
+        for path in sorted(runs_dir.glob("run-*.joblib")):
+            try:
+                result = joblib.load(path)
+            except Exception:  # a torn file from a crash: redo that run
+                path.unlink(missing_ok=True)
+                continue
+            if result["run"] < plan.runs:
+                done[result["run"]] = result
+        action = f"resuming: {len(done)} of {plan.runs} runs already done in {runs_dir}"
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    write_atomic(stamp, lambda tmp: tmp.write_text(plan.fingerprint() + "\n"))
+    for stale in (STEPS_FILE, SUMMARY_PARQUET, SUMMARY_JSON):
+        (target / stale).unlink(missing_ok=True)
+    return target, done, action
+
+
+def save_run(target: Path, result: dict) -> None:
+    path = target / RUNS_DIR / f"run-{result['run']:06d}.joblib"
+    write_atomic(path, lambda tmp: joblib.dump(result, tmp))
+
+
+def execute(
+    plan: Plan,
+    out_dir: Path,
+    *,
+    force: bool = False,
+    on_start: Callable[[str, int, int], None] | None = None,
+    on_result: Callable[[dict], None] | None = None,
+) -> tuple[list[dict], Path]:
+    """Run the plan and write its results; returns (summary records, scenario folder)."""
+    started = time.time()
+    target, done, action = prepare_output(plan, out_dir, force)
+    if on_start is not None:
+        on_start(action, len(done), plan.runs)
+
+    def keep(result: dict) -> None:
+        save_run(target, result)
+        if on_result is not None:
+            on_result(result)
+
+    results = dict(done)
+    for result in run_batch(
+        plan.scenario,
+        plan.world,
+        runs=plan.runs,
+        seed=plan.seed,
+        jobs=plan.jobs,
+        on_result=keep,
+        skip=set(done),
+    ):
+        results[result["run"]] = result
+    ordered = [results[i] for i in range(plan.runs)]
+    names = [f.name for f in plan.scenario.filters]
+    steps = steps_frame(plan.name, names, ordered)
+    records = summary_records(steps, update_statistics(ordered, names))
+    import pandas as pd
+
+    write_parquet(target / STEPS_FILE, steps)
+    write_parquet(target / SUMMARY_PARQUET, pd.DataFrame(records))
+    write_json(target / SUMMARY_JSON, records)
+    manifest = {
+        "scenario": plan.scenario.model_dump(mode="json"),
+        "runs": plan.runs,
+        "seed": plan.seed,
+        "jobs": plan.jobs,
+        "fingerprint": plan.fingerprint(),
+        "world": {
+            "landmarks": plan.world.landmarks.tolist(),
+            "waypoints": plan.world.waypoints.tolist(),
+            "control_steps": int(len(ordered[0]["step"]) * plan.scenario.record_every),
+        },
+        "resumed_runs": sorted(done),
+        "versions": package_versions(),
+        "machine": {"platform": platform.platform(), "cores": _cores()},
+        "wall_time_s": round(time.time() - started, 3),
+    }
+    write_json(target / MANIFEST_FILE, manifest)
+    shutil.rmtree(target / RUNS_DIR, ignore_errors=True)
+    return records, target
+
+
+def _cores() -> int:
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()

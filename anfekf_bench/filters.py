@@ -193,7 +193,12 @@ class ANFEKF(RobotEKF):
         self.Qu = self.Qu * scale
         if self.spec.learning and slope:
             H = self._H_last
-            dS_dscale = np.einsum("ij,jk,ik->i", H, self.Q_interval, H)
+            # After earlier landmarks of the same scan P has shrunk, so the interval's process
+            # noise can exceed what is left of H P H^T; capping it there keeps S' > 0 and bounds
+            # |dE/do| by sum |e_i| / 2.
+            dS_dscale = np.minimum(
+                np.einsum("ij,jk,ik->i", H, self.Q_interval, H), S - np.diag(self.R)
+            )
             S_new = S + (scale - 1.0) * dS_dscale
             e = (S_new - C) / (S_new + C)
             dE_do = float(np.sum(e * 2.0 * C / (S_new + C) ** 2 * scale * dS_dscale))

@@ -1,0 +1,192 @@
+"""End to end: simulation, seeding, Parquet output, the `run` command and its errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from anfekf_bench.cli import app
+from anfekf_bench.config import load_scenario, parse_scenario, resolve_world
+from anfekf_bench.experiment import execute, make_plan
+from anfekf_bench.runner import STEP_COLUMNS, run_one
+from anfekf_bench.simulation import simulate_run, simulate_truth
+from anfekf_bench.storage import read_parquet, read_steps, write_parquet
+
+from .conftest import small_scenario, write_scenario
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+runner = CliRunner()
+
+
+def test_default_world_drives_the_whole_route():
+    _, world = load_scenario(CONFIGS / "correct.yaml")
+    truth = simulate_truth(world)
+    assert len(world.landmarks) == 35 and len(world.waypoints) == 17
+    final = truth.x[-1, :2]
+    assert np.hypot(*(final - world.waypoints[-1])) < world.waypoint_tolerance
+    assert np.all(np.abs(truth.u[:, 1]) <= world.max_steer + 1e-12)
+    assert np.all(np.abs(np.diff(truth.u[:, 1])) <= world.max_steer_rate * world.T + 1e-12)
+    assert np.allclose(truth.u[:, 0], world.V)
+
+
+def test_scans_are_at_the_sensor_rate_within_range_and_field_of_view():
+    scenario, world = load_scenario(CONFIGS / "correct.yaml")
+    truth = simulate_truth(world)
+    data = simulate_run(world, truth, scenario.true_noise.radians(), np.random.default_rng(0))
+    assert [s.step for s in data.scans[:3]] == [8, 16, 24]
+    assert len(data.scans) == len(truth.u) // 8
+    seen = np.array([len(s.ids) for s in data.scans])
+    assert seen.max() >= 2 and 0 < np.mean(seen > 0) < 1  # sparse map: some scans see nothing
+    for scan in data.scans[::50]:
+        d = world.landmarks[scan.ids] - truth.x[scan.step, :2]
+        assert np.all(np.hypot(d[:, 0], d[:, 1]) < world.max_range)
+        assert np.all(np.abs(scan.z[:, 1]) < np.pi / 2 + 0.1)
+
+
+def test_same_seed_same_data_other_seed_other_data():
+    scenario = parse_scenario(small_scenario())
+    world = resolve_world(scenario.world, Path("x.yaml"))
+    seeds = np.random.SeedSequence(5).spawn(2)
+    a = run_one(scenario, world, 0, seeds[0])
+    b = run_one(scenario, world, 0, seeds[0])
+    c = run_one(scenario, world, 1, seeds[1])
+    np.testing.assert_array_equal(a["filters"]["ekf"]["x"], b["filters"]["ekf"]["x"])
+    assert not np.allclose(a["filters"]["ekf"]["x"], c["filters"]["ekf"]["x"])
+
+
+def _execute(tmp_path: Path, out: str, **overrides):
+    path = write_scenario(tmp_path / f"{out}.yaml", small_scenario(**overrides))
+    scenario, world = load_scenario(path)
+    plan = make_plan(scenario, world, None, None, None)
+    return execute(plan, tmp_path / out)
+
+
+def test_results_do_not_depend_on_worker_count(tmp_path):
+    _, one = _execute(tmp_path, "one", jobs=1, runs=4)
+    _, two = _execute(tmp_path, "two", jobs=2, runs=4)
+    pd.testing.assert_frame_equal(read_steps(one), read_steps(two), check_exact=True)
+    assert (one / "steps.parquet").read_bytes() == (two / "steps.parquet").read_bytes()
+    _, other = _execute(tmp_path, "other", jobs=2, runs=4, seed=8)
+    assert not np.allclose(read_steps(one)["x_est"], read_steps(other)["x_est"])
+
+
+def test_output_files_and_columns(tmp_path):
+    records, target = _execute(tmp_path, "out", runs=3, record_every=4)
+    steps = read_steps(target)
+    assert list(steps.columns) == STEP_COLUMNS
+    assert set(steps["filter"]) == {"ekf", "anfekf", "ekf-oracle"}
+    per = steps.groupby(["filter", "run"], observed=True).size()
+    assert per.nunique() == 1 and len(per) == 9
+    assert (steps["step"] % 4 == 0).all()
+    np.testing.assert_allclose(steps["t"], steps["step"] * 0.025)
+    manifest = json.loads((target / "manifest.json").read_text())
+    assert manifest["runs"] == 3 and manifest["seed"] == 7
+    assert manifest["scenario"]["name"] == "small" and "numpy" in manifest["versions"]
+    summary = json.loads((target / "summary.json").read_text())
+    assert [r["filter"] for r in summary] == ["ekf", "anfekf", "ekf-oracle"]
+    table = pd.read_parquet(target / "summary.parquet").to_dict(orient="records")
+    assert len(summary) == len(table)
+    for rec_json, rec_pq in zip(summary, table):
+        assert rec_json == rec_pq
+    assert not (target / ".runs").exists()
+    ekf = steps[steps["filter"] == "ekf"]
+    assert ekf["R_rr"].nunique() == 1 and ekf["R_rr"].iloc[0] == pytest.approx(4.0)
+    ada = steps[steps["filter"] == "anfekf"]
+    assert ada["R_rr"].iloc[-1] < 1.0  # R adapted down from the wrong 2 m towards 0.1 m
+
+
+def test_parquet_round_trip(tmp_path):
+    df = pd.DataFrame(
+        {
+            "scenario": pd.Categorical(["s", "s"]),
+            "filter": pd.Categorical(["ekf", "anfekf"], categories=["ekf", "anfekf"]),
+            "run": np.array([0, 1], dtype=np.int32),
+            "nees": [1.5, np.nan],
+            "diverged": [False, True],
+        }
+    )
+    write_parquet(tmp_path / "x.parquet", df)
+    back = read_parquet(tmp_path / "x.parquet")
+    pd.testing.assert_frame_equal(back, df)
+    assert not list(tmp_path.glob(".*tmp"))
+
+
+@pytest.mark.parametrize(
+    "name, wrong, rmse_better_than_ekf",
+    [("correct", {}, False), ("wrong_r", {"sigma_range": 2.0, "sigma_bearing_deg": 0.1}, True)],
+    ids=["correct-noise", "wrong-R"],
+)
+def test_ekf_consistency_acceptance(tmp_path, name, wrong, rmse_better_than_ekf):
+    """Correct noise, 20 runs: EKF NEES inside the 95 % bounds on >= 85 % of steps; wrong R: not."""
+    doc = {
+        "name": name,
+        "seed": 11,
+        "runs": 20,
+        "jobs": 2,
+        "record_every": 8,
+        "filter_noise": wrong,
+        "filters": [{"name": "ekf", "kind": "ekf"}, {"name": "ekf-oracle", "kind": "ekf-oracle"}],
+    }
+    scenario, world = load_scenario(write_scenario(tmp_path / "s.yaml", doc))
+    records, _ = execute(make_plan(scenario, world, None, None, None), tmp_path / "out")
+    ekf, oracle = records
+    assert ekf["nees_lo"] == pytest.approx(2.02, abs=0.005)
+    assert oracle["nees_in_bounds"] >= 0.85
+    if rmse_better_than_ekf:
+        assert ekf["nees_in_bounds"] < 0.85
+        assert oracle["rmse_pos"] < ekf["rmse_pos"]
+    else:
+        assert ekf["nees_in_bounds"] >= 0.85
+        assert ekf["rmse_pos"] == oracle["rmse_pos"]
+
+
+def test_cli_run_writes_results_and_prints_summary(tmp_path, small_yaml):
+    result = runner.invoke(app, ["run", str(small_yaml), "--runs", "2", "--out", str(tmp_path / "o")])
+    assert result.exit_code == 0, result.output
+    assert "anfekf" in result.output and "RMSE" in result.output
+    assert (tmp_path / "o" / "small" / "manifest.json").is_file()
+    manifest = json.loads((tmp_path / "o" / "small" / "manifest.json").read_text())
+    assert manifest["runs"] == 2
+
+
+def test_cli_runs_every_scenario_in_a_folder(tmp_path):
+    folder = tmp_path / "scen"
+    folder.mkdir()
+    write_scenario(folder / "a.yaml", small_scenario(name="a", runs=1))
+    write_scenario(folder / "b.yaml", small_scenario(name="b", runs=1))
+    result = runner.invoke(app, ["run", str(folder), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "o" / "a" / "manifest.json").is_file()
+    assert (tmp_path / "o" / "b" / "manifest.json").is_file()
+
+
+def _bad(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "bad.yaml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+BAD_SCENARIOS = {
+    "yaml-syntax": ("name: x\nruns: [1, 2\n", "YAML syntax error at line"),
+    "unknown-key": ("name: x\nrunz: 3\n", "runz: unknown key"),
+    "negative-sigma": ("name: x\ntrue_noise: {sigma_range: -0.1}\n", "true_noise.sigma_range"),
+    "runs-zero": ("name: x\nruns: 0\n", "runs: Input should be greater than or equal to 1"),
+    "missing-map": ("name: x\nworld: {landmarks: nowhere.csv}\n", "world.landmarks: map file not"),
+}
+
+
+@pytest.mark.parametrize("text, expected", BAD_SCENARIOS.values(), ids=BAD_SCENARIOS.keys())
+def test_bad_scenarios_give_one_clean_line(tmp_path, text, expected):
+    path = _bad(tmp_path, text)
+    result = runner.invoke(app, ["run", str(path), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 2
+    out = result.stderr.strip()
+    assert out.startswith("error: ") and str(path) in out and expected in out, out
+    assert len(out.splitlines()) == 1
+    assert "Traceback" not in result.output
+    assert not (tmp_path / "o").exists()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from enum import Enum
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -12,7 +13,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from .config import ScenarioError, load_scenario, scenario_files
-from .experiment import OutputExists, execute, make_plan
+from .experiment import RUNS_DIR, OutputExists, PlanError, execute, make_plan
+from .runner import BackendUnavailable
 from .simulation import RouteNotCompleted
 
 app = typer.Typer(
@@ -24,6 +26,13 @@ console = Console()
 err_console = Console(stderr=True)
 
 EXIT_USAGE = 2
+
+
+class Backend(str, Enum):
+    """`anfekf run --backend`: where the Monte Carlo runs execute."""
+
+    local = "local"
+    dask = "dask"
 
 
 @app.callback()
@@ -66,6 +75,8 @@ def _check_out_dir(out: Path) -> None:
         probe = probe.parent
     import os
 
+    if not probe.is_dir():
+        fail(f"{out}: --out cannot be created: {probe} is a file, not a folder")
     if not os.access(probe, os.W_OK):
         fail(f"{out}: --out is not writable")
 
@@ -80,12 +91,24 @@ def run(
         "results"
     ),
     force: Annotated[bool, typer.Option(help="Overwrite a complete earlier result.")] = False,
+    backend: Annotated[
+        Optional[Backend],
+        typer.Option(help="Run on local processes or a Dask cluster (default: the file's)."),
+    ] = None,
+    scheduler: Annotated[
+        Optional[str],
+        typer.Option(metavar="tcp://HOST:PORT", help="Dask scheduler address (--backend dask)."),
+    ] = None,
     debug: Annotated[bool, typer.Option(help="Show tracebacks instead of one-line errors.")] = False,
 ) -> None:
     """Run Monte Carlo batches of every filter of a scenario and write Parquet results."""
+    kind = None if backend is None else backend.value
     try:
-        plans = [make_plan(*load_scenario(p), runs, seed, jobs) for p in scenario_files(scenario)]
-    except ScenarioError as exc:
+        plans = [
+            make_plan(*load_scenario(p), runs, seed, jobs, backend=kind, scheduler=scheduler)
+            for p in scenario_files(scenario)
+        ]
+    except (ScenarioError, PlanError) as exc:
         if debug:
             raise
         fail(str(exc))
@@ -107,13 +130,17 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
         transient=False,
     )
     task = None
+    saved = 0  # runs on disk in <out>/<name>/.runs, for the message if interrupted
 
     def on_start(action: str, done: int, total: int) -> None:
-        nonlocal task
+        nonlocal task, saved
         console.print(f"{plan.name}: {action}", highlight=False)
         task = progress.add_task(plan.name, total=total, completed=done)
+        saved = done
 
     def on_result(_: dict) -> None:
+        nonlocal saved
+        saved += 1
         progress.advance(task)
 
     try:
@@ -123,12 +150,129 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
         if debug:
             raise
         fail(f"{plan.name}: {exc}")
+    except BackendUnavailable as exc:
+        if debug:
+            raise
+        fail(str(exc))
     except OSError as exc:
         if debug:
             raise
         fail(f"{plan.name}: cannot write results: {exc}")
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        fail(
+            f"{plan.name}: interrupted; {saved} of {plan.runs} runs are saved in"
+            f" {Path(out) / plan.name / RUNS_DIR}: run the same command again to resume",
+            code=130,
+        )
     console.print(summary_table(f"{plan.name}: {plan.runs} runs, seed {plan.seed}", records))
     console.print(f"results written to {target}", highlight=False)
+
+
+@app.command()
+def report(
+    results: Annotated[
+        Optional[list[Path]],
+        typer.Argument(
+            metavar="RESULTS_DIR",
+            help="Result folders: a scenario's folder or a parent of several (default: results).",
+            show_default=False,
+        ),
+    ] = None,
+    out: Annotated[Path, typer.Option(help="Report folder.")] = Path("results/report"),
+    image_format: Annotated[
+        str, typer.Option("--format", metavar="png|svg|pdf", help="Figure file format.")
+    ] = "png",
+    debug: Annotated[
+        bool, typer.Option(help="Show tracebacks instead of one-line errors.")
+    ] = False,
+) -> None:
+    """Draw the figures and summary table of saved results (never re-runs anything)."""
+    # Imported here so that `anfekf run` does not pay for matplotlib.
+    from .report import ImageFormat, rich_table, write_report
+    from .storage import ResultsError
+
+    formats = [f.value for f in ImageFormat]
+    if image_format not in formats:
+        fail(f"--format: {image_format!r} is not one of {', '.join(formats)}")
+    _check_out_dir(out)
+    try:
+        done = write_report(results or [Path("results")], out, ImageFormat(image_format))
+    except ResultsError as exc:
+        if debug:
+            raise
+        fail(str(exc))
+    except OSError as exc:
+        if debug:
+            raise
+        fail(f"{out}: cannot write the report: {exc}")
+    console.print(rich_table(done.rows))
+    figures = sum(1 for p in done.files if p.suffix != ".md")
+    console.print(
+        f"report of {len(done.scenarios)} scenarios ({figures} figures) written to"
+        f" {out / 'report.md'}",
+        highlight=False,
+    )
+
+
+@app.command()
+def check(
+    results: Annotated[
+        Path, typer.Argument(help="Results folder of `anfekf run` (or one scenario's folder).")
+    ],
+    baseline: Annotated[
+        Optional[Path],
+        typer.Option(help="Baseline JSON to compare with; without it only the claims are checked."),
+    ] = None,
+    update: Annotated[
+        bool, typer.Option(help="Rewrite BASELINE from RESULTS, on purpose (README).")
+    ] = False,
+    debug: Annotated[bool, typer.Option(help="Show tracebacks instead of one-line errors.")] = False,
+) -> None:
+    """Regression gate: compare results with a baseline and check the paper's claims (exit 1)."""
+    from .check import BaselineError, print_report, run_check
+    from .storage import ResultsError
+
+    try:
+        found = run_check(results, baseline, update=update)
+    except (ResultsError, BaselineError) as exc:
+        if debug:
+            raise
+        fail(str(exc))
+    print_report(found, console)
+    raise typer.Exit(found.exit_code)
+
+
+@app.command()
+def bench(
+    out: Annotated[Path, typer.Option(help="JSON file for the figures.")] = Path(
+        "results/bench.json"
+    ),
+    configs: Annotated[
+        Path, typer.Option(help="Folder of the paper's scenario files (each is run end to end).")
+    ] = Path("configs"),
+    quick: Annotated[
+        bool,
+        typer.Option(help="Tiny sizes (2 runs, short route): checks the machinery, not the targets."),
+    ] = False,
+    debug: Annotated[bool, typer.Option(help="Show tracebacks instead of one-line errors.")] = False,
+) -> None:
+    """Measure harness overhead, ANFEKF cost, 2-worker speedup, memory, Parquet size, wall time."""
+    from .bench import FULL, QUICK, BenchError, bench_table, run_bench
+
+    try:
+        found = run_bench(configs, out, QUICK if quick else FULL, say=console.print)
+    except (BenchError, ScenarioError) as exc:
+        if debug:
+            raise
+        fail(str(exc))
+    except OSError as exc:
+        if debug:
+            raise
+        fail(f"{out}: cannot write the bench figures: {exc}")
+    console.print(bench_table(found))
+    console.print(f"bench figures written to {out}", highlight=False)
 
 
 def main() -> None:  # pragma: no cover - console entry point

@@ -7,6 +7,7 @@ radians once (`World`, `NoiseSigmas.radians`), so the rest of the code works in 
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -14,7 +15,15 @@ from typing import Annotated, Literal, Union
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
 
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 NonNegativeFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
@@ -35,8 +44,28 @@ class ScenarioError(Exception):
         super().__init__(where + message)
 
 
+def _holds_bool(value: object) -> bool:
+    """True for a YAML true/false, also inside lists (but not inside nested mappings)."""
+    if isinstance(value, bool):
+        return True
+    return isinstance(value, (list, tuple)) and any(_holds_bool(v) for v in value)
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bool_as_number(cls, data: object) -> object:
+        # pydantic would read `runs: true` as 1 run: only boolean fields may be true/false.
+        if isinstance(data, dict):
+            for key, value in data.items():
+                field = cls.model_fields.get(key) if isinstance(key, str) else None
+                if field is not None and field.annotation is not bool and _holds_bool(value):
+                    raise PydanticCustomError(
+                        "bool_as_number", "expected a number or text, not true/false", {"key": key}
+                    )
+        return data
 
 
 class NoiseSigmas(_Strict):
@@ -114,6 +143,32 @@ class ANFEKFSpec(_Strict):
 
 FilterSpec = Annotated[Union[EKFSpec, OracleSpec, ANFEKFSpec], Field(discriminator="kind")]
 
+DASK_ADDRESS = r"^(tcp|tls|ws|wss|ucx)://\S+:\d{1,5}$"
+
+
+class BackendConfig(_Strict):
+    """Where the runs execute: local joblib processes, or an existing Dask distributed cluster.
+
+    The backend never changes a run's numbers (run i only depends on its seed), so it is left out
+    of the resume fingerprint; `anfekf run --backend/--scheduler` override it.
+    """
+
+    kind: Literal["local", "dask"] = "local"
+    scheduler: Annotated[str, Field(pattern=DASK_ADDRESS)] | None = Field(
+        None, description="Dask scheduler address tcp://HOST:PORT (kind dask only)"
+    )
+    connect_timeout_s: PositiveFloat = Field(
+        10.0, description="give up reaching the scheduler (or finding workers) after this [s]"
+    )
+
+    @model_validator(mode="after")
+    def _scheduler_iff_dask(self) -> BackendConfig:
+        if self.kind == "dask" and self.scheduler is None:
+            raise ValueError("kind dask needs a scheduler address tcp://HOST:PORT")
+        if self.kind == "local" and self.scheduler is not None:
+            raise ValueError("scheduler is only used with kind dask")
+        return self
+
 
 class Scenario(_Strict):
     """One scenario file."""
@@ -134,6 +189,7 @@ class Scenario(_Strict):
     filters: list[FilterSpec] = Field(
         default_factory=lambda: [EKFSpec(name="ekf")], min_length=1
     )
+    backend: BackendConfig = BackendConfig()
 
     @field_validator("filters")
     @classmethod
@@ -174,7 +230,9 @@ def read_points_csv(path: Path, *, scenario_path: str | Path, field: str) -> np.
     if not path.is_file():
         raise ScenarioError(scenario_path, field, f"map file not found: {path}")
     try:
-        pts = np.loadtxt(path, delimiter=",", comments="#", ndmin=2, dtype=float)
+        with warnings.catch_warnings():  # an empty file warns; we say so in one line below
+            warnings.simplefilter("ignore")
+            pts = np.loadtxt(path, delimiter=",", comments="#", ndmin=2, dtype=float)
     except ValueError as exc:
         first = str(exc).splitlines()[0] if str(exc) else "unreadable"
         raise ScenarioError(
@@ -224,15 +282,31 @@ def resolve_world(cfg: WorldConfig, scenario_path: Path) -> World:
     )
 
 
-def _format_validation_error(exc: ValidationError) -> tuple[str, str]:
-    err = exc.errors()[0]
+def _shown_loc(err: dict) -> list[str]:
+    """The field path a user wrote, without the union members pydantic adds to `loc`."""
     loc = [str(p) for p in err["loc"]]
+    if err["type"] == "bool_as_number":  # raised for the whole mapping: name the key
+        loc.append(str(err["ctx"]["key"]))
     # Drop the discriminator tag pydantic inserts for tagged unions (filters.0.anfekf.window).
     if len(loc) >= 3 and loc[0] == "filters" and loc[2] in ("ekf", "ekf-oracle", "anfekf"):
         loc.pop(2)
+    # A failed map source names both members (world.waypoints.str, world.waypoints.list[...]).
+    if len(loc) >= 3 and loc[0] == "world" and loc[1] in ("landmarks", "waypoints"):
+        loc = loc[:2]
+    return loc
+
+
+def _format_validation_error(exc: ValidationError) -> tuple[str, str]:
+    errors = exc.errors()
+    err = errors[0]
+    loc = _shown_loc(err)
     field = ".".join(loc) or "(top level)"
     msg = err["msg"]
-    if err["type"] == "extra_forbidden":
+    if loc[:1] == ["world"] and loc[1:] in (["landmarks"], ["waypoints"]) and len(err["loc"]) > 2:
+        msg = f"expected '{BUILTIN_MAP}', a CSV path, or a list of [x, y] number pairs"
+    elif err["type"] in ("value_error", "bool_as_number"):  # ours: the message says it all
+        msg = msg.removeprefix("Value error, ")
+    elif err["type"] == "extra_forbidden":
         msg = "unknown key"
         parent = err["loc"][:-1]
         allowed = _allowed_keys(parent)
@@ -243,7 +317,7 @@ def _format_validation_error(exc: ValidationError) -> tuple[str, str]:
         if len(shown) > 60:
             shown = shown[:57] + "..."
         msg += f" (got {shown})"
-    extra = len(exc.errors()) - 1
+    extra = len({".".join(_shown_loc(e)) for e in errors} - {field})
     if extra:
         msg += f" [+{extra} more error{'s' if extra > 1 else ''}]"
     return field, msg
@@ -252,13 +326,13 @@ def _format_validation_error(exc: ValidationError) -> tuple[str, str]:
 def _allowed_keys(parent_loc: tuple) -> list[str]:
     model: type[BaseModel] | None = Scenario
     for part in parent_loc:
-        if model is None:
-            return []
-        if isinstance(part, int):
+        if isinstance(part, int):  # a list index: same model as the list's items
             continue
-        if part in ("ekf", "ekf-oracle", "anfekf"):
+        if part in ("ekf", "ekf-oracle", "anfekf"):  # the filter spec a `kind` selected
             model = {"ekf": EKFSpec, "ekf-oracle": OracleSpec, "anfekf": ANFEKFSpec}[part]
             continue
+        if model is None:
+            return []
         field = model.model_fields.get(part)
         if field is None:
             return []
@@ -297,9 +371,11 @@ def load_scenario(path: str | Path) -> tuple[Scenario, World]:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise ScenarioError(path, "", f"YAML syntax error at {where}{problem}") from None
+        raise ScenarioError(path, "", f"YAML syntax error{where}: {problem}") from None
+    except RecursionError:
+        raise ScenarioError(path, "", "YAML nested too deeply") from None
     scenario = parse_scenario(data, path)
     return scenario, resolve_world(scenario.world, path)
 

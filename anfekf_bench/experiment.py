@@ -18,8 +18,9 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import joblib
+from pydantic import ValidationError
 
-from .config import Scenario, World
+from .config import BackendConfig, Scenario, World
 from .runner import run_batch, steps_frame, summary_records, update_statistics
 from .storage import (
     MANIFEST_FILE,
@@ -39,6 +40,10 @@ class OutputExists(Exception):
     """The output folder holds results we must not overwrite silently."""
 
 
+class PlanError(ValueError):
+    """Command-line overrides that do not fit together; `str()` is the one-line message."""
+
+
 @dataclass(frozen=True)
 class Plan:
     """A scenario with the command line's overrides applied."""
@@ -48,15 +53,17 @@ class Plan:
     runs: int
     seed: int
     jobs: int
+    backend: BackendConfig = BackendConfig()
 
     @property
     def name(self) -> str:
         return self.scenario.name
 
     def fingerprint(self) -> str:
-        """Hash of everything that determines a run's bytes (not jobs: it changes nothing)."""
+        """Hash of everything that determines a run's bytes (not jobs or backend: they change
+        nothing, so a batch started locally may be resumed on a Dask cluster and back)."""
         doc = {
-            "scenario": self.scenario.model_dump(mode="json", exclude={"jobs", "runs"}),
+            "scenario": self.scenario.model_dump(mode="json", exclude={"jobs", "runs", "backend"}),
             "seed": self.seed,
             "landmarks": self.world.landmarks.tolist(),
             "waypoints": self.world.waypoints.tolist(),
@@ -65,15 +72,47 @@ class Plan:
 
 
 def make_plan(
-    scenario: Scenario, world: World, runs: int | None, seed: int | None, jobs: int | None
+    scenario: Scenario,
+    world: World,
+    runs: int | None,
+    seed: int | None,
+    jobs: int | None,
+    *,
+    backend: str | None = None,
+    scheduler: str | None = None,
 ) -> Plan:
+    """Apply the command line's overrides (None: keep the scenario file's value)."""
     return Plan(
         scenario=scenario,
         world=world,
         runs=scenario.runs if runs is None else runs,
         seed=scenario.seed if seed is None else seed,
         jobs=scenario.jobs if jobs is None else jobs,
+        backend=resolve_backend(scenario.backend, backend, scheduler),
     )
+
+
+def resolve_backend(base: BackendConfig, kind: str | None, scheduler: str | None) -> BackendConfig:
+    """The scenario file's backend with `--backend` / `--scheduler` applied; PlanError if unfit."""
+    kind = base.kind if kind is None else kind
+    if kind == "local":
+        if scheduler is not None:
+            raise PlanError(f"--scheduler {scheduler}: only used with --backend dask")
+        return BackendConfig(kind="local", connect_timeout_s=base.connect_timeout_s)
+    address = base.scheduler if scheduler is None else scheduler
+    if address is None:
+        raise PlanError(
+            "--backend dask needs --scheduler tcp://HOST:PORT"
+            " (or backend.scheduler in the scenario file)"
+        )
+    try:
+        return BackendConfig(
+            kind="dask", scheduler=address, connect_timeout_s=base.connect_timeout_s
+        )
+    except ValidationError:
+        raise PlanError(
+            f"--scheduler {address}: expected a Dask scheduler address like tcp://HOST:PORT"
+        ) from None
 
 
 def package_versions() -> dict[str, str]:
@@ -122,6 +161,9 @@ def prepare_output(plan: Plan, out_dir: Path, force: bool) -> tuple[Path, dict[i
     write_atomic(stamp, lambda tmp: tmp.write_text(plan.fingerprint() + "\n"))
     for stale in (STEPS_FILE, SUMMARY_PARQUET, SUMMARY_JSON):
         (target / stale).unlink(missing_ok=True)
+    # Temporary files of writes a kill cut short (storage.write_atomic names them .<name>.*.tmp).
+    for torn in [*target.glob(".*.tmp"), *runs_dir.glob(".*.tmp")]:
+        torn.unlink(missing_ok=True)
     return target, done, action
 
 
@@ -141,8 +183,6 @@ def execute(
     """Run the plan and write its results; returns (summary records, scenario folder)."""
     started = time.time()
     target, done, action = prepare_output(plan, out_dir, force)
-    if on_start is not None:
-        on_start(action, len(done), plan.runs)
 
     def keep(result: dict) -> None:
         save_run(target, result)
@@ -150,7 +190,8 @@ def execute(
             on_result(result)
 
     results = dict(done)
-    for result in run_batch(
+    # Reaches a Dask cluster now, so an unreachable one fails before any progress is shown.
+    batch = run_batch(
         plan.scenario,
         plan.world,
         runs=plan.runs,
@@ -158,7 +199,13 @@ def execute(
         jobs=plan.jobs,
         on_result=keep,
         skip=set(done),
-    ):
+        backend=plan.backend.kind,
+        scheduler=plan.backend.scheduler,
+        connect_timeout_s=plan.backend.connect_timeout_s,
+    )
+    if on_start is not None:
+        on_start(action, len(done), plan.runs)
+    for result in batch:
         results[result["run"]] = result
     ordered = [results[i] for i in range(plan.runs)]
     names = [f.name for f in plan.scenario.filters]
@@ -174,6 +221,7 @@ def execute(
         "runs": plan.runs,
         "seed": plan.seed,
         "jobs": plan.jobs,
+        "backend": plan.backend.model_dump(mode="json"),
         "fingerprint": plan.fingerprint(),
         "world": {
             "landmarks": plan.world.landmarks.tolist(),

@@ -2,16 +2,18 @@
 
 `run_one` is a top-level function taking plain keyword data and returning plain data; it mutates
 nothing shared. Run i draws from `SeedSequence(seed).spawn(runs)[i]` only (SPEC 6), so results do
-not depend on the number of workers or on the order in which runs finish.
+not depend on the number of workers or on the order in which runs finish. The same holds on a Dask
+cluster (`backend="dask"`): joblib's dask backend ships the same calls to the cluster's workers.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from typing import Literal
 
 import numpy as np
 import pandas as pd
-from joblib import Parallel, delayed
+from joblib import Parallel, delayed, parallel_config
 
 from .config import Scenario, World
 from .filters import FilterDiverged, RobotEKF, build_filter
@@ -69,6 +71,9 @@ def run_filter(flt: RobotEKF, data: RunData, world: World, record_every: int) ->
                 R[j] = flt.R[0, 0], flt.R[1, 1]
                 Qu[j] = flt.Qu[0, 0], flt.Qu[1, 1]
                 j += 1
+        # Health is checked at scans; a blow-up in the predictions after the last one shows here.
+        if not (np.isfinite(x).all() and np.isfinite(P).all()):
+            raise FilterDiverged("non-finite estimate after the last scan")
     except (FilterDiverged, np.linalg.LinAlgError, ValueError, OverflowError):
         diverged = True
         x[j:] = P[j:] = R[j:] = Qu[j:] = np.nan
@@ -128,16 +133,83 @@ def run_batch(
     jobs: int,
     on_result: Callable[[dict], None] | None = None,
     skip: set[int] | frozenset[int] = frozenset(),
+    backend: Literal["local", "dask"] = "local",
+    scheduler: str | None = None,
+    connect_timeout_s: float = 10.0,
 ) -> Iterator[dict]:
-    """Yield run results as they finish (any order); `skip` leaves out runs already done."""
+    """Run results as they finish (any order); `skip` leaves out runs already done.
+
+    backend "local" uses `jobs` local processes; "dask" runs on the existing Dask cluster whose
+    scheduler listens at `scheduler` (all its worker threads; `jobs` is not used there). The
+    cluster is reached here, before the first result is asked for, so a scheduler that cannot be
+    reached raises BackendUnavailable at once.
+    """
     tasks = [t for t in run_tasks(scenario, world, runs, seed) if t["run"] not in skip]
     if not tasks:
-        return
-    parallel = Parallel(n_jobs=min(jobs, len(tasks)), return_as="generator_unordered")
-    for result in parallel(delayed(run_one)(**task) for task in tasks):
+        return iter(())
+    calls = (delayed(run_one)(**task) for task in tasks)
+    if backend == "dask":
+        results = _run_on_dask(connect_dask(scheduler, connect_timeout_s), calls)
+    else:
+        parallel = Parallel(n_jobs=min(jobs, len(tasks)), return_as="generator_unordered")
+        results = parallel(calls)
+    return _announce(results, on_result)
+
+
+def _announce(results: Iterable[dict], on_result: Callable[[dict], None] | None) -> Iterator[dict]:
+    for result in results:
         if on_result is not None:
             on_result(result)
         yield result
+
+
+class BackendUnavailable(Exception):
+    """The chosen backend cannot run the batch; `str()` is the one-line message for the user."""
+
+
+def _run_on_dask(client, calls: Iterable) -> Iterator[dict]:
+    """Run joblib calls on a Dask cluster, one task per run, yielding results as they finish."""
+    try:
+        with parallel_config(backend="dask", client=client):
+            # batch_size=1: one Dask task per run, so the progress bar moves with every run.
+            parallel = Parallel(n_jobs=-1, batch_size=1, return_as="generator_unordered")
+        yield from parallel(calls)
+    finally:
+        client.close()
+
+
+def connect_dask(scheduler: str | None, timeout_s: float):
+    """A `distributed.Client` on `scheduler` with at least one worker, or BackendUnavailable."""
+    try:
+        from distributed import Client
+    except ImportError:
+        raise BackendUnavailable(
+            'the dask backend needs dask[distributed]; install it with: pip install -e ".[dask]"'
+        ) from None
+    if not scheduler:
+        raise BackendUnavailable("the dask backend needs a scheduler address tcp://HOST:PORT")
+    try:
+        client = Client(scheduler, timeout=timeout_s, set_as_default=False)
+    except Exception as exc:  # refused, timed out, not a Dask scheduler: all mean "not reachable"
+        # distributed retries a refused connection until the timeout, then says "Timed out ...".
+        reason = "no answer" if str(exc).startswith("Timed out") else _first_line(exc)
+        raise BackendUnavailable(
+            f"cannot reach Dask scheduler at {scheduler}: {reason} (timeout {timeout_s:g} s)"
+        ) from None
+    try:
+        client.wait_for_workers(1, timeout=timeout_s)
+    except Exception:
+        client.close()
+        raise BackendUnavailable(
+            f"Dask scheduler at {scheduler} has no workers after {timeout_s:g} s;"
+            f" start some with: dask worker {scheduler}"
+        ) from None
+    return client
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def steps_frame(scenario_name: str, filter_names: list[str], results: list[dict]) -> pd.DataFrame:

@@ -21,6 +21,7 @@ STEPS_FILE = "steps.parquet"
 SUMMARY_PARQUET = "summary.parquet"
 SUMMARY_JSON = "summary.json"
 MANIFEST_FILE = "manifest.json"
+RUNS_DIR = ".runs"  # finished runs of an unfinished batch (experiment.py)
 
 
 class ResultsError(Exception):
@@ -92,16 +93,28 @@ def scenario_dirs(results_dir: Path) -> list[Path]:
         raise ResultsError(f"{results_dir}: results folder does not exist")
     if not results_dir.is_dir():
         raise ResultsError(f"{results_dir}: not a folder")
-    if (results_dir / STEPS_FILE).exists():
+    if _is_result_dir(results_dir):
         candidates = [results_dir]
     else:
-        candidates = sorted(p for p in results_dir.iterdir() if (p / STEPS_FILE).exists())
+        candidates = sorted(p for p in results_dir.iterdir() if _is_result_dir(p))
     if not candidates:
         raise ResultsError(
             f"{results_dir}: no results found (expected {STEPS_FILE} in it or in its sub-folders;"
             " run `anfekf run` first)"
         )
+    for folder in candidates:
+        # manifest.json is written last: without it the files may be partial or stale.
+        if not (folder / MANIFEST_FILE).is_file():
+            raise ResultsError(
+                f"{folder}: incomplete result (no {MANIFEST_FILE}; the run was interrupted or is"
+                " still going); rerun the same `anfekf run` command to resume it"
+            )
     return candidates
+
+
+def _is_result_dir(path: Path) -> bool:
+    """A scenario folder, complete or not: it has a results file or saved runs."""
+    return (path / STEPS_FILE).exists() or (path / RUNS_DIR).is_dir()
 
 
 def read_steps(scenario_dir: Path) -> pd.DataFrame:

@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 ANFEKF := $(VENV)/bin/anfekf
 OUT    ?= results
 
-.PHONY: setup reproduce run report test lint format bench clean
+.PHONY: setup reproduce run report test lint format bench gate clean
 
 setup: $(VENV)/.installed
 
@@ -15,8 +15,9 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install --quiet -e ".[dev,dask]"
 	touch $@
 
-## The paper's four experiments at 50 runs each, then the report.
-reproduce: run report
+## The paper's four experiments at 50 runs each, then the report (after the runs, even with -j).
+reproduce: run
+	$(MAKE) report
 
 run: setup
 	$(ANFEKF) run configs/ --out $(OUT) --force
@@ -37,6 +38,15 @@ format: setup
 
 bench: setup
 	$(ANFEKF) bench --out $(OUT)/bench.json
+
+## Regression gate (README): the four scenarios at 20 runs against the committed baseline.
+## Refresh the baseline on purpose with: make gate GATE_FLAGS=--update
+GATE_OUT      ?= $(OUT)/ci-gate
+GATE_BASELINE ?= results/baselines/ci.json
+GATE_FLAGS    ?=
+gate: setup
+	$(ANFEKF) run configs/ci --out $(GATE_OUT) --force
+	$(ANFEKF) check $(GATE_OUT) --baseline $(GATE_BASELINE) $(GATE_FLAGS)
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache

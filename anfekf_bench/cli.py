@@ -12,7 +12,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from .config import ScenarioError, load_scenario, scenario_files
+from .config import ScenarioError, load_scenario, one_line, scenario_files
 from .experiment import RUNS_DIR, OutputExists, PlanError, execute, make_plan
 from .runner import BackendUnavailable
 from .simulation import RouteNotCompleted
@@ -42,17 +42,28 @@ def _root() -> None:
 
 def fail(message: str, code: int = EXIT_USAGE):
     """Print one line to stderr and exit: the only way a command reports bad input."""
-    err_console.print(f"error: {message}", markup=False, highlight=False, soft_wrap=True)
+    line = one_line(f"error: {message}")
+    err_console.print(line, markup=False, highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 
 def _fmt(x, digits: int = 3) -> str:
-    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{digits}f}"
+    return (
+        "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{digits}f}"
+    )
 
 
 def summary_table(title: str, records: list[dict]) -> Table:
     table = Table(title=title, title_justify="left")
-    for col in ("filter", "runs", "diverged", "RMSE pos (m)", "RMSE head (deg)", "ANEES", "in bounds"):
+    for col in (
+        "filter",
+        "runs",
+        "diverged",
+        "RMSE pos (m)",
+        "RMSE head (deg)",
+        "ANEES",
+        "in bounds",
+    ):
         table.add_column(col, justify="left" if col == "filter" else "right")
     for r in records:
         table.add_row(
@@ -84,9 +95,13 @@ def _check_out_dir(out: Path) -> None:
 @app.command()
 def run(
     scenario: Annotated[Path, typer.Argument(help="Scenario YAML file, or a folder of them.")],
-    runs: Annotated[Optional[int], typer.Option(min=1, help="Monte Carlo runs (overrides file).")] = None,
-    jobs: Annotated[Optional[int], typer.Option(min=1, help="joblib workers (default: the file's jobs, else 2).")] = None,
-    seed: Annotated[Optional[int], typer.Option(min=0, help="Root seed (overrides file).")] = None,
+    runs: Annotated[
+        Optional[int], typer.Option(help="Monte Carlo runs, >= 1 (overrides file).")
+    ] = None,
+    jobs: Annotated[
+        Optional[int], typer.Option(help="Local workers, >= 1 (default: the file's jobs, else 2).")
+    ] = None,
+    seed: Annotated[Optional[int], typer.Option(help="Root seed, >= 0 (overrides file).")] = None,
     out: Annotated[Path, typer.Option(help="Output folder; results go to OUT/<name>/.")] = Path(
         "results"
     ),
@@ -99,9 +114,15 @@ def run(
         Optional[str],
         typer.Option(metavar="tcp://HOST:PORT", help="Dask scheduler address (--backend dask)."),
     ] = None,
-    debug: Annotated[bool, typer.Option(help="Show tracebacks instead of one-line errors.")] = False,
+    debug: Annotated[
+        bool, typer.Option(help="Show tracebacks instead of one-line errors.")
+    ] = False,
 ) -> None:
     """Run Monte Carlo batches of every filter of a scenario and write Parquet results."""
+    # Checked here rather than by typer's min=, whose error is a multi-line box.
+    for flag, value, least in (("--runs", runs, 1), ("--jobs", jobs, 1), ("--seed", seed, 0)):
+        if value is not None and value < least:
+            fail(f"{flag}: must be an integer >= {least} (got {value})")
     kind = None if backend is None else backend.value
     try:
         plans = [
@@ -145,7 +166,9 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
 
     try:
         with progress:
-            records, target = execute(plan, out, force=force, on_start=on_start, on_result=on_result)
+            records, target = execute(
+                plan, out, force=force, on_start=on_start, on_result=on_result
+            )
     except (OutputExists, RouteNotCompleted) as exc:
         if debug:
             raise
@@ -228,7 +251,9 @@ def check(
     update: Annotated[
         bool, typer.Option(help="Rewrite BASELINE from RESULTS, on purpose (README).")
     ] = False,
-    debug: Annotated[bool, typer.Option(help="Show tracebacks instead of one-line errors.")] = False,
+    debug: Annotated[
+        bool, typer.Option(help="Show tracebacks instead of one-line errors.")
+    ] = False,
 ) -> None:
     """Regression gate: compare results with a baseline and check the paper's claims (exit 1)."""
     from .check import BaselineError, print_report, run_check
@@ -253,10 +278,11 @@ def bench(
         Path, typer.Option(help="Folder of the paper's scenario files (each is run end to end).")
     ] = Path("configs"),
     quick: Annotated[
-        bool,
-        typer.Option(help="Tiny sizes (2 runs, short route): checks the machinery, not the targets."),
+        bool, typer.Option(help="Tiny sizes (2 runs, short route): the machinery, not the targets.")
     ] = False,
-    debug: Annotated[bool, typer.Option(help="Show tracebacks instead of one-line errors.")] = False,
+    debug: Annotated[
+        bool, typer.Option(help="Show tracebacks instead of one-line errors.")
+    ] = False,
 ) -> None:
     """Measure harness overhead, ANFEKF cost, 2-worker speedup, memory, Parquet size, wall time."""
     from .bench import FULL, QUICK, BenchError, bench_table, run_bench
@@ -277,4 +303,3 @@ def bench(
 
 def main() -> None:  # pragma: no cover - console entry point
     app()
-

@@ -33,6 +33,11 @@ MapSource = Union[str, list[Point]]
 BUILTIN_MAP = "bailey-webmap"
 
 
+def one_line(text: str) -> str:
+    """`text` with line breaks and other control characters escaped (a key may hold them)."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 class ScenarioError(Exception):
     """A scenario cannot be used; `str()` is the one-line message shown to the user."""
 
@@ -41,7 +46,7 @@ class ScenarioError(Exception):
         self.field = field
         self.message = message
         where = f"{self.path}: {field}: " if field else f"{self.path}: "
-        super().__init__(where + message)
+        super().__init__(one_line(where + message))
 
 
 def _holds_bool(value: object) -> bool:
@@ -90,7 +95,8 @@ class WorldConfig(_Strict):
     """SPEC section 1; defaults are the paper's / Bailey's simulator settings."""
 
     landmarks: MapSource = Field(
-        BUILTIN_MAP, description="CSV path (relative to the YAML file), list of [x, y], or the builtin map"
+        BUILTIN_MAP,
+        description="CSV path (relative to the YAML file), list of [x, y], or the builtin map",
     )
     waypoints: MapSource = Field(BUILTIN_MAP, description="as `landmarks`")
     loops: int = Field(1, ge=1, le=100)
@@ -186,9 +192,7 @@ class Scenario(_Strict):
     gate_probability: Annotated[float, Field(gt=0, lt=1)] | None = Field(
         0.999, description="chi-square validation gate (eq. 26); null switches it off"
     )
-    filters: list[FilterSpec] = Field(
-        default_factory=lambda: [EKFSpec(name="ekf")], min_length=1
-    )
+    filters: list[FilterSpec] = Field(default_factory=lambda: [EKFSpec(name="ekf")], min_length=1)
     backend: BackendConfig = BackendConfig()
 
     @field_validator("filters")
@@ -357,7 +361,7 @@ def parse_scenario(data: object, path: str | Path = "<scenario>") -> Scenario:
 
 
 def load_scenario(path: str | Path) -> tuple[Scenario, World]:
-    """Read, validate and resolve one scenario file; raises ScenarioError with a one-line message."""
+    """Read, validate and resolve a scenario file; raises ScenarioError with a one-line message."""
     path = Path(path)
     if not path.exists():
         raise ScenarioError(path, "", "scenario file does not exist")

@@ -33,7 +33,16 @@ from .storage import (
 )
 
 RUNS_DIR = ".runs"
-_PACKAGES = ("anfekf-bench", "numpy", "scipy", "filterpy", "pandas", "pyarrow", "joblib", "pydantic")
+_PACKAGES = (
+    "anfekf-bench",
+    "numpy",
+    "scipy",
+    "filterpy",
+    "pandas",
+    "pyarrow",
+    "joblib",
+    "pydantic",
+)
 
 
 class OutputExists(Exception):
@@ -126,7 +135,7 @@ def package_versions() -> dict[str, str]:
 
 
 def prepare_output(plan: Plan, out_dir: Path, force: bool) -> tuple[Path, dict[int, dict], str]:
-    """Create <out>/<name>; return it, the saved runs to resume and a sentence saying what we did."""
+    """Create <out>/<name>; return it, the saved runs to resume and a sentence saying what we do."""
     target = Path(out_dir) / plan.name
     if target.exists() and not target.is_dir():
         raise OutputExists(f"{target}: exists and is not a folder")

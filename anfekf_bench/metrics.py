@@ -55,7 +55,11 @@ def summarize_filter(
     if n == 0:
         nan = float("nan")
         record.update(
-            rmse_pos=nan, rmse_heading=nan, anees=nan, nees_lo=nan, nees_hi=nan,
+            rmse_pos=nan,
+            rmse_heading=nan,
+            anees=nan,
+            nees_lo=nan,
+            nees_hi=nan,
             nees_in_bounds=nan,
         )
         return record

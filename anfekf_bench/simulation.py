@@ -1,4 +1,4 @@
-"""Truth simulation (SPEC section 1): waypoint-driven car, noisy odometry and range-bearing scans."""
+"""Truth simulation (SPEC section 1): waypoint-driven car, noisy odometry, range-bearing scans."""
 
 from __future__ import annotations
 
@@ -102,7 +102,5 @@ def simulate_run(
     u_odo = truth.u + rng.standard_normal((K, 2)) * np.array([sv, sg])
     scan_steps = range(world.sensor_every, K + 1, world.sensor_every)
     noise = rng.standard_normal((len(scan_steps), len(world.landmarks), 2)) * np.array([sr, sb])
-    scans = tuple(
-        observe(world, truth.x[k], noise[i], k) for i, k in enumerate(scan_steps)
-    )
+    scans = tuple(observe(world, truth.x[k], noise[i], k) for i, k in enumerate(scan_steps))
     return RunData(truth=truth, u_odo=u_odo, scans=scans)

@@ -109,7 +109,24 @@ def scenario_dirs(results_dir: Path) -> list[Path]:
                 f"{folder}: incomplete result (no {MANIFEST_FILE}; the run was interrupted or is"
                 " still going); rerun the same `anfekf run` command to resume it"
             )
+        for name in (STEPS_FILE, SUMMARY_PARQUET):
+            _check_parquet_footer(folder / name)
     return candidates
+
+
+def _check_parquet_footer(path: Path) -> None:
+    """A cheap look at a Parquet file's footer (which a truncated file lacks), if it exists.
+
+    report reads steps.parquet and check reads summary.parquet; this makes both refuse a folder
+    whose other file is damaged, instead of passing on half a result.
+    """
+    if not path.exists():
+        return
+    try:
+        pq.read_metadata(path)
+    except (pa.ArrowException, OSError, ValueError) as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ResultsError(f"{path}: not a readable Parquet file ({first})") from None
 
 
 def _is_result_dir(path: Path) -> bool:

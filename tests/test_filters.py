@@ -128,7 +128,9 @@ def test_anfekf_adapts_and_learns(small_run, adapt):
     assert not np.allclose(trace[col][-1], trace[col][0])
     untrained = anfis.init_params(singleton_scale=spec.singleton_scale)
     assert not np.allclose(flt.anfis_params[0].w, untrained.w)
-    assert not np.allclose(flt.anfis_params[0].m, _run(frozen_spec(adapt), *small_run)[0].anfis_params[0].m)
+    assert not np.allclose(
+        flt.anfis_params[0].m, _run(frozen_spec(adapt), *small_run)[0].anfis_params[0].m
+    )
 
 
 def frozen_spec(adapt):

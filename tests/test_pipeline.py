@@ -91,7 +91,7 @@ def test_output_files_and_columns(tmp_path):
     assert [r["filter"] for r in summary] == ["ekf", "anfekf", "ekf-oracle"]
     table = pd.read_parquet(target / "summary.parquet").to_dict(orient="records")
     assert len(summary) == len(table)
-    for rec_json, rec_pq in zip(summary, table):
+    for rec_json, rec_pq in zip(summary, table, strict=True):
         assert rec_json == rec_pq
     assert not (target / ".runs").exists()
     ekf = steps[steps["filter"] == "ekf"]
@@ -146,7 +146,9 @@ def test_ekf_consistency_acceptance(tmp_path, name, wrong, rmse_better_than_ekf)
 
 
 def test_cli_run_writes_results_and_prints_summary(tmp_path, small_yaml):
-    result = runner.invoke(app, ["run", str(small_yaml), "--runs", "2", "--out", str(tmp_path / "o")])
+    result = runner.invoke(
+        app, ["run", str(small_yaml), "--runs", "2", "--out", str(tmp_path / "o")]
+    )
     assert result.exit_code == 0, result.output
     assert "anfekf" in result.output and "RMSE" in result.output
     assert (tmp_path / "o" / "small" / "manifest.json").is_file()
@@ -189,4 +191,17 @@ def test_bad_scenarios_give_one_clean_line(tmp_path, text, expected):
     assert out.startswith("error: ") and str(path) in out and expected in out, out
     assert len(out.splitlines()) == 1
     assert "Traceback" not in result.output
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(
+    "flag, value",
+    [("--runs", "0"), ("--jobs", "0"), ("--seed", "-1")],
+    ids=["runs", "jobs", "seed"],
+)
+def test_bad_flags_give_one_clean_line(tmp_path, small_yaml, flag, value):
+    result = runner.invoke(app, ["run", str(small_yaml), flag, value, "--out", str(tmp_path / "o")])
+    assert result.exit_code == 2
+    out = result.stderr.strip()
+    assert out.startswith(f"error: {flag}: must be an integer >=") and len(out.splitlines()) == 1
     assert not (tmp_path / "o").exists()

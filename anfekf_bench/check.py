@@ -1,0 +1,700 @@
+"""The regression gate: compare scenario summaries with a committed baseline, check the claims.
+
+`anfekf check RESULTS --baseline FILE` reads every scenario's summary under RESULTS and compares
+each (scenario, filter, metric) with the baseline, within the tolerance the baseline file keeps for
+that metric. Independently of any baseline it checks the paper's claims (ANFEKF against the EKF)
+as invariants. Exit codes: 0 pass, 1 a regression / change / broken claim, 2 unusable input.
+
+Verdicts, per row (every verdict but "ok" fails the gate; see RULES, also written into the file):
+- ok: within tolerance.
+- worse / better (refresh the baseline): beyond tolerance, in the bad / good direction. An
+  improvement fails too: results must not change silently, and the baseline has to follow.
+- changed: beyond tolerance for a metric without a direction, or the seed or run count differs.
+- missing: a scenario or filter of the baseline is not in the results.
+- new (not in the baseline): a scenario or filter of the results that the baseline does not guard.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+from rich.console import Console
+from rich.table import Table
+from rich.text import Text
+
+from .storage import (
+    MANIFEST_FILE,
+    SUMMARY_PARQUET,
+    ResultsError,
+    read_json,
+    read_summary,
+    scenario_dirs,
+    write_json,
+)
+
+BASELINE_FORMAT = "anfekf-bench baseline"
+BASELINE_VERSION = 1
+
+# Tight enough to catch a real change (results are deterministic for a seed), loose enough for
+# float differences across numpy/BLAS builds, which can flip a rare gating decision in one run.
+DEFAULT_TOLERANCES: dict[str, dict[str, float]] = {
+    "rmse_pos": {"relative": 0.03},
+    "rmse_heading": {"relative": 0.03},
+    "anees": {"relative": 0.05},
+    "nees_in_bounds": {"absolute": 0.03},
+    "diverged": {"absolute": 0},
+}
+
+# Which way is better for each summary metric a baseline may guard: "lower", "higher", a number
+# (the ideal value: closer is better, measured as |log(value / ideal)|, since NEES is a ratio),
+# or None (no better side: any change beyond tolerance is just "changed").
+METRIC_SENSE: dict[str, str | float | None] = {
+    "rmse_pos": "lower",
+    "rmse_heading": "lower",
+    "diverged": "lower",
+    "runs_used": "higher",
+    "nees_in_bounds": "higher",
+    "anees": 3.0,  # the pose dimension: a consistent filter's mean NEES
+    "anis": 2.0,  # the measurement dimension
+    "gate_rejected": None,
+}
+
+RULES = [
+    "Each (scenario, filter, metric) of the results is compared with this file's value within the"
+    " metric's tolerance: relative = |now - baseline| / |baseline|, absolute = |now - baseline|.",
+    "Every verdict but 'ok' fails the gate (exit 1): 'worse' and 'better (refresh the baseline)'"
+    " (beyond tolerance either way: results must not change silently), 'changed' (no better side,"
+    " or other seed/runs), 'missing' and 'new' (scenario or filter only on one side).",
+    "Better is lower for rmse_pos, rmse_heading and diverged, higher for nees_in_bounds and"
+    " runs_used, closer to 3 for anees and to 2 for anis (as |log(value / ideal)|).",
+    "A null value means undefined (every run diverged); becoming undefined counts as 'worse'.",
+    "Refresh on purpose only: anfekf check RESULTS --baseline FILE --update (README, Regression"
+    " gate).",
+]
+
+WIDE_LOG = 120  # columns for the tables when the output is not a terminal
+
+ADAPTIVE = "anfekf"
+REFERENCE = "ekf"
+
+
+class BaselineError(Exception):
+    """The baseline file cannot be used; `str()` is the one-line message for the user."""
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """How far a metric may move from its baseline value before the gate fails."""
+
+    kind: str  # "relative" or "absolute"
+    limit: float
+
+    def change(self, base: float, now: float) -> float:
+        """The signed change in this tolerance's unit (a fraction of |base| if relative)."""
+        if self.kind == "absolute":
+            return now - base
+        if base == 0:
+            return 0.0 if now == 0 else math.copysign(math.inf, now)
+        return (now - base) / abs(base)
+
+    def exceeded(self, base: float, now: float) -> bool:
+        # A hair of slack so a limit of exactly 0 (diverged) is not broken by float noise.
+        return abs(self.change(base, now)) > self.limit + 1e-12
+
+    def describe(self) -> str:
+        if self.kind == "relative":
+            return f"±{100 * self.limit:g} % relative"
+        return f"±{self.limit:g} absolute"
+
+    def as_json(self) -> dict[str, float]:
+        return {self.kind: self.limit}
+
+
+@dataclass(frozen=True)
+class ScenarioSummary:
+    """One scenario as the gate sees it: how it was run and each filter's metrics (NaN = null)."""
+
+    name: str
+    seed: int
+    runs: int
+    filters: dict[str, dict[str, float]]
+    fingerprint: str | None = None
+    versions: dict | None = None
+
+
+@dataclass(frozen=True)
+class Baseline:
+    tolerances: dict[str, Tolerance]
+    scenarios: dict[str, ScenarioSummary]
+
+
+@dataclass(frozen=True)
+class Row:
+    """One line of the comparison table; `detail` is the sentence printed for a failing row."""
+
+    scenario: str
+    filter: str
+    metric: str
+    baseline: float | None
+    now: float | None
+    delta: str
+    verdict: str
+    detail: str = ""
+
+    @property
+    def passed(self) -> bool:
+        return self.verdict == "ok"
+
+
+@dataclass(frozen=True)
+class Claim:
+    """A claim of the paper, checked as `anfekf <relation> factor * ekf` on one metric."""
+
+    scenario: str
+    metric: str
+    relation: str  # "<", "<=" or ">"
+    factor: float
+    text: str
+
+    def formula(self) -> str:
+        scale = "" if self.factor == 1 else f"{self.factor:g} x "
+        return f"{ADAPTIVE} {self.metric} {self.relation} {scale}{REFERENCE}"
+
+    def holds(self, adaptive: float, reference: float) -> bool:
+        rhs = self.factor * reference
+        return {"<": adaptive < rhs, "<=": adaptive <= rhs, ">": adaptive > rhs}[self.relation]
+
+
+CLAIMS: tuple[Claim, ...] = (
+    Claim("correct", "rmse_pos", "<=", 1.05, "no more than 5 % worse than the EKF, correct noise"),
+    Claim("wrong_r", "rmse_pos", "<", 1.0, "beats the EKF under a wrong R"),
+    Claim("wrong_q", "rmse_pos", "<", 1.0, "beats the EKF under a wrong Q"),
+    Claim("consistency", "nees_in_bounds", ">", 1.0, "more consistent than the EKF"),
+)
+
+
+@dataclass(frozen=True)
+class ClaimResult:
+    claim: Claim
+    adaptive: float | None
+    reference: float | None
+    verdict: str  # "holds", "BROKEN", "missing" or "not run"
+    detail: str = ""
+
+    @property
+    def passed(self) -> bool:
+        return self.verdict in ("holds", "not run")
+
+
+@dataclass(frozen=True)
+class Report:
+    """Everything `check` found; `updated` means the baseline was rewritten from the results."""
+
+    results_dir: Path
+    baseline_path: Path | None
+    rows: list[Row]
+    claims: list[ClaimResult]
+    updated: bool = False
+    dropped: tuple[str, ...] = ()
+
+    @property
+    def failed_rows(self) -> list[Row]:
+        return [] if self.updated else [r for r in self.rows if not r.passed]
+
+    @property
+    def broken_claims(self) -> list[ClaimResult]:
+        return [c for c in self.claims if not c.passed]
+
+    @property
+    def exit_code(self) -> int:
+        return 1 if self.failed_rows or self.broken_claims else 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading results
+
+
+def _number(value) -> float:
+    """A summary cell or JSON value as a float; None and NaN both become NaN."""
+    if value is None:
+        return math.nan
+    return float(value)
+
+
+def _manifest_int(manifest: dict, key: str, path: Path) -> int:
+    value = manifest.get(key) if isinstance(manifest, dict) else None
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ResultsError(f"{path}: field {key!r} must be an integer, found {value!r}")
+    return value
+
+
+def read_scenario(folder: Path, metrics: Iterable[str]) -> ScenarioSummary:
+    """A scenario folder's summary and run settings; `metrics` must all be in the summary."""
+    manifest_path = folder / MANIFEST_FILE
+    if not manifest_path.is_file():
+        raise ResultsError(
+            f"{folder}: incomplete result (no {MANIFEST_FILE}); run `anfekf run` again"
+        )
+    manifest = read_json(manifest_path)
+    seed = _manifest_int(manifest, "seed", manifest_path)
+    runs = _manifest_int(manifest, "runs", manifest_path)
+    summary = read_summary(folder)
+    where = folder / SUMMARY_PARQUET
+    required = ["scenario", "filter", *metrics]
+    missing = [c for c in required if c not in summary.columns]
+    if missing:
+        raise ResultsError(f"{where}: missing columns {', '.join(missing)}")
+    names = summary["scenario"].astype(str).unique().tolist()
+    if len(names) != 1:
+        raise ResultsError(f"{where}: expected one scenario name, found {names or 'none'}")
+    if summary["filter"].duplicated().any():
+        raise ResultsError(f"{where}: a filter appears twice")
+    stored = [m for m in METRIC_SENSE if m in summary.columns]
+    filters = {
+        str(rec["filter"]): {m: _number(rec[m]) for m in stored}
+        for rec in summary.to_dict(orient="records")
+    }
+    return ScenarioSummary(
+        name=names[0],
+        seed=seed,
+        runs=runs,
+        filters=filters,
+        fingerprint=manifest.get("fingerprint"),
+        versions=manifest.get("versions"),
+    )
+
+
+def read_results(results_dir: Path, metrics: Iterable[str]) -> dict[str, ScenarioSummary]:
+    """Every complete scenario under `results_dir`, by scenario name."""
+    metrics = list(metrics)
+    out: dict[str, ScenarioSummary] = {}
+    for folder in scenario_dirs(results_dir):
+        scenario = read_scenario(folder, metrics)
+        if scenario.name in out:
+            raise ResultsError(f"{folder}: scenario {scenario.name!r} appears in two folders")
+        out[scenario.name] = scenario
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# The baseline file
+
+
+def _tolerance(path: Path, metric: str, spec) -> Tolerance:
+    where = f"{path}: tolerances.{metric}"
+    if metric not in METRIC_SENSE:
+        raise BaselineError(f"{where}: unknown metric (allowed: {', '.join(METRIC_SENSE)})")
+    if not isinstance(spec, dict) or len(spec) != 1:
+        raise BaselineError(f'{where}: expected {{"relative": x}} or {{"absolute": x}}')
+    ((kind, limit),) = spec.items()
+    if kind not in ("relative", "absolute"):
+        raise BaselineError(f"{where}: unknown kind {kind!r} (allowed: relative, absolute)")
+    ok = isinstance(limit, (int, float)) and not isinstance(limit, bool)
+    if not ok or not math.isfinite(limit) or limit < 0:
+        raise BaselineError(f"{where}.{kind}: must be a number >= 0, found {limit!r}")
+    return Tolerance(kind, float(limit))
+
+
+def parse_tolerances(path: Path, doc) -> dict[str, Tolerance]:
+    if not isinstance(doc, dict) or not doc:
+        raise BaselineError(f"{path}: tolerances: expected a mapping of metric to tolerance")
+    return {metric: _tolerance(path, metric, spec) for metric, spec in doc.items()}
+
+
+def _baseline_scenario(path: Path, name: str, doc, metrics: list[str]) -> ScenarioSummary:
+    where = f"{path}: scenarios.{name}"
+    if not isinstance(doc, dict):
+        raise BaselineError(f"{where}: expected a mapping with seed, runs and filters")
+    for key in ("seed", "runs"):
+        value = doc.get(key)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise BaselineError(f"{where}.{key}: must be an integer, found {value!r}")
+    filters = doc.get("filters")
+    if not isinstance(filters, dict) or not filters:
+        raise BaselineError(f"{where}.filters: expected a mapping of filter name to metrics")
+    parsed: dict[str, dict[str, float]] = {}
+    for fname, values in filters.items():
+        if not isinstance(values, dict):
+            raise BaselineError(f"{where}.filters.{fname}: expected a mapping of metric to value")
+        for metric in metrics:
+            if metric not in values:
+                raise BaselineError(f"{where}.filters.{fname}: no value for {metric}")
+        for metric, value in values.items():
+            number = value is None or (
+                isinstance(value, (int, float)) and not isinstance(value, bool)
+            )
+            if not number:
+                raise BaselineError(
+                    f"{where}.filters.{fname}.{metric}: must be a number or null, found {value!r}"
+                )
+        parsed[fname] = {m: _number(v) for m, v in values.items()}
+    return ScenarioSummary(
+        name=name,
+        seed=doc["seed"],
+        runs=doc["runs"],
+        filters=parsed,
+        fingerprint=doc.get("fingerprint"),
+    )
+
+
+def load_baseline(path: Path) -> Baseline:
+    """Read and validate a baseline file; raises BaselineError (or ResultsError) in one line."""
+    path = Path(path)
+    if not path.is_file():
+        raise BaselineError(
+            f"{path}: baseline file not found (write one with `anfekf check RESULTS --baseline"
+            f" {path} --update`)"
+        )
+    doc = read_json(path)
+    if not isinstance(doc, dict):
+        raise BaselineError(f"{path}: expected a JSON object with tolerances and scenarios")
+    if doc.get("format") != BASELINE_FORMAT or doc.get("version") != BASELINE_VERSION:
+        raise BaselineError(
+            f"{path}: not an anfekf-bench baseline (expected format {BASELINE_FORMAT!r},"
+            f" version {BASELINE_VERSION}); write one with `anfekf check RESULTS --baseline"
+            f" {path} --update`"
+        )
+    tolerances = parse_tolerances(path, doc.get("tolerances"))
+    scenarios = doc.get("scenarios")
+    if not isinstance(scenarios, dict) or not scenarios:
+        raise BaselineError(f"{path}: scenarios: expected a mapping of scenario name to results")
+    metrics = list(tolerances)
+    return Baseline(
+        tolerances=tolerances,
+        scenarios={
+            name: _baseline_scenario(path, name, sdoc, metrics) for name, sdoc in scenarios.items()
+        },
+    )
+
+
+def baseline_document(
+    results: dict[str, ScenarioSummary], tolerances: dict[str, Tolerance]
+) -> dict:
+    """The JSON document of a baseline made from `results` (NaN is written as null)."""
+    first = next(iter(results.values()))
+    return {
+        "format": BASELINE_FORMAT,
+        "version": BASELINE_VERSION,
+        "rules": RULES,
+        "tolerances": {m: t.as_json() for m, t in tolerances.items()},
+        "made_with": first.versions or {},
+        "scenarios": {
+            s.name: {
+                "seed": s.seed,
+                "runs": s.runs,
+                "fingerprint": s.fingerprint,
+                "filters": {
+                    f: {m: _json_value(m, v) for m, v in metrics.items()}
+                    for f, metrics in s.filters.items()
+                },
+            }
+            for s in results.values()
+        },
+    }
+
+
+def _json_value(metric: str, value: float) -> float | int | None:
+    if not math.isfinite(value):
+        return None
+    # Counts read back from Parquet as floats; keep them integers in the file.
+    return int(value) if metric in ("diverged", "runs_used") else value
+
+
+# ---------------------------------------------------------------------------------------------
+# Comparison
+
+
+def _badness(metric: str, value: float) -> float:
+    """A number that grows as `metric` gets worse (NaN: undefined, the worst)."""
+    sense = METRIC_SENSE.get(metric)
+    if math.isnan(value):
+        return math.inf
+    if sense == "lower":
+        return value
+    if sense == "higher":
+        return -value
+    return abs(math.log(value / sense)) if value > 0 else math.inf
+
+
+def judge(metric: str, tolerance: Tolerance, base: float, now: float) -> str:
+    """The verdict for one metric (see the module docstring)."""
+    if math.isnan(base) and math.isnan(now):
+        return "ok"
+    if not (math.isnan(base) or math.isnan(now)) and not tolerance.exceeded(base, now):
+        return "ok"
+    if METRIC_SENSE.get(metric) is None or math.isnan(base):
+        return "changed"
+    before, after = _badness(metric, base), _badness(metric, now)
+    if math.isclose(after, before, rel_tol=1e-9):
+        return "changed"
+    if after > before:
+        return "worse"
+    if after < before:
+        return "better (refresh the baseline)"
+    return "changed"
+
+
+def _fmt_value(x: float | None) -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, int):  # seed and runs
+        return str(x)
+    if math.isnan(x):
+        return "null"
+    return f"{x:.4g}"
+
+
+def _fmt_delta(tolerance: Tolerance, base: float, now: float) -> str:
+    if math.isnan(base) or math.isnan(now):
+        return "-"
+    change = tolerance.change(base, now)
+    if tolerance.kind == "relative":
+        return f"{100 * change:+.1f} %"
+    return f"{change:+.3g}"
+
+
+def compare_metric(
+    scenario: str, filt: str, metric: str, tolerance: Tolerance, base: float, now: float
+) -> Row:
+    verdict = judge(metric, tolerance, base, now)
+    detail = ""
+    if verdict != "ok":
+        detail = (
+            f"{scenario} / {filt} / {metric}: {_fmt_value(base)} -> {_fmt_value(now)}"
+            f" ({_fmt_delta(tolerance, base, now)}; tolerance {tolerance.describe()}): {verdict}"
+        )
+    return Row(scenario, filt, metric, base, now, _fmt_delta(tolerance, base, now), verdict, detail)
+
+
+def _setup_rows(base: ScenarioSummary, now: ScenarioSummary) -> list[Row]:
+    """Seed and run count must match, or the metrics are not comparable."""
+    rows = []
+    for key in ("seed", "runs"):
+        b, n = getattr(base, key), getattr(now, key)
+        detail = ""
+        if b != n:
+            detail = (
+                f"{base.name}: results made with {key} {n}, the baseline with {b}: not comparable"
+                " (run the baseline's configuration, or refresh the baseline)"
+            )
+        delta = "" if b == n else f"{n - b:+d}"
+        rows.append(Row(base.name, "-", key, b, n, delta, "ok" if b == n else "changed", detail))
+    return rows
+
+
+def _presence_row(scenario: str, filt: str, in_baseline: bool) -> Row:
+    what = f"scenario {scenario}" if filt == "-" else f"{scenario} / filter {filt}"
+    if in_baseline:
+        verdict, detail = "missing", f"{what}: in the baseline but not in the results"
+    else:
+        verdict = "new (not in the baseline)"
+        detail = f"{what}: in the results but not guarded by the baseline (refresh it)"
+    return Row(scenario, filt, "-", None, None, "", verdict, detail)
+
+
+def _union(first: Iterable[str], second: Iterable[str]) -> list[str]:
+    return list(dict.fromkeys([*first, *second]))
+
+
+def compare(baseline: Baseline, results: dict[str, ScenarioSummary]) -> list[Row]:
+    """One row per (scenario, filter, metric) of the baseline, plus presence and setup rows."""
+    rows: list[Row] = []
+    for name in _union(baseline.scenarios, results):
+        base, now = baseline.scenarios.get(name), results.get(name)
+        if base is None or now is None:
+            rows.append(_presence_row(name, "-", in_baseline=base is not None))
+            continue
+        rows.extend(_setup_rows(base, now))
+        for filt in _union(base.filters, now.filters):
+            if filt not in base.filters or filt not in now.filters:
+                rows.append(_presence_row(name, filt, in_baseline=filt in base.filters))
+                continue
+            for metric, tolerance in baseline.tolerances.items():
+                rows.append(
+                    compare_metric(
+                        name,
+                        filt,
+                        metric,
+                        tolerance,
+                        base.filters[filt][metric],
+                        now.filters[filt][metric],
+                    )
+                )
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------
+# Claims
+
+
+def check_claim(
+    claim: Claim, results: dict[str, ScenarioSummary], expected: Iterable[str]
+) -> ClaimResult:
+    """A claim applies when its scenario is in the results or is expected (in the baseline)."""
+    scenario = results.get(claim.scenario)
+    if scenario is None:
+        if claim.scenario in expected:
+            return ClaimResult(
+                claim,
+                None,
+                None,
+                "missing",
+                f"claim {claim.scenario}: scenario missing from results",
+            )
+        return ClaimResult(claim, None, None, "not run")
+    absent = [f for f in (ADAPTIVE, REFERENCE) if f not in scenario.filters]
+    if absent:
+        return ClaimResult(
+            claim,
+            None,
+            None,
+            "missing",
+            f"claim {claim.scenario}: filter {', '.join(absent)} missing from the results",
+        )
+    adaptive = scenario.filters[ADAPTIVE][claim.metric]
+    reference = scenario.filters[REFERENCE][claim.metric]
+    # An undefined reference (every EKF run diverged) is the worst value of its metric; an
+    # undefined ANFEKF value never supports a claim.
+    if math.isnan(reference):
+        reference = math.inf if METRIC_SENSE[claim.metric] == "lower" else -math.inf
+    holds = not math.isnan(adaptive) and claim.holds(adaptive, reference)
+    detail = ""
+    if not holds:
+        detail = (
+            f"claim {claim.scenario}: ANFEKF {claim.text}: {claim.formula()} is false"
+            f" ({_fmt_value(adaptive)} vs {_fmt_value(reference)})"
+        )
+    return ClaimResult(claim, adaptive, reference, "holds" if holds else "BROKEN", detail)
+
+
+def check_claims(
+    results: dict[str, ScenarioSummary], expected: Iterable[str] = ()
+) -> list[ClaimResult]:
+    expected = set(expected)
+    return [check_claim(c, results, expected) for c in CLAIMS]
+
+
+# ---------------------------------------------------------------------------------------------
+# The command
+
+
+def run_check(results_dir: Path, baseline_path: Path | None, *, update: bool = False) -> Report:
+    """Compare (and with `update`, rewrite the baseline), then check the claims."""
+    results_dir = Path(results_dir)
+    if baseline_path is None:
+        if update:
+            raise BaselineError("--update needs --baseline FILE (the file to write)")
+        results = read_results(results_dir, [])
+        return Report(results_dir, None, [], check_claims(results))
+    baseline_path = Path(baseline_path)
+    baseline = None
+    if not update or baseline_path.exists():
+        # On --update an existing baseline keeps its (possibly hand-tuned) tolerances.
+        baseline = load_baseline(baseline_path)
+    tolerances = (
+        baseline.tolerances
+        if baseline is not None
+        else {m: Tolerance(*next(iter(s.items()))) for m, s in DEFAULT_TOLERANCES.items()}
+    )
+    results = read_results(results_dir, tolerances)
+    rows = compare(baseline, results) if baseline is not None else []
+    expected = baseline.scenarios if baseline is not None else ()
+    if not update:
+        return Report(results_dir, baseline_path, rows, check_claims(results, expected))
+    try:
+        write_json(baseline_path, baseline_document(results, tolerances))
+    except OSError as exc:
+        raise BaselineError(f"{baseline_path}: cannot write the baseline: {exc}") from None
+    dropped = tuple(s for s in expected if s not in results)
+    return Report(
+        results_dir, baseline_path, rows, check_claims(results), updated=True, dropped=dropped
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Printing
+
+
+def _row_style(passed: bool) -> str:
+    return "" if passed else "bold red"
+
+
+def comparison_table(rows: list[Row], title: str) -> Table:
+    table = Table(title=title, title_justify="left")
+    for col in ("scenario", "filter", "metric", "baseline", "now", "delta", "verdict"):
+        right = col in ("baseline", "now", "delta")
+        table.add_column(col, justify="right" if right else "left", overflow="fold")
+    for r in rows:
+        cells = (
+            r.scenario,
+            r.filter,
+            r.metric,
+            _fmt_value(r.baseline),
+            _fmt_value(r.now),
+            r.delta,
+            r.verdict,
+        )
+        table.add_row(*(Text(c) for c in cells), style=_row_style(r.passed))
+    return table
+
+
+def claims_table(claims: list[ClaimResult]) -> Table:
+    table = Table(title="The paper's claims (independent of the baseline)", title_justify="left")
+    for col in ("scenario", "claim (value of anfekf vs ekf)", "anfekf", "ekf", "verdict"):
+        table.add_column(col, justify="right" if col in ("anfekf", "ekf") else "left")
+    for c in claims:
+        cells = (
+            c.claim.scenario,
+            c.claim.formula(),
+            _fmt_value(c.adaptive),
+            _fmt_value(c.reference),
+            c.verdict,
+        )
+        table.add_row(*(Text(x) for x in cells), style=_row_style(c.passed))
+    return table
+
+
+def print_report(report: Report, console: Console) -> None:
+    """The tables, then one plain line per failure (readable in CI logs), then the verdict."""
+
+    if not console.is_terminal and console.width < WIDE_LOG:
+        # CI logs and pipes get rich's default of 80 columns, which folds the comparison table
+        # into unreadable fragments; a log line has no width limit, so print it wide there.
+        console = Console(file=console.file, width=WIDE_LOG)
+
+    def say(text: str) -> None:
+        console.print(text, markup=False, highlight=False, soft_wrap=True)
+
+    if report.rows:
+        title = f"{report.results_dir} against {report.baseline_path}"
+        console.print(comparison_table(report.rows, title))
+    console.print(claims_table(report.claims))
+    for row in report.failed_rows:
+        say(f"FAIL {row.detail}")
+    for claim in report.broken_claims:
+        say(f"FAIL {claim.detail}")
+    if report.updated:
+        say(f"baseline written to {report.baseline_path} from {report.results_dir}")
+        if report.dropped:
+            say(f"dropped from the baseline (not in the results): {', '.join(report.dropped)}")
+    checked = sum(1 for r in report.rows if r.metric not in ("-", "seed", "runs"))
+    held = sum(1 for c in report.claims if c.verdict == "holds")
+    if report.exit_code == 0:
+        what = f"{checked} metrics within tolerance, " if report.rows and not report.updated else ""
+        say(f"regression gate passed: {what}{held} claims hold")
+        return
+    parts = []
+    if report.failed_rows:
+        parts.append(f"{len(report.failed_rows)} of {len(report.rows)} rows failed")
+    if report.broken_claims:
+        parts.append(f"{len(report.broken_claims)} claims broken or missing")
+    say(f"regression gate FAILED: {', '.join(parts)}")
+    if report.failed_rows:
+        say(
+            "if the change is intended, refresh the baseline on purpose:"
+            f" anfekf check {report.results_dir} --baseline {report.baseline_path} --update"
+            " (README: Regression gate)"
+        )

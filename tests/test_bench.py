@@ -1,0 +1,137 @@
+"""`anfekf bench`: the machinery at tiny sizes. No timing thresholds: timings here are noise."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from anfekf_bench import bench
+from anfekf_bench.cli import app
+from anfekf_bench.config import parse_scenario, resolve_world
+
+from .conftest import small_scenario, write_scenario
+
+runner = CliRunner()
+
+# Figures the issue names; each must be a finite positive number.
+NUMBER_KEYS = [
+    "overhead_ratio",
+    "ekf_bare_step_us",
+    "ekf_harness_step_us",
+    "anfekf_step_us",
+    "anfekf_over_ekf_step_cost",
+    "speedup_2_workers",
+    "batch_1_worker_s",
+    "batch_2_workers_s",
+    "peak_rss_mb",
+    "steps_parquet_mb",
+]
+
+
+def _small_configs(folder: Path) -> Path:
+    """The two scenario files the bench needs, on the small world, 2 runs each.
+
+    jobs 1 spares each scenario's subprocess a worker pool (seconds of imports); the bench's own
+    1-vs-2-worker batch still starts one.
+    """
+    folder.mkdir()
+    for name in ("correct", "wrong_r"):
+        doc = small_scenario(name=name, runs=2, jobs=1, record_every=8)
+        if name == "correct":
+            doc.pop("filter_noise")
+        write_scenario(folder / f"{name}.yaml", doc)
+    return folder
+
+
+def _finite_positive(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0
+
+
+def test_bare_filterpy_loop_is_the_same_filter_as_the_harness_ekf():
+    """With the true noise and no gate both fuse every measurement: same estimate, to round-off.
+
+    (The harness also symmetrises P after each update; that is the only difference.)
+    """
+    scenario = parse_scenario(small_scenario(gate_probability=None, filter_noise={}))
+    world = resolve_world(scenario.world, Path("small.yaml"))
+    setup = bench.step_setup(scenario, world)
+    bare, ekf = setup.bare(), setup.ekf()
+    bench.bare_ekf_loop(bare, setup.data, world, setup.bare_Qu())
+    trace = bench.harness_pass(ekf, setup.data, world, scenario.record_every, setup.x_true)
+    assert ekf.n_updates == sum(len(s.ids) for s in setup.data.scans) > 10
+    assert not trace["diverged"]
+    np.testing.assert_allclose(bare.x, ekf.x, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(bare.P, ekf.P, rtol=1e-6, atol=1e-15)
+    np.testing.assert_allclose(trace["x"][-1], ekf.x)  # record_every 1: last step recorded
+
+
+def test_quick_bench_writes_every_figure(tmp_path):
+    configs = _small_configs(tmp_path / "configs")
+    out = tmp_path / "deep" / "bench.json"
+    result = runner.invoke(app, ["bench", "--quick", "--configs", str(configs), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "overhead_ratio" in result.output and "speedup_2_workers" in result.output
+    doc = json.loads(out.read_text())
+    assert doc["quick"] is True
+    bad = {k: doc.get(k) for k in NUMBER_KEYS if not _finite_positive(doc.get(k))}
+    assert not bad, f"not finite positive numbers: {bad}"
+    walls = doc["wall_time_paper_scenarios_s"]
+    assert set(walls) == {"correct", "wrong_r", "total"}
+    assert all(_finite_positive(v) for v in walls.values())
+    assert walls["total"] == pytest.approx(walls["correct"] + walls["wrong_r"])
+    for name, figures in doc["scenarios"].items():
+        assert figures["runs"] == 2, name
+        assert figures["peak_rss_mb"] >= figures["peak_rss_main_mb"] > 0
+    assert set(doc["targets"]) == set(bench.TARGETS)
+    for key, target in doc["targets"].items():
+        assert target["value"] == doc[key] and isinstance(target["met"], bool)
+    assert doc["updates"]["ekf"]["fused"] > 0
+    assert doc["machine"]["cores"] >= 1 and doc["machine"]["cpu_model"]
+    assert doc["versions"]["filterpy"] != "not installed"
+    assert len(doc["raw_seconds"]["step_pass"]["bare"]) == bench.QUICK.repeats
+
+
+def _no_wrong_r(tmp_path: Path) -> list[str]:
+    configs = _small_configs(tmp_path / "configs")
+    (configs / "wrong_r.yaml").unlink()
+    return ["--configs", str(configs)]
+
+
+def _out_is_folder(tmp_path: Path) -> list[str]:
+    return ["--configs", str(_small_configs(tmp_path / "configs")), "--out", str(tmp_path)]
+
+
+def _bad_scenario(tmp_path: Path) -> list[str]:
+    configs = _small_configs(tmp_path / "configs")
+    (configs / "correct.yaml").write_text("name: correct\nruns: -1\n")
+    return ["--configs", str(configs)]
+
+
+def _bad_other_scenario(tmp_path: Path) -> list[str]:
+    """Only run end to end at the close: still refused before any timing."""
+    configs = _small_configs(tmp_path / "configs")
+    (configs / "zz.yaml").write_text("name: zz\nfilters: []\n")
+    return ["--configs", str(configs)]
+
+
+@pytest.mark.parametrize(
+    ("make_args", "message"),
+    [
+        pytest.param(lambda p: ["--configs", str(p / "nope")], "must be a folder", id="no-configs"),
+        pytest.param(_no_wrong_r, "holds no wrong_r.yaml", id="configs-without-wrong_r"),
+        pytest.param(_out_is_folder, "must be a file path", id="out-is-a-folder"),
+        pytest.param(_bad_scenario, "runs", id="invalid-scenario"),
+        pytest.param(_bad_other_scenario, "zz.yaml: filters", id="invalid-other-scenario"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(tmp_path, make_args, message):
+    result = runner.invoke(app, ["bench", "--quick", *make_args(tmp_path)])
+    assert result.exit_code == 2, result.output
+    err = result.stderr.strip()
+    assert err.startswith("error:") and message in err and len(err.splitlines()) == 1
+    assert "Traceback" not in result.output

@@ -1,0 +1,328 @@
+"""Issue 8: running the Monte Carlo batch on a Dask distributed cluster through joblib.
+
+The cluster test starts a real `distributed.LocalCluster` (two worker processes on 127.0.0.1) and
+checks that `anfekf run --backend dask` writes exactly the bytes-equal tables of the local run.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from anfekf_bench.cli import app
+from anfekf_bench.config import BackendConfig, load_scenario, parse_scenario
+from anfekf_bench.experiment import make_plan
+from anfekf_bench.runner import BackendUnavailable, connect_dask, run_batch
+
+distributed = pytest.importorskip("distributed")
+
+# A second scheduler (or another project's) finds the default HTTP port taken and picks another.
+pytestmark = pytest.mark.filterwarnings("ignore:Port 8787 is already in use:UserWarning")
+
+RUNS = 4
+
+
+def tiny_scenario(**overrides) -> dict:
+    """A ~45 m route past six landmarks: each run takes well under a second."""
+    doc = {
+        "name": "tiny",
+        "seed": 11,
+        "runs": RUNS,
+        "jobs": 2,
+        "record_every": 8,
+        "world": {
+            "landmarks": [[10, 8], [25, -6], [40, 16], [30, 15], [15, -10], [48, 4]],
+            "waypoints": [[20, 0], [40, 10]],
+        },
+        "filter_noise": {"sigma_range": 2.0, "sigma_bearing_deg": 0.1},
+        "filters": [
+            {"name": "ekf", "kind": "ekf"},
+            {"name": "anfekf", "kind": "anfekf", "adapt": "R"},
+        ],
+    }
+    doc.update(overrides)
+    return doc
+
+
+def write_yaml(path: Path, doc: dict) -> Path:
+    path.write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
+    return path
+
+
+def unused_port() -> int:
+    """A local TCP port nobody listens on (bound, read, released)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def scheduler() -> str:
+    """Address of a two-process LocalCluster, shut down after this module."""
+    cluster = distributed.LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,
+    )
+    try:
+        yield cluster.scheduler_address
+    finally:
+        cluster.close()
+
+
+def finished_run_tasks(address: str) -> set[str]:
+    """Keys of the `run_one` tasks the scheduler has seen finish (reach memory)."""
+    with distributed.Client(address, set_as_default=False) as client:
+        return set(client.run_on_scheduler(_finished_run_keys))
+
+
+def _finished_run_keys(dask_scheduler) -> list[str]:
+    # transition_log entries: (key, start state, finish state, recommendations, stimulus, time)
+    return [
+        str(entry[0])
+        for entry in dask_scheduler.transition_log
+        if "run_one" in str(entry[0]) and entry[2] == "memory"
+    ]
+
+
+def invoke(*args: str):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def test_dask_run_equals_local_run(tmp_path: Path, scheduler: str) -> None:
+    scenario = write_yaml(tmp_path / "tiny.yaml", tiny_scenario())
+    on_dask = invoke(
+        "run", scenario, "--out", tmp_path / "dask", "--backend", "dask", "--scheduler", scheduler
+    )
+    assert on_dask.exit_code == 0, on_dask.output
+    assert f"{RUNS}/{RUNS}" in on_dask.stdout  # the progress bar reached the end
+    local = invoke("run", scenario, "--out", tmp_path / "local")
+    assert local.exit_code == 0, local.output
+
+    dask_dir, local_dir = tmp_path / "dask" / "tiny", tmp_path / "local" / "tiny"
+    steps = pd.read_parquet(dask_dir / "steps.parquet")
+    assert sorted(steps["run"].unique()) == list(range(RUNS))
+    pd.testing.assert_frame_equal(
+        steps, pd.read_parquet(local_dir / "steps.parquet"), check_exact=True
+    )
+    pd.testing.assert_frame_equal(
+        pd.read_parquet(dask_dir / "summary.parquet"),
+        pd.read_parquet(local_dir / "summary.parquet"),
+        check_exact=True,
+    )
+    assert (dask_dir / "summary.json").read_text() == (local_dir / "summary.json").read_text()
+
+    dask_manifest = json.loads((dask_dir / "manifest.json").read_text())
+    local_manifest = json.loads((local_dir / "manifest.json").read_text())
+    assert dask_manifest["backend"]["kind"] == "dask"
+    assert dask_manifest["backend"]["scheduler"] == scheduler
+    assert local_manifest["backend"]["kind"] == "local"
+    assert dask_manifest["fingerprint"] == local_manifest["fingerprint"]
+
+
+def test_dask_batch_reports_each_run_and_skips_done_ones(tmp_path: Path, scheduler: str) -> None:
+    scenario, world = load_scenario(write_yaml(tmp_path / "tiny.yaml", tiny_scenario()))
+    seen: list[int] = []
+    common = {"runs": RUNS, "seed": 5, "jobs": 2, "skip": {1}}
+    before = finished_run_tasks(scheduler)
+    on_dask = {
+        r["run"]: r
+        for r in run_batch(
+            scenario,
+            world,
+            **common,
+            on_result=lambda r: seen.append(r["run"]),
+            backend="dask",
+            scheduler=scheduler,
+        )
+    }
+    assert sorted(seen) == sorted(on_dask) == [0, 2, 3]
+    # The runs really went to the cluster, one Dask task per run (so progress moves per run).
+    assert len(finished_run_tasks(scheduler) - before) == 3
+    local = {r["run"]: r for r in run_batch(scenario, world, **common)}
+    for run, result in on_dask.items():
+        for name in ("ekf", "anfekf"):
+            for key in ("x", "P", "R_diag", "nees"):
+                np.testing.assert_array_equal(
+                    result["filters"][name][key], local[run]["filters"][name][key]
+                )
+
+
+def test_unreachable_scheduler_is_one_line_within_timeout(tmp_path: Path) -> None:
+    address = f"tcp://127.0.0.1:{unused_port()}"
+    doc = tiny_scenario(backend={"kind": "dask", "scheduler": address, "connect_timeout_s": 2})
+    result = invoke("run", write_yaml(tmp_path / "tiny.yaml", doc), "--out", tmp_path / "out")
+    assert result.exit_code == 2
+    lines = result.stderr.strip().splitlines()
+    assert lines == [f"error: cannot reach Dask scheduler at {address}: no answer (timeout 2 s)"]
+    assert not (tmp_path / "out" / "tiny" / "manifest.json").exists()
+
+
+def test_scheduler_without_workers_is_reported() -> None:
+    cluster = distributed.LocalCluster(
+        n_workers=0, processes=True, host="127.0.0.1", dashboard_address=None
+    )
+    try:
+        with pytest.raises(BackendUnavailable, match="has no workers after 1 s"):
+            connect_dask(cluster.scheduler_address, 1.0)
+    finally:
+        cluster.close()
+
+
+def test_cluster_lost_mid_batch_is_reported(tmp_path: Path) -> None:
+    # One single-threaded worker: joblib alone would run such a batch in this process instead.
+    scenario, world = load_scenario(write_yaml(tmp_path / "tiny.yaml", tiny_scenario()))
+    cluster = distributed.LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+    )
+    try:
+        batch = run_batch(
+            scenario,
+            world,
+            runs=6,
+            seed=1,
+            jobs=2,
+            backend="dask",
+            scheduler=cluster.scheduler_address,
+            connect_timeout_s=1,
+        )
+        next(batch)
+    finally:
+        cluster.close()  # with 5 runs still to come
+    with pytest.raises(BackendUnavailable, match=r"failed during the batch \(connection lost\)"):
+        list(batch)
+
+
+def test_missing_dask_says_how_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "distributed", None)  # makes `import distributed` fail
+    with pytest.raises(BackendUnavailable, match=r'pip install -e "\.\[dask\]"'):
+        connect_dask("tcp://127.0.0.1:8786", 1.0)
+
+
+@pytest.mark.parametrize(
+    ("file_backend", "flags", "message"),
+    [
+        pytest.param(
+            None,
+            ["--scheduler", "tcp://127.0.0.1:8786"],
+            "--scheduler tcp://127.0.0.1:8786: only used with --backend dask",
+            id="scheduler-without-dask",
+        ),
+        pytest.param(
+            None,
+            ["--backend", "local", "--scheduler", "tcp://127.0.0.1:8786"],
+            "only used with --backend dask",
+            id="scheduler-with-local",
+        ),
+        pytest.param(
+            None,
+            ["--backend", "dask"],
+            "--backend dask needs --scheduler",
+            id="dask-without-scheduler",
+        ),
+        pytest.param(
+            None,
+            ["--backend", "dask", "--scheduler", "127.0.0.1:8786"],
+            "expected a Dask scheduler address like tcp://HOST:PORT",
+            id="address-without-protocol",
+        ),
+        pytest.param(None, ["--backend", "slurm"], "slurm", id="unknown-backend"),
+        pytest.param(
+            {"kind": "dask"},
+            [],
+            "backend: kind dask needs a scheduler",
+            id="file-dask-without-scheduler",
+        ),
+        pytest.param(
+            {"kind": "local", "scheduler": "tcp://h:8786"},
+            [],
+            "backend: scheduler is only used with kind dask",
+            id="file-local-scheduler",
+        ),
+        pytest.param(
+            {"kind": "dask", "address": "tcp://h:8786"},
+            [],
+            "backend.address: unknown key (allowed: connect_timeout_s, kind, scheduler)",
+            id="file-unknown-key",
+        ),
+        pytest.param(
+            {"kind": "dask", "scheduler": "h:8786"},
+            [],
+            "backend.scheduler",
+            id="file-address-without-protocol",
+        ),
+        pytest.param(
+            {"kind": "dask", "scheduler": "tcp://h:8786", "connect_timeout_s": 0},
+            [],
+            "backend.connect_timeout_s",
+            id="file-zero-timeout",
+        ),
+    ],
+)
+def test_bad_backend_choice_exits_2_before_running(
+    tmp_path: Path, file_backend: dict | None, flags: list[str], message: str
+) -> None:
+    doc = tiny_scenario() if file_backend is None else tiny_scenario(backend=file_backend)
+    scenario = write_yaml(tmp_path / "tiny.yaml", doc)
+    result = invoke("run", scenario, "--out", tmp_path / "out", *flags)
+    assert result.exit_code == 2
+    assert message in result.stderr
+    assert "Traceback" not in result.output
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("file_backend", "flags", "expected"),
+    [
+        pytest.param(None, {}, ("local", None), id="default-local"),
+        pytest.param(
+            None,
+            {"backend": "dask", "scheduler": "tcp://h:1"},
+            ("dask", "tcp://h:1"),
+            id="flags-choose-dask",
+        ),
+        pytest.param(
+            {"kind": "dask", "scheduler": "tcp://f:2"},
+            {},
+            ("dask", "tcp://f:2"),
+            id="file-chooses-dask",
+        ),
+        pytest.param(
+            {"kind": "dask", "scheduler": "tcp://f:2"},
+            {"scheduler": "tcp://h:1"},
+            ("dask", "tcp://h:1"),
+            id="flag-overrides-file-address",
+        ),
+        pytest.param(
+            {"kind": "dask", "scheduler": "tcp://f:2"},
+            {"backend": "local"},
+            ("local", None),
+            id="flag-overrides-file-kind",
+        ),
+    ],
+)
+def test_flags_override_the_file_and_leave_the_fingerprint(
+    tmp_path: Path, file_backend: dict | None, flags: dict, expected: tuple
+) -> None:
+    doc = tiny_scenario() if file_backend is None else tiny_scenario(backend=file_backend)
+    scenario, world = load_scenario(write_yaml(tmp_path / "tiny.yaml", doc))
+    plan = make_plan(scenario, world, None, None, None, **flags)
+    assert (plan.backend.kind, plan.backend.scheduler) == expected
+    plain, _ = load_scenario(write_yaml(tmp_path / "plain.yaml", tiny_scenario()))
+    assert plan.fingerprint() == make_plan(plain, world, None, None, None).fingerprint()
+
+
+def test_file_timeout_survives_flag_override() -> None:
+    scenario = parse_scenario(tiny_scenario(backend={"connect_timeout_s": 3}))
+    plan_backend = make_plan(scenario, None, 1, 1, 1, backend="dask", scheduler="tcp://h:1").backend
+    assert plan_backend == BackendConfig(kind="dask", scheduler="tcp://h:1", connect_timeout_s=3)

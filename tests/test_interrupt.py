@@ -1,0 +1,282 @@
+"""Interrupted runs (issue 7): nothing half-written looks complete; a rerun resumes or refuses.
+
+Result files are written under a temporary name and renamed when complete (storage.write_atomic);
+finished runs are saved one by one in <out>/<name>/.runs/; manifest.json is written last. A
+rerun into the same folder resumes from the saved runs and says so; into a complete folder it
+refuses unless --force.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import joblib
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from anfekf_bench.cli import app
+from anfekf_bench.config import load_scenario
+from anfekf_bench.experiment import RUNS_DIR, execute, make_plan
+from anfekf_bench.storage import (
+    MANIFEST_FILE,
+    STEPS_FILE,
+    SUMMARY_JSON,
+    SUMMARY_PARQUET,
+    ResultsError,
+    read_json,
+    scenario_dirs,
+    write_atomic,
+)
+
+from .conftest import small_scenario, write_scenario
+
+COMPLETE_LOOKING = {STEPS_FILE, SUMMARY_PARQUET, SUMMARY_JSON, MANIFEST_FILE}
+
+
+def cli(*args: str):
+    return CliRunner().invoke(app, list(args))
+
+
+def read_steps(folder: Path) -> pd.DataFrame:
+    return pd.read_parquet(folder / STEPS_FILE)
+
+
+def assert_nothing_looks_complete(target: Path, runs: int) -> list[int]:
+    """Only the fingerprint, whole run files and *.tmp leftovers; returns the saved run ids."""
+    saved = []
+    for path in sorted(p for p in target.rglob("*") if p.is_file()):
+        rel = path.relative_to(target).as_posix()
+        assert path.name not in COMPLETE_LOOKING, f"{rel} exists after an interrupted run"
+        if path.name.startswith(".") and path.name.endswith(".tmp"):
+            continue  # an unfinished write: its name says so
+        if rel == f"{RUNS_DIR}/fingerprint":
+            continue
+        assert rel.startswith(f"{RUNS_DIR}/run-") and rel.endswith(".joblib"), rel
+        result = joblib.load(path)  # a file under its final name is whole
+        assert set(result) >= {"run", "step", "filters"}
+        saved.append(result["run"])
+    assert 0 < len(saved) < runs, f"kill came too late or too early: {len(saved)} of {runs}"
+    with pytest.raises(ResultsError):  # report / check see no result here
+        scenario_dirs(target.parent)
+    return sorted(saved)
+
+
+# --- A real process, killed -------------------------------------------------------------------
+
+KILL_RUNS = 6
+
+
+@pytest.fixture(scope="module")
+def kill_scenario(tmp_path_factory) -> tuple[Path, pd.DataFrame]:
+    """The default world, 2 filters, 6 runs (a few seconds); and its uninterrupted steps."""
+    root = tmp_path_factory.mktemp("kill")
+    doc = {
+        "name": "killed",
+        "seed": 11,
+        "runs": KILL_RUNS,
+        "jobs": 1,
+        "record_every": 8,
+        "filters": [{"name": "ekf", "kind": "ekf"}, {"name": "anfekf", "kind": "anfekf"}],
+    }
+    path = write_scenario(root / "killed.yaml", doc)
+    _, target = execute(make_plan(*load_scenario(path), None, None, None), root / "reference")
+    return path, read_steps(target)
+
+
+def _live_members(pgid: int) -> list[int]:
+    """Processes of a process group that are still running (zombies are not)."""
+    alive = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        state, group = fields[0], int(fields[2])
+        if group == pgid and state not in ("Z", "X"):
+            alive.append(int(stat.parent.name))
+    return alive
+
+
+@pytest.mark.parametrize(
+    ("sig", "jobs"),
+    [(signal.SIGKILL, 2), (signal.SIGINT, 1)],
+    ids=["kill-9-two-workers", "ctrl-c-one-worker"],
+)
+def test_killed_run_leaves_nothing_complete_and_resumes(kill_scenario, tmp_path, sig, jobs):
+    path, reference = kill_scenario
+    out = tmp_path / "out"
+    target = out / "killed"
+    command = "from anfekf_bench.cli import main; main()"
+    args = [sys.executable, "-c", command, "run", str(path), "--out", str(out), "--jobs", str(jobs)]
+    proc = subprocess.Popen(
+        args, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not list((target / RUNS_DIR).glob("run-*.joblib")):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "no run finished within 120 s"
+            time.sleep(0.01)
+        assert proc.poll() is None, "the batch ended before it could be interrupted"
+        os.killpg(proc.pid, sig)  # the whole group: the command and its joblib workers
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    time.sleep(0.2)
+    assert _live_members(proc.pid) == [], "worker processes outlived the command"
+
+    saved = assert_nothing_looks_complete(target, KILL_RUNS)
+    if sig == signal.SIGINT:
+        assert proc.returncode == 130
+        assert stderr.splitlines() == [
+            f"error: killed: interrupted; {len(saved)} of {KILL_RUNS} runs are saved in"
+            f" {target / RUNS_DIR}: run the same command again to resume"
+        ]
+    else:
+        assert proc.returncode == -signal.SIGKILL
+
+    rerun = cli("run", str(path), "--out", str(out))
+    assert rerun.exit_code == 0, rerun.output
+    assert f"killed: resuming: {len(saved)} of {KILL_RUNS} runs" in rerun.stdout
+    pd.testing.assert_frame_equal(read_steps(target), reference)
+    assert read_json(target / MANIFEST_FILE)["resumed_runs"] == saved
+    assert not (target / RUNS_DIR).exists()
+    assert not list(target.glob(".*.tmp"))
+
+
+# --- In-process interruptions (fast) ----------------------------------------------------------
+
+
+class CtrlC(KeyboardInterrupt):
+    """Raised from the progress callback: Ctrl-C after a given number of finished runs."""
+
+
+def _interrupt_after(n: int):
+    seen = []
+
+    def on_result(result: dict) -> None:
+        seen.append(result["run"])
+        if len(seen) == n:
+            raise CtrlC
+
+    return on_result
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory) -> tuple[Path, pd.DataFrame]:
+    """A 4-run small scenario and its uninterrupted steps (made once; tests only read them)."""
+    root = tmp_path_factory.mktemp("small")
+    path = write_scenario(root / "small.yaml", small_scenario(record_every=8))
+    _, target = execute(make_plan(*load_scenario(path), None, None, 1), root / "reference")
+    return path, read_steps(target)
+
+
+def test_ctrl_c_in_process_then_resume(small, tmp_path) -> None:
+    path, reference = small
+    plan = make_plan(*load_scenario(path), None, None, 1)
+    out = tmp_path / "out"
+    with pytest.raises(CtrlC):
+        execute(plan, out, on_result=_interrupt_after(2))
+    assert assert_nothing_looks_complete(out / "small", 4) == [0, 1]
+    rerun = cli("run", str(path), "--out", str(out))
+    assert rerun.exit_code == 0, rerun.output
+    assert "small: resuming: 2 of 4 runs" in rerun.stdout
+    pd.testing.assert_frame_equal(read_steps(out / "small"), reference)
+
+
+def test_torn_run_file_and_stray_temporaries_are_redone(small, tmp_path) -> None:
+    """A run file cut short (not by us: we rename) is redone; *.tmp leftovers are removed."""
+    path, reference = small
+    plan = make_plan(*load_scenario(path), None, None, 1)
+    out = tmp_path / "out"
+    target = out / "small"
+    with pytest.raises(CtrlC):
+        execute(plan, out, on_result=_interrupt_after(3))
+    torn = target / RUNS_DIR / "run-000001.joblib"
+    torn.write_bytes(torn.read_bytes()[:100])
+    (target / RUNS_DIR / ".run-000003.joblib.abc123.tmp").write_bytes(b"half")
+    (target / ".steps.parquet.def456.tmp").write_bytes(b"half")
+    rerun = cli("run", str(path), "--out", str(out))
+    assert rerun.exit_code == 0, rerun.output
+    assert "resuming: 2 of 4 runs" in rerun.stdout
+    assert read_json(target / MANIFEST_FILE)["resumed_runs"] == [0, 2]
+    pd.testing.assert_frame_equal(read_steps(target), reference)
+    assert not [p for p in target.rglob("*.tmp")]
+
+
+def test_complete_folder_refuses_then_force_overwrites(small, tmp_path) -> None:
+    path, reference = small
+    out = tmp_path / "out"
+    first = cli("run", str(path), "--out", str(out))
+    assert first.exit_code == 0 and "small: new results" in first.stdout
+    before = (out / "small" / MANIFEST_FILE).read_bytes()
+
+    again = cli("run", str(path), "--out", str(out))
+    assert again.exit_code == 2
+    assert len(again.stderr.splitlines()) == 1 and "--force" in again.stderr
+    assert "complete result" in again.stderr
+    assert (out / "small" / MANIFEST_FILE).read_bytes() == before, "refusing touches nothing"
+
+    forced = cli("run", str(path), "--out", str(out), "--force")
+    assert forced.exit_code == 0, forced.output
+    assert "small: overwriting the previous results (--force)" in forced.stdout
+    pd.testing.assert_frame_equal(read_steps(out / "small"), reference)
+
+
+def test_interrupted_folder_of_another_seed_refuses(small, tmp_path) -> None:
+    path, _ = small
+    plan = make_plan(*load_scenario(path), None, None, 1)
+    out = tmp_path / "out"
+    with pytest.raises(CtrlC):
+        execute(plan, out, on_result=_interrupt_after(1))
+    other = cli("run", str(path), "--out", str(out), "--seed", "99")
+    assert other.exit_code == 2
+    assert len(other.stderr.splitlines()) == 1
+    assert "different scenario or seed" in other.stderr and "--force" in other.stderr
+    assert len(list((out / "small" / RUNS_DIR).glob("run-*.joblib"))) == 1, "nothing discarded"
+
+
+def test_folder_missing_its_manifest_is_recomputed(small, tmp_path) -> None:
+    """Killed between the last result file and manifest.json: not complete, so redone."""
+    path, reference = small
+    out = tmp_path / "out"
+    assert cli("run", str(path), "--out", str(out)).exit_code == 0
+    (out / "small" / MANIFEST_FILE).unlink()
+    (out / "small" / STEPS_FILE).write_bytes(b"stale")
+    with pytest.raises(ResultsError, match="incomplete"):
+        scenario_dirs(out)
+    rerun = cli("run", str(path), "--out", str(out))
+    assert rerun.exit_code == 0 and "small: new results" in rerun.stdout
+    pd.testing.assert_frame_equal(read_steps(out / "small"), reference)
+
+
+@pytest.mark.parametrize("existing", [False, True], ids=["new-file", "replacing"])
+def test_write_atomic_never_leaves_a_partial_file(tmp_path, existing: bool) -> None:
+    target = tmp_path / "data.bin"
+    if existing:
+        target.write_bytes(b"old and whole")
+
+    def write_half_then_die(tmp: Path) -> None:
+        tmp.write_bytes(b"half of the ")
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        write_atomic(target, write_half_then_die)
+    assert sorted(p.name for p in tmp_path.iterdir()) == (["data.bin"] if existing else [])
+    if existing:
+        assert target.read_bytes() == b"old and whole"
+
+
+def test_reference_result_is_self_consistent(small) -> None:
+    """Guard for the tests above: the reference folder is complete and readable."""
+    path, reference = small
+    assert len(reference) > 0 and set(reference["run"]) == {0, 1, 2, 3}
+    assert scenario_dirs(path.parent / "reference") == [path.parent / "reference" / "small"]

@@ -75,7 +75,6 @@ RULES = [
     " gate).",
 ]
 
-WIDE_LOG = 120  # columns for the tables when the output is not a terminal
 
 ADAPTIVE = "anfekf"
 REFERENCE = "ekf"
@@ -659,11 +658,6 @@ def claims_table(claims: list[ClaimResult]) -> Table:
 
 def print_report(report: Report, console: Console) -> None:
     """The tables, then one plain line per failure (readable in CI logs), then the verdict."""
-
-    if not console.is_terminal and console.width < WIDE_LOG:
-        # CI logs and pipes get rich's default of 80 columns, which folds the comparison table
-        # into unreadable fragments; a log line has no width limit, so print it wide there.
-        console = Console(file=console.file, width=WIDE_LOG)
 
     def say(text: str) -> None:
         console.print(text, markup=False, highlight=False, soft_wrap=True)

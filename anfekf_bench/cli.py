@@ -24,6 +24,19 @@ app = typer.Typer(
 )
 console = Console()
 err_console = Console(stderr=True)
+WIDE_LOG = 120  # columns for tables when the output is not a terminal
+
+
+def table_console() -> Console:
+    """The console for tables.
+
+    CI logs and pipes get rich's default of 80 columns, which folds wide tables into unreadable
+    fragments; a log line has no width limit, so print them wide there.
+    """
+    if not console.is_terminal and console.width < WIDE_LOG:
+        return Console(file=console.file, width=WIDE_LOG)
+    return console
+
 
 EXIT_USAGE = 2
 
@@ -189,7 +202,9 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
             f" {Path(out) / plan.name / RUNS_DIR}: run the same command again to resume",
             code=130,
         )
-    console.print(summary_table(f"{plan.name}: {plan.runs} runs, seed {plan.seed}", records))
+    table_console().print(
+        summary_table(f"{plan.name}: {plan.runs} runs, seed {plan.seed}", records)
+    )
     console.print(f"results written to {target}", highlight=False)
 
 
@@ -230,7 +245,7 @@ def report(
         if debug:
             raise
         fail(f"{out}: cannot write the report: {exc}")
-    console.print(rich_table(done.rows))
+    table_console().print(rich_table(done.rows))
     figures = sum(1 for p in done.files if p.suffix != ".md")
     console.print(
         f"report of {len(done.scenarios)} scenarios ({figures} figures) written to"
@@ -265,7 +280,7 @@ def check(
         if debug:
             raise
         fail(str(exc))
-    print_report(found, console)
+    print_report(found, table_console())
     raise typer.Exit(found.exit_code)
 
 
@@ -297,7 +312,7 @@ def bench(
         if debug:
             raise
         fail(f"{out}: cannot write the bench figures: {exc}")
-    console.print(bench_table(found))
+    table_console().print(bench_table(found))
     console.print(f"bench figures written to {out}", highlight=False)
 
 

@@ -28,6 +28,13 @@ class ResultsError(Exception):
     """Saved results are missing or unreadable; `str()` is the one-line message for the user."""
 
 
+def _file_mode() -> int:
+    """The mode `open()` would give a new file: mkstemp's private 0600 is not wanted for results."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
 def write_atomic(path: Path, write: Callable[[Path], None]) -> None:
     """Call `write(tmp)` on a temporary file beside `path`, fsync it, then rename onto `path`."""
     path = Path(path)
@@ -39,6 +46,7 @@ def write_atomic(path: Path, write: Callable[[Path], None]) -> None:
         write(tmp)
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())
+        os.chmod(tmp, _file_mode())
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -205,3 +207,12 @@ def test_bad_flags_give_one_clean_line(tmp_path, small_yaml, flag, value):
     out = result.stderr.strip()
     assert out.startswith(f"error: {flag}: must be an integer >=") and len(out.splitlines()) == 1
     assert not (tmp_path / "o").exists()
+
+
+def test_result_files_get_ordinary_permissions(tmp_path):
+    """mkstemp makes 0600 files; results must be readable like any file the user writes."""
+    _, target = _execute(tmp_path, "perm", runs=1)
+    umask = os.umask(0)
+    os.umask(umask)
+    for name in ("steps.parquet", "summary.json", "manifest.json"):
+        assert stat.S_IMODE((target / name).stat().st_mode) == 0o666 & ~umask

@@ -20,7 +20,6 @@ import dataclasses
 import gc
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -36,12 +35,11 @@ from filterpy.kalman import ExtendedKalmanFilter
 from rich.table import Table
 
 from .config import ANFEKFSpec, EKFSpec, Scenario, World, load_scenario, scenario_files
-from .experiment import execute, make_plan, package_versions
+from .experiment import execute, machine_info, make_plan, package_versions
 from .filters import RobotEKF, build_filter
-from .metrics import pose_errors
 from .models import F_jacobian, G_jacobian, H_jacobian, f, h, residual_z
-from .runner import _nees_where_finite, run_batch, run_filter
-from .simulation import RunData, simulate_run, simulate_truth
+from .runner import add_trace_metrics, recorded_steps, run_batch, run_filter, simulate
+from .simulation import RunData
 from .storage import STEPS_FILE, write_json
 
 # Per-step figures use the correct-noise scenario: there the gate accepts (nearly) every
@@ -141,12 +139,7 @@ def harness_pass(
     flt: RobotEKF, data: RunData, world: World, record_every: int, x_true: np.ndarray
 ) -> dict:
     """One filter as `runner.run_one` runs it: `run_filter`, then the per-run metrics."""
-    trace = run_filter(flt, data, world, record_every)
-    e = pose_errors(x_true, trace["x"])
-    trace["pos_err"] = np.hypot(e[:, 0], e[:, 1])
-    trace["heading_err"] = np.abs(e[:, 2])
-    trace["nees"] = _nees_where_finite(e, trace["P"])
-    return trace
+    return add_trace_metrics(run_filter(flt, data, world, record_every), x_true)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -176,19 +169,14 @@ class StepSetup:
         return self.ekf().Qu
 
     def _build(self, spec) -> RobotEKF:
-        sc = self.scenario
-        return build_filter(
-            spec, sc, self.world, sc.true_noise.radians(), sc.filter_noise.radians()
-        )
+        return build_filter(spec, self.scenario, self.world)
 
 
 def step_setup(scenario: Scenario, world: World) -> StepSetup:
     """Simulate once; every timed filter pass reuses these data (simulation is not timed)."""
-    seed = np.random.SeedSequence(scenario.seed).spawn(1)[0]
-    truth = simulate_truth(world)
-    data = simulate_run(world, truth, scenario.true_noise.radians(), np.random.default_rng(seed))
-    steps = np.arange(scenario.record_every, len(data.u_odo) + 1, scenario.record_every)
-    return StepSetup(scenario=scenario, world=world, data=data, x_true=truth.x[steps])
+    data = simulate(scenario, world, np.random.SeedSequence(scenario.seed).spawn(1)[0])
+    steps = recorded_steps(len(data.u_odo), scenario.record_every)
+    return StepSetup(scenario=scenario, world=world, data=data, x_true=data.truth.x[steps])
 
 
 def _timed(fn: Callable[[], object]) -> float:
@@ -364,20 +352,6 @@ def probe_in_subprocess(path: Path, out_dir: Path, runs: int | None, waypoints: 
 
 # ---------------------------------------------------------------------------------------------
 # The report
-
-
-def machine_info() -> dict:
-    """Cores this process may use, the CPU model (from /proc/cpuinfo) and the platform."""
-    model = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        model = platform.processor() or "unknown"
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return {"cores": cores, "cpu_model": model, "platform": platform.platform()}
 
 
 def targets_met(report: dict) -> dict[str, dict]:

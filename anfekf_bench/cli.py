@@ -13,9 +13,11 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from .config import ScenarioError, load_scenario, one_line, scenario_files
-from .experiment import RUNS_DIR, OutputExists, PlanError, execute, make_plan
+from .experiment import OutputExists, PlanError, execute, make_plan
+from .metrics import format_number, format_share
 from .runner import BackendUnavailable
 from .simulation import RouteNotCompleted
+from .storage import RUNS_DIR
 
 app = typer.Typer(
     add_completion=False,
@@ -60,12 +62,6 @@ def fail(message: str, code: int = EXIT_USAGE):
     raise typer.Exit(code)
 
 
-def _fmt(x, digits: int = 3) -> str:
-    return (
-        "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{digits}f}"
-    )
-
-
 def summary_table(title: str, records: list[dict]) -> Table:
     table = Table(title=title, title_justify="left")
     for col in (
@@ -83,10 +79,10 @@ def summary_table(title: str, records: list[dict]) -> Table:
             r["filter"],
             str(r["runs"]),
             str(r["diverged"]),
-            _fmt(r["rmse_pos"]),
-            _fmt(math.degrees(r["rmse_heading"]) if r["rmse_heading"] is not None else None),
-            _fmt(r["anees"], 2),
-            "-" if r["nees_in_bounds"] is None else f"{100 * r['nees_in_bounds']:.1f} %",
+            format_number(r["rmse_pos"], 3),
+            format_number(math.degrees(r["rmse_heading"]), 3),
+            format_number(r["anees"], 2),
+            format_share(r["nees_in_bounds"]),
         )
     return table
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import platform
 import shutil
 import time
@@ -22,8 +23,10 @@ from pydantic import ValidationError
 
 from .config import BackendConfig, Scenario, World
 from .runner import run_batch, steps_frame, summary_records, update_statistics
+from .simulation import simulate_truth
 from .storage import (
     MANIFEST_FILE,
+    RUNS_DIR,
     STEPS_FILE,
     SUMMARY_JSON,
     SUMMARY_PARQUET,
@@ -32,7 +35,6 @@ from .storage import (
     write_parquet,
 )
 
-RUNS_DIR = ".runs"
 _PACKAGES = (
     "anfekf-bench",
     "numpy",
@@ -76,8 +78,31 @@ class Plan:
             "seed": self.seed,
             "landmarks": self.world.landmarks.tolist(),
             "waypoints": self.world.waypoints.tolist(),
+            "code": code_version(),
         }
         return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def code_version() -> str:
+    """Hash of this package's source: runs saved by other code must not be resumed into a batch."""
+    digest = hashlib.sha256()
+    for path in sorted(Path(__file__).parent.glob("*.py")):
+        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def machine_info() -> dict:
+    """Cores this process may use, the CPU model (from /proc/cpuinfo) and the platform."""
+    model = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        model = platform.processor() or "unknown"
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {"cores": cores, "cpu_model": model, "platform": platform.platform()}
 
 
 def make_plan(
@@ -191,6 +216,8 @@ def execute(
 ) -> tuple[list[dict], Path]:
     """Run the plan and write its results; returns (summary records, scenario folder)."""
     started = time.time()
+    # A route the controller cannot finish fails here, before --force deletes anything.
+    simulate_truth(plan.world)
     target, done, action = prepare_output(plan, out_dir, force)
 
     def keep(result: dict) -> None:
@@ -235,19 +262,13 @@ def execute(
         "world": {
             "landmarks": plan.world.landmarks.tolist(),
             "waypoints": plan.world.waypoints.tolist(),
-            "control_steps": int(len(ordered[0]["step"]) * plan.scenario.record_every),
+            "control_steps": ordered[0]["control_steps"],
         },
         "resumed_runs": sorted(done),
         "versions": package_versions(),
-        "machine": {"platform": platform.platform(), "cores": _cores()},
+        "machine": machine_info(),
         "wall_time_s": round(time.time() - started, 3),
     }
     write_json(target / MANIFEST_FILE, manifest)
     shutil.rmtree(target / RUNS_DIR, ignore_errors=True)
     return records, target
-
-
-def _cores() -> int:
-    import os
-
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()

@@ -16,7 +16,17 @@ from scipy.stats import chi2
 
 from . import anfis
 from .config import ANFEKFSpec, EKFSpec, OracleSpec
-from .models import F_jacobian, G_jacobian, H_jacobian, f, h, residual_z
+from .models import (
+    F_jacobian,
+    G_jacobian,
+    H_jacobian,
+    control_covariance,
+    f,
+    h,
+    measurement_covariance,
+    residual_z,
+    wrap_scalar,
+)
 
 
 def _given(value: np.ndarray, *args) -> np.ndarray:
@@ -76,15 +86,17 @@ class RobotEKF(ExtendedKalmanFilter):
         HPHt = H @ self.P @ H.T
         return H, z_hat, nu, HPHt
 
-    def supervise(self, nu: np.ndarray, HPHt: np.ndarray) -> None:
+    def supervise(self, nu: np.ndarray, H: np.ndarray, HPHt: np.ndarray) -> None:
         """Hook called at every landmark before the gain; the plain EKF changes nothing."""
 
     def update_landmark(self, z: np.ndarray, landmark: np.ndarray) -> bool:
         """Gate and fuse one range-bearing measurement; False if the gate rejected it."""
         H, z_hat, nu, HPHt = self.innovation(z, landmark)
-        self.supervise(nu, HPHt)
+        self.supervise(nu, H, HPHt)
         S = HPHt + self.R
         nis = float(nu @ np.linalg.solve(S, nu))
+        if not math.isfinite(nis):
+            raise FilterDiverged(f"innovation or its covariance is not finite (NIS {nis})")
         if self.gate is not None and not nis <= self.gate:
             self.n_rejected += 1
             return False
@@ -93,9 +105,61 @@ class RobotEKF(ExtendedKalmanFilter):
         self.update(
             z, HJacobian=_given, Hx=_given, args=(H,), hx_args=(z_hat,), residual=residual_z
         )
+        self.x[2] = wrap_scalar(self.x[2])
         # Joseph form keeps P symmetric only up to round-off; keep it exactly symmetric.
         self.P = 0.5 * (self.P + self.P.T)
         return True
+
+
+def mismatch(S: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """Normalised mismatch d = (S - C) / (S + C) in (-1, 1) (SPEC 4; the paper's DOM, eq. 31)."""
+    return (S - C) / (S + C)
+
+
+def _clip(o: float, limit: float) -> tuple[float, bool]:
+    """o clipped to +-limit, and whether it was inside (the clipped output has no slope)."""
+    return (o, True) if -limit <= o <= limit else (math.copysign(limit, o), False)
+
+
+def _scaled(g: anfis.ANFISParams, k: float) -> anfis.ANFISParams:
+    return anfis.ANFISParams(m=g.m * k, delta=g.delta * k, w=g.w * k)
+
+
+def r_step(
+    params: anfis.ANFISParams, u: tuple[float, float], R_ii: float, HPH_ii: float, C_ii: float,
+    clip: float,
+) -> tuple[float, float, anfis.ANFISParams | None]:  # fmt: skip
+    """One diagonal element of R: eq. (33) with DeltaR = R (e^o - 1), and the loss gradient.
+
+    Returns R'_ii = R_ii exp(o), E = e^2 / 2 with e = mismatch(S', C) and S' = H P H^T + R'
+    (eqs. 39-40 on the normalised scale), and dE/dW = e de/dS' dS'/do do/dW (eq. 42), where
+    de/dS' = 2 C / (S' + C)^2 and dS'/do = R'; None when o was clipped.
+    """
+    o_raw, do_dW = anfis.output_and_gradient(params, u)
+    o, inside = _clip(o_raw, clip)
+    R_new = R_ii * math.exp(o)
+    S_new = HPH_ii + R_new
+    e = (S_new - C_ii) / (S_new + C_ii)
+    dE_do = e * 2.0 * C_ii / (S_new + C_ii) ** 2 * R_new
+    return R_new, 0.5 * e * e, _scaled(do_dW, dE_do) if inside else None
+
+
+def q_step(
+    params: anfis.ANFISParams, u: tuple[float, float], S: np.ndarray, C: np.ndarray,
+    dS: np.ndarray, clip: float,
+) -> tuple[float, float, anfis.ANFISParams | None]:  # fmt: skip
+    """The scale of Qu: eq. (44) with DeltaQ = e^o, and the loss gradient.
+
+    The first-order model S'(o) = S + (e^o - 1) dS, dS the diagonal of H Q_int H^T (SPEC 4);
+    E = (e_1^2 + e_2^2) / 2 with e = mismatch(S', C). Returns (e^o, E, dE/dW or None if clipped).
+    """
+    o_raw, do_dW = anfis.output_and_gradient(params, u)
+    o, inside = _clip(o_raw, clip)
+    scale = math.exp(o)
+    S_new = S + (scale - 1.0) * dS
+    e = (S_new - C) / (S_new + C)
+    dE_do = float(np.sum(e * 2.0 * C / (S_new + C) ** 2 * scale * dS))
+    return scale, 0.5 * float(e @ e), _scaled(do_dW, dE_do) if inside else None
 
 
 class ANFEKF(RobotEKF):
@@ -111,108 +175,78 @@ class ANFEKF(RobotEKF):
     def __init__(self, *args, spec: ANFEKFSpec, **kwargs):
         super().__init__(*args, **kwargs)
         self.spec = spec
+        # Squared innovations (the diagonal of nu nu^T: only it is matched) of the last N.
         self.window: deque[np.ndarray] = deque(maxlen=spec.window)
-        self.C_sum = np.zeros((2, 2))
         self.d_prev: np.ndarray | None = None
         self.eta = tuple(spec.learning_rate)
         if spec.adapt == "R":
-            init = dict(
-                centres0=spec.centres_d,
-                centres1=spec.centres_dd,
-                width0=spec.width_d,
-                width1=spec.width_dd,
-                singleton_scale=spec.singleton_scale,
-            )
-            self.anfis_params = [anfis.init_params(**init), anfis.init_params(**init)]
-        else:
-            self.anfis_params = [
-                anfis.init_params(
-                    centres0=spec.centres_d,
-                    centres1=spec.centres_d,
-                    width0=spec.width_d,
-                    width1=spec.width_d,
-                    singleton_scale=spec.singleton_scale,
-                )
-            ]
-        # Process noise G Qu G^T added since the last scan: first-order dS/dQ model (SPEC 4).
+            second = dict(centres1=spec.centres_dd, width1=spec.width_dd)
+            n_anfis = 2
+        else:  # inputs d_11 and d_22: two mismatches of the same scale
+            second = dict(centres1=spec.centres_d, width1=spec.width_d)
+            n_anfis = 1
+        init = anfis.init_params(
+            centres0=spec.centres_d,
+            width0=spec.width_d,
+            singleton_scale=spec.singleton_scale,
+            **second,
+        )
+        self.anfis_params = [init] * n_anfis
+        # Process noise G Qu G^T added since the last landmark update: what P- grew by, the
+        # first-order dS/dQ model of SPEC 4.
         self.Q_interval = np.zeros((3, 3))
-        self._scan_open = False
+        self._updated_since_predict = False
 
     def predict(self, u=0):
         super().predict(u)
-        if self._scan_open:
+        if self._updated_since_predict:
             self.Q_interval = np.zeros((3, 3))
-            self._scan_open = False
+            self._updated_since_predict = False
         self.Q_interval += self.Q
 
-    def supervise(self, nu: np.ndarray, HPHt: np.ndarray) -> None:
-        self._scan_open = True
-        outer = np.outer(nu, nu)
-        if len(self.window) == self.window.maxlen:
-            self.C_sum -= self.window[0]
-        self.window.append(outer)
-        self.C_sum += outer
+    def supervise(self, nu: np.ndarray, H: np.ndarray, HPHt: np.ndarray) -> None:
+        self._updated_since_predict = True
+        self.window.append(nu * nu)
         if len(self.window) < self.window.maxlen or not self.spec.adaptation:
             return
-        C = np.diag(self.C_sum) / len(self.window)
-        S = np.diag(HPHt) + np.diag(self.R)
-        d = (S - C) / (S + C)
+        C = np.mean(self.window, axis=0)
+        HPH = np.diag(HPHt)
+        S = HPH + np.diag(self.R)
+        d = mismatch(S, C)
         dd = np.zeros(2) if self.d_prev is None else d - self.d_prev
         self.d_prev = d
         if self.spec.adapt == "R":
-            self._adapt_R(d, dd, C, np.diag(HPHt))
+            self._adapt_R(d, dd, HPH, C)
         else:
-            self._adapt_Q(d, C, S, nu)
+            self._adapt_Q(d, H, HPH, S, C)
 
-    def _clipped(self, o: float) -> tuple[float, float]:
-        """o clipped to +-output_clip, and do_clipped/do (0 where the clip is active)."""
-        c = self.spec.output_clip
-        return (o, 1.0) if -c <= o <= c else (math.copysign(c, o), 0.0)
+    def _learn(self, i: int, grad: anfis.ANFISParams | None) -> None:
+        if self.spec.learning and grad is not None:
+            self.anfis_params[i] = anfis.sgd_step(self.anfis_params[i], grad, self.eta)
 
-    def _adapt_R(self, d: np.ndarray, dd: np.ndarray, C: np.ndarray, HPH: np.ndarray) -> None:
-        """Eq. (33) with DeltaR_ii = R_ii (exp(o) - 1), then SD on e = (S'-C)/(S'+C)."""
+    def _adapt_R(self, d: np.ndarray, dd: np.ndarray, HPH: np.ndarray, C: np.ndarray) -> None:
+        """Two ANFIS, one per diagonal element of R (paper 5.1)."""
         R_diag = np.diag(self.R).copy()
         for i in range(2):
-            params = self.anfis_params[i]
-            o_raw, do_dW = anfis.output_and_gradient(params, (d[i], dd[i]))
-            o, slope = self._clipped(o_raw)
-            R_diag[i] *= math.exp(o)
-            if self.spec.learning and slope:
-                S_new = HPH[i] + R_diag[i]
-                e = (S_new - C[i]) / (S_new + C[i])
-                dE_do = e * 2.0 * C[i] / (S_new + C[i]) ** 2 * R_diag[i]
-                self.anfis_params[i] = anfis.sgd_step(params, _scaled(do_dW, dE_do), self.eta)
+            R_diag[i], _, grad = r_step(
+                self.anfis_params[i], (d[i], dd[i]), R_diag[i], HPH[i], C[i],
+                self.spec.output_clip,
+            )  # fmt: skip
+            self._learn(i, grad)
         self.R = np.diag(R_diag)
 
-    def _adapt_Q(self, d: np.ndarray, C: np.ndarray, S: np.ndarray, nu: np.ndarray) -> None:
-        """Eq. (44): Qu <- Qu exp(o); SD with S'(o) = S + (e^o - 1) diag(H Q_interval H^T)."""
-        params = self.anfis_params[0]
-        o_raw, do_dW = anfis.output_and_gradient(params, (d[0], d[1]))
-        o, slope = self._clipped(o_raw)
-        scale = math.exp(o)
+    def _adapt_Q(
+        self, d: np.ndarray, H: np.ndarray, HPH: np.ndarray, S: np.ndarray, C: np.ndarray
+    ) -> None:
+        """One ANFIS scaling Qu (paper 5.2)."""
+        # After earlier landmarks of the same scan P has shrunk, so the interval's process noise
+        # can exceed what is left of H P H^T; capping it there keeps S' > 0 and bounds |dE/do|
+        # by sum |e_i| / 2 (uncapped, single huge steps flipped the singletons' signs).
+        dS = np.minimum(np.einsum("ij,jk,ik->i", H, self.Q_interval, H), HPH)
+        scale, _, grad = q_step(self.anfis_params[0], (d[0], d[1]), S, C, dS, self.spec.output_clip)
+        self._learn(0, grad)
         self.Qu = self.Qu * scale
-        if self.spec.learning and slope:
-            H = self._H_last
-            # After earlier landmarks of the same scan P has shrunk, so the interval's process
-            # noise can exceed what is left of H P H^T; capping it there keeps S' > 0 and bounds
-            # |dE/do| by sum |e_i| / 2.
-            dS_dscale = np.minimum(
-                np.einsum("ij,jk,ik->i", H, self.Q_interval, H), S - np.diag(self.R)
-            )
-            S_new = S + (scale - 1.0) * dS_dscale
-            e = (S_new - C) / (S_new + C)
-            dE_do = float(np.sum(e * 2.0 * C / (S_new + C) ** 2 * scale * dS_dscale))
-            self.anfis_params[0] = anfis.sgd_step(params, _scaled(do_dW, dE_do), self.eta)
         self.Q_interval = self.Q_interval * scale
-
-    def innovation(self, z, landmark):
-        H, z_hat, nu, HPHt = super().innovation(z, landmark)
-        self._H_last = H
-        return H, z_hat, nu, HPHt
-
-
-def _scaled(g: anfis.ANFISParams, k: float) -> anfis.ANFISParams:
-    return anfis.ANFISParams(m=g.m * k, delta=g.delta * k, w=g.w * k)
 
 
 def gate_threshold(probability: float | None) -> float | None:
@@ -220,15 +254,15 @@ def gate_threshold(probability: float | None) -> float | None:
     return None if probability is None else float(chi2.ppf(probability, 2))
 
 
-def build_filter(spec, scenario, world, true_sigmas, filter_sigmas) -> RobotEKF:
-    """A fresh filter for one run, from its spec and the scenario (sigmas in radians)."""
-    sigmas = true_sigmas if isinstance(spec, OracleSpec) else filter_sigmas
-    sv, sg, sr, sb = sigmas
+def build_filter(spec, scenario, world) -> RobotEKF:
+    """A fresh filter for one run: the oracle gets the true noise, every other the assumed one."""
+    noise = scenario.true_noise if isinstance(spec, OracleSpec) else scenario.filter_noise
+    sv, sg, sr, sb = noise.radians()
     kwargs = dict(
         x0=world.x0,
         P0=np.eye(3) * scenario.p0,
-        Qu=np.diag([sv**2, sg**2]),
-        R=np.diag([sr**2, sb**2]),
+        Qu=control_covariance(sv, sg),
+        R=measurement_covariance(sr, sb),
         T=world.T,
         B=world.B,
         gate=gate_threshold(scenario.gate_probability),

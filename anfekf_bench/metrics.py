@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.stats import chi2
 
@@ -37,6 +39,16 @@ def share_inside(values: np.ndarray, lo: float, hi: float) -> float:
     """Share of entries strictly inside (lo, hi)."""
     values = np.asarray(values)
     return float(np.mean((values > lo) & (values < hi))) if values.size else float("nan")
+
+
+def format_number(x: float | None, digits: int) -> str:
+    """A metric for tables and legends: '-' when undefined (every run diverged)."""
+    return "-" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
+
+
+def format_share(x: float | None) -> str:
+    """A share (0..1) as a percentage; '-' when undefined."""
+    return "-" if x is None or not math.isfinite(x) else f"{100 * x:.1f} %"
 
 
 def summarize_filter(

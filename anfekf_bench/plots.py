@@ -22,6 +22,7 @@ from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.patches import Ellipse, Rectangle  # noqa: E402
 
+from .metrics import format_number, format_share  # noqa: E402
 from .storage import write_atomic  # noqa: E402
 
 if TYPE_CHECKING:  # report.py imports this module; these names are for annotations only
@@ -107,7 +108,9 @@ def rmse_figure(sc: ScenarioData) -> Figure:
     for f in sc.filters:
         s = f.summary
         head = math.degrees(s["rmse_heading"]) if math.isfinite(s["rmse_heading"]) else math.nan
-        label = f"{f.name}: {_fmt(s['rmse_pos'], 3)} m, {_fmt(head, 3)} deg{_lost(f)}"
+        label = (
+            f"{f.name}: {format_number(s['rmse_pos'], 3)} m, {format_number(head, 3)} deg{_lost(f)}"
+        )
         _band(ax_pos, f.t, f.pos, f, "rmse_pos", label)
         _band(ax_head, f.t, f.heading, f, "rmse_heading", None)
     ax_pos.set_ylabel("position RMSE [m]")
@@ -139,8 +142,8 @@ def nees_figure(sc: ScenarioData) -> Figure:
     ax = fig.subplots()
     for f in sc.filters:
         s = f.summary
-        share = _pct(s["nees_in_bounds"])
-        label = f"{f.name}: ANEES {_fmt(s['anees'], 2)}, {share} in bounds{_lost(f)}"
+        share = format_share(s["nees_in_bounds"])
+        label = f"{f.name}: ANEES {format_number(s['anees'], 2)}, {share} in bounds{_lost(f)}"
         ax.plot(f.t, f.nees, lw=1.0, label=label, gid=f"nees/{f.name}", **_style(f))
     # Filters that lost runs to divergence average fewer runs: their bounds are wider.
     for n, (lo, hi) in sorted({(f.runs_used, f.bounds) for f in sc.filters if f.runs_used}):
@@ -348,11 +351,3 @@ def _percentiles() -> tuple[float, float]:
     from .report import BAND_PERCENTILES
 
     return BAND_PERCENTILES
-
-
-def _fmt(x: float, digits: int) -> str:
-    return "-" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
-
-
-def _pct(x: float) -> str:
-    return "-" if x is None or not math.isfinite(x) else f"{100 * x:.1f} %"

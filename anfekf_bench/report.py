@@ -25,7 +25,8 @@ from rich.text import Text
 
 from . import plots
 from .config import NoiseSigmas
-from .metrics import nees_bounds, rmse_curve, summarize_filter
+from .metrics import format_number, format_share, nees_bounds, rmse_curve, summarize_filter
+from .models import control_covariance, measurement_covariance
 from .runner import filter_arrays
 from .storage import MANIFEST_FILE, ResultsError, read_json, read_steps, scenario_dirs, write_atomic
 
@@ -197,7 +198,8 @@ def _points(manifest: dict, key: str, path: Path) -> np.ndarray:
 def true_variances(sigmas: NoiseSigmas) -> dict[str, float]:
     """The true noise as the R/Q diagonal entries steps.parquet records (angles in radians)."""
     sv, sg, sr, sb = sigmas.radians()
-    return {"R_rr": sr**2, "R_bb": sb**2, "Q_vv": sv**2, "Q_gg": sg**2}
+    R, Qu = measurement_covariance(sr, sb), control_covariance(sv, sg)
+    return {"R_rr": R[0, 0], "R_bb": R[1, 1], "Q_vv": Qu[0, 0], "Q_gg": Qu[1, 1]}
 
 
 def _true_noise(manifest: dict, path: Path) -> dict[str, float]:
@@ -379,14 +381,6 @@ def summary_rows(scenarios: Sequence[ScenarioData]) -> list[SummaryRow]:
     return rows
 
 
-def _num(x: float, digits: int) -> str:
-    return "-" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
-
-
-def _pct(x: float) -> str:
-    return "-" if x is None or not math.isfinite(x) else f"{100 * x:.1f} %"
-
-
 TABLE_HEADER = (
     "scenario", "filter", "runs used", "diverged", "RMSE pos [m]", "RMSE heading [deg]", "ANEES",
     "NEES in 95 % bounds", "RMSE / ekf", "RMSE / oracle",
@@ -400,12 +394,12 @@ def table_cells(row: SummaryRow) -> list[str]:
         row.filter,
         f"{row.runs_used}/{row.runs}",
         str(row.runs - row.runs_used),
-        _num(row.rmse_pos, 3),
-        _num(row.rmse_heading_deg, 3),
-        _num(row.anees, 2),
-        _pct(row.nees_in_bounds),
-        _num(row.vs_ekf, 2),
-        _num(row.vs_oracle, 2),
+        format_number(row.rmse_pos, 3),
+        format_number(row.rmse_heading_deg, 3),
+        format_number(row.anees, 2),
+        format_share(row.nees_in_bounds),
+        format_number(row.vs_ekf, 2),
+        format_number(row.vs_oracle, 2),
     ]
 
 

@@ -35,7 +35,7 @@ _P_INDEX = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
 def _healthy(flt: RobotEKF) -> bool:
     """x and P finite, P positive definite, the diagonals of R and Qu positive.
 
-    Called at every scan; on the 3 + 9 + 4 numbers it checks, plain floats cost a fraction of
+    Called after every scan that saw a landmark; on the 3 + 9 + 4 numbers it checks, plain floats cost a fraction of
     numpy's reductions (the same answer: math.isfinite and > 0 treat NaN as np.isfinite does).
     """
     if not all(map(math.isfinite, flt.x.ravel().tolist() + flt.P.ravel().tolist())):
@@ -84,7 +84,7 @@ def run_filter(flt: RobotEKF, data: RunData, world: World, record_every: int) ->
         # Health is checked at scans; a blow-up in the predictions after the last one shows here.
         if not (np.isfinite(x).all() and np.isfinite(P).all()):
             raise FilterDiverged("non-finite estimate after the last scan")
-    except (FilterDiverged, np.linalg.LinAlgError, ValueError, OverflowError):
+    except (FilterDiverged, np.linalg.LinAlgError):
         diverged = True
         x[j:] = P[j:] = R[j:] = Qu[j:] = np.nan
     return {
@@ -99,25 +99,46 @@ def run_filter(flt: RobotEKF, data: RunData, world: World, record_every: int) ->
     }
 
 
+def recorded_steps(n_controls: int, record_every: int) -> np.ndarray:
+    """The control steps a run records: every `record_every`-th, from the first such step."""
+    return np.arange(record_every, n_controls + 1, record_every)
+
+
+def simulate(scenario: Scenario, world: World, seed: np.random.SeedSequence) -> RunData:
+    """One run's data, every draw from its own seed (SPEC 6)."""
+    truth = simulate_truth(world)
+    return simulate_run(world, truth, scenario.true_noise.radians(), np.random.default_rng(seed))
+
+
+def add_trace_metrics(trace: dict, x_true: np.ndarray) -> dict:
+    """Per-step pos_err, heading_err and NEES of a filter's trace, in bulk from its arrays."""
+    e = pose_errors(x_true, trace["x"])
+    trace["pos_err"] = np.hypot(e[:, 0], e[:, 1])
+    trace["heading_err"] = np.abs(e[:, 2])
+    trace["nees"] = _nees_where_finite(e, trace["P"])
+    return trace
+
+
 def run_one(scenario: Scenario, world: World, run: int, seed: np.random.SeedSequence) -> dict:
     """One Monte Carlo run: simulate once, feed the same data to every filter (CRN)."""
-    rng = np.random.default_rng(seed)
-    truth = simulate_truth(world)
-    data = simulate_run(world, truth, scenario.true_noise.radians(), rng)
-    steps = np.arange(scenario.record_every, len(data.u_odo) + 1, scenario.record_every)
-    x_true = truth.x[steps]
-    filters = {}
-    for spec in scenario.filters:
-        flt = build_filter(
-            spec, scenario, world, scenario.true_noise.radians(), scenario.filter_noise.radians()
+    data = simulate(scenario, world, seed)
+    steps = recorded_steps(len(data.u_odo), scenario.record_every)
+    x_true = data.truth.x[steps]
+    filters = {
+        spec.name: add_trace_metrics(
+            run_filter(build_filter(spec, scenario, world), data, world, scenario.record_every),
+            x_true,
         )
-        trace = run_filter(flt, data, world, scenario.record_every)
-        e = pose_errors(x_true, trace["x"])
-        trace["pos_err"] = np.hypot(e[:, 0], e[:, 1])
-        trace["heading_err"] = np.abs(e[:, 2])
-        trace["nees"] = _nees_where_finite(e, trace["P"])
-        filters[spec.name] = trace
-    return {"run": run, "step": steps, "t": steps * world.T, "x_true": x_true, "filters": filters}
+        for spec in scenario.filters
+    }
+    return {
+        "run": run,
+        "control_steps": len(data.u_odo),
+        "step": steps,
+        "t": steps * world.T,
+        "x_true": x_true,
+        "filters": filters,
+    }
 
 
 def _nees_where_finite(e: np.ndarray, P: np.ndarray) -> np.ndarray:
@@ -318,6 +339,7 @@ def summary_records(steps: pd.DataFrame, update_stats: dict[str, dict] | None = 
 
 def update_statistics(results: list[dict], filter_names: list[str]) -> dict[str, dict]:
     """Average NIS per accepted update and share of measurements the gate rejected."""
+    results = sorted(results, key=lambda r: r["run"])  # a float sum depends on its order
     stats = {}
     for name in filter_names:
         traces = [r["filters"][name] for r in results if not r["filters"][name]["diverged"]]

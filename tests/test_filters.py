@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 
 from anfekf_bench import anfis
 from anfekf_bench.config import ANFEKFSpec, parse_scenario, resolve_world
-from anfekf_bench.filters import ANFEKF, RobotEKF, build_filter, gate_threshold
+from anfekf_bench.filters import ANFEKF, RobotEKF, build_filter, gate_threshold, q_step, r_step
 from anfekf_bench.models import G_jacobian, H_jacobian, f, h, wrap_scalar
 from anfekf_bench.runner import run_filter
 from anfekf_bench.simulation import simulate_run, simulate_truth
@@ -102,9 +103,7 @@ def small_run():
 
 
 def _run(spec, scenario, world, data):
-    flt = build_filter(
-        spec, scenario, world, scenario.true_noise.radians(), scenario.filter_noise.radians()
-    )
+    flt = build_filter(spec, scenario, world)
     return flt, run_filter(flt, data, world, 1)
 
 
@@ -142,11 +141,11 @@ def _supervised(nu_scale: float, adapt: str, n: int = 60, seed: int = 0):
     ekf = make_ekf(cls=ANFEKF, spec=ANFEKFSpec(name="a", kind="anfekf", adapt=adapt, window=10))
     rng = np.random.default_rng(seed)
     HPHt = np.diag([0.01, 1e-4])
-    ekf._H_last = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -1.0]])
+    H = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -1.0]])
     ekf.Q_interval = np.diag([1e-3, 1e-3, 1e-4])
     R0, Q0 = np.diag(ekf.R).copy(), np.diag(ekf.Qu).copy()
     for _ in range(n):
-        ekf.supervise(rng.standard_normal(2) * nu_scale, HPHt)
+        ekf.supervise(rng.standard_normal(2) * nu_scale, H, HPHt)
     return ekf, R0, Q0
 
 
@@ -178,9 +177,82 @@ def test_covariances_stay_positive_definite_under_extreme_innovations(adapt, sca
 
 def test_supervisor_waits_for_a_full_window():
     ekf = make_ekf(cls=ANFEKF, spec=ANFEKFSpec(name="a", kind="anfekf", window=20))
+    H = H_jacobian(ekf.x, np.array([10.0, 5.0]))
     for _ in range(19):
-        ekf.supervise(np.array([5.0, 0.5]), np.diag([0.01, 1e-4]))
+        ekf.supervise(np.array([5.0, 0.5]), H, np.diag([0.01, 1e-4]))
     np.testing.assert_array_equal(ekf.R, R)
-    ekf.supervise(np.array([5.0, 0.5]), np.diag([0.01, 1e-4]))
+    ekf.supervise(np.array([5.0, 0.5]), H, np.diag([0.01, 1e-4]))
     assert not np.array_equal(ekf.R, R)
-    np.testing.assert_allclose(ekf.C_sum / 20, np.outer([5.0, 0.5], [5.0, 0.5]))
+    np.testing.assert_allclose(np.mean(ekf.window, axis=0), [25.0, 0.25])
+
+
+PARAM_SETS = {
+    "default": anfis.init_params(),
+    "perturbed": anfis.ANFISParams(
+        m=anfis.init_params().m + np.random.default_rng(1).normal(0, 0.05, (2, 5)),
+        delta=anfis.init_params().delta * np.random.default_rng(2).uniform(0.8, 1.3, (2, 5)),
+        w=anfis.init_params().w + np.random.default_rng(3).normal(0, 0.05, 7),
+    ),
+}
+
+
+def _fd_check(loss, params: anfis.ANFISParams, grad: anfis.ANFISParams, eps=1e-6):
+    """Central differences of loss(params) for every parameter against the analytic grad."""
+    for kind in ("m", "delta", "w"):
+        base = getattr(params, kind)
+        analytic = getattr(grad, kind)
+        for idx in np.ndindex(base.shape):
+            plus, minus = base.copy(), base.copy()
+            plus[idx] += eps
+            minus[idx] -= eps
+            num = (
+                loss(dataclasses.replace(params, **{kind: plus}))
+                - loss(dataclasses.replace(params, **{kind: minus}))
+            ) / (2 * eps)
+            assert num == pytest.approx(analytic[idx], rel=1e-5, abs=1e-8), (kind, idx)
+
+
+@pytest.mark.parametrize("params", PARAM_SETS.values(), ids=PARAM_SETS.keys())
+@pytest.mark.parametrize(
+    "u, R_ii, HPH_ii, C_ii",
+    [
+        ((0.6, 0.05), 4.0, 0.5, 0.3),
+        ((-0.4, -0.1), 0.01, 0.002, 0.5),
+        ((0.1, 0.0), 1e-4, 1e-4, 2e-4),
+    ],
+    ids=["S-above-C", "S-below-C", "near-match"],
+)
+def test_r_step_loss_gradient_matches_finite_differences(params, u, R_ii, HPH_ii, C_ii):
+    """The filter-level dE/dW (eq. 42 through R' = R e^o) against differences of E(W)."""
+    _, _, grad = r_step(params, u, R_ii, HPH_ii, C_ii, clip=1.0)
+    assert grad is not None
+    _fd_check(lambda p: r_step(p, u, R_ii, HPH_ii, C_ii, clip=1.0)[1], params, grad)
+
+
+@pytest.mark.parametrize("params", PARAM_SETS.values(), ids=PARAM_SETS.keys())
+@pytest.mark.parametrize(
+    "u, S, C, dS",
+    [((0.5, 0.3), [0.2, 0.01], [0.1, 0.008], [0.05, 0.004]),
+     ((-0.6, -0.2), [0.02, 0.001], [0.3, 0.004], [0.015, 0.0008])],
+    ids=["S-above-C", "S-below-C"],
+)  # fmt: skip
+def test_q_step_loss_gradient_matches_finite_differences(params, u, S, C, dS):
+    S, C, dS = np.array(S), np.array(C), np.array(dS)
+    _, _, grad = q_step(params, u, S, C, dS, clip=1.0)
+    assert grad is not None
+    _fd_check(lambda p: q_step(p, u, S, C, dS, clip=1.0)[1], params, grad)
+
+
+def test_clipped_output_has_no_gradient():
+    big = anfis.init_params(singleton_scale=5.0)  # outputs far beyond the clip
+    R_new, _, grad = r_step(big, (-1.0, -0.2), 1.0, 0.1, 5.0, clip=1.0)
+    assert grad is None and R_new == pytest.approx(math.e)
+
+
+def test_learning_step_lowers_the_remaining_mismatch():
+    """One SD step on the filter's own loss moves E down (the sign of eq. 42 is right)."""
+    params = anfis.init_params()
+    u, R_ii, HPH_ii, C_ii = (0.5, 0.05), 2.0, 0.1, 0.2
+    _, E0, grad = r_step(params, u, R_ii, HPH_ii, C_ii, clip=1.0)
+    stepped = anfis.sgd_step(params, grad, 0.5)
+    assert r_step(stepped, u, R_ii, HPH_ii, C_ii, clip=1.0)[1] < E0

@@ -358,11 +358,15 @@ yaml_texts = st.one_of(
     st.text(alphabet=st.sampled_from(list("name: runs\n-[]{},'\"#&*!|>?%@`\t 0.1e")), max_size=60),
 )
 
-_TMP = Path(tempfile.mkdtemp(prefix="anfekf-hypothesis-"))
+
+@pytest.fixture(scope="module")
+def scratch(tmp_path_factory) -> Path:
+    """One folder for every generated document (module scope: hypothesis reuses it)."""
+    return tmp_path_factory.mktemp("hypothesis")
 
 
-def _load_or_error(text: str) -> ScenarioError | None:
-    path = _TMP / "scenario.yaml"
+def _load_or_error(text: str, folder: Path) -> ScenarioError | None:
+    path = folder / "scenario.yaml"
     path.write_text(text, encoding="utf-8")
     try:
         load_scenario(path)
@@ -375,18 +379,18 @@ def _load_or_error(text: str) -> ScenarioError | None:
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(yaml_texts)
-def test_any_document_loads_or_fails_cleanly(text: str) -> None:
-    _load_or_error(text)  # any other exception fails the test
+def test_any_document_loads_or_fails_cleanly(scratch: Path, text: str) -> None:
+    _load_or_error(text, scratch)  # any other exception fails the test
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(mutated_scenarios())
-def test_cli_error_line_equals_loader_error(doc) -> None:
+def test_cli_error_line_equals_loader_error(scratch: Path, doc) -> None:
     """Through the command line (only for documents that fail: no simulation is run)."""
     text = yaml.safe_dump(doc, allow_unicode=True)
-    error = _load_or_error(text)
+    error = _load_or_error(text, scratch)
     assume(error is not None)
-    result = cli("run", str(_TMP / "scenario.yaml"), "--out", str(_TMP / "out"))
+    result = cli("run", str(scratch / "scenario.yaml"), "--out", str(scratch / "out"))
     assert assert_one_line_error(result) == f"error: {error}"
 
 
@@ -445,8 +449,7 @@ def small_run():
 
 
 def _fresh_ekf(scenario, world) -> RobotEKF:
-    sig = scenario.filter_noise.radians()
-    return build_filter(scenario.filters[0], scenario, world, scenario.true_noise.radians(), sig)
+    return build_filter(scenario.filters[0], scenario, world)
 
 
 @pytest.mark.parametrize("mode", ["nan-P", "inf-x", "indefinite-P", "singular-solve", "zero-R"])
@@ -479,8 +482,7 @@ def test_covariance_stays_symmetric_and_positive_definite(kind: str, small_run) 
     spec = {"ekf": scenario.filters[0], "anfekf-R": scenario.filters[1]}.get(kind)
     if spec is None:
         spec = scenario.filters[1].model_copy(update={"adapt": "Q"})
-    sig = scenario.filter_noise.radians()
-    flt = build_filter(spec, scenario, world, scenario.true_noise.radians(), sig)
+    flt = build_filter(spec, scenario, world)
     update = flt.update_landmark
     checked = []
 

@@ -15,7 +15,8 @@ from typer.testing import CliRunner
 from anfekf_bench.cli import app
 from anfekf_bench.config import load_scenario, parse_scenario, resolve_world
 from anfekf_bench.experiment import execute, make_plan
-from anfekf_bench.runner import STEP_COLUMNS, run_one
+from anfekf_bench.models import f
+from anfekf_bench.runner import STEP_COLUMNS, run_one, steps_frame, update_statistics
 from anfekf_bench.simulation import simulate_run, simulate_truth
 from anfekf_bench.storage import read_parquet, read_steps, write_parquet
 
@@ -216,3 +217,29 @@ def test_result_files_get_ordinary_permissions(tmp_path):
     os.umask(umask)
     for name in ("steps.parquet", "summary.json", "manifest.json"):
         assert stat.S_IMODE((target / name).stat().st_mode) == 0o666 & ~umask
+
+
+def test_truth_follows_the_motion_model():
+    """simulate_truth's scalar loop (kept for speed) is eq. 17, i.e. models.f."""
+    _, world = load_scenario(CONFIGS / "correct.yaml")
+    truth = simulate_truth(world)
+    for k in range(0, len(truth.u), 97):
+        np.testing.assert_allclose(
+            truth.x[k + 1], f(truth.x[k], truth.u[k], world.T, world.B), rtol=0, atol=1e-12
+        )
+
+
+def test_tables_do_not_depend_on_the_order_runs_finish():
+    scenario = parse_scenario(small_scenario(runs=3))
+    world = resolve_world(scenario.world, Path("x.yaml"))
+    results = [run_one(scenario, world, i, s) for i, s in enumerate(run_seeds(scenario))]
+    names = [f.name for f in scenario.filters]
+    shuffled = [results[2], results[0], results[1]]
+    pd.testing.assert_frame_equal(
+        steps_frame("s", names, results), steps_frame("s", names, shuffled), check_exact=True
+    )
+    assert update_statistics(results, names) == update_statistics(shuffled, names)
+
+
+def run_seeds(scenario):
+    return np.random.SeedSequence(scenario.seed).spawn(scenario.runs)

@@ -199,6 +199,8 @@ class ANFEKF(RobotEKF):
 
     def predict(self, u=0):
         super().predict(u)
+        if self.spec.adapt != "Q":  # only the Q supervisor needs the interval's process noise
+            return
         if self._updated_since_predict:
             self.Q_interval = np.zeros((3, 3))
             self._updated_since_predict = False

@@ -256,3 +256,25 @@ def test_learning_step_lowers_the_remaining_mismatch():
     _, E0, grad = r_step(params, u, R_ii, HPH_ii, C_ii, clip=1.0)
     stepped = anfis.sgd_step(params, grad, 0.5)
     assert r_step(stepped, u, R_ii, HPH_ii, C_ii, clip=1.0)[1] < E0
+
+
+def test_update_equals_filterpy_linear_kalman_filter_on_the_linearised_model():
+    """EKF = KF where the model is linear: fusing z with H at x- is the KF update of
+    z_lin = nu + H x- (filterpy's KalmanFilter, an independent implementation)."""
+    from filterpy.kalman import KalmanFilter
+
+    ekf = make_ekf()
+    ekf.predict(np.array([3.0, 0.1]))
+    kf = KalmanFilter(dim_x=3, dim_z=2)
+    kf.x, kf.P = ekf.x.copy(), ekf.P.copy()
+    for lm, noise in (
+        (np.array([12.0, 7.0]), [0.1, -0.02]),
+        (np.array([-3.0, 9.0]), [-0.05, 0.01]),
+    ):
+        H = H_jacobian(ekf.x, lm)
+        z = h(ekf.x, lm) + np.array(noise)
+        nu = z - h(ekf.x, lm)
+        kf.update(nu + H @ kf.x, R=R, H=H)
+        ekf.update_landmark(z, lm)
+        np.testing.assert_allclose(ekf.x, kf.x, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(ekf.P, kf.P, rtol=0, atol=1e-12)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Optional
@@ -60,6 +62,28 @@ def fail(message: str, code: int = EXIT_USAGE):
     line = one_line(f"error: {message}")
     err_console.print(line, markup=False, highlight=False, soft_wrap=True)
     raise typer.Exit(code)
+
+
+@contextmanager
+def one_line_errors(
+    debug: bool,
+    expected: tuple[type[BaseException], ...],
+    *,
+    prefix: str = "",
+    os_error: str | None = None,
+) -> Iterator[None]:
+    """Report the expected errors (and OSError, when `os_error` names what was being written) as
+    one `error:` line with exit code 2; with --debug let them through with their traceback."""
+    try:
+        yield
+    except expected as exc:
+        if debug:
+            raise
+        fail(f"{prefix}{exc}")
+    except OSError as exc:
+        if debug or os_error is None:
+            raise
+        fail(f"{os_error}: {exc}")
 
 
 def summary_table(title: str, records: list[dict]) -> Table:
@@ -133,15 +157,11 @@ def run(
         if value is not None and value < least:
             fail(f"{flag}: must be an integer >= {least} (got {value})")
     kind = None if backend is None else backend.value
-    try:
+    with one_line_errors(debug, (ScenarioError, PlanError)):
         plans = [
             make_plan(*load_scenario(p), runs, seed, jobs, backend=kind, scheduler=scheduler)
             for p in scenario_files(scenario)
         ]
-    except (ScenarioError, PlanError) as exc:
-        if debug:
-            raise
-        fail(str(exc))
     names = [p.name for p in plans]
     if len(set(names)) != len(names):
         fail(f"{scenario}: two scenario files share a name; names must be unique")
@@ -174,22 +194,19 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
         progress.advance(task)
 
     try:
-        with progress:
+        with (
+            one_line_errors(debug, (BackendUnavailable,)),
+            one_line_errors(
+                debug,
+                (OutputExists, RouteNotCompleted),
+                prefix=f"{plan.name}: ",
+                os_error=f"{plan.name}: cannot write results",
+            ),
+            progress,
+        ):
             records, target = execute(
                 plan, out, force=force, on_start=on_start, on_result=on_result
             )
-    except (OutputExists, RouteNotCompleted) as exc:
-        if debug:
-            raise
-        fail(f"{plan.name}: {exc}")
-    except BackendUnavailable as exc:
-        if debug:
-            raise
-        fail(str(exc))
-    except OSError as exc:
-        if debug:
-            raise
-        fail(f"{plan.name}: cannot write results: {exc}")
     except KeyboardInterrupt:
         if debug:
             raise
@@ -231,16 +248,8 @@ def report(
     if image_format not in formats:
         fail(f"--format: {image_format!r} is not one of {', '.join(formats)}")
     _check_out_dir(out)
-    try:
+    with one_line_errors(debug, (ResultsError,), os_error=f"{out}: cannot write the report"):
         done = write_report(results or [Path("results")], out, ImageFormat(image_format))
-    except ResultsError as exc:
-        if debug:
-            raise
-        fail(str(exc))
-    except OSError as exc:
-        if debug:
-            raise
-        fail(f"{out}: cannot write the report: {exc}")
     table_console().print(rich_table(done.rows))
     figures = sum(1 for p in done.files if p.suffix != ".md")
     console.print(
@@ -270,12 +279,8 @@ def check(
     from .check import BaselineError, print_report, run_check
     from .storage import ResultsError
 
-    try:
+    with one_line_errors(debug, (ResultsError, BaselineError)):
         found = run_check(results, baseline, update=update)
-    except (ResultsError, BaselineError) as exc:
-        if debug:
-            raise
-        fail(str(exc))
     print_report(found, table_console())
     raise typer.Exit(found.exit_code)
 
@@ -298,16 +303,10 @@ def bench(
     """Measure harness overhead, ANFEKF cost, 2-worker speedup, memory, Parquet size, wall time."""
     from .bench import FULL, QUICK, BenchError, bench_table, run_bench
 
-    try:
+    with one_line_errors(
+        debug, (BenchError, ScenarioError), os_error=f"{out}: cannot write the bench figures"
+    ):
         found = run_bench(configs, out, QUICK if quick else FULL, say=console.print)
-    except (BenchError, ScenarioError) as exc:
-        if debug:
-            raise
-        fail(str(exc))
-    except OSError as exc:
-        if debug:
-            raise
-        fail(f"{out}: cannot write the bench figures: {exc}")
     table_console().print(bench_table(found))
     console.print(f"bench figures written to {out}", highlight=False)
 

@@ -35,8 +35,9 @@ _P_INDEX = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
 def _healthy(flt: RobotEKF) -> bool:
     """x and P finite, P positive definite, the diagonals of R and Qu positive.
 
-    Called after every scan that saw a landmark; on the 3 + 9 + 4 numbers it checks, plain floats cost a fraction of
-    numpy's reductions (the same answer: math.isfinite and > 0 treat NaN as np.isfinite does).
+    Called after every scan that saw a landmark; on the 3 + 9 + 4 numbers it checks, plain
+    floats cost a fraction of numpy's reductions (the same answer: math.isfinite and > 0 treat
+    NaN as np.isfinite does).
     """
     if not all(map(math.isfinite, flt.x.ravel().tolist() + flt.P.ravel().tolist())):
         return False

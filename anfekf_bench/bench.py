@@ -40,7 +40,7 @@ from .filters import RobotEKF, build_filter
 from .models import F_jacobian, G_jacobian, H_jacobian, f, h, residual_z
 from .runner import add_trace_metrics, recorded_steps, run_batch, run_filter, simulate
 from .simulation import RunData
-from .storage import STEPS_FILE, write_json
+from .storage import STEPS_FILE, output_path_problem, write_json
 
 # Per-step figures use the correct-noise scenario: there the gate accepts (nearly) every
 # measurement for both filters, so the bare loop (no gate) and the harness do the same updates.
@@ -371,13 +371,9 @@ def check_inputs(configs: Path, out: Path) -> list[Path]:
     for name in (STEP_SCENARIO, BATCH_SCENARIO):
         if not (configs / name).is_file():
             raise BenchError(f"{configs}: holds no {name}; the bench needs the paper's scenarios")
-    if out.exists() and out.is_dir():
-        raise BenchError(f"{out}: --out must be a file path, but it is a folder")
-    probe = out.parent
-    while not probe.exists():
-        probe = probe.parent
-    if not os.access(probe, os.W_OK):
-        raise BenchError(f"{out}: --out is not writable")
+    problem = output_path_problem(out, folder=False)
+    if problem:
+        raise BenchError(f"{out}: {problem}")
     files = scenario_files(configs)
     for path in files:  # a bad file fails now (ScenarioError), not after minutes of timing
         load_scenario(path)

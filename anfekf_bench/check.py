@@ -30,6 +30,7 @@ from .storage import (
     SUMMARY_PARQUET,
     ResultsError,
     read_json,
+    read_manifest,
     read_summary,
     scenario_dirs,
     write_json,
@@ -233,11 +234,7 @@ def _manifest_int(manifest: dict, key: str, path: Path) -> int:
 def read_scenario(folder: Path, metrics: Iterable[str]) -> ScenarioSummary:
     """A scenario folder's summary and run settings; `metrics` must all be in the summary."""
     manifest_path = folder / MANIFEST_FILE
-    if not manifest_path.is_file():
-        raise ResultsError(
-            f"{folder}: incomplete result (no {MANIFEST_FILE}); run `anfekf run` again"
-        )
-    manifest = read_json(manifest_path)
+    manifest = read_manifest(folder)
     seed = _manifest_int(manifest, "seed", manifest_path)
     runs = _manifest_int(manifest, "runs", manifest_path)
     summary = read_summary(folder)

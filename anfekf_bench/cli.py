@@ -19,7 +19,7 @@ from .experiment import OutputExists, PlanError, execute, make_plan
 from .metrics import format_number, format_share
 from .runner import BackendUnavailable
 from .simulation import RouteNotCompleted
-from .storage import RUNS_DIR
+from .storage import RUNS_DIR, output_path_problem
 
 app = typer.Typer(
     add_completion=False,
@@ -112,17 +112,9 @@ def summary_table(title: str, records: list[dict]) -> Table:
 
 
 def _check_out_dir(out: Path) -> None:
-    if out.exists() and not out.is_dir():
-        fail(f"{out}: --out must be a folder, but a file of that name exists")
-    probe = out
-    while not probe.exists():
-        probe = probe.parent
-    import os
-
-    if not probe.is_dir():
-        fail(f"{out}: --out cannot be created: {probe} is a file, not a folder")
-    if not os.access(probe, os.W_OK):
-        fail(f"{out}: --out is not writable")
+    problem = output_path_problem(out, folder=True)
+    if problem:
+        fail(f"{out}: {problem}")
 
 
 @app.command()

@@ -28,7 +28,14 @@ from .config import NoiseSigmas
 from .metrics import format_number, format_share, nees_bounds, rmse_curve, summarize_filter
 from .models import control_covariance, measurement_covariance
 from .runner import filter_arrays
-from .storage import MANIFEST_FILE, ResultsError, read_json, read_steps, scenario_dirs, write_atomic
+from .storage import (
+    MANIFEST_FILE,
+    ResultsError,
+    read_manifest,
+    read_steps,
+    scenario_dirs,
+    write_atomic,
+)
 
 BAND_PERCENTILES = (10.0, 90.0)  # the shaded band: this spread of the per-run values over runs
 ELLIPSE_COUNT = 8  # 3-sigma ellipses along run 0's path, evenly spaced in time
@@ -174,14 +181,11 @@ def find_scenarios(results_dirs: Sequence[Path], out_dir: Path | None = None) ->
 
 
 def _manifest(folder: Path) -> dict:
-    path = folder / MANIFEST_FILE
-    if not path.is_file():
+    doc = read_manifest(folder)
+    if not isinstance(doc.get("scenario"), dict):
         raise ResultsError(
-            f"{path}: file not found (an incomplete result; re-run `anfekf run` for it)"
+            f"{folder / MANIFEST_FILE}: expected an object with a 'scenario' mapping"
         )
-    doc = read_json(path)
-    if not isinstance(doc, dict) or not isinstance(doc.get("scenario"), dict):
-        raise ResultsError(f"{path}: expected an object with a 'scenario' mapping")
     return doc
 
 

@@ -53,6 +53,26 @@ def write_atomic(path: Path, write: Callable[[Path], None]) -> None:
         raise
 
 
+def output_path_problem(path: Path, *, folder: bool) -> str | None:
+    """Why `path` cannot be written as an output folder (or file), checked before long work;
+    None when it can. The sentence names the --out option it came from."""
+    path = Path(path)
+    if path.exists() and path.is_dir() != folder:
+        return (
+            "--out must be a folder, but a file of that name exists"
+            if folder
+            else "--out must be a file path, but it is a folder"
+        )
+    probe = path if folder else path.parent
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        return f"--out cannot be created: {probe} is a file, not a folder"
+    if not os.access(probe, os.W_OK):
+        return "--out is not writable"
+    return None
+
+
 def _json_safe(obj):
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
@@ -111,15 +131,30 @@ def scenario_dirs(results_dir: Path) -> list[Path]:
             " run `anfekf run` first)"
         )
     for folder in candidates:
-        # manifest.json is written last: without it the files may be partial or stale.
-        if not (folder / MANIFEST_FILE).is_file():
-            raise ResultsError(
-                f"{folder}: incomplete result (no {MANIFEST_FILE}; the run was interrupted or is"
-                " still going); rerun the same `anfekf run` command to resume it"
-            )
+        _require_manifest(folder)
         for name in (STEPS_FILE, SUMMARY_PARQUET):
             _check_parquet_footer(folder / name)
     return candidates
+
+
+def _require_manifest(folder: Path) -> Path:
+    """manifest.json is written last: without it the other files may be partial or stale."""
+    path = Path(folder) / MANIFEST_FILE
+    if not path.is_file():
+        raise ResultsError(
+            f"{folder}: incomplete result (no {MANIFEST_FILE}; the run was interrupted or is"
+            " still going); rerun the same `anfekf run` command to resume it"
+        )
+    return path
+
+
+def read_manifest(folder: Path) -> dict:
+    """A complete scenario folder's manifest (a JSON object), or ResultsError."""
+    path = _require_manifest(folder)
+    doc = read_json(path)
+    if not isinstance(doc, dict):
+        raise ResultsError(f"{path}: expected a JSON object")
+    return doc
 
 
 def _check_parquet_footer(path: Path) -> None:

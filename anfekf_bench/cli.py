@@ -14,11 +14,11 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from .analysis.metrics import format_number, format_share
 from .config import ScenarioError, load_scenario, one_line, scenario_files
 from .experiment import OutputExists, PlanError, execute, make_plan
-from .metrics import format_number, format_share
 from .runner import BackendUnavailable
-from .simulation import RouteNotCompleted
+from .sources.simulator import RouteNotCompleted
 from .storage import RUNS_DIR, output_path_problem
 
 app = typer.Typer(
@@ -268,7 +268,7 @@ def check(
     ] = False,
 ) -> None:
     """Regression gate: compare results with a baseline and check the paper's claims (exit 1)."""
-    from .check import BaselineError, print_report, run_check
+    from .analysis.gate import BaselineError, print_report, run_check
     from .storage import ResultsError
 
     with one_line_errors(debug, (ResultsError, BaselineError)):

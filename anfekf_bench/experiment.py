@@ -21,9 +21,10 @@ from pathlib import Path
 import joblib
 from pydantic import ValidationError
 
+from .analysis.tables import steps_frame, summary_records, update_statistics
 from .config import BackendConfig, Scenario, World
-from .runner import run_batch, steps_frame, summary_records, update_statistics
-from .simulation import simulate_truth
+from .runner import run_batch
+from .sources.simulator import simulate_truth
 from .storage import (
     MANIFEST_FILE,
     RUNS_DIR,
@@ -86,8 +87,9 @@ class Plan:
 def code_version() -> str:
     """Hash of this package's source: runs saved by other code must not be resumed into a batch."""
     digest = hashlib.sha256()
-    for path in sorted(Path(__file__).parent.glob("*.py")):
-        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    package = Path(__file__).parent
+    for path in sorted(package.rglob("*.py")):
+        digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes())
     return digest.hexdigest()[:16]
 
 

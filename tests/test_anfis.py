@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from anfekf_bench.anfis import (
+from anfekf_bench.filters.anfis import (
     MF_LABELS,
     RULE_TABLE,
     ANFISParams,

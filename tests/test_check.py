@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from anfekf_bench.check import DEFAULT_TOLERANCES, Tolerance, judge
+from anfekf_bench.analysis.gate import DEFAULT_TOLERANCES, Tolerance, judge
 from anfekf_bench.cli import app
 from anfekf_bench.storage import (
     MANIFEST_FILE,

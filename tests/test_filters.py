@@ -8,12 +8,19 @@ import math
 import numpy as np
 import pytest
 
-from anfekf_bench import anfis
 from anfekf_bench.config import ANFEKFSpec, parse_scenario, resolve_world
-from anfekf_bench.filters import ANFEKF, RobotEKF, build_filter, gate_threshold, q_step, r_step
+from anfekf_bench.engines.filterpy_engine import run_filter
+from anfekf_bench.filters import (
+    ANFEKF,
+    RobotEKF,
+    anfis,
+    build_filter,
+    gate_threshold,
+    q_step,
+    r_step,
+)
 from anfekf_bench.models import G_jacobian, H_jacobian, f, h, wrap_scalar
-from anfekf_bench.runner import run_filter
-from anfekf_bench.simulation import simulate_run, simulate_truth
+from anfekf_bench.sources.simulator import simulate_run, simulate_truth
 
 from .conftest import small_scenario
 

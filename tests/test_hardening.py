@@ -22,11 +22,12 @@ from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from anfekf_bench import runner
+from anfekf_bench.analysis import tables
 from anfekf_bench.cli import app
 from anfekf_bench.config import ScenarioError, load_scenario
 from anfekf_bench.experiment import execute, make_plan
 from anfekf_bench.filters import RobotEKF, build_filter
-from anfekf_bench.simulation import simulate_run, simulate_truth
+from anfekf_bench.sources.simulator import simulate_run, simulate_truth
 from anfekf_bench.storage import (
     MANIFEST_FILE,
     STEPS_FILE,
@@ -540,7 +541,7 @@ def test_diverged_run_is_counted_and_kept_out_of_the_means(one_run_diverges, tmp
 
     # The means are the means over the healthy runs: as if run 2 had never been there.
     healthy = steps[~((steps["filter"] == "ekf") & (steps["run"] == bad))].copy()
-    ekf_healthy = runner.summary_records(healthy[healthy["filter"] == "ekf"].copy())[0]
+    ekf_healthy = tables.summary_records(healthy[healthy["filter"] == "ekf"].copy())[0]
     for key in ("rmse_pos", "rmse_heading", "anees", "nees_in_bounds"):
         assert math.isfinite(summary["ekf"][key]), key
         assert summary["ekf"][key] == pytest.approx(ekf_healthy[key], rel=1e-12), key

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from anfekf_bench.metrics import (
+from anfekf_bench.analysis.metrics import (
     nees,
     nees_bounds,
     pose_errors,

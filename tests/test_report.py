@@ -18,11 +18,11 @@ import pytest
 from scipy.stats import chi2
 from typer.testing import CliRunner
 
-from anfekf_bench import plots
 from anfekf_bench.cli import app
 from anfekf_bench.config import load_scenario
 from anfekf_bench.experiment import execute, make_plan
-from anfekf_bench.report import (
+from anfekf_bench.report import plots
+from anfekf_bench.report.report import (
     BAND_PERCENTILES,
     find_scenarios,
     load_scenario_data,

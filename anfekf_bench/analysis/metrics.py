@@ -7,7 +7,7 @@ import math
 import numpy as np
 from scipy.stats import chi2
 
-from .models import wrap_angle
+from ..models import wrap_angle
 
 
 def pose_errors(x_true: np.ndarray, x_est: np.ndarray) -> np.ndarray:

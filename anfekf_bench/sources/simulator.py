@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import World
-from .models import wrap_angle, wrap_scalar
+from ..config import World
+from ..models import wrap_angle, wrap_scalar
 
 
 class RouteNotCompleted(RuntimeError):

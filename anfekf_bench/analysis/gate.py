@@ -25,7 +25,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from .storage import (
+from ..storage import (
     MANIFEST_FILE,
     SUMMARY_PARQUET,
     ResultsError,

@@ -23,12 +23,17 @@ from rich import box
 from rich.table import Table
 from rich.text import Text
 
-from . import plots
-from .config import NoiseSigmas
-from .metrics import format_number, format_share, nees_bounds, rmse_curve, summarize_filter
-from .models import control_covariance, measurement_covariance
-from .runner import filter_arrays
-from .storage import (
+from ..analysis.metrics import (
+    format_number,
+    format_share,
+    nees_bounds,
+    rmse_curve,
+    summarize_filter,
+)
+from ..analysis.tables import filter_arrays
+from ..config import NoiseSigmas
+from ..models import control_covariance, measurement_covariance
+from ..storage import (
     MANIFEST_FILE,
     ResultsError,
     read_manifest,
@@ -36,6 +41,7 @@ from .storage import (
     scenario_dirs,
     write_atomic,
 )
+from . import plots
 
 BAND_PERCENTILES = (10.0, 90.0)  # the shaded band: this spread of the per-run values over runs
 ELLIPSE_COUNT = 8  # 3-sigma ellipses along run 0's path, evenly spaced in time

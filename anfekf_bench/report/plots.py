@@ -22,8 +22,8 @@ from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.patches import Ellipse, Rectangle  # noqa: E402
 
-from .metrics import format_number, format_share  # noqa: E402
-from .storage import write_atomic  # noqa: E402
+from ..analysis.metrics import format_number, format_share  # noqa: E402
+from ..storage import write_atomic  # noqa: E402
 
 if TYPE_CHECKING:  # report.py imports this module; these names are for annotations only
     from .report import Band, FilterSeries, ScenarioData, SummaryRow

@@ -1,0 +1,1 @@
+"""Metrics, tables, statistics and the regression gate: everything computed from results."""

@@ -1,0 +1,124 @@
+"""Tables from run results: per-step traces with their metrics, the steps table, the summaries."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from .metrics import nees, pose_errors, summarize_filter
+
+STEP_COLUMNS = [
+    "scenario", "filter", "run", "step", "t",
+    "x_true", "y_true", "phi_true", "x_est", "y_est", "phi_est",
+    "P_xx", "P_xy", "P_xphi", "P_yy", "P_yphi", "P_phiphi",
+    "pos_err", "heading_err", "nees",
+    "R_rr", "R_bb", "Q_vv", "Q_gg", "diverged",
+]  # fmt: skip
+_P_INDEX = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+
+
+def add_trace_metrics(trace: dict, x_true: np.ndarray) -> dict:
+    """Per-step pos_err, heading_err and NEES of a filter's trace, in bulk from its arrays."""
+    e = pose_errors(x_true, trace["x"])
+    trace["pos_err"] = np.hypot(e[:, 0], e[:, 1])
+    trace["heading_err"] = np.abs(e[:, 2])
+    trace["nees"] = _nees_where_finite(e, trace["P"])
+    return trace
+
+
+def _nees_where_finite(e: np.ndarray, P: np.ndarray) -> np.ndarray:
+    out = np.full(len(e), np.nan)
+    ok = np.all(np.isfinite(P), axis=(1, 2)) & np.all(np.isfinite(e), axis=1)
+    if ok.any():
+        out[ok] = nees(e[ok], P[ok])
+    return out
+
+
+def recorded_steps(n_controls: int, record_every: int) -> np.ndarray:
+    """The control steps a run records: every `record_every`-th, from the first such step."""
+    return np.arange(record_every, n_controls + 1, record_every)
+
+
+def steps_frame(scenario_name: str, filter_names: list[str], results: list[dict]) -> pd.DataFrame:
+    """The long table of steps.parquet: one row per (filter, run, recorded step)."""
+    results = sorted(results, key=lambda r: r["run"])
+    blocks = []
+    for name in filter_names:
+        for res in results:
+            tr = res["filters"][name]
+            n = len(res["step"])
+            cols = {
+                "run": np.full(n, res["run"], dtype=np.int32),
+                "step": res["step"].astype(np.int32),
+                "t": res["t"],
+                "x_true": res["x_true"][:, 0],
+                "y_true": res["x_true"][:, 1],
+                "phi_true": res["x_true"][:, 2],
+                "x_est": tr["x"][:, 0],
+                "y_est": tr["x"][:, 1],
+                "phi_est": tr["x"][:, 2],
+            }
+            for (i, j), col in zip(_P_INDEX, STEP_COLUMNS[11:17], strict=True):
+                cols[col] = tr["P"][:, i, j]
+            cols.update(
+                pos_err=tr["pos_err"],
+                heading_err=tr["heading_err"],
+                nees=tr["nees"],
+                R_rr=tr["R_diag"][:, 0],
+                R_bb=tr["R_diag"][:, 1],
+                Q_vv=tr["Q_diag"][:, 0],
+                Q_gg=tr["Q_diag"][:, 1],
+                diverged=np.full(n, tr["diverged"]),
+            )
+            block = pd.DataFrame(cols)
+            block.insert(0, "filter", name)
+            blocks.append(block)
+    df = pd.concat(blocks, ignore_index=True)
+    df.insert(0, "scenario", scenario_name)
+    df["scenario"] = pd.Categorical(df["scenario"])
+    df["filter"] = pd.Categorical(df["filter"], categories=filter_names)
+    return df[STEP_COLUMNS]
+
+
+def filter_arrays(steps: pd.DataFrame, name: str) -> dict[str, np.ndarray]:
+    """(runs, steps) arrays of one filter's pos_err, heading_err, nees, R/Q and run ids."""
+    sub = steps[steps["filter"] == name].sort_values(["run", "step"])
+    runs = sub["run"].unique()
+    n = len(sub) // max(len(runs), 1)
+    out = {"run": runs, "step": sub["step"].to_numpy()[:n], "t": sub["t"].to_numpy()[:n]}
+    for col in ("pos_err", "heading_err", "nees", "R_rr", "R_bb", "Q_vv", "Q_gg"):
+        out[col] = sub[col].to_numpy().reshape(len(runs), n)
+    out["diverged"] = sub["diverged"].to_numpy().reshape(len(runs), n)[:, 0]
+    return out
+
+
+def summary_records(steps: pd.DataFrame, update_stats: dict[str, dict] | None = None) -> list[dict]:
+    """One summary record per filter, computed from the steps table alone (plus NIS totals)."""
+    scenario = str(steps["scenario"].iloc[0])
+    names = [str(n) for n in steps["filter"].cat.categories if (steps["filter"] == n).any()]
+    records = []
+    for name in names:
+        a = filter_arrays(steps, name)
+        rec = {"scenario": scenario, "filter": name}
+        rec.update(summarize_filter(a["pos_err"], a["heading_err"], a["nees"], a["diverged"]))
+        if update_stats and name in update_stats:
+            rec.update(update_stats[name])
+        records.append(rec)
+    return records
+
+
+def update_statistics(results: list[dict], filter_names: list[str]) -> dict[str, dict]:
+    """Average NIS per accepted update and share of measurements the gate rejected."""
+    results = sorted(results, key=lambda r: r["run"])  # a float sum depends on its order
+    stats = {}
+    for name in filter_names:
+        traces = [r["filters"][name] for r in results if not r["filters"][name]["diverged"]]
+        nis = sum(t["nis_sum"] for t in traces)
+        used = sum(t["n_updates"] for t in traces)
+        rejected = sum(t["n_rejected"] for t in traces)
+        seen = used + rejected
+        stats[name] = {
+            "anis": nis / used if used else float("nan"),
+            "gate_rejected": rejected / seen if seen else float("nan"),
+        }
+    return stats

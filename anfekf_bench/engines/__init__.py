@@ -1,0 +1,1 @@
+"""Engines: what steps the filters over a run's data."""

@@ -1,0 +1,19 @@
+"""Motion and sensor models: the car-like bicycle of the paper and the range-bearing sensor."""
+
+from .angles import TWO_PI, wrap_angle, wrap_scalar
+from .bicycle import F_jacobian, G_jacobian, control_covariance, f
+from .range_bearing import H_jacobian, h, measurement_covariance, residual_z
+
+__all__ = [
+    "TWO_PI",
+    "F_jacobian",
+    "G_jacobian",
+    "H_jacobian",
+    "control_covariance",
+    "f",
+    "h",
+    "measurement_covariance",
+    "residual_z",
+    "wrap_angle",
+    "wrap_scalar",
+]

@@ -1,0 +1,1 @@
+"""Data sources: the simulator (and recorded datasets) that feed the filters."""

@@ -3,9 +3,11 @@
 from .angles import TWO_PI, wrap_angle, wrap_scalar
 from .bicycle import F_jacobian, G_jacobian, control_covariance, f
 from .range_bearing import H_jacobian, h, measurement_covariance, residual_z
+from .unicycle import Unicycle
 
 __all__ = [
     "TWO_PI",
+    "Unicycle",
     "F_jacobian",
     "G_jacobian",
     "H_jacobian",

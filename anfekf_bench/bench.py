@@ -35,10 +35,10 @@ from filterpy.kalman import ExtendedKalmanFilter
 from rich.table import Table
 
 from .analysis.tables import add_trace_metrics, recorded_steps
-from .config import ANFEKFSpec, EKFSpec, Scenario, World, load_scenario, scenario_files
+from .config import Scenario, World, load_scenario, scenario_files
 from .engines.filterpy_engine import run_filter
 from .experiment import execute, machine_info, make_plan, package_versions
-from .filters import RobotEKF, build_filter
+from .filters import ANFEKFSpec, EKFSpec, RobotEKF, build_filter
 from .models import F_jacobian, G_jacobian, H_jacobian, f, h, residual_z
 from .runner import run_batch, simulate
 from .sources.simulator import RunData

@@ -17,16 +17,16 @@ import numpy as np
 import yaml
 from pydantic import (
     BaseModel,
-    ConfigDict,
     Field,
     ValidationError,
     field_validator,
     model_validator,
 )
-from pydantic_core import PydanticCustomError
 
-PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNegativeFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+from .filters.ekf import EKFSpec
+from .filters.registry import KINDS, SPEC_BY_KIND, AnyFilterSpec, expand_entry_points
+from .schema import NonNegativeFloat, PositiveFloat, StrictModel
+
 Point = tuple[float, float]
 MapSource = Union[str, list[Point]]
 
@@ -49,28 +49,7 @@ class ScenarioError(Exception):
         super().__init__(one_line(where + message))
 
 
-def _holds_bool(value: object) -> bool:
-    """True for a YAML true/false, also inside lists (but not inside nested mappings)."""
-    if isinstance(value, bool):
-        return True
-    return isinstance(value, (list, tuple)) and any(_holds_bool(v) for v in value)
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    @model_validator(mode="before")
-    @classmethod
-    def _no_bool_as_number(cls, data: object) -> object:
-        # pydantic would read `runs: true` as 1 run: only boolean fields may be true/false.
-        if isinstance(data, dict):
-            for key, value in data.items():
-                field = cls.model_fields.get(key) if isinstance(key, str) else None
-                if field is not None and field.annotation is not bool and _holds_bool(value):
-                    raise PydanticCustomError(
-                        "bool_as_number", "expected a number or text, not true/false", {"key": key}
-                    )
-        return data
+_Strict = StrictModel
 
 
 class NoiseSigmas(_Strict):
@@ -112,42 +91,6 @@ class WorldConfig(_Strict):
     waypoint_tolerance: PositiveFloat = Field(1.0, description="[m]: switch waypoint within this")
     max_steps: int = Field(1_000_000, ge=1, description="safety stop for routes never completed")
 
-
-class EKFSpec(_Strict):
-    """The plain EKF with the scenario's assumed noise (`filter_noise`)."""
-
-    name: str = Field(min_length=1)
-    kind: Literal["ekf"] = "ekf"
-
-
-class OracleSpec(_Strict):
-    """The EKF given the TRUE noise: the best fixed-noise EKF, a reference."""
-
-    name: str = Field(min_length=1)
-    kind: Literal["ekf-oracle"]
-
-
-class ANFEKFSpec(_Strict):
-    """The adaptive neuro-fuzzy EKF (SPEC section 4). Defaults are shared by every scenario."""
-
-    name: str = Field(min_length=1)
-    kind: Literal["anfekf"]
-    adapt: Literal["R", "Q"] = "R"
-    window: int = Field(20, ge=2, le=10_000, description="innovations in the matching window, N")
-    learning_rate: tuple[NonNegativeFloat, NonNegativeFloat, NonNegativeFloat] = Field(
-        (0.01, 0.01, 0.05), description="steepest-descent rates for (centres, widths, singletons)"
-    )
-    singleton_scale: PositiveFloat = Field(0.1, description="a: S1..S7 = a * (-3..3)")
-    centres_d: tuple[float, float, float, float, float] = (-1.0, -0.5, 0.0, 0.5, 1.0)
-    centres_dd: tuple[float, float, float, float, float] = (-0.2, -0.1, 0.0, 0.1, 0.2)
-    width_d: PositiveFloat = 0.35
-    width_dd: PositiveFloat = 0.1
-    output_clip: PositiveFloat = Field(1.0, description="|o| limit: one step scales by <= e^clip")
-    adaptation: bool = Field(True, description="false: never change R or Q (then ANFEKF == EKF)")
-    learning: bool = Field(True, description="false: freeze the ANFIS parameters")
-
-
-FilterSpec = Annotated[Union[EKFSpec, OracleSpec, ANFEKFSpec], Field(discriminator="kind")]
 
 DASK_ADDRESS = r"^(tcp|tls|ws|wss|ucx)://\S+:\d{1,5}$"
 
@@ -192,7 +135,9 @@ class Scenario(_Strict):
     gate_probability: Annotated[float, Field(gt=0, lt=1)] | None = Field(
         0.999, description="chi-square validation gate (eq. 26); null switches it off"
     )
-    filters: list[FilterSpec] = Field(default_factory=lambda: [EKFSpec(name="ekf")], min_length=1)
+    filters: list[AnyFilterSpec] = Field(
+        default_factory=lambda: [EKFSpec(name="ekf")], min_length=1
+    )
     backend: BackendConfig = BackendConfig()
 
     @field_validator("filters")
@@ -292,7 +237,7 @@ def _shown_loc(err: dict) -> list[str]:
     if err["type"] == "bool_as_number":  # raised for the whole mapping: name the key
         loc.append(str(err["ctx"]["key"]))
     # Drop the discriminator tag pydantic inserts for tagged unions (filters.0.anfekf.window).
-    if len(loc) >= 3 and loc[0] == "filters" and loc[2] in ("ekf", "ekf-oracle", "anfekf"):
+    if len(loc) >= 3 and loc[0] == "filters" and loc[2] in KINDS:
         loc.pop(2)
     # A failed map source names both members (world.waypoints.str, world.waypoints.list[...]).
     if len(loc) >= 3 and loc[0] == "world" and loc[1] in ("landmarks", "waypoints"):
@@ -332,8 +277,8 @@ def _allowed_keys(parent_loc: tuple) -> list[str]:
     for part in parent_loc:
         if isinstance(part, int):  # a list index: same model as the list's items
             continue
-        if part in ("ekf", "ekf-oracle", "anfekf"):  # the filter spec a `kind` selected
-            model = {"ekf": EKFSpec, "ekf-oracle": OracleSpec, "anfekf": ANFEKFSpec}[part]
+        if part in KINDS:  # the filter spec a `kind` selected
+            model = SPEC_BY_KIND[part]
             continue
         if model is None:
             return []
@@ -353,6 +298,8 @@ def parse_scenario(data: object, path: str | Path = "<scenario>") -> Scenario:
         raise ScenarioError(
             path, "", f"expected a mapping of scenario keys, found a {type(data).__name__}"
         )
+    if isinstance(data.get("filters"), list):
+        data = {**data, "filters": [expand_entry_points(item) for item in data["filters"]]}
     try:
         return Scenario.model_validate(data)
     except ValidationError as exc:

@@ -8,10 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from anfekf_bench.config import ANFEKFSpec, parse_scenario, resolve_world
+from anfekf_bench.config import parse_scenario, resolve_world
 from anfekf_bench.engines.filterpy_engine import run_filter
 from anfekf_bench.filters import (
     ANFEKF,
+    ANFEKFSpec,
     RobotEKF,
     anfis,
     build_filter,
@@ -19,7 +20,7 @@ from anfekf_bench.filters import (
     q_step,
     r_step,
 )
-from anfekf_bench.models import G_jacobian, H_jacobian, f, h, wrap_scalar
+from anfekf_bench.models import Bicycle, G_jacobian, H_jacobian, f, h, wrap_scalar
 from anfekf_bench.sources.simulator import simulate_run, simulate_truth
 
 from .conftest import small_scenario
@@ -31,7 +32,9 @@ R = np.diag([0.1**2, math.radians(1) ** 2])
 
 def make_ekf(gate=None, cls=RobotEKF, **kw):
     P0 = np.diag([0.2, 0.3, 0.05])
-    return cls(x0=np.array([1.0, 2.0, 0.3]), P0=P0, Qu=Qu, R=R, T=T, B=B, gate=gate, **kw)
+    return cls(
+        x0=np.array([1.0, 2.0, 0.3]), P0=P0, Qu=Qu, R=R, model=Bicycle(T, B), dt=T, gate=gate, **kw
+    )
 
 
 def test_one_ekf_step_equals_hand_written_kalman_step():
@@ -145,7 +148,7 @@ def frozen_spec(adapt):
 
 def _supervised(nu_scale: float, adapt: str, n: int = 60, seed: int = 0):
     """Feed innovations of a chosen spread into the supervisor with a fixed H P H^T."""
-    ekf = make_ekf(cls=ANFEKF, spec=ANFEKFSpec(name="a", kind="anfekf", adapt=adapt, window=10))
+    ekf = make_ekf(cls=ANFEKF, params=ANFEKFSpec(name="a", kind="anfekf", adapt=adapt, window=10))
     rng = np.random.default_rng(seed)
     HPHt = np.diag([0.01, 1e-4])
     H = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -1.0]])
@@ -183,7 +186,7 @@ def test_covariances_stay_positive_definite_under_extreme_innovations(adapt, sca
 
 
 def test_supervisor_waits_for_a_full_window():
-    ekf = make_ekf(cls=ANFEKF, spec=ANFEKFSpec(name="a", kind="anfekf", window=20))
+    ekf = make_ekf(cls=ANFEKF, params=ANFEKFSpec(name="a", kind="anfekf", window=20))
     H = H_jacobian(ekf.x, np.array([10.0, 5.0]))
     for _ in range(19):
         ekf.supervise(np.array([5.0, 0.5]), H, np.diag([0.01, 1e-4]))

@@ -51,8 +51,7 @@ def run_filter(flt: RobotEKF, data: RunData, world: World, record_every: int) ->
                 # Only updates (and the supervisor inside them) can break x, P, R or Qu: the
                 # predict of a healthy filter stays healthy, so empty scans need no check.
                 if len(scan.ids):
-                    for lid, z in zip(scan.ids, scan.z, strict=True):
-                        flt.update_landmark(z, landmarks[lid])
+                    flt.update_scan(scan.z, landmarks[scan.ids])
                     if not _healthy(flt):
                         raise FilterDiverged(f"step {k}")
             if k % record_every == 0:

@@ -1,15 +1,19 @@
-"""The ANFEKF (SPEC 4): the EKF plus an ANFIS supervisor adapting R or Qu."""
+"""The ANFEKF (SPEC 4): the EKF plus an ANFIS supervisor adapting R, Qu, or both."""
 
 from __future__ import annotations
 
 import math
 from collections import deque
+from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
-from ..config import ANFEKFSpec
+from ..schema import NonNegativeFloat, PositiveFloat
 from . import anfis
-from .ekf import RobotEKF
+from .adaptive import AdaptiveEKF
+from .ekf import Innovation
+from .spec import AdaptiveSpec, FilterContext
 
 
 def mismatch(S: np.ndarray, C: np.ndarray) -> np.ndarray:
@@ -63,51 +67,93 @@ def q_step(
     return scale, 0.5 * float(e @ e), _scaled(do_dW, dE_do) if inside else None
 
 
-class ANFEKF(RobotEKF):
-    """EKF plus an ANFIS supervisor that adapts R (two ANFIS, Sec. 5.1) or Qu (one, Sec. 5.2).
+class ANFEKFSpec(AdaptiveSpec):
+    """The adaptive neuro-fuzzy EKF (SPEC section 4). Defaults are shared by every scenario."""
+
+    kind: Literal["anfekf"]
+    adapt: Literal["R", "Q", "RQ"] = Field(
+        "R", description="R: two ANFIS on R (paper 5.1); Q: one on Qu (5.2); RQ: both at once"
+    )
+    window: int = Field(20, ge=2, le=10_000, description="innovations in the matching window, N")
+    learning_rate: tuple[NonNegativeFloat, NonNegativeFloat, NonNegativeFloat] = Field(
+        (0.01, 0.01, 0.05), description="steepest-descent rates for (centres, widths, singletons)"
+    )
+    singleton_scale: PositiveFloat = Field(0.1, description="a: S1..S7 = a * (-3..3)")
+    centres_d: tuple[float, float, float, float, float] = (-1.0, -0.5, 0.0, 0.5, 1.0)
+    centres_dd: tuple[float, float, float, float, float] = (-0.2, -0.1, 0.0, 0.1, 0.2)
+    width_d: PositiveFloat = 0.35
+    width_dd: PositiveFloat = 0.1
+    output_clip: PositiveFloat = Field(1.0, description="|o| limit: one step scales by <= e^clip")
+    adaptation: bool = Field(True, description="false: never change R or Q (then ANFEKF == EKF)")
+    learning: bool = Field(True, description="false: freeze the ANFIS parameters")
+
+    def build(self, ctx: FilterContext) -> ANFEKF:
+        return ANFEKF(**ctx.kwargs(), params=self)
+
+
+class ANFEKF(AdaptiveEKF):
+    """EKF plus ANFIS supervisors: R (two ANFIS, Sec. 5.1), Qu (one, Sec. 5.2), or both.
 
     At each landmark, before the gain (SPEC 4): covariance matching over the last N innovations,
     C = (1/N) sum nu nu^T (eq. 30), theoretical S = H P- H^T + R (eq. 24), normalised mismatch
     d_ii = (S_ii - C_ii) / (S_ii + C_ii) and its change; ANFIS output o; then
-    R_ii <- R_ii exp(o_i) (eq. 33) or Qu <- Qu exp(o) (eq. 44); then one steepest-descent step on
-    E = e^2 / 2, e the mismatch left after the adaptation (eqs. 39-42).
+    R_ii <- R_ii exp(o_i) (eq. 33) at every landmark (R events) and Qu <- Qu exp(o) (eq. 44) at
+    the first landmark of a scan (Q events, SPEC 7: there P- holds exactly the interval's process
+    noise); then one steepest-descent step on E = e^2 / 2, e the mismatch left after the
+    adaptation (eqs. 39-42). With adapt RQ the R step runs first and the Q step matches the S it
+    leaves.
     """
 
-    def __init__(self, *args, spec: ANFEKFSpec, **kwargs):
-        super().__init__(*args, **kwargs)
+    params: ANFEKFSpec
+
+    def __init__(self, *args, params: ANFEKFSpec, **kwargs):
+        self.adapts = frozenset(params.adapt)
+        super().__init__(*args, params=params, **kwargs)
+        spec = params
         self.spec = spec
         # Squared innovations (the diagonal of nu nu^T: only it is matched) of the last N.
         self.window: deque[np.ndarray] = deque(maxlen=spec.window)
         self.d_prev: np.ndarray | None = None
         self.eta = tuple(spec.learning_rate)
-        if spec.adapt == "R":
-            second = dict(centres1=spec.centres_dd, width1=spec.width_dd)
-            n_anfis = 2
-        else:  # inputs d_11 and d_22: two mismatches of the same scale
-            second = dict(centres1=spec.centres_d, width1=spec.width_d)
-            n_anfis = 1
-        init = anfis.init_params(
-            centres0=spec.centres_d,
-            width0=spec.width_d,
-            singleton_scale=spec.singleton_scale,
-            **second,
-        )
-        self.anfis_params = [init] * n_anfis
+        r_init = anfis.init_params(
+            centres0=spec.centres_d, width0=spec.width_d, centres1=spec.centres_dd,
+            width1=spec.width_dd, singleton_scale=spec.singleton_scale,
+        )  # fmt: skip
+        # The Q-ANFIS's inputs d_11 and d_22 are two mismatches of the same scale.
+        q_init = anfis.init_params(
+            centres0=spec.centres_d, width0=spec.width_d, centres1=spec.centres_d,
+            width1=spec.width_d, singleton_scale=spec.singleton_scale,
+        )  # fmt: skip
+        # anfis_params: the R-ANFIS of range and bearing (adapt R), or the Q-ANFIS (adapt Q),
+        # or all three (adapt RQ: range, bearing, Q).
+        self.anfis_params = {"R": [r_init, r_init], "Q": [q_init], "RQ": [r_init, r_init, q_init]}[
+            spec.adapt
+        ]
         # Process noise G Qu G^T added since the last landmark update: what P- grew by, the
         # first-order dS/dQ model of SPEC 4.
         self.Q_interval = np.zeros((3, 3))
         self._updated_since_predict = False
+        self._first_of_scan = True
 
-    def predict(self, u=0):
-        super().predict(u)
-        if self.spec.adapt != "Q":  # only the Q supervisor needs the interval's process noise
+    def predict(self, u=0, dt: float | None = None):
+        super().predict(u, dt)
+        if "Q" not in self.adapts:  # only the Q supervisor needs the interval's process noise
             return
         if self._updated_since_predict:
             self.Q_interval = np.zeros((3, 3))
             self._updated_since_predict = False
         self.Q_interval += self.Q
 
+    def begin_scan(self) -> None:
+        self._first_of_scan = True
+
+    def before_gain(self, inn: Innovation) -> None:
+        if self.feeds_adaptation(inn):
+            self.supervise(inn.nu, inn.H, inn.HPHt)
+        self._first_of_scan = False
+
     def supervise(self, nu: np.ndarray, H: np.ndarray, HPHt: np.ndarray) -> None:
+        """Covariance matching and the adaptation of one landmark (SPEC 4)."""
         self._updated_since_predict = True
         self.window.append(nu * nu)
         if len(self.window) < self.window.maxlen or not self.spec.adaptation:
@@ -118,9 +164,10 @@ class ANFEKF(RobotEKF):
         d = mismatch(S, C)
         dd = np.zeros(2) if self.d_prev is None else d - self.d_prev
         self.d_prev = d
-        if self.spec.adapt == "R":
+        if "R" in self.adapts:
             self._adapt_R(d, dd, HPH, C)
-        else:
+            S = HPH + np.diag(self.R)
+        if "Q" in self.adapts and self._first_of_scan:
             self._adapt_Q(d, H, HPH, S, C)
 
     def _learn(self, i: int, grad: anfis.ANFISParams | None) -> None:
@@ -136,17 +183,21 @@ class ANFEKF(RobotEKF):
                 self.spec.output_clip,
             )  # fmt: skip
             self._learn(i, grad)
-        self.R = np.diag(R_diag)
+        self.set_R_diag(R_diag)
 
     def _adapt_Q(
         self, d: np.ndarray, H: np.ndarray, HPH: np.ndarray, S: np.ndarray, C: np.ndarray
     ) -> None:
         """One ANFIS scaling Qu (paper 5.2)."""
-        # After earlier landmarks of the same scan P has shrunk, so the interval's process noise
-        # can exceed what is left of H P H^T; capping it there keeps S' > 0 and bounds |dE/do|
-        # by sum |e_i| / 2 (uncapped, single huge steps flipped the singletons' signs).
+        # P- may have shrunk below the interval's process noise (a filter adapting from accepted
+        # innovations only skips some first landmarks); capping the model at H P- H^T keeps
+        # S' > 0 and bounds |dE/do| by sum |e_i| / 2 (uncapped, single huge steps once flipped
+        # the singletons' signs).
         dS = np.minimum(np.einsum("ij,jk,ik->i", H, self.Q_interval, H), HPH)
-        scale, _, grad = q_step(self.anfis_params[0], (d[0], d[1]), S, C, dS, self.spec.output_clip)
-        self._learn(0, grad)
-        self.Qu = self.Qu * scale
-        self.Q_interval = self.Q_interval * scale
+        i = len(self.anfis_params) - 1
+        scale, _, grad = q_step(self.anfis_params[i], (d[0], d[1]), S, C, dS, self.spec.output_clip)
+        self._learn(i, grad)
+        before = np.diag(self.Qu).copy()
+        self.set_Qu_diag(before * scale)
+        # What the bounds let through scales the interval's model too.
+        self.Q_interval = self.Q_interval * (self.Qu[0, 0] / before[0])

@@ -1,19 +1,37 @@
 """The EKF on filterpy's ExtendedKalmanFilter (SPEC 3): the base of every filter of the zoo.
 
 Attribute names follow filterpy and the textbook: x, P, F, Q (3x3 process noise in state space),
-R, H, S, K, y. The control-noise covariance the paper calls Q is `Qu` (2x2, on (V, gamma)); the
-state-space Q is G Qu G^T (eq. 20).
+R, H, S, K, y. The control-noise covariance the paper calls Q is `Qu` (2x2, on the controls); the
+state-space Q of one step comes from the motion model (bicycle: G Qu G^T, eq. 20).
+
+A filter of the zoo differs from this EKF only in its adaptation, written in four hooks that the
+engine calls in a fixed order (SPEC 7, multi-rate events):
+
+    predict(u)                      every control step
+    begin_scan()                    once per scan that saw a landmark, before its first update
+    before_gain(inn)                every associated landmark (gated or not), before the gain:
+                                    may change R (R events) or P- (P inflation)
+    correct(z, landmark, inn)       the landmark update itself (VB filters iterate here)
+    after_update(inn)               after an accepted update (residual-based rules)
+    end_scan()                      once per scan that saw a landmark, after its updates (Q events)
+
+`inn` is an `Innovation`: what the filter used (navlie style), so that adaptive logic and
+diagnostics need no private access.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 from scipy.stats import chi2
 
-from ..models import F_jacobian, G_jacobian, H_jacobian, f, h, residual_z, wrap_scalar
+from ..models import MotionModel, h, residual_z, wrap_scalar
+from ..models.range_bearing import H_jacobian
+from .spec import FilterContext, FilterSpec
 
 
 def _given(value: np.ndarray, *args) -> np.ndarray:
@@ -25,13 +43,39 @@ class FilterDiverged(RuntimeError):
     """The estimate or its covariance stopped being finite and positive definite."""
 
 
-class RobotEKF(ExtendedKalmanFilter):
-    """Car-like robot localisation EKF with a known landmark map.
+@dataclass
+class Innovation:
+    """One landmark measurement as the filter saw it before its gain (eqs. 22-24).
 
-    Predict, eqs. (19)-(21): x- = f(x, u), P- = F P F^T + G Qu G^T.
+    z: measurement (range, bearing); z_hat = h(x-); nu = z - z_hat, bearing wrapped (eq. 23);
+    H = dh/dX at x- (eq. 25); HPHt = H P- H^T; R: the R in force when the gain was computed
+    (after `before_gain`); S = HPHt + R (eq. 24); nis = nu^T S^-1 nu; accepted: passed the gate.
+    """
+
+    z: np.ndarray
+    landmark: np.ndarray
+    z_hat: np.ndarray
+    nu: np.ndarray
+    H: np.ndarray
+    HPHt: np.ndarray
+    R: np.ndarray | None = None
+    S: np.ndarray | None = None
+    nis: float = math.nan
+    accepted: bool = False
+
+
+class RobotEKF(ExtendedKalmanFilter):
+    """Robot localisation EKF with a known landmark map, on any `MotionModel`.
+
+    Predict, eqs. (19)-(21): x- = f(x, u), P- = F P F^T + Q(G, Qu).
     Update, eqs. (22)-(29), one landmark at a time, filterpy's Joseph form, innovation bearing
     wrapped by `residual_z`, validation gate nu^T S^-1 nu <= gate (eq. 26).
+
+    Subclasses declare what they adapt in `adapts` ({"R"}, {"Q"}, {"P"} or several) and override
+    the hooks above; `params` holds their validated parameter block (the scenario's filter spec).
     """
+
+    adapts: ClassVar[frozenset[str]] = frozenset()
 
     def __init__(
         self,
@@ -39,65 +83,124 @@ class RobotEKF(ExtendedKalmanFilter):
         P0: np.ndarray,
         Qu: np.ndarray,
         R: np.ndarray,
-        T: float,
-        B: float,
+        model: MotionModel,
+        dt: float,
         gate: float | None,
+        params: Any = None,
     ):
         super().__init__(dim_x=3, dim_z=2)
         self.x = np.array(x0, dtype=float)
         self.P = np.array(P0, dtype=float)
         self.Qu = np.array(Qu, dtype=float)
         self.R = np.array(R, dtype=float)
-        self.T = T
-        self.B = B
+        self.R0 = self.R.copy()
+        self.Qu0 = self.Qu.copy()
+        self.model = model
+        self.dt = dt
         self.gate = gate
+        self.params = params
+        self.G = np.zeros((3, 2))
+        self.P_inflation = 1.0  # what `before_gain` scaled P- by last (1: no inflation)
         self.nis_sum = 0.0
         self.n_updates = 0
         self.n_rejected = 0
 
-    def predict_x(self, u=0):
-        self.x = f(self.x, u, self.T, self.B)
+    # -- predict ------------------------------------------------------------------------------
 
-    def predict(self, u=0):
-        """Eqs. (19)-(21): F and G at the estimate and the received controls."""
-        self.F = F_jacobian(self.x, u, self.T, self.B)
-        G = G_jacobian(self.x, u, self.T, self.B)
-        self.Q = G @ self.Qu @ G.T
+    def predict_x(self, u=0):
+        self.x = self.model.f(self.x, u, self.dt)
+
+    def predict(self, u=0, dt: float | None = None):
+        """Eqs. (19)-(21): F and G at the estimate and the received controls; `dt` for models
+        with variable steps (recorded logs), else the filter's own step."""
+        if dt is not None:
+            self.dt = dt
+        self.F = self.model.F(self.x, u, self.dt)
+        self.G = self.model.G(self.x, u, self.dt)
+        self.Q = self.model.Q(self.G, self.Qu, self.dt)
         super().predict(u)
 
-    def innovation(self, z: np.ndarray, landmark: np.ndarray):
-        """H (eq. 25), predicted z (eq. 22), innovation nu (eq. 23), S (eq. 24)."""
+    # -- hooks of the adaptive filters (the plain EKF changes nothing) -------------------------
+
+    def begin_scan(self) -> None:
+        """Once per scan that saw a landmark, before its first update (forgetting factors)."""
+
+    def before_gain(self, inn: Innovation) -> None:
+        """Every associated landmark, gated or not, before the gain: may set R or scale P."""
+
+    def after_update(self, inn: Innovation) -> None:
+        """After an accepted update: x and P are the posterior (residual-based rules)."""
+
+    def end_scan(self) -> None:
+        """Once per scan that saw a landmark, after its updates (Q events)."""
+
+    # -- update -------------------------------------------------------------------------------
+
+    def innovation(self, z: np.ndarray, landmark: np.ndarray) -> Innovation:
+        """H (eq. 25), predicted z (eq. 22), innovation nu (eq. 23) and H P- H^T at x-."""
         H = H_jacobian(self.x, landmark)
         z_hat = h(self.x, landmark)
         nu = residual_z(np.asarray(z, dtype=float), z_hat)
-        HPHt = H @ self.P @ H.T
-        return H, z_hat, nu, HPHt
-
-    def supervise(self, nu: np.ndarray, H: np.ndarray, HPHt: np.ndarray) -> None:
-        """Hook called at every landmark before the gain; the plain EKF changes nothing."""
+        return Innovation(z=z, landmark=landmark, z_hat=z_hat, nu=nu, H=H, HPHt=H @ self.P @ H.T)
 
     def update_landmark(self, z: np.ndarray, landmark: np.ndarray) -> bool:
-        """Gate and fuse one range-bearing measurement; False if the gate rejected it."""
-        H, z_hat, nu, HPHt = self.innovation(z, landmark)
-        self.supervise(nu, H, HPHt)
-        S = HPHt + self.R
-        nis = float(nu @ np.linalg.solve(S, nu))
-        if not math.isfinite(nis):
-            raise FilterDiverged(f"innovation or its covariance is not finite (NIS {nis})")
-        if self.gate is not None and not nis <= self.gate:
+        """Adapt, gate and fuse one range-bearing measurement; False if the gate rejected it."""
+        inn = self.innovation(z, landmark)
+        self.before_gain(inn)
+        if self.P_inflation != 1.0:  # the hook scaled P-: H P- H^T follows it
+            inn.HPHt = inn.H @ self.P @ inn.H.T
+        inn.R = self.R
+        inn.S = inn.HPHt + self.R
+        inn.nis = float(inn.nu @ np.linalg.solve(inn.S, inn.nu))
+        if not math.isfinite(inn.nis):
+            raise FilterDiverged(f"innovation or its covariance is not finite (NIS {inn.nis})")
+        if self.gate is not None and not inn.nis <= self.gate:
             self.n_rejected += 1
             return False
-        self.nis_sum += nis
+        inn.accepted = True
+        self.nis_sum += inn.nis
         self.n_updates += 1
+        self.correct(z, landmark, inn)
+        self.after_update(inn)
+        return True
+
+    def correct(self, z: np.ndarray, landmark: np.ndarray, inn: Innovation) -> None:
+        """The measurement update with the gain of `inn` (filterpy's Joseph form, eqs. 26-29)."""
         self.update(
-            z, HJacobian=_given, Hx=_given, args=(H,), hx_args=(z_hat,), residual=residual_z
-        )
+            z, HJacobian=_given, Hx=_given, args=(inn.H,), hx_args=(inn.z_hat,),
+            residual=residual_z,
+        )  # fmt: skip
         self.x[2] = wrap_scalar(self.x[2])
         # Joseph form keeps P symmetric only up to round-off; keep it exactly symmetric.
         self.P = 0.5 * (self.P + self.P.T)
-        return True
+
+    def update_scan(self, zs: np.ndarray, landmarks: np.ndarray) -> None:
+        """One scan that saw at least one landmark: begin_scan, each landmark, end_scan."""
+        self.begin_scan()
+        for z, landmark in zip(zs, landmarks, strict=True):
+            self.update_landmark(z, landmark)
+        self.end_scan()
 
 
 def gate_threshold(probability: float | None) -> float | None:
     """G of eq. (26): the chi-square(2) quantile, or None for no gate."""
     return None if probability is None else float(chi2.ppf(probability, 2))
+
+
+class EKFSpec(FilterSpec):
+    """The plain EKF with the scenario's assumed noise (`filter_noise`)."""
+
+    kind: Literal["ekf"] = "ekf"
+
+    def build(self, ctx: FilterContext) -> RobotEKF:
+        return RobotEKF(**ctx.kwargs())
+
+
+class OracleSpec(FilterSpec):
+    """The EKF given the TRUE noise: the best fixed-noise EKF, a reference."""
+
+    kind: Literal["ekf-oracle"]
+    uses_true_noise: ClassVar[bool] = True
+
+    def build(self, ctx: FilterContext) -> RobotEKF:
+        return RobotEKF(**ctx.kwargs())

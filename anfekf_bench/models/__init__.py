@@ -1,11 +1,14 @@
 """Motion and sensor models: the car-like bicycle of the paper and the range-bearing sensor."""
 
 from .angles import TWO_PI, wrap_angle, wrap_scalar
-from .bicycle import F_jacobian, G_jacobian, control_covariance, f
+from .base import MotionModel
+from .bicycle import Bicycle, F_jacobian, G_jacobian, control_covariance, f
 from .range_bearing import H_jacobian, h, measurement_covariance, residual_z
 from .unicycle import Unicycle
 
 __all__ = [
+    "Bicycle",
+    "MotionModel",
     "TWO_PI",
     "Unicycle",
     "F_jacobian",

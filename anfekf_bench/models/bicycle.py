@@ -56,3 +56,28 @@ def G_jacobian(x: np.ndarray, u: np.ndarray, T: float, B: float) -> np.ndarray:
 def control_covariance(sigma_v: float, sigma_gamma: float) -> np.ndarray:
     """Q = diag(sv^2, sg^2): covariance of the CONTROL noise (SPEC 3), radians."""
     return np.diag([sigma_v**2, sigma_gamma**2])
+
+
+class Bicycle:
+    """The paper's car-like model (eq. 17) as a `MotionModel`; one step is one control period.
+
+    `dt` must equal the control period T the model was made with: the paper's noise Qu is per
+    control step (Q = G Qu G^T, eq. 20), so this model is not for variable steps.
+    """
+
+    def __init__(self, T: float, B: float):
+        self.T = T
+        self.B = B
+
+    def f(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+        return f(x, u, dt, self.B)
+
+    def F(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+        return F_jacobian(x, u, dt, self.B)
+
+    def G(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+        return G_jacobian(x, u, dt, self.B)
+
+    def Q(self, G: np.ndarray, Qu: np.ndarray, dt: float) -> np.ndarray:
+        """Eq. (20): G Qu G^T."""
+        return G @ Qu @ G.T

@@ -1,0 +1,105 @@
+"""What every adaptive filter shares (SPEC 7): bounds, which innovations feed adaptation, the
+process noise of the interval between Q events, and the map from a state-space Q to Qu.
+
+Q events are scans that saw a landmark; the interval's process noise is accumulated from the end
+of the previous Q event (research notes 0.3-0.4): because Qu = diag(qv, qg),
+
+    Q_scan(q) = qv A_v + qg A_g,   A <- F A F^T + G e e^T G^T at every predict,
+
+so a state-space estimate Q_hat maps to Qu by a two-parameter least squares through A_v, A_g
+(`qu_least_squares`), weighted by P-^-1 so that metres and radians are commensurate.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .ekf import Innovation, RobotEKF
+from .spec import AdaptiveParams
+
+_E_V = np.array([[1.0, 0.0], [0.0, 0.0]])
+_E_G = np.array([[0.0, 0.0], [0.0, 1.0]])
+
+
+def clip_to_bounds(value: np.ndarray, start: np.ndarray, bounds: tuple[float, float]) -> np.ndarray:
+    """Variances clipped to [floor * start, ceiling * start] elementwise (SPEC 7)."""
+    return np.clip(value, bounds[0] * start, bounds[1] * start)
+
+
+def qu_least_squares(
+    Q_hat: np.ndarray, A_v: np.ndarray, A_g: np.ndarray, W: np.ndarray
+) -> np.ndarray:
+    """(qv, qg) minimising ||W^1/2 (Q_hat - qv A_v - qg A_g) W^1/2||_F (research notes 0.4 a).
+
+    The normal equations M q = b with <X, Y>_W = tr(W X W Y); a singular M (an interval that
+    excited one control only) falls back to the least-norm solution. Not yet clipped.
+    """
+    WAv, WAg, WQ = W @ A_v, W @ A_g, W @ Q_hat
+    M = np.array(
+        [
+            [np.trace(WAv @ WAv), np.trace(WAv @ WAg)],
+            [np.trace(WAg @ WAv), np.trace(WAg @ WAg)],
+        ]
+    )
+    b = np.array([np.trace(WAv @ WQ), np.trace(WAg @ WQ)])
+    return np.linalg.lstsq(M, b, rcond=None)[0]
+
+
+class AdaptiveEKF(RobotEKF):
+    """A `RobotEKF` that adapts R, Qu or P-: the common rules live here, the rule in subclasses.
+
+    `params` is an `AdaptiveParams` (a built-in filter's spec, or a custom filter's Params).
+    When "Q" is in `adapts`, the interval's process-noise accumulators `A_v`, `A_g` (and the
+    interval's total `Q_scan`) are kept from one Q event to the next; subclasses call
+    `reset_interval()` after using them.
+    """
+
+    params: AdaptiveParams
+
+    def __init__(self, *args, params: AdaptiveParams, **kwargs):
+        super().__init__(*args, params=params, **kwargs)
+        self.bounds = tuple(params.bounds)
+        self.reset_interval()
+
+    def reset_interval(self) -> None:
+        """Start a new interval between Q events."""
+        self.A_v = np.zeros((3, 3))
+        self.A_g = np.zeros((3, 3))
+        self.F_scan = np.eye(3)  # transition over the interval, for Q-from-correction rules
+        self.P_scan_start = self.P.copy()  # P+ at the previous Q event
+
+    def predict(self, u=0, dt: float | None = None):
+        super().predict(u, dt)
+        if "Q" in self.adapts:
+            F, G = self.F, self.G
+            self.A_v = F @ self.A_v @ F.T + self.model.Q(G, _E_V, self.dt)
+            self.A_g = F @ self.A_g @ F.T + self.model.Q(G, _E_G, self.dt)
+            self.F_scan = F @ self.F_scan
+
+    @property
+    def Q_scan(self) -> np.ndarray:
+        """The process noise the interval added with the current Qu (propagated to now)."""
+        return self.Qu[0, 0] * self.A_v + self.Qu[1, 1] * self.A_g
+
+    def feeds_adaptation(self, inn: Innovation) -> bool:
+        """Whether this innovation may feed adaptation (SPEC 7: all, or gate-accepted only)."""
+        if self.params.adapt_from == "all" or self.gate is None:
+            return True
+        S = inn.HPHt + self.R
+        return float(inn.nu @ np.linalg.solve(S, inn.nu)) <= self.gate
+
+    def set_R_diag(self, R_diag: np.ndarray) -> None:
+        """R <- diag(R_diag), within the bounds of its starting value."""
+        self.R = np.diag(clip_to_bounds(np.asarray(R_diag, float), np.diag(self.R0), self.bounds))
+
+    def set_Qu_diag(self, Qu_diag: np.ndarray) -> None:
+        """Qu <- diag(Qu_diag), within the bounds of its starting value."""
+        self.Qu = np.diag(
+            clip_to_bounds(np.asarray(Qu_diag, float), np.diag(self.Qu0), self.bounds)
+        )
+
+    def set_Qu_from_state_noise(self, Q_hat: np.ndarray) -> None:
+        """Qu from a state-space estimate of the interval's process noise (`qu_least_squares`,
+        weighted by the inverse of the current P), within bounds."""
+        W = np.linalg.inv(self.P)
+        self.set_Qu_diag(qu_least_squares(Q_hat, self.A_v, self.A_g, W))

@@ -1,0 +1,88 @@
+"""Your own filter in the benchmark, without editing the package (docs/CUSTOM_FILTERS.md).
+
+In a scenario file:
+
+    filters:
+      - {name: mine, kind: custom, class: "mypkg.filters:MyFilter", params: {gain: 0.5}}
+
+or, once a package registers an entry point in the group `anfekf_bench.filters`
+(`my-filter = "mypkg.filters:MyFilter"`), simply `{name: mine, kind: my-filter, gain: 0.5}`.
+
+The class must subclass `anfekf_bench.filters.RobotEKF` (or `AdaptiveEKF`) and may declare a
+`Params` class (a subclass of `anfekf_bench.filters.FilterParams`) that validates `params`; the
+filter receives the validated instance as `self.params`.
+"""
+
+from __future__ import annotations
+
+import importlib
+from importlib.metadata import entry_points
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field, ValidationError, model_validator
+
+from .ekf import RobotEKF
+from .spec import FilterContext, FilterSpec
+
+ENTRY_POINT_GROUP = "anfekf_bench.filters"
+CLASS_PATH = r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*$"
+
+
+def load_filter_class(path: str) -> type[RobotEKF]:
+    """The class named `module:Class`; ValueError (one line) if it cannot be used."""
+    module_name, _, class_name = path.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as exc:  # the user's module may fail in any way while importing
+        raise ValueError(
+            f"cannot import module {module_name!r} ({type(exc).__name__}: {exc}); is it"
+            " installed or on PYTHONPATH?"
+        ) from None
+    cls = getattr(module, class_name, None)
+    if cls is None:
+        raise ValueError(f"module {module_name!r} has no {class_name!r}")
+    if not (isinstance(cls, type) and issubclass(cls, RobotEKF)):
+        raise ValueError(f"{path} is not a subclass of anfekf_bench.filters.RobotEKF")
+    return cls
+
+
+def entry_point_kinds() -> dict[str, str]:
+    """Filter kinds registered by installed packages: kind -> 'module:Class'."""
+    return {ep.name: ep.value for ep in entry_points(group=ENTRY_POINT_GROUP)}
+
+
+class CustomSpec(FilterSpec):
+    """A user's filter class, named by its import path, with its own parameters."""
+
+    kind: Literal["custom"]
+    class_path: str = Field(alias="class", pattern=CLASS_PATH, description="module:Class")
+    params: dict[str, Any] = Field(default_factory=dict, description="the class's Params")
+
+    model_config = {**FilterSpec.model_config, "populate_by_name": True}
+
+    @model_validator(mode="after")
+    def _class_and_params(self) -> CustomSpec:
+        cls = load_filter_class(self.class_path)
+        schema = getattr(cls, "Params", None)
+        if schema is None:
+            if self.params:
+                raise ValueError(f"{self.class_path} declares no Params, so params must be empty")
+            return self
+        if not (isinstance(schema, type) and issubclass(schema, BaseModel)):
+            raise ValueError(f"{self.class_path}.Params must be a pydantic model (FilterParams)")
+        try:
+            schema.model_validate(self.params)
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            where = ".".join(str(p) for p in err["loc"]) or "(params)"
+            raise ValueError(f"params.{where}: {err['msg']}") from None
+        return self
+
+    def filter_class(self) -> type[RobotEKF]:
+        return load_filter_class(self.class_path)
+
+    def build(self, ctx: FilterContext) -> RobotEKF:
+        cls = self.filter_class()
+        schema = getattr(cls, "Params", None)
+        params = schema.model_validate(self.params) if schema is not None else None
+        return cls(**ctx.kwargs(), params=params)

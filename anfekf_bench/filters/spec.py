@@ -1,0 +1,83 @@
+"""Typed, declarative filter parameters (Stone Soup style) and what a filter is built from.
+
+Each filter family declares its parameter block as a `FilterSpec` subclass beside its class, with
+the papers' defaults; the registry collects them into the scenario schema. A spec builds its filter
+from a `FilterContext`: the starting noise, the motion model and the gate, resolved once per run.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, ClassVar, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from ..models import MotionModel
+from ..schema import StrictModel
+
+Bounds = Annotated[
+    tuple[Annotated[float, Field(gt=0, allow_inf_nan=False)], ...],
+    Field(min_length=2, max_length=2),
+]
+
+
+@dataclass(frozen=True)
+class FilterContext:
+    """Everything a filter starts from in one run (radians, SI units)."""
+
+    x0: np.ndarray
+    P0: np.ndarray
+    Qu: np.ndarray  # assumed control-noise covariance (2x2), or the true one for the oracle
+    R: np.ndarray  # assumed measurement-noise covariance (2x2), or the true one
+    model: MotionModel
+    dt: float
+    gate: float | None
+
+    def kwargs(self) -> dict:
+        return dict(
+            x0=self.x0, P0=self.P0, Qu=self.Qu, R=self.R, model=self.model, dt=self.dt,
+            gate=self.gate,
+        )  # fmt: skip
+
+
+class FilterSpec(StrictModel):
+    """A filter of a scenario: a unique `name` and a `kind` that selects the family."""
+
+    name: str = Field(min_length=1)
+    kind: str
+    uses_true_noise: ClassVar[bool] = False  # the oracle is given the TRUE Q and R
+
+    def build(self, ctx: FilterContext):
+        """A fresh filter for one run."""
+        raise NotImplementedError
+
+
+class FilterParams(StrictModel):
+    """Base of a filter's own parameter block (a custom filter's `Params`)."""
+
+
+class AdaptiveParams(FilterParams):
+    """Rules common to every adaptive filter, ANFEKF included (SPEC 7)."""
+
+    adapt_from: Literal["all", "accepted"] = Field(
+        "all",
+        description="innovations that feed adaptation: all associated ones (gated or not), or"
+        " only those the gate accepted (can lose lock for good)",
+    )
+    bounds: Bounds = Field(
+        (1e-4, 1e4),
+        description="floor and ceiling of every adapted variance, as factors of its starting"
+        " value (1e-4..1e4 in variance is 0.01x..100x in standard deviation)",
+    )
+
+    @model_validator(mode="after")
+    def _floor_below_ceiling(self) -> AdaptiveParams:
+        lo, hi = self.bounds
+        if not lo <= 1.0 <= hi:
+            raise ValueError("bounds: need floor <= 1 <= ceiling (factors of the starting value)")
+        return self
+
+
+class AdaptiveSpec(FilterSpec, AdaptiveParams):
+    """A built-in adaptive filter's spec: a name and kind plus the common adaptive rules."""

@@ -84,7 +84,6 @@ class ANFEKFSpec(AdaptiveSpec):
     width_d: PositiveFloat = 0.35
     width_dd: PositiveFloat = 0.1
     output_clip: PositiveFloat = Field(1.0, description="|o| limit: one step scales by <= e^clip")
-    adaptation: bool = Field(True, description="false: never change R or Q (then ANFEKF == EKF)")
     learning: bool = Field(True, description="false: freeze the ANFIS parameters")
 
     def build(self, ctx: FilterContext) -> ANFEKF:

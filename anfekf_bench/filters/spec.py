@@ -60,6 +60,9 @@ class FilterParams(StrictModel):
 class AdaptiveParams(FilterParams):
     """Rules common to every adaptive filter, ANFEKF included (SPEC 7)."""
 
+    adaptation: bool = Field(
+        True, description="false: never change R, Qu or P (then the filter equals the EKF)"
+    )
     adapt_from: Literal["all", "accepted"] = Field(
         "all",
         description="innovations that feed adaptation: all associated ones (gated or not), or"

@@ -1,0 +1,279 @@
+"""Paired bootstrap intervals, the paired test and claim verdicts (SPEC section 8)."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from anfekf_bench.analysis.metrics import summarize_filter
+from anfekf_bench.analysis.statistics import (
+    METRICS,
+    Interval,
+    bootstrap_one,
+    common_runs,
+    in_bounds_statistic,
+    interval_too_wide,
+    mean_statistic,
+    paired_bootstrap,
+    paired_test,
+    per_run_mean,
+    per_run_rmse,
+    rmse_statistic,
+    too_few_runs,
+    verdict,
+)
+
+
+def _arrays(runs: int = 20, steps: int = 30, seed: int = 3) -> dict[str, np.ndarray]:
+    """(runs, steps) arrays shaped like a filter's trace: pos_err, heading_err, nees, diverged."""
+    rng = np.random.default_rng(seed)
+    return {
+        "pos_err": np.hypot(*rng.normal(0.0, 0.5, size=(2, runs, steps))),
+        "heading_err": np.abs(rng.normal(0.0, 0.05, size=(runs, steps))),
+        "nees": rng.chisquare(3, size=(runs, steps)) * rng.uniform(0.8, 1.2, size=steps),
+        "diverged": rng.random(runs) < 0.15,
+    }
+
+
+@pytest.fixture(autouse=True)
+def _no_warnings():
+    """Every call in this file must be quiet: no RuntimeWarning, no scipy DegenerateDataWarning."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        yield
+
+
+# --- statistics match the scenario metrics -------------------------------------------------------
+
+
+def test_statistics_equal_summarize_filter():
+    a = _arrays()
+    assert a["diverged"].any()
+    record = summarize_filter(a["pos_err"], a["heading_err"], a["nees"], a["diverged"])
+    ok = ~a["diverged"]
+    for name, spec in METRICS.items():
+        assert spec.statistic(a[spec.column][ok]) == record[name], name
+    assert set(METRICS) == {"rmse_pos", "rmse_heading", "anees", "nees_in_bounds"}
+    assert 0.0 < record["nees_in_bounds"] < 1.0  # the share is not trivially 0 or 1 here
+
+
+@pytest.mark.parametrize("statistic", [rmse_statistic, mean_statistic, in_bounds_statistic])
+def test_statistics_on_a_batch_equal_one_at_a_time(statistic):
+    x = _arrays()["nees"]
+    idx = np.random.default_rng(0).integers(0, x.shape[0], size=(7, x.shape[0]))
+    batch = statistic(x[idx])
+    assert batch.shape == (7,)
+    np.testing.assert_allclose(batch, [statistic(x[i]) for i in idx], rtol=1e-13)
+
+
+def test_per_run_values_by_hand():
+    err = np.array([[3.0, 4.0], [1.0, 1.0]])
+    np.testing.assert_allclose(per_run_rmse(err), [math.sqrt(12.5), 1.0])
+    np.testing.assert_allclose(per_run_mean(err), [3.5, 1.0])
+
+
+def test_common_runs_keeps_a_run_for_both_filters_or_neither():
+    mask = common_runs(np.array([0, 1, 0, 0]), np.array([0, 0, 1, 0]))
+    np.testing.assert_array_equal(mask, [True, False, False, True])
+
+
+# --- paired bootstrap: exact edge cases ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("statistic", [rmse_statistic, mean_statistic])
+def test_identical_filters_give_exactly_one_and_zero_width(statistic):
+    b = _arrays()["pos_err"]
+    ratio = paired_bootstrap(b, b.copy(), statistic)
+    assert (ratio.estimate, ratio.lo, ratio.hi) == (1.0, 1.0, 1.0)
+    diff = paired_bootstrap(b, b.copy(), statistic, kind="difference")
+    assert (diff.estimate, diff.lo, diff.hi) == (0.0, 0.0, 0.0)
+    assert ratio.method == diff.method == "degenerate"
+
+
+@pytest.mark.parametrize("statistic", [rmse_statistic, mean_statistic])
+def test_constant_per_run_ratio_gives_that_ratio(statistic):
+    b = _arrays()["pos_err"]
+    iv = paired_bootstrap(0.37 * b, b, statistic)
+    assert iv.estimate == pytest.approx(0.37, abs=1e-12)
+    assert iv.lo == iv.hi == iv.estimate
+
+
+def test_nonfinite_statistic_gives_nan_bounds():
+    a = _arrays()["pos_err"]
+    iv = paired_bootstrap(a, np.zeros_like(a), rmse_statistic)  # statistic(b) == 0
+    assert math.isinf(iv.estimate) and math.isnan(iv.lo) and math.isnan(iv.hi)
+    nan_run = a.copy()
+    nan_run[4, 2] = np.nan  # e.g. a diverged run left in
+    for iv in (
+        paired_bootstrap(nan_run, a, rmse_statistic),
+        bootstrap_one(nan_run, mean_statistic),
+    ):
+        assert math.isnan(iv.lo) and math.isnan(iv.hi) and iv.method == "undefined"
+
+
+def test_zero_in_some_resamples_gives_nan_bounds():
+    b = np.zeros((20, 3))
+    b[0] = 1.0  # statistic(b) > 0 on the full sample, 0 in resamples without run 0
+    iv = paired_bootstrap(np.ones((20, 3)), b, rmse_statistic)
+    assert math.isfinite(iv.estimate) and math.isnan(iv.lo) and math.isnan(iv.hi)
+
+
+def test_fewer_than_two_runs_give_nan_bounds():
+    iv = paired_bootstrap(np.ones((1, 5)), 2 * np.ones((1, 5)), rmse_statistic)
+    assert iv.estimate == 0.5 and math.isnan(iv.lo) and math.isnan(iv.hi)
+
+
+def test_bad_arguments_raise():
+    a = np.ones((5, 3))
+    with pytest.raises(ValueError, match="shape"):
+        paired_bootstrap(a, np.ones((4, 3)), rmse_statistic)
+    with pytest.raises(ValueError, match="kind"):
+        paired_bootstrap(a, a, rmse_statistic, kind="quotient")
+    with pytest.raises(ValueError, match="confidence"):
+        bootstrap_one(a, rmse_statistic, confidence=95)
+    with pytest.raises(ValueError, match="runs, steps"):
+        bootstrap_one(np.ones(5), rmse_statistic)
+
+
+# --- paired bootstrap: behaviour ----------------------------------------------------------------
+
+
+def test_same_seed_same_bytes_other_seed_other_interval():
+    x = _arrays()
+    a, b = x["pos_err"], 1.3 * x["pos_err"] + 0.2 * x["heading_err"]
+    first = paired_bootstrap(a, b, rmse_statistic, resamples=500, seed=11)
+    again = paired_bootstrap(a, b, rmse_statistic, resamples=500, seed=11)
+    other = paired_bootstrap(a, b, rmse_statistic, resamples=500, seed=12)
+
+    def as_bytes(iv: Interval) -> bytes:
+        return np.array([iv.estimate, iv.lo, iv.hi]).tobytes()
+
+    assert first.method == "BCa"
+    assert as_bytes(first) == as_bytes(again) and first == again
+    assert other.estimate == first.estimate
+    assert (other.lo, other.hi) != (first.lo, first.hi)
+    assert first.lo < first.estimate < first.hi
+    assert (first.confidence, first.resamples) == (0.95, 500)
+
+
+def test_pairing_narrows_the_interval():
+    # Strongly correlated filters: resampling runs jointly cancels the shared run-to-run spread.
+    rng = np.random.default_rng(8)
+    scale = rng.uniform(0.2, 3.0, size=(30, 1))  # some runs are hard for both filters
+    b = scale * np.abs(rng.normal(size=(30, 6)))
+    a = 0.8 * b * rng.uniform(0.95, 1.05, size=b.shape)
+    paired = paired_bootstrap(a, b, rmse_statistic, resamples=500)
+    unpaired = paired_bootstrap(a, b[rng.permutation(30)], rmse_statistic, resamples=500)
+    assert paired.hi - paired.lo < 0.25 * (unpaired.hi - unpaired.lo)
+    assert paired.lo < 0.8 < paired.hi
+
+
+def test_bootstrap_one_of_a_mean():
+    x = np.random.default_rng(2).chisquare(3, size=(40, 10))
+    iv = bootstrap_one(x, mean_statistic, resamples=500)
+    assert iv.estimate == pytest.approx(x.mean(), rel=1e-12)
+    assert iv.lo < iv.estimate < iv.hi and iv.method == "BCa"
+
+
+def test_in_bounds_share_is_flagged_for_the_run_bootstrap():
+    # A consistent filter: resampled runs repeat, the run-average spreads more and the resampled
+    # in-bounds shares sit below the estimate, so the interval misses its own estimate.
+    nees = np.random.default_rng(5).chisquare(3, size=(20, 100))
+    iv = bootstrap_one(nees, in_bounds_statistic, resamples=500)
+    assert iv.estimate == in_bounds_statistic(nees)
+    assert iv.method == "biased" and math.isnan(iv.lo) and math.isnan(iv.hi)
+    assert METRICS["nees_in_bounds"].bootstrap is False
+    assert all(METRICS[m].bootstrap for m in ("rmse_pos", "rmse_heading", "anees"))
+
+
+@pytest.mark.parametrize("kind", ["ratio", "difference"])
+def test_coverage_with_a_known_truth(kind):
+    """Empirical coverage of the 95 % paired interval over 300 simulated scenarios of 50 runs.
+
+    Errors are N(0, s_k^2) per step, correlated between the filters (common random numbers).
+    ratio: of scenario RMSEs, which tend to mean(s_k), so the truth is mean(s_a) / mean(s_b).
+    difference: of the time-mean of run-averaged squared errors (an ANEES-like mean of skewed
+    values), whose truth is mean(s_a^2) - mean(s_b^2). 50 runs is the paper's count; over 1000
+    replications coverage was 0.949 (ratio) and 0.932 (difference), and ~0.92 at 20 runs.
+    """
+    runs, steps, replications, rho = 50, 4, 300, 0.7
+    rng = np.random.default_rng(12345)
+    s_b = np.linspace(1.0, 2.0, steps)
+    s_a = 0.6 * s_b * np.linspace(0.8, 1.2, steps)
+    if kind == "ratio":
+        statistic, truth = rmse_statistic, s_a.mean() / s_b.mean()
+    else:
+        statistic, truth = mean_statistic, np.mean(s_a**2) - np.mean(s_b**2)
+    hits = 0
+    for i in range(replications):
+        z, w = rng.normal(size=(2, runs, steps))
+        b = s_b * z
+        a = s_a * (rho * z + math.sqrt(1 - rho**2) * w)
+        if kind == "difference":
+            a, b = a**2, b**2
+        iv = paired_bootstrap(a, b, statistic, kind=kind, resamples=999, seed=i)
+        hits += iv.lo <= truth <= iv.hi
+    assert 0.88 <= hits / replications <= 0.99
+
+
+# --- paired test ---------------------------------------------------------------------------------
+
+
+def test_paired_test_on_a_clear_shift_and_on_identical_inputs():
+    rng = np.random.default_rng(4)
+    b = rng.uniform(1.0, 2.0, size=30)
+    shifted = paired_test(b - 0.3 + rng.normal(0.0, 0.05, size=30), b)
+    assert shifted.p_value < 1e-4 and shifted.name == "Wilcoxon signed-rank"
+    same = paired_test(b, b.copy())
+    assert (same.statistic, same.p_value) == (0.0, 1.0)
+
+
+def test_paired_test_small_or_nonfinite_inputs():
+    assert math.isnan(paired_test([1.0], [2.0]).p_value)
+    assert math.isnan(paired_test([1.0, np.nan], [2.0, 1.0]).p_value)  # one usable pair
+    a = np.arange(1.0, 11.0)
+    with_nan = np.append(a, np.nan)
+    left_out = paired_test(with_nan, np.append(a + 1.0, 5.0))
+    assert left_out == paired_test(a, a + 1.0)
+
+
+# --- claims --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "lo, hi, expected",
+    [(0.4, 0.55, "holds"), (0.5, 0.6, "holds"), (0.61, 0.7, "fails"), (0.5, 0.7, "inconclusive")],
+)
+def test_verdict_at_most(lo, hi, expected):
+    assert verdict(lo, hi, at_most=0.6) == expected
+
+
+@pytest.mark.parametrize(
+    "lo, hi, expected",
+    [(0.6, 0.9, "holds"), (0.65, 0.7, "holds"), (0.3, 0.59, "fails"), (0.5, 0.7, "inconclusive")],
+)
+def test_verdict_at_least(lo, hi, expected):
+    assert verdict(lo, hi, at_least=0.6) == expected
+
+
+def test_verdict_nan_and_arguments():
+    nan = float("nan")
+    assert verdict(nan, nan, at_most=0.6) == "inconclusive"
+    assert verdict(0.1, nan, at_least=0.0) == "inconclusive"
+    with pytest.raises(ValueError):
+        verdict(0.1, 0.2)
+    with pytest.raises(ValueError):
+        verdict(0.1, 0.2, at_most=0.5, at_least=0.0)
+
+
+def test_few_runs_and_too_wide_intervals():
+    assert too_few_runs(4) and not too_few_runs(10) and too_few_runs(40, minimum=50)
+    wide = Interval(0.62, 0.52, 0.71, 0.95, 2000, "BCa")
+    message = interval_too_wide(wide, 0.6)
+    assert message is not None and "[0.52, 0.71]" in message and "95 %" in message
+    assert interval_too_wide(wide, 0.75) is None
+    undefined = Interval(float("inf"), float("nan"), float("nan"), 0.95, 2000, "undefined")
+    assert interval_too_wide(undefined, 0.6) is not None

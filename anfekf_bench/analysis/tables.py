@@ -12,7 +12,7 @@ STEP_COLUMNS = [
     "x_true", "y_true", "phi_true", "x_est", "y_est", "phi_est",
     "P_xx", "P_xy", "P_xphi", "P_yy", "P_yphi", "P_phiphi",
     "pos_err", "heading_err", "nees",
-    "R_rr", "R_bb", "Q_vv", "Q_gg", "diverged",
+    "R_rr", "R_bb", "Q_vv", "Q_gg", "P_infl", "diverged",
 ]  # fmt: skip
 _P_INDEX = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
 
@@ -68,6 +68,7 @@ def steps_frame(scenario_name: str, filter_names: list[str], results: list[dict]
                 R_bb=tr["R_diag"][:, 1],
                 Q_vv=tr["Q_diag"][:, 0],
                 Q_gg=tr["Q_diag"][:, 1],
+                P_infl=tr["P_infl"],
                 diverged=np.full(n, tr["diverged"]),
             )
             block = pd.DataFrame(cols)

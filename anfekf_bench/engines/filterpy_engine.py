@@ -39,6 +39,7 @@ def run_filter(flt: RobotEKF, data: RunData, world: World, record_every: int) ->
     P = np.full((n, 3, 3), np.nan)
     R = np.full((n, 2), np.nan)
     Qu = np.full((n, 2), np.nan)
+    P_infl = np.full(n, np.nan)
     landmarks = world.landmarks
     every = world.sensor_every
     diverged = False
@@ -59,18 +60,20 @@ def run_filter(flt: RobotEKF, data: RunData, world: World, record_every: int) ->
                 P[j] = flt.P
                 R[j] = flt.R[0, 0], flt.R[1, 1]
                 Qu[j] = flt.Qu[0, 0], flt.Qu[1, 1]
+                P_infl[j] = flt.P_inflation
                 j += 1
         # Health is checked at scans; a blow-up in the predictions after the last one shows here.
         if not (np.isfinite(x).all() and np.isfinite(P).all()):
             raise FilterDiverged("non-finite estimate after the last scan")
     except (FilterDiverged, np.linalg.LinAlgError):
         diverged = True
-        x[j:] = P[j:] = R[j:] = Qu[j:] = np.nan
+        x[j:] = P[j:] = R[j:] = Qu[j:] = P_infl[j:] = np.nan
     return {
         "x": x,
         "P": P,
         "R_diag": R,
         "Q_diag": Qu,
+        "P_infl": P_infl,
         "diverged": diverged,
         "nis_sum": flt.nis_sum,
         "n_updates": flt.n_updates,

@@ -33,10 +33,10 @@ AnyFilterSpec = Annotated[Union[SPECS], Field(discriminator="kind")]  # noqa: UP
 
 def expand_entry_points(item: object) -> object:
     """A filter entry whose kind an installed package registered becomes a `custom` entry."""
-    if not isinstance(item, dict) or item.get("kind") in KINDS:
+    kind = item.get("kind") if isinstance(item, dict) else None
+    if not isinstance(kind, str) or kind in KINDS:
         return item
-    kind = item.get("kind")
-    registered = entry_point_kinds() if isinstance(kind, str) else {}
+    registered = entry_point_kinds()
     if kind not in registered:
         return item
     params = {k: v for k, v in item.items() if k not in ("name", "kind")}

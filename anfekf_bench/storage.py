@@ -2,17 +2,34 @@
 
 A scenario's folder holds steps.parquet, summary.parquet, summary.json and, written LAST,
 manifest.json. A folder without manifest.json is not a complete result.
+
+Also here: the layout's own names (`RESERVED_NAMES`: a scenario may not be called like them), the
+lock a batch holds on its folder (`folder_lock`), what `--force` may remove (`foreign_entries`),
+the run store's file format (`write_run_file` / `read_run_file`: npz without pickle, keyed to the
+fingerprint), and `open_regular`, through which every file a user names is read (a FIFO, device or
+folder is refused instead of hanging the command).
 """
 
 from __future__ import annotations
 
+import errno
+import fcntl
+import hashlib
+import io
 import json
 import math
 import os
+import re
+import shutil
+import stat
 import tempfile
-from collections.abc import Callable
+import zipfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import BinaryIO
 
+import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -22,10 +39,106 @@ SUMMARY_PARQUET = "summary.parquet"
 SUMMARY_JSON = "summary.json"
 MANIFEST_FILE = "manifest.json"
 RUNS_DIR = ".runs"  # finished runs of an unfinished batch (experiment.py)
+RUN_FILE_PATTERN = "run-*.npz"  # a finished run in RUNS_DIR (write_run_file)
+LOCK_FILE = ".lock"  # held (flock) by the batch writing a scenario folder
+
+# Names a scenario may not take: its folder is a direct child of --out, beside these.
+RESERVED_NAMES = frozenset(
+    {"report", "baselines", "bench.json", "readme.md", "ci-gate", RUNS_DIR, LOCK_FILE}
+    | {STEPS_FILE, SUMMARY_PARQUET, SUMMARY_JSON, MANIFEST_FILE}
+)
+RESERVED_SUFFIXES = (".parquet", ".json", ".md", ".tmp", ".lock", ".npz", ".yaml", ".yml")
+NAME_MAX = 64  # characters of a scenario name (one path component: far below NAME_MAX 255)
+NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
+
+# Upper bounds of files we read whole (a result file is read whole anyway; these stop a file
+# named by mistake, e.g. a disk image, from exhausting memory).
+JSON_LIMIT = 256 * 2**20
+PARQUET_LIMIT = 16 * 2**30
 
 
 class ResultsError(Exception):
     """Saved results are missing or unreadable; `str()` is the one-line message for the user."""
+
+
+class FileProblem(Exception):
+    """Why a file cannot be read; `str()` is a short phrase without the path (callers add it)."""
+
+
+def scenario_name_problem(name: str) -> str | None:
+    """Why `name` cannot name a scenario folder (a direct child of --out), or None."""
+    if not NAME_PATTERN.fullmatch(name):
+        return "must start with a letter or digit and hold only letters, digits, '_', '.' and '-'"
+    if len(name) > NAME_MAX:
+        return f"at most {NAME_MAX} characters (got {len(name)})"
+    folded = name.casefold()
+    if folded in RESERVED_NAMES or folded.endswith(RESERVED_SUFFIXES):
+        return (
+            f"{name!r} is reserved by the results layout (not allowed: "
+            f"{', '.join(sorted(RESERVED_NAMES - {RUNS_DIR, LOCK_FILE}))}, or a name ending in"
+            f" {', '.join(RESERVED_SUFFIXES)})"
+        )
+    return None
+
+
+def _file_kind(mode: int) -> str:
+    if stat.S_ISDIR(mode):
+        return "folder"
+    if stat.S_ISFIFO(mode):
+        return "FIFO (named pipe)"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "device"
+    if stat.S_ISSOCK(mode):
+        return "socket"
+    return "special file"
+
+
+def _size(n: int) -> str:
+    for unit in ("bytes", "KB", "MB", "GB"):
+        if n < 1024 or unit == "GB":
+            return f"{n} {unit}" if unit == "bytes" else f"{n:.0f} {unit}"
+        n /= 1024
+    return f"{n} bytes"  # pragma: no cover
+
+
+def open_regular(path: Path, *, limit: int | None = None) -> BinaryIO:
+    """Open `path` for reading if it is a regular file (following symlinks) of at most `limit`
+    bytes; FileProblem otherwise. Opened non-blocking, so a FIFO is refused, never waited on."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except FileNotFoundError:
+        raise FileProblem("file not found") from None
+    except PermissionError:
+        raise FileProblem("permission denied") from None
+    except OSError as exc:
+        if exc.errno == errno.ENAMETOOLONG:
+            raise FileProblem("path too long") from None
+        if exc.errno == errno.ENXIO:
+            raise FileProblem("is a socket or device, not a regular file") from None
+        raise FileProblem(f"cannot open ({exc.strerror})") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise FileProblem(f"is a {_file_kind(st.st_mode)}, not a regular file")
+        if limit is not None and st.st_size > limit:
+            raise FileProblem(f"is {_size(st.st_size)}; at most {_size(limit)} allowed")
+        os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_regular_bytes(path: Path, limit: int) -> bytes:
+    """The bytes of a regular file of at most `limit` bytes (FileProblem otherwise)."""
+    with open_regular(path, limit=limit) as fh:
+        try:
+            data = fh.read(limit + 1)
+        except OSError as exc:
+            raise FileProblem(f"cannot read ({exc.strerror})") from None
+    if len(data) > limit:
+        raise FileProblem(f"is larger than {_size(limit)}")
+    return data
 
 
 def _file_mode() -> int:
@@ -57,6 +170,22 @@ def output_path_problem(path: Path, *, folder: bool) -> str | None:
     """Why `path` cannot be written as an output folder (or file), checked before long work;
     None when it can. The sentence names the --out option it came from."""
     path = Path(path)
+    try:
+        name_max = os.pathconf(path.anchor or ".", "PC_NAME_MAX")
+    except (OSError, ValueError):
+        name_max = 255
+    for part in path.parts:
+        if len(os.fsencode(part)) > name_max:
+            return f"--out has a component longer than {name_max} bytes"
+    if len(os.fsencode(str(path))) > 3000:
+        return "--out is too long a path"
+    try:
+        return _output_path_problem(path, folder)
+    except OSError as exc:
+        return f"--out cannot be used ({exc.strerror or exc})"
+
+
+def _output_path_problem(path: Path, folder: bool) -> str | None:
     if path.exists() and path.is_dir() != folder:
         return (
             "--out must be a folder, but a file of that name exists"
@@ -93,25 +222,70 @@ def write_parquet(path: Path, df: pd.DataFrame) -> None:
     write_atomic(path, lambda tmp: pq.write_table(table, tmp, compression="zstd"))
 
 
+def _open_result(path: Path, limit: int) -> BinaryIO:
+    try:
+        return open_regular(path, limit=limit)
+    except FileProblem as exc:
+        raise ResultsError(f"{path}: {exc}") from None
+
+
 def read_parquet(path: Path) -> pd.DataFrame:
     path = Path(path)
-    if not path.is_file():
-        raise ResultsError(f"{path}: file not found")
-    try:
-        return pq.read_table(path).to_pandas()
-    except (pa.ArrowException, OSError, ValueError) as exc:
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise ResultsError(f"{path}: not a readable Parquet file ({first})") from None
+    with _open_result(path, PARQUET_LIMIT) as fh:
+        try:
+            return pq.read_table(fh).to_pandas()
+        except (pa.ArrowException, OSError, ValueError) as exc:
+            first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise ResultsError(f"{path}: not a readable Parquet file ({first})") from None
+
+
+class _BadJSON(ValueError):
+    pass
+
+
+def _no_duplicate_keys(pairs: list[tuple[str, object]]) -> dict:
+    out: dict = {}
+    for key, value in pairs:
+        if key in out:
+            raise _BadJSON(f"key {key!r} appears twice in one object")
+        out[key] = value
+    return out
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise _BadJSON(f"number {text[:20]} is out of range")
+    return value
+
+
+def _no_constant(text: str):
+    raise _BadJSON(f"{text} is not a number JSON allows (write null for undefined)")
+
+
+def parse_strict_json(text: str) -> object:
+    """JSON without duplicate keys and without NaN, Infinity or numbers that overflow a float:
+    our writers never produce them, so a file holding them was made or edited by hand."""
+    return json.loads(
+        text,
+        object_pairs_hook=_no_duplicate_keys,
+        parse_float=_finite_float,
+        parse_constant=_no_constant,
+    )
 
 
 def read_json(path: Path) -> dict | list:
     path = Path(path)
-    if not path.is_file():
-        raise ResultsError(f"{path}: file not found")
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ResultsError(f"{path}: not readable JSON ({exc})") from None
+    with _open_result(path, JSON_LIMIT) as fh:
+        try:
+            return parse_strict_json(fh.read().decode("utf-8"))
+        except _BadJSON as exc:
+            raise ResultsError(f"{path}: not usable JSON ({exc})") from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            msg = exc.strerror if isinstance(exc, OSError) else str(exc).splitlines()[0]
+            raise ResultsError(f"{path}: not readable JSON ({msg})") from None
+        except RecursionError:
+            raise ResultsError(f"{path}: not usable JSON (nested too deeply)") from None
 
 
 def scenario_dirs(results_dir: Path) -> list[Path]:
@@ -163,10 +337,11 @@ def _check_parquet_footer(path: Path) -> None:
     report reads steps.parquet and check reads summary.parquet; this makes both refuse a folder
     whose other file is damaged, instead of passing on half a result.
     """
-    if not path.exists():
+    if not os.path.lexists(path):
         return
     try:
-        pq.read_metadata(path)
+        with _open_result(path, PARQUET_LIMIT) as fh:
+            pq.read_metadata(fh)
     except (pa.ArrowException, OSError, ValueError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise ResultsError(f"{path}: not a readable Parquet file ({first})") from None
@@ -193,3 +368,288 @@ def read_steps(scenario_dir: Path) -> pd.DataFrame:
 
 def read_summary(scenario_dir: Path) -> pd.DataFrame:
     return read_parquet(Path(scenario_dir) / SUMMARY_PARQUET)
+
+
+# ---------------------------------------------------------------------------------------------
+# A scenario folder: its lock, and what --force may remove
+
+
+class FolderBusy(Exception):
+    """Another process holds a scenario folder's lock; `str()` is the one-line message."""
+
+
+@contextmanager
+def folder_lock(folder: Path) -> Iterator[None]:
+    """Hold an exclusive lock on `folder` (created if missing) while the block runs.
+
+    The lock is `flock` on `<folder>/.lock`: the kernel releases it when the holding process
+    ends, even by kill -9, so it never goes stale. Not inherited by worker processes (the file
+    is opened close-on-exec). The file stays (removing a lock file races with its next user).
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / LOCK_FILE
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW, 0o666)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise FolderBusy(f"{path}: a symbolic link; refusing to use it as the lock") from None
+        raise
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise FolderBusy(f"{path}: not a regular file; refusing to use it as the lock")
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+            who = f" (pid {holder})" if holder.isdigit() else ""
+            raise FolderBusy(
+                f"{folder}: another anfekf command is writing this folder{who}; wait for it to"
+                " finish, or use another --out"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def _is_ours(folder: Path, entry: os.DirEntry) -> bool:
+    """An entry of a scenario folder that this tool writes (never a symlink)."""
+    name = entry.name
+    if entry.is_symlink():
+        return False
+    if name == RUNS_DIR:
+        return entry.is_dir(follow_symlinks=False)
+    if not entry.is_file(follow_symlinks=False):
+        return False
+    return (
+        name == LOCK_FILE
+        or name.endswith((".parquet", ".json"))
+        or (name.startswith(".") and name.endswith(".tmp"))
+    )
+
+
+def foreign_entries(folder: Path) -> list[str]:
+    """Entries of a scenario folder that this tool did not write: sub-folders other than the run
+    store, symlinks, special files, files of other kinds. --force removes nothing if any."""
+    with os.scandir(folder) as entries:
+        return sorted(e.name for e in entries if not _is_ours(folder, e))
+
+
+def clear_folder(folder: Path) -> list[str]:
+    """Remove this tool's entries of `folder` (all but the lock); the names removed.
+    Call only when `foreign_entries(folder)` is empty and the lock is held."""
+    removed = []
+    with os.scandir(folder) as entries:
+        for entry in sorted(entries, key=lambda e: e.name):
+            if entry.name == LOCK_FILE or not _is_ours(folder, entry):
+                continue
+            if entry.name == RUNS_DIR:
+                shutil.rmtree(entry.path)  # removes symlinks inside, never follows them
+            else:
+                os.unlink(entry.path)
+            removed.append(entry.name)
+    return removed
+
+
+# ---------------------------------------------------------------------------------------------
+# The run store: one finished run per file, a data format that cannot execute code
+#
+# A run result is a nested structure of dicts (str or int keys), lists/tuples, numpy arrays and
+# scalars, and Python bool/int/float/str/None. It is stored as an uncompressed .npz (loaded with
+# allow_pickle=False): the arrays as members a0, a1, ..., and a JSON header describing the tree,
+# with the batch's fingerprint and a SHA-256 over the fingerprint, the tree and every array's
+# dtype, shape and bytes. A file whose format, fingerprint or checksum does not match is refused
+# (the run is redone); nothing in it is ever executed.
+
+RUN_FORMAT = "anfekf-bench run v1"
+HEADER_KEY = "header"
+RUN_FILE_LIMIT = 4 * 2**30
+_HEADER_LIMIT = 64 * 2**20
+
+
+class RunFileRefused(Exception):
+    """A saved run cannot be used; `str()` says why (the caller redoes the run)."""
+
+
+def _encode(node, arrays: dict[str, np.ndarray], depth: int = 0):
+    if depth > 32:
+        raise TypeError("run result nested deeper than 32 levels")
+    if isinstance(node, dict):
+        items = []
+        for key, value in node.items():
+            if isinstance(key, bool) or not isinstance(key, (str, int)):
+                raise TypeError(f"run result key {key!r}: only str or int keys can be stored")
+            items.append([key, _encode(value, arrays, depth + 1)])
+        return {"dict": items}
+    if isinstance(node, (list, tuple)):
+        kind = "list" if isinstance(node, list) else "tuple"
+        return {kind: [_encode(v, arrays, depth + 1) for v in node]}
+    if isinstance(node, (np.ndarray, np.generic)):
+        arr = np.asarray(node)
+        if arr.dtype.hasobject:
+            raise TypeError("run result holds an object array: only plain arrays can be stored")
+        key = f"a{len(arrays)}"
+        arrays[key] = arr
+        return {"array" if isinstance(node, np.ndarray) else "scalar": key}
+    if node is None:
+        return {"none": None}
+    if isinstance(node, bool):
+        return {"bool": node}
+    if isinstance(node, int):
+        return {"int": node}
+    if isinstance(node, float):
+        return {"float": node.hex()}  # exact, NaN and infinities included
+    if isinstance(node, str):
+        return {"str": node}
+    raise TypeError(f"run result holds a {type(node).__name__}, which cannot be stored")
+
+
+def _decode(node, arrays: dict[str, np.ndarray], used: set[str]):
+    if not isinstance(node, dict) or len(node) != 1:
+        raise RunFileRefused("malformed header")
+    ((kind, value),) = node.items()
+    if kind == "dict" and isinstance(value, list):
+        out = {}
+        for item in value:
+            if not (isinstance(item, list) and len(item) == 2):
+                raise RunFileRefused("malformed header")
+            key, child = item
+            if isinstance(key, bool) or not isinstance(key, (str, int)):
+                raise RunFileRefused("malformed header")
+            out[key] = _decode(child, arrays, used)
+        return out
+    if kind in ("list", "tuple") and isinstance(value, list):
+        items = [_decode(v, arrays, used) for v in value]
+        return items if kind == "list" else tuple(items)
+    if kind in ("array", "scalar") and isinstance(value, str) and value in arrays:
+        if value in used:
+            raise RunFileRefused("malformed header")
+        used.add(value)
+        arr = arrays[value]
+        if kind == "scalar":
+            if arr.ndim != 0:
+                raise RunFileRefused("malformed header")
+            return arr[()]
+        return arr
+    if kind == "none" and value is None:
+        return None
+    if kind == "bool" and isinstance(value, bool):
+        return value
+    if kind == "int" and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if kind == "float" and isinstance(value, str):
+        try:
+            return float.fromhex(value)
+        except ValueError:
+            raise RunFileRefused("malformed header") from None
+    if kind == "str" and isinstance(value, str):
+        return value
+    raise RunFileRefused("malformed header")
+
+
+def _checksum(fingerprint: str, tree_json: str, arrays: dict[str, np.ndarray]) -> str:
+    digest = hashlib.sha256()
+    digest.update(RUN_FORMAT.encode() + b"\0" + fingerprint.encode() + b"\0")
+    digest.update(tree_json.encode() + b"\0")
+    for key in sorted(arrays, key=lambda k: int(k[1:])):
+        arr = arrays[key]
+        digest.update(f"{key}:{arr.dtype.str}:{arr.shape}\0".encode())
+        digest.update(np.ascontiguousarray(arr).tobytes())
+    return digest.hexdigest()
+
+
+def run_file_bytes(result: dict, fingerprint: str) -> bytes:
+    """The .npz bytes of one run result (see above)."""
+    arrays: dict[str, np.ndarray] = {}
+    tree_json = json.dumps(_encode(result, arrays), separators=(",", ":"))
+    header = {
+        "format": RUN_FORMAT,
+        "fingerprint": fingerprint,
+        "tree": tree_json,
+        "sha256": _checksum(fingerprint, tree_json, arrays),
+    }
+    raw = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    buf = io.BytesIO()
+    np.savez(buf, **{HEADER_KEY: raw}, **arrays)
+    return buf.getvalue()
+
+
+def write_run_file(path: Path, result: dict, fingerprint: str) -> None:
+    """Save one finished run atomically (the file appears whole or not at all)."""
+    data = run_file_bytes(result, fingerprint)
+    write_atomic(path, lambda tmp: tmp.write_bytes(data))
+
+
+def _read_member(archive: zipfile.ZipFile, info: zipfile.ZipInfo) -> np.ndarray:
+    """One .npy member, its declared size checked against its stored size before allocating."""
+    if info.compress_type != zipfile.ZIP_STORED:
+        raise RunFileRefused(f"member {info.filename} is compressed (we never write that)")
+    with archive.open(info) as fh:
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
+        elif version in ((2, 0), (3, 0)):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
+        else:
+            raise RunFileRefused(f"member {info.filename}: unknown .npy version")
+        if dtype.hasobject:
+            raise RunFileRefused(f"member {info.filename} holds Python objects")
+        declared = math.prod(shape) * dtype.itemsize
+        if declared != info.file_size - fh.tell():
+            raise RunFileRefused(f"member {info.filename}: size does not match its header")
+        data = fh.read(declared)
+    arr = np.frombuffer(data, dtype=dtype).reshape(shape, order="F" if fortran else "C")
+    return arr.copy()  # writable, owning its memory, as a computed result would be
+
+
+def read_run_file(path: Path, fingerprint: str) -> dict:
+    """A run saved by `write_run_file` for the batch with `fingerprint`; RunFileRefused if the
+    file is not a regular file, not ours, of another batch, damaged or tampered with."""
+    try:
+        with open_regular(path, limit=RUN_FILE_LIMIT) as fh:
+            data = fh.read()
+    except (FileProblem, OSError) as exc:
+        raise RunFileRefused(str(exc)) from None
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
+            infos = {info.filename: info for info in archive.infolist()}
+            if len(infos) != len(archive.infolist()):
+                raise RunFileRefused("duplicate members")
+            head = infos.get(f"{HEADER_KEY}.npy")
+            if head is None or head.file_size > _HEADER_LIMIT:
+                raise RunFileRefused("no header")
+            raw = _read_member(archive, head)
+            if raw.dtype != np.uint8 or raw.ndim != 1:
+                raise RunFileRefused("malformed header")
+            header = parse_strict_json(raw.tobytes().decode("utf-8"))
+            if not isinstance(header, dict) or header.get("format") != RUN_FORMAT:
+                raise RunFileRefused("not an anfekf-bench run file")
+            if header.get("fingerprint") != fingerprint:
+                raise RunFileRefused("saved by another scenario, seed or code version")
+            tree_json = header.get("tree")
+            if not isinstance(tree_json, str):
+                raise RunFileRefused("malformed header")
+            arrays = {}
+            for name, info in infos.items():
+                key = name.removesuffix(".npy")
+                if key == HEADER_KEY:
+                    continue
+                if not re.fullmatch(r"a(0|[1-9][0-9]{0,6})", key) or not name.endswith(".npy"):
+                    raise RunFileRefused(f"unexpected member {name[:40]!r}")
+                arrays[key] = _read_member(archive, info)
+    except RunFileRefused:
+        raise
+    except (zipfile.BadZipFile, ValueError, EOFError, OSError, RecursionError) as exc:
+        raise RunFileRefused(f"damaged ({type(exc).__name__})") from None
+    if header.get("sha256") != _checksum(fingerprint, tree_json, arrays):
+        raise RunFileRefused("checksum mismatch")
+    used: set[str] = set()
+    try:
+        tree = _decode(json.loads(tree_json), arrays, used)
+    except (ValueError, RecursionError):
+        raise RunFileRefused("malformed header") from None
+    if used != set(arrays) or not isinstance(tree, dict):
+        raise RunFileRefused("malformed header")
+    return tree

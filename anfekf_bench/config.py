@@ -92,6 +92,8 @@ class WorldConfig(_Strict):
     max_steps: int = Field(1_000_000, ge=1, description="safety stop for routes never completed")
 
 
+Engine = Literal["filterpy", "fast"]
+
 DASK_ADDRESS = r"^(tcp|tls|ws|wss|ucx)://\S+:\d{1,5}$"
 
 
@@ -128,6 +130,14 @@ class Scenario(_Strict):
     runs: int = Field(50, ge=1, le=100_000)
     jobs: int = Field(2, ge=1, le=1024)
     record_every: int = Field(1, ge=1, description="record every n-th control step")
+    steps_table: bool = Field(
+        True, description="write steps.parquet (false: summaries and per-run tables only)"
+    )
+    engine: Engine = Field(
+        "filterpy",
+        description="filterpy (the reference) or fast (numeric kernels, numba when installed);"
+        " filters the fast engine does not implement run on filterpy",
+    )
     world: WorldConfig = WorldConfig()
     true_noise: NoiseSigmas = NoiseSigmas()
     filter_noise: NoiseSigmas = NoiseSigmas()

@@ -1,14 +1,16 @@
-"""Monte Carlo batches: one worker call per run, fanned out with joblib (benchopt style).
+"""Monte Carlo batches: worker calls of a few runs each, fanned out with joblib (benchopt style).
 
-`run_one` is a top-level function taking plain keyword data and returning plain data; it mutates
-nothing shared. Run i draws from `SeedSequence(seed).spawn(runs)[i]` only (SPEC 6), so results do
-not depend on the number of workers or on the order in which runs finish. The same holds on a Dask
+`run_chunk` / `run_one` are top-level functions taking plain data and returning plain data; they
+mutate nothing shared. The truth path is computed once per batch and shipped with the tasks.
+Run i draws from `SeedSequence(seed).spawn(runs)[i]` only (SPEC 6), so results do not depend on
+the number of workers or on the order in which runs finish. The same holds on a Dask
 cluster (`backend="dask"`): joblib's dask backend ships the same calls to the cluster's workers.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
+import math
 from collections.abc import Callable, Iterable, Iterator
 from typing import Literal
 
@@ -16,28 +18,57 @@ import numpy as np
 from joblib import Parallel, delayed
 
 from .analysis.tables import add_trace_metrics, recorded_steps
-from .config import Scenario, World
+from .config import Engine, Scenario, World
 from .engines.filterpy_engine import run_filter
-from .filters import build_filter
-from .sources.simulator import RunData, simulate_run, simulate_truth
+from .filters import FilterSpec
+from .filters.registry import build_filter, filter_context
+from .sources.simulator import RunData, Truth, simulate_run, simulate_truth
 
 
-def simulate(scenario: Scenario, world: World, seed: np.random.SeedSequence) -> RunData:
-    """One run's data, every draw from its own seed (SPEC 6)."""
-    truth = simulate_truth(world)
+def simulate(
+    scenario: Scenario, world: World, seed: np.random.SeedSequence, truth: Truth | None = None
+) -> RunData:
+    """One run's data, every draw from its own seed (SPEC 6); `truth`, the same in every run,
+    may be passed in so that it is computed once per world, not once per run."""
+    truth = simulate_truth(world) if truth is None else truth
     return simulate_run(world, truth, scenario.true_noise.radians(), np.random.default_rng(seed))
 
 
-def run_one(scenario: Scenario, world: World, run: int, seed: np.random.SeedSequence) -> dict:
+def run_filter_on(engine: Engine, spec: FilterSpec, scenario, world: World, data: RunData) -> dict:
+    """One filter over one run's data on `engine`; the fast engine runs the filters it
+    implements, every other filter (a user's own, a zoo baseline) runs on filterpy."""
+    if engine == "fast":
+        from .engines import fast  # numba (when installed) is imported only for this engine
+
+        if fast.supports(spec):
+            ctx = filter_context(spec, scenario, world)
+            return fast.run_filter_fast(spec, ctx, data, world, scenario.record_every)
+    return run_filter(build_filter(spec, scenario, world), data, world, scenario.record_every)
+
+
+def engine_of(engine: Engine, spec: FilterSpec) -> Engine:
+    """The engine that actually runs `spec` when `engine` is asked for (for the manifest)."""
+    if engine == "fast":
+        from .engines import fast
+
+        return "fast" if fast.supports(spec) else "filterpy"
+    return "filterpy"
+
+
+def run_one(
+    scenario: Scenario,
+    world: World,
+    run: int,
+    seed: np.random.SeedSequence,
+    truth: Truth | None = None,
+    engine: Engine = "filterpy",
+) -> dict:
     """One Monte Carlo run: simulate once, feed the same data to every filter (CRN)."""
-    data = simulate(scenario, world, seed)
+    data = simulate(scenario, world, seed, truth)
     steps = recorded_steps(len(data.u_odo), scenario.record_every)
     x_true = data.truth.x[steps]
     filters = {
-        spec.name: add_trace_metrics(
-            run_filter(build_filter(spec, scenario, world), data, world, scenario.record_every),
-            x_true,
-        )
+        spec.name: add_trace_metrics(run_filter_on(engine, spec, scenario, world, data), x_true)
         for spec in scenario.filters
     }
     return {
@@ -50,10 +81,27 @@ def run_one(scenario: Scenario, world: World, run: int, seed: np.random.SeedSequ
     }
 
 
+def run_chunk(
+    scenario: Scenario,
+    world: World,
+    runs: list[tuple[int, np.random.SeedSequence]],
+    truth: Truth,
+    engine: Engine,
+) -> list[dict]:
+    """Several runs in one worker task (a fast engine's run takes milliseconds: one task per run
+    would cost more in dispatch than in filtering)."""
+    return [run_one(scenario, world, run, seed, truth, engine) for run, seed in runs]
+
+
 def run_tasks(scenario: Scenario, world: World, runs: int, seed: int) -> Iterator[dict]:
     """Plain keyword dicts, one per run: run i gets the i-th child of the root seed (SPEC 6)."""
     for i, child in enumerate(np.random.SeedSequence(seed).spawn(runs)):
         yield {"scenario": scenario, "world": world, "run": i, "seed": child}
+
+
+def runs_per_task(n_runs: int, workers: int) -> int:
+    """About four tasks per worker, so that the load balances and progress moves."""
+    return max(1, math.ceil(n_runs / (4 * max(workers, 1))))
 
 
 def run_batch(
@@ -68,6 +116,7 @@ def run_batch(
     backend: Literal["local", "dask"] = "local",
     scheduler: str | None = None,
     connect_timeout_s: float = 10.0,
+    engine: Engine = "filterpy",
 ) -> Iterator[dict]:
     """Run results as they finish (any order); `skip` leaves out runs already done.
 
@@ -76,23 +125,35 @@ def run_batch(
     cluster is reached here, before the first result is asked for, so a scheduler that cannot be
     reached raises BackendUnavailable at once.
     """
-    tasks = [t for t in run_tasks(scenario, world, runs, seed) if t["run"] not in skip]
+    tasks = [(t["run"], t["seed"]) for t in run_tasks(scenario, world, runs, seed)]
+    tasks = [task for task in tasks if task[0] not in skip]
     if not tasks:
         return iter(())
-    calls = (delayed(run_one)(**task) for task in tasks)
+    truth = simulate_truth(world)
+    # A filterpy run takes a good part of a second: one task per run (progress and resume move
+    # with every run); a fast-engine run takes milliseconds, so its tasks hold several runs.
+    size = runs_per_task(len(tasks), jobs) if engine == "fast" and backend == "local" else 1
+    calls = (
+        delayed(run_chunk)(scenario, world, tasks[i : i + size], truth, engine)
+        for i in range(0, len(tasks), size)
+    )
     if backend == "dask":
         results = _run_on_dask(connect_dask(scheduler, connect_timeout_s), calls, scheduler)
     else:
-        parallel = Parallel(n_jobs=min(jobs, len(tasks)), return_as="generator_unordered")
+        n_calls = math.ceil(len(tasks) / size)
+        parallel = Parallel(n_jobs=min(jobs, n_calls), return_as="generator_unordered")
         results = parallel(calls)
     return _announce(results, on_result)
 
 
-def _announce(results: Iterable[dict], on_result: Callable[[dict], None] | None) -> Iterator[dict]:
-    for result in results:
-        if on_result is not None:
-            on_result(result)
-        yield result
+def _announce(
+    chunks: Iterable[list[dict]], on_result: Callable[[dict], None] | None
+) -> Iterator[dict]:
+    for chunk in chunks:
+        for result in chunk:
+            if on_result is not None:
+                on_result(result)
+            yield result
 
 
 class BackendUnavailable(Exception):

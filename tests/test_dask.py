@@ -81,7 +81,7 @@ def scheduler() -> str:
 
 
 def finished_run_tasks(address: str) -> set[str]:
-    """Keys of the `run_one` tasks the scheduler has seen finish (reach memory)."""
+    """Keys of the `run_chunk` tasks the scheduler has seen finish (reach memory)."""
     with distributed.Client(address, set_as_default=False) as client:
         return set(client.run_on_scheduler(_finished_run_keys))
 
@@ -91,7 +91,7 @@ def _finished_run_keys(dask_scheduler) -> list[str]:
     return [
         str(entry[0])
         for entry in dask_scheduler.transition_log
-        if "run_one" in str(entry[0]) and entry[2] == "memory"
+        if "run_chunk" in str(entry[0]) and entry[2] == "memory"
     ]
 
 

@@ -1,0 +1,232 @@
+"""The fast engine (SPEC 11): the built-in filters as plain numeric kernels over one run.
+
+`run_filter_fast` returns exactly what `filterpy_engine.run_filter` returns (same keys, shapes,
+dtypes and meaning, divergence included), so metrics, storage and the report are shared. The
+kernels (`kernels.py`) are compiled by numba when it is installed (the `fast` extra) and run as
+plain Python otherwise; `JIT` says which.
+
+What it runs (`supports`): the EKF, the oracle EKF and the ANFEKF with any of its parameters
+(adapt R, Q or RQ, adaptation and learning on or off, adapt_from, bounds, window, rates, ...),
+on the bicycle motion model. Anything else (a user's own filter, the other adaptive baselines)
+is not implemented here: the caller runs it on filterpy.
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+
+import numpy as np
+
+from ..config import World
+from ..filters import anfis
+from ..filters.anfekf import ANFEKFSpec
+from ..filters.ekf import EKFSpec, OracleSpec
+from ..filters.spec import FilterContext, FilterSpec
+from ..models import Bicycle
+from ..sources.simulator import RunData
+from . import kernels as _jit_kernels
+
+JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
+
+# Exactly these spec classes (a subclass may build a different filter).
+SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (EKFSpec, OracleSpec, ANFEKFSpec)
+
+
+def supports(spec: FilterSpec) -> bool:
+    """Whether the fast engine implements this filter (else run it on filterpy)."""
+    return type(spec) in SUPPORTED_SPECS
+
+
+# ---------------------------------------------------------------------------------------------
+# A run's scans as flat arrays
+
+
+class FlatScans:
+    """The scans of one run as the kernel reads them: scan i's measurements are rows
+    start[i] .. start[i + 1] - 1 of `landmarks` (their map positions) and `z`."""
+
+    __slots__ = ("start", "landmarks", "z", "__weakref__")
+
+    def __init__(self, start: np.ndarray, landmarks: np.ndarray, z: np.ndarray):
+        self.start = start
+        self.landmarks = landmarks
+        self.z = z
+
+
+_last_flat: tuple[weakref.ref, weakref.ref, FlatScans] | None = None
+
+
+def flat_scans(data: RunData, world: World) -> FlatScans:
+    """`data.scans` as flat arrays; the last run's are kept, so that the filters of one run
+    (called one after the other on the same `RunData`) flatten its scans once."""
+    global _last_flat
+    if _last_flat is not None:
+        data_ref, lm_ref, flat = _last_flat
+        if data_ref() is data and lm_ref() is world.landmarks:
+            return flat
+    scans = data.scans
+    counts = np.fromiter((len(s.ids) for s in scans), dtype=np.int64, count=len(scans))
+    start = np.zeros(len(scans) + 1, dtype=np.int64)
+    np.cumsum(counts, out=start[1:])
+    if start[-1]:
+        ids = np.concatenate([s.ids for s in scans])
+        z = np.ascontiguousarray(np.concatenate([s.z for s in scans]), dtype=float).reshape(-1, 2)
+        landmarks = np.ascontiguousarray(world.landmarks[ids], dtype=float)
+    else:
+        z = landmarks = np.zeros((0, 2))
+    flat = FlatScans(start, landmarks, z)
+    try:
+        _last_flat = (weakref.ref(data), weakref.ref(world.landmarks), flat)
+    except TypeError:  # not weak-referenceable: no cache
+        _last_flat = None
+    return flat
+
+
+def clear_cache() -> None:
+    """Forget the last run's flattened scans (the bench times the flattening too)."""
+    global _last_flat
+    _last_flat = None
+
+
+# ---------------------------------------------------------------------------------------------
+# The entry point
+
+
+def _pure_kernels():
+    return _jit_kernels.pure_module()
+
+
+def _matrix(a: np.ndarray, n: int) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    if a.shape != (n, n):
+        raise ValueError(f"expected a {n}x{n} matrix, got shape {a.shape}")
+    return np.ascontiguousarray(a).ravel()
+
+
+def run_filter_fast(
+    spec: FilterSpec,
+    ctx: FilterContext,
+    data: RunData,
+    world: World,
+    record_every: int,
+    *,
+    jit: bool = True,
+) -> dict:
+    """Run one filter over one run's data like `filterpy_engine.run_filter(spec.build(ctx), ...)`.
+
+    Records every `record_every`-th control step (0: none; the per-run counts are still
+    returned). A filter that stops being finite and positive definite is marked diverged and its
+    remaining records stay NaN, as on filterpy. `jit=False` runs the plain-Python kernels even
+    when numba is installed.
+    """
+    if not supports(spec):
+        raise ValueError(f"the fast engine does not implement filter kind {spec.kind!r}")
+    if not isinstance(ctx.model, Bicycle):
+        raise ValueError(
+            f"the fast engine implements the bicycle motion model only, not {type(ctx.model)}"
+        )
+    K = len(data.u_odo)
+    every = world.sensor_every
+    if len(data.scans) < K // every:
+        raise ValueError(
+            f"{K} control steps need {K // every} scans; the run has {len(data.scans)}"
+        )
+    flat = flat_scans(data, world)
+    n = K // record_every if record_every > 0 else 0
+    x = np.full((n, 3), np.nan)
+    P = np.full((n, 3, 3), np.nan)
+    R = np.full((n, 2), np.nan)
+    Qu = np.full((n, 2), np.nan)
+
+    if isinstance(spec, ANFEKFSpec):
+        adapt_R, adapt_Q = "R" in spec.adapt, "Q" in spec.adapt
+        anf = _anfis_rows(spec)
+        eta_m, eta_d, eta_w = (float(e) for e in spec.learning_rate)
+        lo, hi = (float(b) for b in spec.bounds)
+        adaptation, learning = bool(spec.adaptation), bool(spec.learning)
+        from_all, window, clip = spec.adapt_from == "all", int(spec.window), float(spec.output_clip)
+    else:
+        adapt_R = adapt_Q = adaptation = learning = False
+        anf = np.zeros((3, _jit_kernels.N_ANFIS))
+        eta_m = eta_d = eta_w = 0.0
+        lo, hi = 1.0, 1.0
+        from_all, window, clip = True, 1, 1.0
+    has_gate = ctx.gate is not None
+    k = _jit_kernels if (jit and JIT) else _pure_kernels()
+    diverged, j, nis_sum, n_updates, n_rejected = k.run_kernel(
+        np.ascontiguousarray(data.u_odo, dtype=float), int(every),
+        flat.start, flat.landmarks, flat.z,
+        float(ctx.dt), float(ctx.model.B),
+        np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
+        _matrix(ctx.Qu, 2), _matrix(ctx.R, 2),
+        float(ctx.gate) if has_gate else math.inf, has_gate,
+        adapt_R, adapt_Q, adaptation, learning, from_all, lo, hi, window, clip,
+        eta_m, eta_d, eta_w, anf,
+        int(max(record_every, 0)), x, P, R, Qu,
+    )  # fmt: skip
+    P_infl = np.ones(n)  # the built-in filters never inflate P-
+    if diverged:
+        x[j:] = P[j:] = R[j:] = Qu[j:] = P_infl[j:] = np.nan
+    return {
+        "x": x,
+        "P": P,
+        "R_diag": R,
+        "Q_diag": Qu,
+        "P_infl": P_infl,
+        "diverged": bool(diverged),
+        "nis_sum": float(nis_sum),
+        "n_updates": int(n_updates),
+        "n_rejected": int(n_rejected),
+    }
+
+
+def _anfis_rows(spec: ANFEKFSpec) -> np.ndarray:
+    """The starting ANFIS parameters as ANFEKF.__init__ makes them, one kernel row each: the
+    R-ANFIS of range and of bearing (rows 0, 1) and the Q-ANFIS (row 2)."""
+    r_init = anfis.init_params(
+        centres0=spec.centres_d, width0=spec.width_d, centres1=spec.centres_dd,
+        width1=spec.width_dd, singleton_scale=spec.singleton_scale,
+    )  # fmt: skip
+    q_init = anfis.init_params(
+        centres0=spec.centres_d, width0=spec.width_d, centres1=spec.centres_d,
+        width1=spec.width_d, singleton_scale=spec.singleton_scale,
+    )  # fmt: skip
+    rows = np.empty((3, _jit_kernels.N_ANFIS))
+    for i, p in enumerate((r_init, r_init, q_init)):
+        rows[i] = np.concatenate([p.m.ravel(), p.delta.ravel(), p.w])
+    return rows
+
+
+def warm_up(jit: bool = True) -> float:
+    """Compile (or load from numba's cache) every kernel signature the engine uses by running
+    a tiny EKF and ANFEKF; returns the seconds it took."""
+    import time
+
+    from ..sources.simulator import Scan, Truth
+
+    t0 = time.perf_counter()
+    world = _tiny_world()
+    K = 16
+    u = np.tile([3.0, 0.01], (K, 1))
+    scans = tuple(
+        Scan(step=8 * (i + 1), ids=np.array([0]), z=np.array([[10.0, 0.1]])) for i in range(K // 8)
+    )
+    data = RunData(truth=Truth(x=np.zeros((K + 1, 3)), u=u), u_odo=u, scans=scans)
+    ctx = FilterContext(
+        x0=np.zeros(3), P0=np.eye(3) * 1e-9, Qu=np.diag([0.09, 0.003]), R=np.diag([0.01, 3e-4]),
+        model=Bicycle(world.T, world.B), dt=world.T, gate=13.8,
+    )  # fmt: skip
+    for spec in (EKFSpec(name="ekf"), ANFEKFSpec(name="anfekf", kind="anfekf", adapt="RQ")):
+        run_filter_fast(spec, ctx, data, world, 1, jit=jit)
+    clear_cache()
+    return time.perf_counter() - t0
+
+
+def _tiny_world() -> World:
+    return World(
+        landmarks=np.array([[10.0, 1.0]]), waypoints=np.array([[20.0, 0.0]]), loops=1,
+        x0=np.zeros(3), V=3.0, B=4.0, max_steer=0.5, max_steer_rate=0.35, T=0.025,
+        sensor_every=8, max_range=20.0, half_fov=math.pi / 2, waypoint_tolerance=1.0,
+        max_steps=100,
+    )  # fmt: skip

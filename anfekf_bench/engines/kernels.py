@@ -1,0 +1,643 @@
+"""The fast engine's kernels: one run of the EKF or the ANFEKF as plain numeric code.
+
+Every function here is a module-level function on plain floats, tuples of floats and small
+float64 arrays, so that numba can compile it (`numba.njit(cache=True)`: the compiled code is
+cached on disk next to this file, which needs module-level functions) and so that the very same
+code runs as plain Python when numba is not installed. `JIT` says which of the two this module
+is; `pure_module()` loads a second, never-compiled copy of it (for tests and for debugging).
+Set the environment variable ANFEKF_FAST_JIT=0 to keep numba off even when it is installed.
+
+The arithmetic follows the reference engine (filterpy's `ExtendedKalmanFilter` driven by
+`RobotEKF`, `ANFEKF` and `anfis`) operation by operation: the same products in the same order,
+the same Joseph-form update and symmetrisation, the same sequential sums where numpy sums
+sequentially (row sums of the ANFIS memberships, the window mean). What cannot be copied bit for
+bit is BLAS's order (and fused multiply-adds) inside numpy's small matrix products and numpy's
+vectorised `exp`: those differ by a rounding in the last place, which is why the two engines
+agree to round-off (about 1e-13 on the paper scenarios) rather than bit for bit.
+
+Matrices are tuples in row-major order: P = (p00, p01, p02, p10, ..., p22), H = (h00, h01, h10,
+h11) (its third column is always (0, -1)), R and Qu = (r00, r01, r10, r11). P is carried in full,
+not as its upper triangle, because filterpy's predicted P is symmetric only up to round-off.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import os
+import sys
+
+import numpy as np
+
+
+def _njit():
+    """numba.njit, or None when numba is missing, switched off, or this is the pure copy."""
+    if globals().get("_PURE", False) or os.environ.get("ANFEKF_FAST_JIT", "1") == "0":
+        return None
+    try:
+        import numba
+    except ImportError:
+        return None
+    return numba.njit
+
+
+_NJIT = _njit()
+JIT: bool = _NJIT is not None  # True: the kernels below are numba-compiled
+
+
+def maybe_njit(fn):
+    """`numba.njit(cache=True)` when numba is in use, else the function itself."""
+    if _NJIT is None:
+        return fn
+    return _NJIT(cache=True, nogil=True, error_model="numpy")(fn)
+
+
+def pure_module():
+    """A fresh copy of this module whose kernels are plain Python, whatever is installed."""
+    name = __name__ + "_pure"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, __file__)
+    mod = importlib.util.module_from_spec(spec)
+    mod._PURE = True  # read by `_njit` while the copy executes
+    spec.loader.exec_module(mod)
+    sys.modules[name] = mod
+    return mod
+
+
+PI = math.pi
+TWO_PI = 2.0 * math.pi
+U_CLIP = 1e100  # anfis._U_CLIP: inputs clipped so (u - m)^2 / delta^2 cannot overflow
+MIN_WIDTH = 1e-3  # anfis.sgd_step's floor on the membership widths
+
+# Layout of one ANFIS parameter row (27 floats): centres m (2 x 5, row-major), widths delta
+# (2 x 5), singletons w (7). A gradient has the same layout.
+N_ANFIS = 27
+M0, D0, W0 = 0, 10, 20
+
+
+# ---------------------------------------------------------------------------------------------
+# Scalars
+
+
+@maybe_njit
+def wrap(a):
+    """models.angles.wrap_scalar: angle to (-pi, pi] (Python's float modulo)."""
+    return -((-a + PI) % TWO_PI - PI)
+
+
+@maybe_njit
+def clip_nan(v, lo, hi):
+    """np.clip on one value: min(max(v, lo), hi), NaN stays NaN."""
+    if v != v:
+        return v
+    if v < lo:
+        v = lo
+    if v > hi:
+        v = hi
+    return v
+
+
+@maybe_njit
+def min_nan(a, b):
+    """np.minimum on two values (NaN propagates)."""
+    if a != a or b != b:
+        return a + b
+    return a if a <= b else b
+
+
+# ---------------------------------------------------------------------------------------------
+# EKF: predict, innovation, gate, Joseph update, health
+
+
+@maybe_njit
+def predict(x, P, V, g, T, B, Qu):
+    """RobotEKF.predict with the bicycle model: F and G at (x, u), x- = f(x, u),
+    P- = F P F^T + G Qu G^T (eqs. 19-21). Returns (x-, P-, Q) with Q = G Qu G^T."""
+    x0, x1, x2 = x
+    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
+    q00, q01, q10, q11 = Qu
+    a = x2 + g
+    ca = math.cos(a)
+    sa = math.sin(a)
+    # F = [[1, 0, f02], [0, 1, f12], [0, 0, 1]] (bicycle.F_jacobian)
+    f02 = -T * V * sa
+    f12 = T * V * ca
+    # G (bicycle.G_jacobian)
+    g00 = T * ca
+    g01 = -T * V * sa
+    g10 = T * sa
+    g11 = T * V * ca
+    g20 = T * math.sin(g) / B
+    g21 = T * V * math.cos(g) / B
+    # Q = (G Qu) G^T
+    a00 = g00 * q00 + g01 * q10
+    a01 = g00 * q01 + g01 * q11
+    a10 = g10 * q00 + g11 * q10
+    a11 = g10 * q01 + g11 * q11
+    a20 = g20 * q00 + g21 * q10
+    a21 = g20 * q01 + g21 * q11
+    Q = (
+        a00 * g00 + a01 * g01, a00 * g10 + a01 * g11, a00 * g20 + a01 * g21,
+        a10 * g00 + a11 * g01, a10 * g10 + a11 * g11, a10 * g20 + a11 * g21,
+        a20 * g00 + a21 * g01, a20 * g10 + a21 * g11, a20 * g20 + a21 * g21,
+    )  # fmt: skip
+    # x- = f(x, u) (bicycle.f)
+    xn = (x0 + T * V * ca, x1 + T * V * sa, wrap(x2 + T * V * math.sin(g) / B))
+    # (F P) F^T + Q, F's zeros and ones taken as they are
+    b00 = p00 + f02 * p20
+    b01 = p01 + f02 * p21
+    b02 = p02 + f02 * p22
+    b10 = p10 + f12 * p20
+    b11 = p11 + f12 * p21
+    b12 = p12 + f12 * p22
+    Pn = (
+        (b00 + b02 * f02) + Q[0], (b01 + b02 * f12) + Q[1], b02 + Q[2],
+        (b10 + b12 * f02) + Q[3], (b11 + b12 * f12) + Q[4], b12 + Q[5],
+        (p20 + p22 * f02) + Q[6], (p21 + p22 * f12) + Q[7], p22 + Q[8],
+    )  # fmt: skip
+    return xn, Pn, Q
+
+
+@maybe_njit
+def innovation(x, P, lx, ly, z0, z1):
+    """RobotEKF.innovation: H (eq. 25), z_hat = h(x-) (eq. 22), nu (eq. 23, bearing wrapped)
+    and H P- H^T, all at x-."""
+    x0, x1, x2 = x
+    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
+    dx = lx - x0
+    dy = ly - x1
+    q = dx * dx + dy * dy
+    r = math.sqrt(q)
+    h00 = -dx / r
+    h01 = -dy / r
+    h10 = dy / q
+    h11 = -dx / q
+    zh0 = math.hypot(dx, dy)
+    zh1 = wrap(math.atan2(dy, dx) - x2)
+    nu0 = z0 - zh0
+    nu1 = wrap(z1 - zh1)
+    # H P (2 x 3); H's third column is (0, -1)
+    c00 = h00 * p00 + h01 * p10
+    c01 = h00 * p01 + h01 * p11
+    c02 = h00 * p02 + h01 * p12
+    c10 = h10 * p00 + h11 * p10 - p20
+    c11 = h10 * p01 + h11 * p11 - p21
+    c12 = h10 * p02 + h11 * p12 - p22
+    HPHt = (
+        c00 * h00 + c01 * h01, c00 * h10 + c01 * h11 - c02,
+        c10 * h00 + c11 * h01, c10 * h10 + c11 * h11 - c12,
+    )  # fmt: skip
+    return (h00, h01, h10, h11), (zh0, zh1), (nu0, nu1), HPHt
+
+
+@maybe_njit
+def nis(HPHt, R, nu0, nu1):
+    """nu^T S^-1 nu with S = H P H^T + R by an LU solve with partial pivoting (np.linalg.solve).
+    Returns (ok, nis); ok is False for an exactly singular S (numpy's LinAlgError)."""
+    s00 = HPHt[0] + R[0]
+    s01 = HPHt[1] + R[1]
+    s10 = HPHt[2] + R[2]
+    s11 = HPHt[3] + R[3]
+    b0, b1 = nu0, nu1
+    if abs(s10) > abs(s00):  # row swap
+        s00, s01, s10, s11 = s10, s11, s00, s01
+        b0, b1 = b1, b0
+    if s00 == 0.0:
+        return False, math.nan
+    l10 = s10 / s00
+    u11 = s11 - l10 * s01
+    if u11 == 0.0:
+        return False, math.nan
+    y1 = b1 - l10 * b0
+    v1 = y1 / u11
+    v0 = (b0 - s01 * v1) / s00
+    return True, nu0 * v0 + nu1 * v1
+
+
+@maybe_njit
+def correct(x, P, H, zh, z0, z1, R):
+    """RobotEKF.correct: filterpy's update with the H and z_hat of the innovation, Joseph form
+    P = (I - K H) P (I - K H)^T + K R K^T, then heading wrapped and P symmetrised.
+    Returns (ok, x+, P+); ok is False for an exactly singular S (scipy's inv raises)."""
+    x0, x1, x2 = x
+    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
+    h00, h01, h10, h11 = H
+    r00, r01, r10, r11 = R
+    # PHT = P H^T (3 x 2)
+    t00 = p00 * h00 + p01 * h01
+    t01 = p00 * h10 + p01 * h11 - p02
+    t10 = p10 * h00 + p11 * h01
+    t11 = p10 * h10 + p11 * h11 - p12
+    t20 = p20 * h00 + p21 * h01
+    t21 = p20 * h10 + p21 * h11 - p22
+    # S = H PHT + R
+    s00 = (h00 * t00 + h01 * t10) + r00
+    s01 = (h00 * t01 + h01 * t11) + r01
+    s10 = (h10 * t00 + h11 * t10 - t20) + r10
+    s11 = (h10 * t01 + h11 * t11 - t21) + r11
+    det = s00 * s11 - s01 * s10
+    if det == 0.0:
+        return False, x, P
+    i00 = s11 / det
+    i01 = -s01 / det
+    i10 = -s10 / det
+    i11 = s00 / det
+    # K = PHT S^-1 (3 x 2)
+    k00 = t00 * i00 + t01 * i10
+    k01 = t00 * i01 + t01 * i11
+    k10 = t10 * i00 + t11 * i10
+    k11 = t10 * i01 + t11 * i11
+    k20 = t20 * i00 + t21 * i10
+    k21 = t20 * i01 + t21 * i11
+    # y = residual_z(z, z_hat); x = x + K y
+    y0 = z0 - zh[0]
+    y1 = wrap(z1 - zh[1])
+    x0 = x0 + (k00 * y0 + k01 * y1)
+    x1 = x1 + (k10 * y0 + k11 * y1)
+    x2 = x2 + (k20 * y0 + k21 * y1)
+    # A = I - K H (3 x 3); H's third column is (0, -1)
+    a00 = 1.0 - (k00 * h00 + k01 * h10)
+    a01 = -(k00 * h01 + k01 * h11)
+    a02 = k01
+    a10 = -(k10 * h00 + k11 * h10)
+    a11 = 1.0 - (k10 * h01 + k11 * h11)
+    a12 = k11
+    a20 = -(k20 * h00 + k21 * h10)
+    a21 = -(k20 * h01 + k21 * h11)
+    a22 = 1.0 + k21
+    # M = A P
+    m00 = a00 * p00 + a01 * p10 + a02 * p20
+    m01 = a00 * p01 + a01 * p11 + a02 * p21
+    m02 = a00 * p02 + a01 * p12 + a02 * p22
+    m10 = a10 * p00 + a11 * p10 + a12 * p20
+    m11 = a10 * p01 + a11 * p11 + a12 * p21
+    m12 = a10 * p02 + a11 * p12 + a12 * p22
+    m20 = a20 * p00 + a21 * p10 + a22 * p20
+    m21 = a20 * p01 + a21 * p11 + a22 * p21
+    m22 = a20 * p02 + a21 * p12 + a22 * p22
+    # N = K R
+    n00 = k00 * r00 + k01 * r10
+    n01 = k00 * r01 + k01 * r11
+    n10 = k10 * r00 + k11 * r10
+    n11 = k10 * r01 + k11 * r11
+    n20 = k20 * r00 + k21 * r10
+    n21 = k20 * r01 + k21 * r11
+    # P = M A^T + N K^T
+    q00 = (m00 * a00 + m01 * a01 + m02 * a02) + (n00 * k00 + n01 * k01)
+    q01 = (m00 * a10 + m01 * a11 + m02 * a12) + (n00 * k10 + n01 * k11)
+    q02 = (m00 * a20 + m01 * a21 + m02 * a22) + (n00 * k20 + n01 * k21)
+    q10 = (m10 * a00 + m11 * a01 + m12 * a02) + (n10 * k00 + n11 * k01)
+    q11 = (m10 * a10 + m11 * a11 + m12 * a12) + (n10 * k10 + n11 * k11)
+    q12 = (m10 * a20 + m11 * a21 + m12 * a22) + (n10 * k20 + n11 * k21)
+    q20 = (m20 * a00 + m21 * a01 + m22 * a02) + (n20 * k00 + n21 * k01)
+    q21 = (m20 * a10 + m21 * a11 + m22 * a12) + (n20 * k10 + n21 * k11)
+    q22 = (m20 * a20 + m21 * a21 + m22 * a22) + (n20 * k20 + n21 * k21)
+    # symmetrise: 0.5 * (P + P^T)
+    s01 = 0.5 * (q01 + q10)
+    s02 = 0.5 * (q02 + q20)
+    s12 = 0.5 * (q12 + q21)
+    Pn = (0.5 * (q00 + q00), s01, s02, s01, 0.5 * (q11 + q11), s12, s02, s12, 0.5 * (q22 + q22))
+    return True, (x0, x1, wrap(x2)), Pn
+
+
+@maybe_njit
+def healthy(x, P, R, Qu):
+    """filterpy_engine._healthy: x and P finite, P positive definite (numpy's Cholesky reads the
+    lower triangle), the diagonals of R and Qu positive."""
+    for v in x:
+        if not math.isfinite(v):
+            return False
+    for v in P:
+        if not math.isfinite(v):
+            return False
+    l00 = P[0]
+    if not l00 > 0.0:
+        return False
+    l00 = math.sqrt(l00)
+    l10 = P[3] / l00
+    l20 = P[6] / l00
+    d1 = P[4] - l10 * l10
+    if not d1 > 0.0:
+        return False
+    l11 = math.sqrt(d1)
+    l21 = (P[7] - l20 * l10) / l11
+    d2 = P[8] - l20 * l20 - l21 * l21
+    if not d2 > 0.0:
+        return False
+    return R[0] > 0.0 and R[3] > 0.0 and Qu[0] > 0.0 and Qu[3] > 0.0
+
+
+# ---------------------------------------------------------------------------------------------
+# ANFIS (filters.anfis) and the supervisor's steps (filters.anfekf.r_step, q_step)
+
+
+@maybe_njit
+def anfis_output_grad(prm, u0, u1, grad, ws):
+    """anfis.output_and_gradient: the output o (eq. 38) and do/dW written into `grad` (27).
+
+    `prm` is one parameter row (layout M0, D0, W0); `ws` is scratch (>= 40 floats): z at 0..9,
+    the normalised memberships p (input 0) at 10..14 and q (input 1) at 15..19, W q at 20..24,
+    W^T p at 25..29.
+    """
+    for i in range(2):
+        u = u0 if i == 0 else u1
+        if u > U_CLIP:
+            u = U_CLIP
+        elif u < -U_CLIP:
+            u = -U_CLIP
+        # log-memberships -z^2 and their maximum (np.max: NaN propagates)
+        mx = -math.inf
+        for j in range(5):
+            k = 5 * i + j
+            zz = (u - prm[M0 + k]) / prm[D0 + k]
+            ws[k] = zz
+            lg = -zz * zz
+            ws[10 + k] = lg
+            if lg != lg or mx != mx:
+                mx = lg + mx
+            elif lg > mx:
+                mx = lg
+        s = 0.0
+        for j in range(5):
+            k = 10 + 5 * i + j
+            e = math.exp(ws[k] - mx)
+            ws[k] = e
+            s += e
+        for j in range(5):
+            k = 10 + 5 * i + j
+            ws[k] = ws[k] / s
+    # Singleton of rule (r, c): w[clip(8 - (r + c), 1, 7) - 1] (anfis.RULE_TABLE)
+    o = 0.0
+    for r in range(5):
+        t = 0.0
+        for c in range(5):
+            t += prm[W0 + min(max(8 - r - c, 1), 7) - 1] * ws[15 + c]
+        ws[20 + r] = t
+        o += ws[10 + r] * t
+    for c in range(5):
+        t = 0.0
+        for r in range(5):
+            t += ws[10 + r] * prm[W0 + min(max(8 - r - c, 1), 7) - 1]
+        ws[25 + c] = t
+    # d o / d log(mu_ij), then through eq. 35 to the centres and widths
+    for j in range(5):
+        dl0 = ws[10 + j] * (ws[20 + j] - o)
+        dm0 = dl0 * (2.0 * ws[j] / prm[D0 + j])
+        grad[M0 + j] = dm0
+        grad[D0 + j] = dm0 * ws[j]
+        dl1 = ws[15 + j] * (ws[25 + j] - o)
+        dm1 = dl1 * (2.0 * ws[5 + j] / prm[D0 + 5 + j])
+        grad[M0 + 5 + j] = dm1
+        grad[D0 + 5 + j] = dm1 * ws[5 + j]
+    # do/dw_k: the normalised firing strengths p_r q_c of the rules that use singleton k
+    for k in range(7):
+        grad[W0 + k] = 0.0
+    for r in range(5):
+        for c in range(5):
+            k = min(max(8 - r - c, 1), 7) - 1
+            grad[W0 + k] += ws[10 + r] * ws[15 + c]
+    return o
+
+
+@maybe_njit
+def clip_output(o, limit):
+    """anfekf._clip: (o clipped to +-limit, whether it was inside)."""
+    if -limit <= o <= limit:
+        return o, True
+    return math.copysign(limit, o), False
+
+
+@maybe_njit
+def sgd_step(prm, grad, k, eta_m, eta_d, eta_w):
+    """anfis.sgd_step with the loss gradient k * do/dW (anfekf._scaled), in place."""
+    for i in range(10):
+        prm[M0 + i] = prm[M0 + i] - eta_m * (grad[M0 + i] * k)
+    for i in range(10):
+        v = prm[D0 + i] - eta_d * (grad[D0 + i] * k)
+        # np.maximum(v, MIN_WIDTH): NaN propagates
+        prm[D0 + i] = v if (v != v or v > MIN_WIDTH) else MIN_WIDTH
+    for i in range(7):
+        prm[W0 + i] = prm[W0 + i] - eta_w * (grad[W0 + i] * k)
+
+
+@maybe_njit
+def r_step(prm, u0, u1, R_ii, HPH_ii, C_ii, clip, learning, eta_m, eta_d, eta_w, grad, ws):
+    """anfekf.r_step then ANFEKF._learn: R'_ii = R_ii exp(o) (eq. 33), and one steepest-descent
+    step on E = e^2 / 2 with e = mismatch(H P H^T + R', C) unless o was clipped."""
+    o_raw = anfis_output_grad(prm, u0, u1, grad, ws)
+    o, inside = clip_output(o_raw, clip)
+    R_new = R_ii * math.exp(o)
+    S_new = HPH_ii + R_new
+    e = (S_new - C_ii) / (S_new + C_ii)
+    dE_do = e * 2.0 * C_ii / (S_new + C_ii) ** 2 * R_new
+    if learning and inside:
+        sgd_step(prm, grad, dE_do, eta_m, eta_d, eta_w)
+    return R_new
+
+
+@maybe_njit
+def q_step(prm, u0, u1, S0, S1, C0, C1, dS0, dS1, clip, learning, eta_m, eta_d, eta_w, grad, ws):
+    """anfekf.q_step then ANFEKF._learn: the scale e^o of Qu (eq. 44) and one steepest-descent
+    step on E = (e_1^2 + e_2^2) / 2, S' = S + (e^o - 1) dS, unless o was clipped."""
+    o_raw = anfis_output_grad(prm, u0, u1, grad, ws)
+    o, inside = clip_output(o_raw, clip)
+    scale = math.exp(o)
+    Sn0 = S0 + (scale - 1.0) * dS0
+    Sn1 = S1 + (scale - 1.0) * dS1
+    e0 = (Sn0 - C0) / (Sn0 + C0)
+    e1 = (Sn1 - C1) / (Sn1 + C1)
+    t0 = e0 * 2.0 * C0 / (Sn0 + C0) ** 2 * scale * dS0
+    t1 = e1 * 2.0 * C1 / (Sn1 + C1) ** 2 * scale * dS1
+    dE_do = t0 + t1
+    if learning and inside:
+        sgd_step(prm, grad, dE_do, eta_m, eta_d, eta_w)
+    return scale
+
+
+@maybe_njit
+def hqh_diag(H, Qi, HPH0, HPH1):
+    """ANFEKF._adapt_Q's dS: the diagonal of H Q_interval H^T, capped at H P- H^T."""
+    h0 = (H[0], H[1], 0.0)
+    h1 = (H[2], H[3], -1.0)
+    a0 = 0.0
+    a1 = 0.0
+    for j in range(3):
+        for k in range(3):
+            a0 += h0[j] * Qi[3 * j + k] * h0[k]
+            a1 += h1[j] * Qi[3 * j + k] * h1[k]
+    return min_nan(a0, HPH0), min_nan(a1, HPH1)
+
+
+# ---------------------------------------------------------------------------------------------
+# One run
+
+
+@maybe_njit
+def run_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    adapt_R, adapt_Q, adaptation, learning, from_all, lo, hi, window, clip,
+    eta_m, eta_d, eta_w, anf,
+    record_every, out_x, out_P, out_R, out_Q,
+):  # fmt: skip
+    """One filter over one run (filterpy_engine.run_filter with RobotEKF or ANFEKF).
+
+    u_odo (K, 2): odometry; scan i (0-based) is at control step (i + 1) * every and holds
+    measurements scan_start[i] .. scan_start[i + 1] - 1 of scan_lm (M, 2, landmark positions)
+    and scan_z (M, 2). x0 (3,), P0 (9,), Qu0 (4,), R0 (4,) row-major; gate is used when has_gate.
+    adapt_R / adapt_Q select the ANFEKF supervisors (both False: the EKF); `anf` (3, 27) holds
+    the ANFIS parameters (rows 0, 1: R of range and bearing; row 2: Qu) and is updated in place.
+    Every record_every-th step (0: none) is written to row j of out_x (n, 3), out_P (n, 3, 3),
+    out_R (n, 2), out_Q (n, 2); rows from the divergence on are left as they are (NaN).
+
+    Returns (diverged, rows written, nis_sum, n_updates, n_rejected).
+    """
+    K = u_odo.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    R_lo0, R_hi0 = lo * R0[0], hi * R0[0]
+    R_lo1, R_hi1 = lo * R0[3], hi * R0[3]
+    Q_lo0, Q_hi0 = lo * Qu0[0], hi * Qu0[0]
+    Q_lo1, Q_hi1 = lo * Qu0[3], hi * Qu0[3]
+    adaptive = adapt_R or adapt_Q
+    n_rows = out_x.shape[0]
+    # the supervisor's state
+    win = np.zeros((max(window, 1), 2))
+    n_win = 0
+    pos = 0
+    have_d_prev = False
+    d_prev0 = 0.0
+    d_prev1 = 0.0
+    Qi = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # process noise since the last update
+    updated_since_predict = False
+    grad = np.empty(N_ANFIS)
+    ws = np.empty(40)
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        x, P, Q = predict(x, P, u_odo[k - 1, 0], u_odo[k - 1, 1], T, B, Qu)
+        if adapt_Q:
+            if updated_since_predict:
+                Qi = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+                updated_since_predict = False
+            Qi = (
+                Qi[0] + Q[0], Qi[1] + Q[1], Qi[2] + Q[2],
+                Qi[3] + Q[3], Qi[4] + Q[4], Qi[5] + Q[5],
+                Qi[6] + Q[6], Qi[7] + Q[7], Qi[8] + Q[8],
+            )  # fmt: skip
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                first_of_scan = True
+                for m in range(first, last):
+                    z0 = scan_z[m, 0]
+                    z1 = scan_z[m, 1]
+                    H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                    if adaptive:
+                        feeds = True
+                        if not from_all and has_gate:
+                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                            if not ok:
+                                return True, j, nis_sum, n_updates, n_rejected
+                            feeds = nis_a <= gate
+                        if feeds:
+                            # ANFEKF.supervise: window of squared innovations, then adapt
+                            updated_since_predict = True
+                            win[pos, 0] = nu[0] * nu[0]
+                            win[pos, 1] = nu[1] * nu[1]
+                            pos = (pos + 1) % window
+                            if n_win < window:
+                                n_win += 1
+                            if n_win == window and adaptation:
+                                c0 = 0.0
+                                c1 = 0.0
+                                for i in range(window):  # oldest first, as np.mean sums
+                                    c0 += win[(pos + i) % window, 0]
+                                    c1 += win[(pos + i) % window, 1]
+                                c0 = c0 / window
+                                c1 = c1 / window
+                                HPH0 = HPHt[0]
+                                HPH1 = HPHt[3]
+                                S0 = HPH0 + R[0]
+                                S1 = HPH1 + R[3]
+                                d0 = (S0 - c0) / (S0 + c0)
+                                d1 = (S1 - c1) / (S1 + c1)
+                                dd0 = 0.0
+                                dd1 = 0.0
+                                if have_d_prev:
+                                    dd0 = d0 - d_prev0
+                                    dd1 = d1 - d_prev1
+                                d_prev0 = d0
+                                d_prev1 = d1
+                                have_d_prev = True
+                                if adapt_R:
+                                    r0 = r_step(
+                                        anf[0], d0, dd0, R[0], HPH0, c0, clip, learning,
+                                        eta_m, eta_d, eta_w, grad, ws,
+                                    )  # fmt: skip
+                                    r1 = r_step(
+                                        anf[1], d1, dd1, R[3], HPH1, c1, clip, learning,
+                                        eta_m, eta_d, eta_w, grad, ws,
+                                    )  # fmt: skip
+                                    R = (
+                                        clip_nan(r0, R_lo0, R_hi0), 0.0,
+                                        0.0, clip_nan(r1, R_lo1, R_hi1),
+                                    )  # fmt: skip
+                                    S0 = HPH0 + R[0]
+                                    S1 = HPH1 + R[3]
+                                if adapt_Q and first_of_scan:
+                                    dS0, dS1 = hqh_diag(H, Qi, HPH0, HPH1)
+                                    scale = q_step(
+                                        anf[2], d0, d1, S0, S1, c0, c1, dS0, dS1, clip,
+                                        learning, eta_m, eta_d, eta_w, grad, ws,
+                                    )  # fmt: skip
+                                    b0 = Qu[0]
+                                    Qu = (
+                                        clip_nan(b0 * scale, Q_lo0, Q_hi0), 0.0,
+                                        0.0, clip_nan(Qu[3] * scale, Q_lo1, Q_hi1),
+                                    )  # fmt: skip
+                                    f = Qu[0] / b0
+                                    Qi = (
+                                        Qi[0] * f, Qi[1] * f, Qi[2] * f,
+                                        Qi[3] * f, Qi[4] * f, Qi[5] * f,
+                                        Qi[6] * f, Qi[7] * f, Qi[8] * f,
+                                    )  # fmt: skip
+                        first_of_scan = False
+                    # RobotEKF.update_landmark: NIS, gate, Joseph update
+                    ok, v = nis(HPHt, R, nu[0], nu[1])
+                    if not ok or not math.isfinite(v):
+                        return True, j, nis_sum, n_updates, n_rejected
+                    if has_gate and not v <= gate:
+                        n_rejected += 1
+                        continue
+                    nis_sum += v
+                    n_updates += 1
+                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                if not healthy(x, P, R, Qu):
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            for i in range(3):
+                out_x[j, i] = x[i]
+                if not math.isfinite(x[i]):
+                    bad_record = True
+            for i in range(9):
+                out_P[j, i // 3, i % 3] = P[i]
+                if not math.isfinite(P[i]):
+                    bad_record = True
+            out_R[j, 0] = R[0]
+            out_R[j, 1] = R[3]
+            out_Q[j, 0] = Qu[0]
+            out_Q[j, 1] = Qu[3]
+            j += 1
+    # health is checked at scans; a blow-up after the last one shows in the records
+    return bad_record, j, nis_sum, n_updates, n_rejected

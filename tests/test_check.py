@@ -338,7 +338,7 @@ BAD_BASELINES = {
     ),
     "value-not-number": (
         ("scenarios.wrong_r.filters.ekf.anees", "high"),
-        "scenarios.wrong_r.filters.ekf.anees: must be a number or null",
+        "scenarios.wrong_r.filters.ekf.anees: must be a finite number or null",
     ),
 }
 

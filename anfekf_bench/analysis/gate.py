@@ -17,6 +17,7 @@ Verdicts, per row (every verdict but "ok" fails the gate; see RULES, also writte
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -248,11 +249,27 @@ def read_scenario(folder: Path, metrics: Iterable[str]) -> ScenarioSummary:
         raise ResultsError(f"{where}: expected one scenario name, found {names or 'none'}")
     if summary["filter"].duplicated().any():
         raise ResultsError(f"{where}: a filter appears twice")
+    declared = manifest.get("scenario")
+    if isinstance(declared, dict) and declared.get("name") != names[0]:
+        declared = declared.get("name")
+        raise ResultsError(
+            f"{where}: holds scenario {names[0]!r} but {manifest_path} names {declared!r};"
+            " the two files come from different runs"
+        )
+    if "runs" in summary.columns and not (summary["runs"] == runs).all():
+        raise ResultsError(f"{where}: run counts differ from {manifest_path} (runs {runs})")
     stored = [m for m in METRIC_SENSE if m in summary.columns]
-    filters = {
-        str(rec["filter"]): {m: _number(rec[m]) for m in stored}
-        for rec in summary.to_dict(orient="records")
-    }
+    filters = {}
+    for rec in summary.to_dict(orient="records"):
+        values = {}
+        for m in stored:
+            try:
+                values[m] = _number(rec[m])
+            except (TypeError, ValueError):
+                raise ResultsError(f"{where}: {m} of {rec['filter']!r} is not a number") from None
+            if math.isinf(values[m]):
+                raise ResultsError(f"{where}: {m} of {rec['filter']!r} is infinite")
+        filters[str(rec["filter"])] = values
     return ScenarioSummary(
         name=names[0],
         seed=seed,
@@ -304,10 +321,17 @@ def _baseline_scenario(path: Path, name: str, doc, metrics: list[str]) -> Scenar
     where = f"{path}: scenarios.{name}"
     if not isinstance(doc, dict):
         raise BaselineError(f"{where}: expected a mapping with seed, runs and filters")
-    for key in ("seed", "runs"):
+    for key, least in (("seed", 0), ("runs", 1)):
         value = doc.get(key)
         if isinstance(value, bool) or not isinstance(value, int):
-            raise BaselineError(f"{where}.{key}: must be an integer, found {value!r}")
+            raise BaselineError(f"{where}.{key}: must be an integer, found {_shown(value)}")
+        if value < least:
+            raise BaselineError(f"{where}.{key}: must be an integer >= {least}, found {value}")
+    fingerprint = doc.get("fingerprint")
+    if fingerprint is not None and not isinstance(fingerprint, str):
+        raise BaselineError(
+            f"{where}.fingerprint: must be text or null, found {_shown(fingerprint)}"
+        )
     filters = doc.get("filters")
     if not isinstance(filters, dict) or not filters:
         raise BaselineError(f"{where}.filters: expected a mapping of filter name to metrics")
@@ -319,12 +343,16 @@ def _baseline_scenario(path: Path, name: str, doc, metrics: list[str]) -> Scenar
             if metric not in values:
                 raise BaselineError(f"{where}.filters.{fname}: no value for {metric}")
         for metric, value in values.items():
+            # A non-finite baseline would make every comparison pass (or none): refuse it.
             number = value is None or (
-                isinstance(value, (int, float)) and not isinstance(value, bool)
+                isinstance(value, (int, float))
+                and not isinstance(value, bool)
+                and math.isfinite(value)
             )
             if not number:
                 raise BaselineError(
-                    f"{where}.filters.{fname}.{metric}: must be a number or null, found {value!r}"
+                    f"{where}.filters.{fname}.{metric}: must be a finite number or null,"
+                    f" found {_shown(value)}"
                 )
         parsed[fname] = {m: _number(v) for m, v in values.items()}
     return ScenarioSummary(
@@ -336,10 +364,16 @@ def _baseline_scenario(path: Path, name: str, doc, metrics: list[str]) -> Scenar
     )
 
 
+def _shown(value) -> str:
+    """A value from a hand-edited file, short and on one line, for an error message."""
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
 def load_baseline(path: Path) -> Baseline:
     """Read and validate a baseline file; raises BaselineError (or ResultsError) in one line."""
     path = Path(path)
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise BaselineError(
             f"{path}: baseline file not found (write one with `anfekf check RESULTS --baseline"
             f" {path} --update`)"

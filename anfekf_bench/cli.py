@@ -45,6 +45,13 @@ def table_console() -> Console:
 EXIT_USAGE = 2
 
 
+class EngineChoice(str, Enum):
+    """`anfekf run --engine`: filterpy (the reference) or fast (numeric kernels)."""
+
+    filterpy = "filterpy"
+    fast = "fast"
+
+
 class Backend(str, Enum):
     """`anfekf run --backend`: where the Monte Carlo runs execute."""
 
@@ -139,6 +146,10 @@ def run(
         Optional[str],
         typer.Option(metavar="tcp://HOST:PORT", help="Dask scheduler address (--backend dask)."),
     ] = None,
+    engine: Annotated[
+        Optional[EngineChoice],
+        typer.Option(help="filterpy (reference) or fast (numeric kernels; default: the file's)."),
+    ] = None,
     debug: Annotated[
         bool, typer.Option(help="Show tracebacks instead of one-line errors.")
     ] = False,
@@ -151,7 +162,15 @@ def run(
     kind = None if backend is None else backend.value
     with one_line_errors(debug, (ScenarioError, PlanError)):
         plans = [
-            make_plan(*load_scenario(p), runs, seed, jobs, backend=kind, scheduler=scheduler)
+            make_plan(
+                *load_scenario(p),
+                runs,
+                seed,
+                jobs,
+                backend=kind,
+                scheduler=scheduler,
+                engine=None if engine is None else engine.value,
+            )
             for p in scenario_files(scenario)
         ]
     names = [p.name for p in plans]
@@ -207,10 +226,57 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
             f" {Path(out) / plan.name / RUNS_DIR}: run the same command again to resume",
             code=130,
         )
-    table_console().print(
-        summary_table(f"{plan.name}: {plan.runs} runs, seed {plan.seed}", records)
-    )
+    tables = table_console()
+    tables.print(summary_table(f"{plan.name}: {plan.runs} runs, seed {plan.seed}", records))
+    print_comparisons(tables, target)
     console.print(f"results written to {target}", highlight=False)
+
+
+def format_interval(estimate: float, lo: float, hi: float, digits: int = 3) -> str:
+    """'0.496 [0.452, 0.543]', or the estimate alone when it has no interval."""
+    text = format_number(estimate, digits)
+    if math.isfinite(lo) and math.isfinite(hi):
+        text += f" [{lo:.{digits}f}, {hi:.{digits}f}]"
+    return text
+
+
+def print_comparisons(out: Console, target: Path) -> None:
+    """The paired ratios (95 % bootstrap intervals) and the claims' verdicts of a result."""
+    from .storage import CLAIMS_FILE, COMPARISONS_FILE, read_json, read_parquet
+
+    comparisons = read_parquet(target / COMPARISONS_FILE)
+    if len(comparisons):
+        table = Table(
+            title="paired ratios over runs, 95 % bootstrap interval (p: Wilcoxon signed-rank)",
+            title_justify="left",
+        )
+        for col in ("filter", "vs", "RMSE pos ratio", "p", "ANEES ratio", "runs"):
+            table.add_column(col, justify="left" if col in ("filter", "vs") else "right")
+        for (name, ref), rows in comparisons.groupby(["filter", "vs"], sort=False):
+            by = rows.set_index("metric")
+            rmse, anees = by.loc["rmse_pos"], by.loc["anees"]
+            table.add_row(
+                name, ref, format_interval(rmse.estimate, rmse.lo, rmse.hi),
+                format_number(rmse.p_value, 4), format_interval(anees.estimate, anees.lo, anees.hi),
+                str(int(rmse.runs_used)),
+            )  # fmt: skip
+        out.print(table)
+        if int(comparisons["runs_used"].min()) < 10:
+            out.print(
+                "warning: fewer than 10 runs: intervals are wide and the NEES bounds hardly"
+                " discriminate",
+                highlight=False,
+            )
+    claims = read_json(target / CLAIMS_FILE)
+    if claims:
+        table = Table(title="claims (decided on the interval)", title_justify="left")
+        for col in ("claim", "estimate [95 % interval]", "verdict", "note"):
+            table.add_column(col)
+        for c in claims:
+            # summary JSON writes NaN as null
+            est, lo, hi = (math.nan if c[k] is None else c[k] for k in ("estimate", "lo", "hi"))
+            table.add_row(c["claim"], format_interval(est, lo, hi), c["verdict"], c["warning"])
+        out.print(table)
 
 
 @app.command()

@@ -93,6 +93,32 @@ class WorldConfig(_Strict):
 
 
 Engine = Literal["filterpy", "fast"]
+ClaimMetric = Literal["rmse_pos", "rmse_heading", "anees", "nees_in_bounds"]
+
+
+class ClaimSpec(_Strict):
+    """A claim about one filter, decided on its paired interval (SPEC 8).
+
+    With `vs`: the ratio filter / vs of the metric (rmse_pos, rmse_heading, anees), or for
+    nees_in_bounds the difference of the shares; without: the filter's own metric. Exactly one
+    of `at_most` / `at_least` is the threshold.
+    """
+
+    filter: str = Field(min_length=1)
+    vs: str | None = Field(None, description="the filter compared with (paired over runs)")
+    metric: ClaimMetric
+    at_most: Annotated[float, Field(allow_inf_nan=False)] | None = None
+    at_least: Annotated[float, Field(allow_inf_nan=False)] | None = None
+    source: str = Field("", description="where the claim comes from, e.g. the paper's figure")
+
+    @model_validator(mode="after")
+    def _one_threshold(self) -> ClaimSpec:
+        if (self.at_most is None) == (self.at_least is None):
+            raise ValueError("a claim needs exactly one of at_most or at_least")
+        if self.vs == self.filter:
+            raise ValueError("a claim compares a filter with another one: vs equals filter")
+        return self
+
 
 DASK_ADDRESS = r"^(tcp|tls|ws|wss|ucx)://\S+:\d{1,5}$"
 
@@ -149,6 +175,30 @@ class Scenario(_Strict):
         default_factory=lambda: [EKFSpec(name="ekf")], min_length=1
     )
     backend: BackendConfig = BackendConfig()
+    claims: list[ClaimSpec] = Field(
+        default_factory=list, description="claims checked on every run and by `anfekf check`"
+    )
+    compare: list[tuple[str, str]] = Field(
+        default_factory=list,
+        description="extra (filter, vs) pairs to compare, besides each filter vs ekf and oracle",
+    )
+
+    @model_validator(mode="after")
+    def _claims_name_filters(self) -> Scenario:
+        names = {f.name for f in self.filters}
+        for i, claim in enumerate(self.claims):
+            for key in ("filter", "vs"):
+                value = getattr(claim, key)
+                if value is not None and value not in names:
+                    raise ValueError(
+                        f"claims.{i}.{key}: no filter named {value!r} (filters: "
+                        f"{', '.join(sorted(names))})"
+                    )
+        for i, pair in enumerate(self.compare):
+            for value in pair:
+                if value not in names:
+                    raise ValueError(f"compare.{i}: no filter named {value!r}")
+        return self
 
     @field_validator("filters")
     @classmethod

@@ -19,15 +19,20 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import joblib
+import pandas as pd
 from pydantic import ValidationError
 
-from .analysis.tables import steps_frame, summary_records, update_statistics
-from .config import BackendConfig, Scenario, World
-from .runner import run_batch
+from .analysis.comparisons import comparison_pairs, comparisons_frame, evaluate_claims
+from .analysis.tables import runs_frame, steps_frame, summary_records, update_statistics
+from .config import BackendConfig, Engine, Scenario, World
+from .runner import engine_of, run_batch
 from .sources.simulator import simulate_truth
 from .storage import (
+    CLAIMS_FILE,
+    COMPARISONS_FILE,
     MANIFEST_FILE,
     RUNS_DIR,
+    RUNS_FILE,
     STEPS_FILE,
     SUMMARY_JSON,
     SUMMARY_PARQUET,
@@ -66,6 +71,7 @@ class Plan:
     seed: int
     jobs: int
     backend: BackendConfig = BackendConfig()
+    engine: Engine = "filterpy"
 
     @property
     def name(self) -> str:
@@ -77,6 +83,7 @@ class Plan:
         doc = {
             "scenario": self.scenario.model_dump(mode="json", exclude={"jobs", "runs", "backend"}),
             "seed": self.seed,
+            "engine": self.engine,
             "landmarks": self.world.landmarks.tolist(),
             "waypoints": self.world.waypoints.tolist(),
             "code": code_version(),
@@ -116,6 +123,7 @@ def make_plan(
     *,
     backend: str | None = None,
     scheduler: str | None = None,
+    engine: str | None = None,
 ) -> Plan:
     """Apply the command line's overrides (None: keep the scenario file's value)."""
     return Plan(
@@ -125,6 +133,7 @@ def make_plan(
         seed=scenario.seed if seed is None else seed,
         jobs=scenario.jobs if jobs is None else jobs,
         backend=resolve_backend(scenario.backend, backend, scheduler),
+        engine=scenario.engine if engine is None else engine,
     )
 
 
@@ -195,7 +204,14 @@ def prepare_output(plan: Plan, out_dir: Path, force: bool) -> tuple[Path, dict[i
         action = f"resuming: {len(done)} of {plan.runs} runs already done in {runs_dir}"
     runs_dir.mkdir(parents=True, exist_ok=True)
     write_atomic(stamp, lambda tmp: tmp.write_text(plan.fingerprint() + "\n"))
-    for stale in (STEPS_FILE, SUMMARY_PARQUET, SUMMARY_JSON):
+    for stale in (
+        STEPS_FILE,
+        RUNS_FILE,
+        SUMMARY_PARQUET,
+        SUMMARY_JSON,
+        COMPARISONS_FILE,
+        CLAIMS_FILE,
+    ):
         (target / stale).unlink(missing_ok=True)
     # Temporary files of writes a kill cut short (storage.write_atomic names them .<name>.*.tmp).
     for torn in [*target.glob(".*.tmp"), *runs_dir.glob(".*.tmp")]:
@@ -240,26 +256,24 @@ def execute(
         backend=plan.backend.kind,
         scheduler=plan.backend.scheduler,
         connect_timeout_s=plan.backend.connect_timeout_s,
+        engine=plan.engine,
     )
     if on_start is not None:
         on_start(action, len(done), plan.runs)
     for result in batch:
         results[result["run"]] = result
     ordered = [results[i] for i in range(plan.runs)]
-    names = [f.name for f in plan.scenario.filters]
-    steps = steps_frame(plan.name, names, ordered)
-    records = summary_records(steps, update_statistics(ordered, names))
-    import pandas as pd
-
-    write_parquet(target / STEPS_FILE, steps)
-    write_parquet(target / SUMMARY_PARQUET, pd.DataFrame(records))
-    write_json(target / SUMMARY_JSON, records)
+    tables = result_tables(plan, ordered)
+    records = tables.summary
+    write_result_tables(target, tables, steps_table=plan.scenario.steps_table)
     manifest = {
         "scenario": plan.scenario.model_dump(mode="json"),
         "runs": plan.runs,
         "seed": plan.seed,
         "jobs": plan.jobs,
         "backend": plan.backend.model_dump(mode="json"),
+        "engine": plan.engine,
+        "engines": {f.name: engine_of(plan.engine, f) for f in plan.scenario.filters},
         "fingerprint": plan.fingerprint(),
         "world": {
             "landmarks": plan.world.landmarks.tolist(),
@@ -274,3 +288,45 @@ def execute(
     write_json(target / MANIFEST_FILE, manifest)
     shutil.rmtree(target / RUNS_DIR, ignore_errors=True)
     return records, target
+
+
+@dataclass(frozen=True)
+class ResultTables:
+    """What a finished batch writes (besides the manifest), all computed from its runs."""
+
+    steps: pd.DataFrame
+    runs: pd.DataFrame
+    summary: list[dict]
+    comparisons: pd.DataFrame
+    claims: list[dict]
+
+
+def result_tables(plan: Plan, ordered: list[dict]) -> ResultTables:
+    """The steps, per-run, summary, comparison and claim tables of a batch (runs in order).
+
+    Bootstrap intervals draw from the scenario's root seed, so they are as reproducible as the
+    runs themselves.
+    """
+    names = [f.name for f in plan.scenario.filters]
+    steps = steps_frame(plan.name, names, ordered)
+    pairs = comparison_pairs(
+        ((f.name, f.kind) for f in plan.scenario.filters), plan.scenario.compare
+    )
+    return ResultTables(
+        steps=steps,
+        runs=runs_frame(plan.name, names, ordered),
+        summary=summary_records(steps, update_statistics(ordered, names)),
+        comparisons=comparisons_frame(steps, pairs, seed=plan.seed),
+        claims=evaluate_claims(steps, plan.scenario.claims, seed=plan.seed),
+    )
+
+
+def write_result_tables(target: Path, tables: ResultTables, *, steps_table: bool) -> None:
+    """Write every table atomically; steps.parquet only when the scenario asks for it."""
+    if steps_table:
+        write_parquet(target / STEPS_FILE, tables.steps)
+    write_parquet(target / RUNS_FILE, tables.runs)
+    write_parquet(target / SUMMARY_PARQUET, pd.DataFrame(tables.summary))
+    write_json(target / SUMMARY_JSON, tables.summary)
+    write_parquet(target / COMPARISONS_FILE, tables.comparisons)
+    write_json(target / CLAIMS_FILE, tables.claims)

@@ -38,6 +38,9 @@ STEPS_FILE = "steps.parquet"
 SUMMARY_PARQUET = "summary.parquet"
 SUMMARY_JSON = "summary.json"
 MANIFEST_FILE = "manifest.json"
+RUNS_FILE = "runs.parquet"  # one row per (filter, run): SPEC 8's per-run metrics
+COMPARISONS_FILE = "comparisons.parquet"  # paired ratios with intervals (analysis/comparisons)
+CLAIMS_FILE = "claims.json"  # the scenario's claims and their verdicts
 RUNS_DIR = ".runs"  # finished runs of an unfinished batch (experiment.py)
 RUN_FILE_PATTERN = "run-*.npz"  # a finished run in RUNS_DIR (write_run_file)
 LOCK_FILE = ".lock"  # held (flock) by the batch writing a scenario folder
@@ -45,7 +48,8 @@ LOCK_FILE = ".lock"  # held (flock) by the batch writing a scenario folder
 # Names a scenario may not take: its folder is a direct child of --out, beside these.
 RESERVED_NAMES = frozenset(
     {"report", "baselines", "bench.json", "readme.md", "ci-gate", RUNS_DIR, LOCK_FILE}
-    | {STEPS_FILE, SUMMARY_PARQUET, SUMMARY_JSON, MANIFEST_FILE}
+    | {STEPS_FILE, SUMMARY_PARQUET, SUMMARY_JSON, MANIFEST_FILE, RUNS_FILE, COMPARISONS_FILE}
+    | {CLAIMS_FILE}
 )
 RESERVED_SUFFIXES = (".parquet", ".json", ".md", ".tmp", ".lock", ".npz", ".yaml", ".yml")
 NAME_MAX = 64  # characters of a scenario name (one path component: far below NAME_MAX 255)

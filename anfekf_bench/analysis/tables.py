@@ -123,3 +123,42 @@ def update_statistics(results: list[dict], filter_names: list[str]) -> dict[str,
             "gate_rejected": rejected / seen if seen else float("nan"),
         }
     return stats
+
+
+RUN_COLUMNS = [
+    "scenario", "filter", "run", "rmse_pos", "rmse_heading", "mean_nees", "max_nees", "diverged",
+    "n_updates", "n_rejected", "anis",
+]  # fmt: skip
+
+
+def runs_frame(scenario_name: str, filter_names: list[str], results: list[dict]) -> pd.DataFrame:
+    """The per-run table of runs.parquet (SPEC 8): one row per (filter, run).
+
+    rmse_pos / rmse_heading: the run's own RMSE over its recorded steps [m] / [rad]; mean_nees and
+    max_nees over its steps; anis: its mean NIS per accepted update. A diverged run keeps its row
+    (NaN metrics), so a comparison can see which runs both filters kept.
+    """
+    results = sorted(results, key=lambda r: r["run"])
+    rows = []
+    for name in filter_names:
+        for res in results:
+            tr = res["filters"][name]
+            with np.errstate(all="ignore"):
+                rows.append({
+                    "run": res["run"],
+                    "rmse_pos": float(np.sqrt(np.mean(np.square(tr["pos_err"])))),
+                    "rmse_heading": float(np.sqrt(np.mean(np.square(tr["heading_err"])))),
+                    "mean_nees": float(np.mean(tr["nees"])),
+                    "max_nees": float(np.max(tr["nees"])) if len(tr["nees"]) else float("nan"),
+                    "diverged": bool(tr["diverged"]),
+                    "n_updates": int(tr["n_updates"]),
+                    "n_rejected": int(tr["n_rejected"]),
+                    "anis": tr["nis_sum"] / tr["n_updates"] if tr["n_updates"] else float("nan"),
+                    "filter": name,
+                })  # fmt: skip
+    df = pd.DataFrame(rows)
+    df.insert(0, "scenario", scenario_name)
+    df["scenario"] = pd.Categorical(df["scenario"])
+    df["filter"] = pd.Categorical(df["filter"], categories=filter_names)
+    df["run"] = df["run"].astype(np.int32)
+    return df[RUN_COLUMNS]

@@ -9,8 +9,14 @@ cluster (`backend="dask"`): joblib's dask backend ships the same calls to the cl
 
 from __future__ import annotations
 
+import asyncio
 import concurrent.futures
+import contextlib
+import logging
 import math
+import os
+import threading
+import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import Literal
 
@@ -117,13 +123,15 @@ def run_batch(
     scheduler: str | None = None,
     connect_timeout_s: float = 10.0,
     engine: Engine = "filterpy",
+    client=None,
 ) -> Iterator[dict]:
     """Run results as they finish (any order); `skip` leaves out runs already done.
 
     backend "local" uses `jobs` local processes; "dask" runs on the existing Dask cluster whose
     scheduler listens at `scheduler` (all its worker threads; `jobs` is not used there). The
-    cluster is reached here, before the first result is asked for, so a scheduler that cannot be
-    reached raises BackendUnavailable at once.
+    cluster is reached here (unless `client`, from `connect_dask`, is given: the caller reached it
+    before touching its output), before the first result is asked for, so a scheduler that cannot
+    be reached raises BackendUnavailable at once. Local workers end when this process dies.
     """
     tasks = [(t["run"], t["seed"]) for t in run_tasks(scenario, world, runs, seed)]
     tasks = [task for task in tasks if task[0] not in skip]
@@ -138,11 +146,13 @@ def run_batch(
         for i in range(0, len(tasks), size)
     )
     if backend == "dask":
-        results = _run_on_dask(connect_dask(scheduler, connect_timeout_s), calls, scheduler)
+        if client is None:
+            client = connect_dask(scheduler, connect_timeout_s)
+        results = _run_on_dask(client, calls, scheduler, connect_timeout_s)
     else:
         n_calls = math.ceil(len(tasks) / size)
         parallel = Parallel(n_jobs=min(jobs, n_calls), return_as="generator_unordered")
-        results = parallel(calls)
+        results = parallel(_orphan_safe(calls))
     return _announce(results, on_result)
 
 
@@ -160,45 +170,131 @@ class BackendUnavailable(Exception):
     """The chosen backend cannot run the batch; `str()` is the one-line message for the user."""
 
 
-def _run_on_dask(client, calls: Iterable, scheduler: str | None) -> Iterator[dict]:
-    """Run joblib calls on a Dask cluster, one task per run, yielding results as they finish."""
+DASK_POLL_S = 0.5  # how often a waiting batch looks at the cluster's workers
+
+
+def _run_on_dask(
+    client, calls: Iterable, scheduler: str | None, timeout_s: float = 10.0
+) -> Iterator[list[dict]]:
+    """Run joblib-style calls `(func, args, kwargs)` on a Dask cluster, one Dask task each,
+    yielding results as they finish.
+
+    While waiting it looks at the cluster every DASK_POLL_S: when no worker has been there for
+    `timeout_s` (every worker died, and nothing restarts them) or the scheduler is gone, the batch
+    ends with BackendUnavailable instead of waiting forever.
+    """
+    from distributed import as_completed
     from distributed.comm.core import CommClosedError
     from distributed.scheduler import KilledWorker
 
+    futures = []
     try:
-        # batch_size=1: one Dask task per run, so the progress bar moves with every run.
-        parallel = Parallel(
-            backend=_cluster_backend(client), batch_size=1, return_as="generator_unordered"
-        )
-        yield from parallel(calls)
-    except (concurrent.futures.CancelledError, CommClosedError, KilledWorker) as exc:
-        # The cluster went away under us (an error inside a run keeps its own type).
+        for func, args, kwargs in calls:
+            futures.append(client.submit(func, *args, pure=False, **kwargs))
+        finished = as_completed(futures, loop=client.loop)
+        lonely_since: float | None = None
+        while not finished.is_empty():
+            if _wait_ready(finished, DASK_POLL_S):
+                yield next(finished).result()  # an error inside a run keeps its own type
+                lonely_since = None
+                continue
+            if client.status not in ("running", "connecting"):
+                raise CommClosedError("client closed")
+            workers = _worker_count(client, timeout_s)
+            if workers:
+                lonely_since = None
+            elif lonely_since is None:
+                lonely_since = time.monotonic()
+            elif time.monotonic() - lonely_since > timeout_s:
+                raise BackendUnavailable(
+                    f"Dask cluster at {scheduler} has had no workers for {timeout_s:g} s during"
+                    " the batch (they died or left); finished runs are saved: run the same"
+                    " command again to resume"
+                )
+    except (
+        concurrent.futures.CancelledError,
+        CommClosedError,
+        KilledWorker,
+        OSError,
+        TimeoutError,
+    ) as exc:
+        # The cluster went away under us.
         what = "its workers died" if isinstance(exc, KilledWorker) else "connection lost"
         raise BackendUnavailable(
             f"Dask cluster at {scheduler} failed during the batch ({what}); finished runs are"
             " saved: run the same command again to resume"
-        ) from exc
+        ) from None
     finally:
-        client.close()
+        with contextlib.suppress(Exception):
+            client.cancel([f for f in futures if not f.done()], force=True)
+        with contextlib.suppress(Exception):
+            client.close(timeout=timeout_s)
 
 
-def _cluster_backend(client):
-    """joblib's dask backend on `client`, never falling back to running in this process.
+def _wait_ready(finished, timeout_s: float) -> bool:
+    """Whether a future of `finished` (distributed.as_completed) is done, waiting <= timeout_s."""
+    deadline = time.monotonic() + timeout_s
+    while not finished.has_ready():
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.02)
+    return True
 
-    joblib runs a batch sequentially in the calling process when the backend reports a single
-    worker; a cluster of one single-threaded worker would then not be used at all.
-    """
-    from joblib._dask import DaskDistributedBackend
 
-    class ClusterOnlyBackend(DaskDistributedBackend):
-        def effective_n_jobs(self, n_jobs: int) -> int:
-            return max(2, super().effective_n_jobs(n_jobs))
+def _worker_count(client, timeout_s: float) -> int:
+    """Workers the scheduler knows now (an RPC bounded by `timeout_s`; OSError if it is gone)."""
+    try:
+        info = client.sync(client.scheduler.ncores, callback_timeout=timeout_s)
+    except (OSError, TimeoutError):
+        raise
+    except Exception as exc:  # distributed wraps some comm failures in its own types
+        raise OSError(_first_line(exc)) from None
+    return len(info)
 
-    return ClusterOnlyBackend(client=client)
+
+def _quiet_dask_logs() -> None:
+    """The batch reports a cluster's failure in one line of its own; distributed's loggers would
+    add their own lines (with tracebacks) to stderr."""
+    for name in ("distributed", "tornado", "asyncio"):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
+
+
+async def _handshake(scheduler: str, timeout_s: float) -> None:
+    from distributed.comm import connect
+
+    # connect() gives up on a refused or unroutable address after timeout_s by itself; the outer
+    # bound (with a margin, so that its own message wins there) ends a handshake that never comes.
+    outer = timeout_s + max(1.0, timeout_s / 2)
+    comm = await asyncio.wait_for(connect(scheduler, timeout=timeout_s), outer)
+    await comm.close()
+
+
+def _probe_scheduler(scheduler: str, timeout_s: float) -> None:
+    """Connect and exchange Dask's handshake, all within `timeout_s`: distributed's own connect
+    waits for the handshake without a deadline, so a server that accepts the connection but is not
+    a Dask scheduler (an HTTP server, a silent port) would hang it forever."""
+    try:
+        asyncio.run(_handshake(scheduler, timeout_s))
+    except TimeoutError:
+        raise BackendUnavailable(
+            f"cannot use {scheduler}: it accepted the connection but did not answer as a Dask"
+            f" scheduler (timeout {timeout_s:g} s)"
+        ) from None
+    except OSError as exc:
+        # distributed retries a refused connection until the timeout, then says "Timed out ...".
+        reason = "no answer" if str(exc).startswith("Timed out") else _first_line(exc)
+        raise BackendUnavailable(
+            f"cannot reach Dask scheduler at {scheduler}: {reason} (timeout {timeout_s:g} s)"
+        ) from None
+    except Exception as exc:  # garbage in place of a handshake
+        raise BackendUnavailable(
+            f"cannot use {scheduler}: it did not answer as a Dask scheduler ({type(exc).__name__})"
+        ) from None
 
 
 def connect_dask(scheduler: str | None, timeout_s: float):
-    """A `distributed.Client` on `scheduler` with at least one worker, or BackendUnavailable."""
+    """A `distributed.Client` on `scheduler` with at least one worker, or BackendUnavailable
+    (within about twice `timeout_s`, whatever answers at that address)."""
     try:
         from distributed import Client
     except ImportError as exc:
@@ -207,23 +303,63 @@ def connect_dask(scheduler: str | None, timeout_s: float):
         ) from exc
     if not scheduler:
         raise BackendUnavailable("the dask backend needs a scheduler address tcp://HOST:PORT")
+    _quiet_dask_logs()
+    _probe_scheduler(scheduler, timeout_s)
     try:
         client = Client(scheduler, timeout=timeout_s, set_as_default=False)
     except Exception as exc:  # refused, timed out, not a Dask scheduler: all mean "not reachable"
-        # distributed retries a refused connection until the timeout, then says "Timed out ...".
         reason = "no answer" if str(exc).startswith("Timed out") else _first_line(exc)
         raise BackendUnavailable(
             f"cannot reach Dask scheduler at {scheduler}: {reason} (timeout {timeout_s:g} s)"
-        ) from exc
+        ) from None
     try:
         client.wait_for_workers(1, timeout=timeout_s)
-    except Exception as exc:
-        client.close()
+    except Exception:
+        with contextlib.suppress(Exception):
+            client.close(timeout=timeout_s)
         raise BackendUnavailable(
             f"Dask scheduler at {scheduler} has no workers after {timeout_s:g} s;"
             f" start some with: dask worker {scheduler}"
-        ) from exc
+        ) from None
     return client
+
+
+# ---------------------------------------------------------------------------------------------
+# Local workers end with their parent
+
+
+PARENT_POLL_S = 0.2
+
+
+def _orphan_safe(calls: Iterable) -> Iterator:
+    """Each joblib call wrapped so that the worker process running it exits when this process
+    dies. loky keeps idle workers for minutes; after a kill -9 of the parent they would live on,
+    holding its stdout/stderr open (`anfekf run ... | tee log` would never end)."""
+    parent = os.getpid()
+    for func, args, kwargs in calls:
+        yield delayed(_watched_call)(parent, func, args, kwargs)
+
+
+_watching: int | None = None
+
+
+def _watched_call(parent: int, func, args, kwargs):
+    """Run `func` in a worker, first starting (once per process) a daemon thread that ends the
+    process when its parent `parent` is gone. In the parent itself (jobs 1) nothing is started."""
+    global _watching
+    if os.getpid() != parent and _watching != parent:
+        _watching = parent
+        threading.Thread(
+            target=_exit_with_parent, args=(parent,), name="anfekf-parent-watch", daemon=True
+        ).start()
+    return func(*args, **kwargs)
+
+
+def _exit_with_parent(parent: int) -> None:
+    while True:
+        if os.getppid() != parent:  # re-parented: the parent died
+            os._exit(1)
+        time.sleep(PARENT_POLL_S)
 
 
 def _first_line(exc: BaseException) -> str:

@@ -329,16 +329,17 @@ def check(
     update: Annotated[
         bool, typer.Option(help="Rewrite BASELINE from RESULTS, on purpose (README).")
     ] = False,
+    strict: Annotated[bool, typer.Option(help="An inconclusive claim fails the gate too.")] = False,
     debug: Annotated[
         bool, typer.Option(help="Show tracebacks instead of one-line errors.")
     ] = False,
 ) -> None:
-    """Regression gate: compare results with a baseline and check the paper's claims (exit 1)."""
+    """Regression gate: compare results with a baseline and check the scenarios' claims (exit 1)."""
     from .analysis.gate import BaselineError, print_report, run_check
     from .storage import ResultsError
 
     with one_line_errors(debug, (ResultsError, BaselineError)):
-        found = run_check(results, baseline, update=update)
+        found = run_check(results, baseline, update=update, strict=strict)
     print_report(found, table_console())
     raise typer.Exit(found.exit_code)
 

@@ -19,6 +19,7 @@ from pydantic import (
     BaseModel,
     Field,
     ValidationError,
+    ValidationInfo,
     field_validator,
     model_validator,
 )
@@ -183,22 +184,17 @@ class Scenario(_Strict):
         description="extra (filter, vs) pairs to compare, besides each filter vs ekf and oracle",
     )
 
-    @model_validator(mode="after")
-    def _claims_name_filters(self) -> Scenario:
-        names = {f.name for f in self.filters}
-        for i, claim in enumerate(self.claims):
-            for key in ("filter", "vs"):
-                value = getattr(claim, key)
+    @field_validator("claims", "compare")
+    @classmethod
+    def _name_filters_of_the_scenario(cls, items: list, info: ValidationInfo) -> list:
+        names = {f.name for f in info.data.get("filters", [])}
+        for i, item in enumerate(items):
+            wanted = (item.filter, item.vs) if isinstance(item, ClaimSpec) else item
+            for value in wanted:
                 if value is not None and value not in names:
-                    raise ValueError(
-                        f"claims.{i}.{key}: no filter named {value!r} (filters: "
-                        f"{', '.join(sorted(names))})"
-                    )
-        for i, pair in enumerate(self.compare):
-            for value in pair:
-                if value not in names:
-                    raise ValueError(f"compare.{i}: no filter named {value!r}")
-        return self
+                    known = ", ".join(sorted(names))
+                    raise ValueError(f"entry {i}: no filter named {value!r} (filters: {known})")
+        return items
 
     @field_validator("filters")
     @classmethod

@@ -2,8 +2,11 @@
 
 `anfekf check RESULTS --baseline FILE` reads every scenario's summary under RESULTS and compares
 each (scenario, filter, metric) with the baseline, within the tolerance the baseline file keeps for
-that metric. Independently of any baseline it checks the paper's claims (ANFEKF against the EKF)
-as invariants. Exit codes: 0 pass, 1 a regression / change / broken claim, 2 unusable input.
+that metric. Independently of any baseline it checks the claims each scenario declares (their
+verdicts, decided on paired intervals when the scenario ran: claims.json): a claim that fails
+breaks the gate, an inconclusive one only with --strict. With neither a baseline nor a claim the
+gate has checked nothing and says so (exit 1). Exit codes: 0 pass, 1 a regression / change /
+failed claim / nothing checked, 2 unusable input.
 
 Verdicts, per row (every verdict but "ok" fails the gate; see RULES, also written into the file):
 - ok: within tolerance.
@@ -27,6 +30,7 @@ from rich.table import Table
 from rich.text import Text
 
 from ..storage import (
+    CLAIMS_FILE,
     MANIFEST_FILE,
     SUMMARY_PARQUET,
     ResultsError,
@@ -124,6 +128,7 @@ class ScenarioSummary:
     filters: dict[str, dict[str, float]]
     fingerprint: str | None = None
     versions: dict | None = None
+    folder: Path | None = None  # where it was read from (None: from the baseline)
 
 
 @dataclass(frozen=True)
@@ -151,43 +156,26 @@ class Row:
 
 
 @dataclass(frozen=True)
-class Claim:
-    """A claim of the paper, checked as `anfekf <relation> factor * ekf` on one metric."""
+class ClaimResult:
+    """A claim the scenario declared (claims.json), decided on its interval when it was run."""
 
     scenario: str
-    metric: str
-    relation: str  # "<", "<=" or ">"
-    factor: float
     text: str
+    estimate: float | None
+    lo: float | None
+    hi: float | None
+    verdict: str  # "holds", "fails" or "inconclusive"
+    note: str = ""
 
-    def formula(self) -> str:
-        scale = "" if self.factor == 1 else f"{self.factor:g} x "
-        return f"{ADAPTIVE} {self.metric} {self.relation} {scale}{REFERENCE}"
-
-    def holds(self, adaptive: float, reference: float) -> bool:
-        rhs = self.factor * reference
-        return {"<": adaptive < rhs, "<=": adaptive <= rhs, ">": adaptive > rhs}[self.relation]
-
-
-CLAIMS: tuple[Claim, ...] = (
-    Claim("correct", "rmse_pos", "<=", 1.05, "no more than 5 % worse than the EKF, correct noise"),
-    Claim("wrong_r", "rmse_pos", "<", 1.0, "beats the EKF under a wrong R"),
-    Claim("wrong_q", "rmse_pos", "<", 1.0, "beats the EKF under a wrong Q"),
-    Claim("consistency", "nees_in_bounds", ">", 1.0, "more consistent than the EKF"),
-)
-
-
-@dataclass(frozen=True)
-class ClaimResult:
-    claim: Claim
-    adaptive: float | None
-    reference: float | None
-    verdict: str  # "holds", "BROKEN", "missing" or "not run"
-    detail: str = ""
+    def passed(self, strict: bool) -> bool:
+        return self.verdict == "holds" or (self.verdict == "inconclusive" and not strict)
 
     @property
-    def passed(self) -> bool:
-        return self.verdict in ("holds", "not run")
+    def detail(self) -> str:
+        shown = _fmt_value(self.estimate)
+        if self.lo is not None and self.hi is not None:
+            shown += f" [{_fmt_value(self.lo)}, {_fmt_value(self.hi)}]"
+        return f"claim {self.scenario}: {self.text}: {self.verdict} ({shown})"
 
 
 @dataclass(frozen=True)
@@ -200,6 +188,7 @@ class Report:
     claims: list[ClaimResult]
     updated: bool = False
     dropped: tuple[str, ...] = ()
+    strict: bool = False
 
     @property
     def failed_rows(self) -> list[Row]:
@@ -207,11 +196,16 @@ class Report:
 
     @property
     def broken_claims(self) -> list[ClaimResult]:
-        return [c for c in self.claims if not c.passed]
+        return [c for c in self.claims if not c.passed(self.strict)]
+
+    @property
+    def checked_nothing(self) -> bool:
+        """No baseline row and no claim: a pass would say nothing."""
+        return not self.rows and not self.claims and not self.updated
 
     @property
     def exit_code(self) -> int:
-        return 1 if self.failed_rows or self.broken_claims else 0
+        return 1 if self.failed_rows or self.broken_claims or self.checked_nothing else 0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -277,6 +271,7 @@ def read_scenario(folder: Path, metrics: Iterable[str]) -> ScenarioSummary:
         filters=filters,
         fingerprint=manifest.get("fingerprint"),
         versions=manifest.get("versions"),
+        folder=Path(folder),
     )
 
 
@@ -560,65 +555,55 @@ def compare(baseline: Baseline, results: dict[str, ScenarioSummary]) -> list[Row
 # Claims
 
 
-def check_claim(
-    claim: Claim, results: dict[str, ScenarioSummary], expected: Iterable[str]
-) -> ClaimResult:
-    """A claim applies when its scenario is in the results or is expected (in the baseline)."""
-    scenario = results.get(claim.scenario)
-    if scenario is None:
-        if claim.scenario in expected:
-            return ClaimResult(
-                claim,
-                None,
-                None,
-                "missing",
-                f"claim {claim.scenario}: scenario missing from results",
-            )
-        return ClaimResult(claim, None, None, "not run")
-    absent = [f for f in (ADAPTIVE, REFERENCE) if f not in scenario.filters]
-    if absent:
-        return ClaimResult(
-            claim,
-            None,
-            None,
-            "missing",
-            f"claim {claim.scenario}: filter {', '.join(absent)} missing from the results",
-        )
-    adaptive = scenario.filters[ADAPTIVE][claim.metric]
-    reference = scenario.filters[REFERENCE][claim.metric]
-    # An undefined reference (every EKF run diverged) is the worst value of its metric; an
-    # undefined ANFEKF value never supports a claim.
-    if math.isnan(reference):
-        reference = math.inf if METRIC_SENSE[claim.metric] == "lower" else -math.inf
-    holds = not math.isnan(adaptive) and claim.holds(adaptive, reference)
-    detail = ""
-    if not holds:
-        detail = (
-            f"claim {claim.scenario}: ANFEKF {claim.text}: {claim.formula()} is false"
-            f" ({_fmt_value(adaptive)} vs {_fmt_value(reference)})"
-        )
-    return ClaimResult(claim, adaptive, reference, "holds" if holds else "BROKEN", detail)
+def _optional(value) -> float | None:
+    return None if value is None else _number(value)
 
 
-def check_claims(
-    results: dict[str, ScenarioSummary], expected: Iterable[str] = ()
-) -> list[ClaimResult]:
-    expected = set(expected)
-    return [check_claim(c, results, expected) for c in CLAIMS]
+def read_claims(folder: Path, scenario: str) -> list[ClaimResult]:
+    """The verdicts `anfekf run` wrote for the claims a scenario declares (SPEC 8)."""
+    path = Path(folder) / CLAIMS_FILE
+    if not path.exists():  # results of a version without claims.json: nothing declared
+        return []
+    doc = read_json(path)
+    out = []
+    if not isinstance(doc, list):
+        raise ResultsError(f"{path}: expected a list of claims")
+    for item in doc:
+        try:
+            verdict = item["verdict"]
+            if verdict not in ("holds", "fails", "inconclusive"):
+                raise ValueError(verdict)
+            out.append(
+                ClaimResult(
+                    scenario=scenario, text=str(item["claim"]),
+                    estimate=_optional(item["estimate"]), lo=_optional(item["lo"]),
+                    hi=_optional(item["hi"]), verdict=verdict, note=str(item.get("warning", "")),
+                )
+            )  # fmt: skip
+        except (KeyError, TypeError, ValueError, BaselineError):
+            raise ResultsError(f"{path}: not a claims file written by anfekf run") from None
+    return out
+
+
+def check_claims(results: dict[str, ScenarioSummary]) -> list[ClaimResult]:
+    """Every declared claim of the results' scenarios."""
+    return [c for name, s in results.items() for c in read_claims(s.folder, name)]
 
 
 # ---------------------------------------------------------------------------------------------
 # The command
 
 
-def run_check(results_dir: Path, baseline_path: Path | None, *, update: bool = False) -> Report:
-    """Compare (and with `update`, rewrite the baseline), then check the claims."""
+def run_check(
+    results_dir: Path, baseline_path: Path | None, *, update: bool = False, strict: bool = False
+) -> Report:
+    """Compare (and with `update`, rewrite the baseline), then check the declared claims."""
     results_dir = Path(results_dir)
     if baseline_path is None:
         if update:
             raise BaselineError("--update needs --baseline FILE (the file to write)")
         results = read_results(results_dir, [])
-        return Report(results_dir, None, [], check_claims(results))
+        return Report(results_dir, None, [], check_claims(results), strict=strict)
     baseline_path = Path(baseline_path)
     baseline = None
     if not update or baseline_path.exists():
@@ -632,15 +617,16 @@ def run_check(results_dir: Path, baseline_path: Path | None, *, update: bool = F
     results = read_results(results_dir, tolerances)
     rows = compare(baseline, results) if baseline is not None else []
     expected = baseline.scenarios if baseline is not None else ()
+    claims = check_claims(results)
     if not update:
-        return Report(results_dir, baseline_path, rows, check_claims(results, expected))
+        return Report(results_dir, baseline_path, rows, claims, strict=strict)
     try:
         write_json(baseline_path, baseline_document(results, tolerances))
     except OSError as exc:
         raise BaselineError(f"{baseline_path}: cannot write the baseline: {exc}") from None
     dropped = tuple(s for s in expected if s not in results)
     return Report(
-        results_dir, baseline_path, rows, check_claims(results), updated=True, dropped=dropped
+        results_dir, baseline_path, rows, claims, updated=True, dropped=dropped, strict=strict
     )
 
 
@@ -671,19 +657,17 @@ def comparison_table(rows: list[Row], title: str) -> Table:
     return table
 
 
-def claims_table(claims: list[ClaimResult]) -> Table:
-    table = Table(title="The paper's claims (independent of the baseline)", title_justify="left")
-    for col in ("scenario", "claim (value of anfekf vs ekf)", "anfekf", "ekf", "verdict"):
-        table.add_column(col, justify="right" if col in ("anfekf", "ekf") else "left")
+def claims_table(claims: list[ClaimResult], strict: bool) -> Table:
+    title = "Claims declared by the scenarios (decided on the 95 % interval)"
+    table = Table(title=title, title_justify="left")
+    for col in ("scenario", "claim", "estimate", "interval", "verdict", "note"):
+        table.add_column(col, justify="right" if col == "estimate" else "left")
     for c in claims:
-        cells = (
-            c.claim.scenario,
-            c.claim.formula(),
-            _fmt_value(c.adaptive),
-            _fmt_value(c.reference),
-            c.verdict,
+        interval = (
+            "" if c.lo is None or c.hi is None else f"[{_fmt_value(c.lo)}, {_fmt_value(c.hi)}]"
         )
-        table.add_row(*(Text(x) for x in cells), style=_row_style(c.passed))
+        cells = (c.scenario, c.text, _fmt_value(c.estimate), interval, c.verdict, c.note)
+        table.add_row(*(Text(x) for x in cells), style=_row_style(c.passed(strict)))
     return table
 
 
@@ -696,7 +680,8 @@ def print_report(report: Report, console: Console) -> None:
     if report.rows:
         title = f"{report.results_dir} against {report.baseline_path}"
         console.print(comparison_table(report.rows, title))
-    console.print(claims_table(report.claims))
+    if report.claims:
+        console.print(claims_table(report.claims, report.strict))
     for row in report.failed_rows:
         say(f"FAIL {row.detail}")
     for claim in report.broken_claims:
@@ -707,15 +692,23 @@ def print_report(report: Report, console: Console) -> None:
             say(f"dropped from the baseline (not in the results): {', '.join(report.dropped)}")
     checked = sum(1 for r in report.rows if r.metric not in ("-", "seed", "runs"))
     held = sum(1 for c in report.claims if c.verdict == "holds")
+    open_ = sum(1 for c in report.claims if c.verdict == "inconclusive")
+    if report.checked_nothing:
+        say(
+            "regression gate checked NOTHING: no baseline (--baseline FILE) and no claims in the"
+            " scenarios (claims: in the scenario file)"
+        )
+        return
     if report.exit_code == 0:
         what = f"{checked} metrics within tolerance, " if report.rows and not report.updated else ""
-        say(f"regression gate passed: {what}{held} claims hold")
+        tail = f", {open_} inconclusive (--strict fails them)" if open_ else ""
+        say(f"regression gate passed: {what}{held} claims hold{tail}")
         return
     parts = []
     if report.failed_rows:
         parts.append(f"{len(report.failed_rows)} of {len(report.rows)} rows failed")
     if report.broken_claims:
-        parts.append(f"{len(report.broken_claims)} claims broken or missing")
+        parts.append(f"{len(report.broken_claims)} claims failed")
     say(f"regression gate FAILED: {', '.join(parts)}")
     if report.failed_rows:
         say(

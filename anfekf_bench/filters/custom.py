@@ -16,10 +16,11 @@ filter receives the validated instance as `self.params`.
 from __future__ import annotations
 
 import importlib
+import re
 from importlib.metadata import entry_points
 from typing import Any, Literal
 
-from pydantic import BaseModel, Field, ValidationError, model_validator
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
 from .ekf import RobotEKF
 from .spec import FilterContext, FilterSpec
@@ -55,10 +56,17 @@ class CustomSpec(FilterSpec):
     """A user's filter class, named by its import path, with its own parameters."""
 
     kind: Literal["custom"]
-    class_path: str = Field(alias="class", pattern=CLASS_PATH, description="module:Class")
+    class_path: str = Field(alias="class", description="module:Class, e.g. mypkg.filters:MyFilter")
     params: dict[str, Any] = Field(default_factory=dict, description="the class's Params")
 
     model_config = {**FilterSpec.model_config, "populate_by_name": True}
+
+    @field_validator("class_path")
+    @classmethod
+    def _looks_like_a_class_path(cls, value: str) -> str:
+        if not re.fullmatch(CLASS_PATH, value):
+            raise ValueError("expected module:Class, e.g. mypkg.filters:MyFilter")
+        return value
 
     @model_validator(mode="after")
     def _class_and_params(self) -> CustomSpec:

@@ -7,7 +7,7 @@ radians once (`World`, `NoiseSigmas.radians`), so the rest of the code works in 
 from __future__ import annotations
 
 import math
-import warnings
+import re
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -27,11 +27,32 @@ from pydantic import (
 from .filters.ekf import EKFSpec
 from .filters.registry import KINDS, SPEC_BY_KIND, AnyFilterSpec, expand_entry_points
 from .schema import NonNegativeFloat, PositiveFloat, StrictModel
+from .storage import FileProblem, read_regular_bytes, scenario_name_problem
 
+# Bounds: every value that passes validation can run. A coordinate beyond 10,000 km, a noise
+# sigma or P0 whose square overflows a float's range in the covariance algebra, or a map of more
+# than MAX_POINTS points is refused here; memory against the machine is checked per batch
+# (experiment.check_plan).
+MAX_COORDINATE = 1e7  # [m]
+MAX_POINTS = 100_000
+MAX_RUNS = 100_000
+MAX_JOBS = 1024
+MAX_SEED = 2**63 - 1
+Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE, le=MAX_COORDINATE, allow_inf_nan=False)]
 Point = tuple[float, float]
 MapSource = Union[str, list[Point]]
 
 BUILTIN_MAP = "bailey-webmap"
+
+# Files a scenario names are read whole, only if regular files (a FIFO or device is refused).
+SCENARIO_FILE_LIMIT = 2**20  # bytes
+MAP_FILE_LIMIT = 16 * 2**20  # bytes
+# YAML: nesting depth and the number of values after expanding aliases (a "billion laughs" file
+# of a few hundred bytes expands to billions); a scenario needs a depth of 6 and a few hundred.
+YAML_MAX_DEPTH = 32
+YAML_MAX_VALUES = 200_000
+# Filter names appear in tables, figure legends and file contents: plain characters only.
+FILTER_NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9 _.+-]{0,63}")
 
 
 def one_line(text: str) -> str:
@@ -56,10 +77,10 @@ _Strict = StrictModel
 class NoiseSigmas(_Strict):
     """Standard deviations of control noise (V, gamma) and measurement noise (range, bearing)."""
 
-    sigma_v: PositiveFloat = Field(0.3, description="speed noise [m/s]")
-    sigma_gamma_deg: PositiveFloat = Field(3.0, description="steering noise [deg]")
-    sigma_range: PositiveFloat = Field(0.1, description="range noise [m]")
-    sigma_bearing_deg: PositiveFloat = Field(1.0, description="bearing noise [deg]")
+    sigma_v: PositiveFloat = Field(0.3, le=1e3, description="speed noise [m/s]")
+    sigma_gamma_deg: PositiveFloat = Field(3.0, le=360, description="steering noise [deg]")
+    sigma_range: PositiveFloat = Field(0.1, le=1e5, description="range noise [m]")
+    sigma_bearing_deg: PositiveFloat = Field(1.0, le=360, description="bearing noise [deg]")
 
     def radians(self) -> tuple[float, float, float, float]:
         """(sv [m/s], sg [rad], sr [m], sb [rad])."""
@@ -80,21 +101,85 @@ class WorldConfig(_Strict):
     )
     waypoints: MapSource = Field(BUILTIN_MAP, description="as `landmarks`")
     loops: int = Field(1, ge=1, le=100)
-    x0: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="x [m], y [m], phi [deg]")
-    speed: PositiveFloat = Field(3.0, description="V [m/s]")
-    wheelbase: PositiveFloat = Field(4.0, description="B [m]")
+    x0: tuple[Coordinate, Coordinate, Annotated[float, Field(ge=-3600, le=3600)]] = Field(
+        (0.0, 0.0, 0.0), description="x [m], y [m], phi [deg]"
+    )
+    speed: PositiveFloat = Field(3.0, le=1e3, description="V [m/s]")
+    wheelbase: PositiveFloat = Field(4.0, le=1e3, description="B [m]")
     max_steer_deg: Annotated[float, Field(gt=0, le=90)] = 30.0
-    max_steer_rate_deg: PositiveFloat = Field(20.0, description="[deg/s]")
-    dt: PositiveFloat = Field(0.025, description="control period T [s]")
-    sensor_every: int = Field(8, ge=1, description="control steps per sensor scan")
-    max_range: PositiveFloat = Field(20.0, description="[m]")
+    max_steer_rate_deg: PositiveFloat = Field(20.0, le=1e5, description="[deg/s]")
+    dt: PositiveFloat = Field(0.025, le=60, description="control period T [s]")
+    sensor_every: int = Field(8, ge=1, le=10**6, description="control steps per sensor scan")
+    max_range: PositiveFloat = Field(20.0, le=MAX_COORDINATE, description="[m]")
     fov_deg: Annotated[float, Field(gt=0, le=360)] = 180.0
-    waypoint_tolerance: PositiveFloat = Field(1.0, description="[m]: switch waypoint within this")
-    max_steps: int = Field(1_000_000, ge=1, description="safety stop for routes never completed")
+    waypoint_tolerance: PositiveFloat = Field(
+        1.0, le=MAX_COORDINATE, description="[m]: switch waypoint within this"
+    )
+    max_steps: int = Field(
+        1_000_000, ge=1, le=10**7, description="safety stop for routes never completed"
+    )
 
 
 Engine = Literal["filterpy", "fast"]
 ClaimMetric = Literal["rmse_pos", "rmse_heading", "anees", "nees_in_bounds"]
+
+
+class FactorRange(_Strict):
+    """`num` factors from `start` to `stop`, evenly spaced in log (the natural axis of a factor)."""
+
+    start: PositiveFloat
+    stop: PositiveFloat
+    num: int = Field(ge=2, le=101)
+
+    def values(self) -> list[float]:
+        return [float(v) for v in np.geomspace(self.start, self.stop, self.num)]
+
+
+class SweepAxis(_Strict):
+    """One axis of a sweep: a scenario field (a dotted path such as filter_noise.sigma_range or
+    filters.1.window) set to each value, or a scale factor on the assumed R or Qu (variances:
+    both standard deviations of filter_noise multiplied by sqrt(factor))."""
+
+    field: str | None = Field(None, min_length=1, description="dotted path of a scenario field")
+    scale: Literal["R", "Qu"] | None = Field(None, description="scale the assumed R or Qu")
+    values: list[float] | None = Field(None, min_length=1, max_length=101)
+    factors: FactorRange | None = None
+
+    @model_validator(mode="after")
+    def _one_target_one_list(self) -> SweepAxis:
+        if (self.field is None) == (self.scale is None):
+            raise ValueError("an axis needs exactly one of field or scale")
+        if (self.values is None) == (self.factors is None):
+            raise ValueError("an axis needs exactly one of values or factors")
+        if len(set(self.points())) != len(self.points()):
+            raise ValueError("an axis lists a value twice")
+        return self
+
+    @property
+    def label(self) -> str:
+        return self.field if self.field is not None else f"{self.scale}_factor"
+
+    def points(self) -> list[float]:
+        return list(self.values) if self.values is not None else self.factors.values()
+
+
+class SweepSpec(_Strict):
+    """A grid over one or more axes (SPEC 10): every cell is the scenario with the axes' values
+    set, the same seed in every cell (cells are paired too)."""
+
+    axes: list[SweepAxis] = Field(min_length=1, max_length=3)
+    cell_steps: bool = Field(False, description="write each cell's steps.parquet too")
+    max_cells: int = Field(400, ge=1, le=10_000, description="refuse larger grids")
+
+    @model_validator(mode="after")
+    def _distinct_axes_and_size(self) -> SweepSpec:
+        labels = [a.label for a in self.axes]
+        if len(set(labels)) != len(labels):
+            raise ValueError("two axes set the same field")
+        cells = math.prod(len(a.points()) for a in self.axes)
+        if cells > self.max_cells:
+            raise ValueError(f"{cells} cells exceed max_cells = {self.max_cells}")
+        return self
 
 
 class ClaimSpec(_Strict):
@@ -136,7 +221,9 @@ class BackendConfig(_Strict):
         None, description="Dask scheduler address tcp://HOST:PORT (kind dask only)"
     )
     connect_timeout_s: PositiveFloat = Field(
-        10.0, description="give up reaching the scheduler (or finding workers) after this [s]"
+        10.0,
+        le=3600,
+        description="give up reaching the scheduler (or finding workers) after this [s]",
     )
 
     @model_validator(mode="after")
@@ -151,12 +238,12 @@ class BackendConfig(_Strict):
 class Scenario(_Strict):
     """One scenario file."""
 
-    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
-    description: str = ""
-    seed: int = Field(0, ge=0)
-    runs: int = Field(50, ge=1, le=100_000)
-    jobs: int = Field(2, ge=1, le=1024)
-    record_every: int = Field(1, ge=1, description="record every n-th control step")
+    name: str = Field(min_length=1, description="the result folder's name: OUT/<name>/")
+    description: str = Field("", max_length=10_000)
+    seed: int = Field(0, ge=0, le=MAX_SEED)
+    runs: int = Field(50, ge=1, le=MAX_RUNS)
+    jobs: int = Field(2, ge=1, le=MAX_JOBS)
+    record_every: int = Field(1, ge=1, le=10**7, description="record every n-th control step")
     steps_table: bool = Field(
         True, description="write steps.parquet (false: summaries and per-run tables only)"
     )
@@ -168,7 +255,7 @@ class Scenario(_Strict):
     world: WorldConfig = WorldConfig()
     true_noise: NoiseSigmas = NoiseSigmas()
     filter_noise: NoiseSigmas = NoiseSigmas()
-    p0: NonNegativeFloat = Field(1e-9, description="P0 = p0 * I")
+    p0: NonNegativeFloat = Field(1e-9, le=1e6, description="P0 = p0 * I")
     gate_probability: Annotated[float, Field(gt=0, lt=1)] | None = Field(
         0.999, description="chi-square validation gate (eq. 26); null switches it off"
     )
@@ -179,6 +266,7 @@ class Scenario(_Strict):
     claims: list[ClaimSpec] = Field(
         default_factory=list, description="claims checked on every run and by `anfekf check`"
     )
+    sweep: SweepSpec | None = Field(None, description="a grid of cells (anfekf run writes a sweep)")
     compare: list[tuple[str, str]] = Field(
         default_factory=list,
         description="extra (filter, vs) pairs to compare, besides each filter vs ekf and oracle",
@@ -195,6 +283,26 @@ class Scenario(_Strict):
                     known = ", ".join(sorted(names))
                     raise ValueError(f"entry {i}: no filter named {value!r} (filters: {known})")
         return items
+
+    @field_validator("name")
+    @classmethod
+    def _safe_name(cls, name: str) -> str:
+        # The result folder is OUT/<name>: never '.', '..', a path, or a name of the layout.
+        problem = scenario_name_problem(name)
+        if problem:
+            raise ValueError(problem)
+        return name
+
+    @field_validator("filters")
+    @classmethod
+    def _plain_filter_names(cls, filters: list) -> list:
+        for i, spec in enumerate(filters):
+            if not FILTER_NAME_PATTERN.fullmatch(spec.name):
+                raise ValueError(
+                    f"entry {i}: filter name {spec.name!r}: 1 to 64 characters, letters, digits,"
+                    " space and _ . + - (starting with a letter or digit)"
+                )
+        return filters
 
     @field_validator("filters")
     @classmethod
@@ -231,26 +339,45 @@ def _builtin_csv(kind: str) -> Path:
 
 
 def read_points_csv(path: Path, *, scenario_path: str | Path, field: str) -> np.ndarray:
-    """Read `x,y` lines (comments with #) into an (n, 2) array, with a clean error on failure."""
-    if not path.is_file():
-        raise ScenarioError(scenario_path, field, f"map file not found: {path}")
+    """Read `x,y` lines (comments with #) into an (n, 2) array, with a clean error on failure.
+
+    Only a regular file is read (a FIFO, device or folder is refused at once), and an error
+    names the line, never quotes it: the path may point at any file.
+    """
+
+    def bad(message: str) -> ScenarioError:
+        return ScenarioError(scenario_path, field, f"{path}: {message}")
+
     try:
-        with warnings.catch_warnings():  # an empty file warns; we say so in one line below
-            warnings.simplefilter("ignore")
-            pts = np.loadtxt(path, delimiter=",", comments="#", ndmin=2, dtype=float)
-    except ValueError as exc:
-        first = str(exc).splitlines()[0] if str(exc) else "unreadable"
-        raise ScenarioError(
-            scenario_path, field, f"{path}: expected lines 'x,y' of numbers ({first})"
-        ) from None
-    if pts.size == 0:
-        raise ScenarioError(scenario_path, field, f"{path}: no points (need lines 'x,y')")
-    if pts.shape[1] != 2:
-        raise ScenarioError(
-            scenario_path, field, f"{path}: expected 2 columns 'x,y', found {pts.shape[1]}"
-        )
-    if not np.all(np.isfinite(pts)):
-        raise ScenarioError(scenario_path, field, f"{path}: coordinates must be finite numbers")
+        data = read_regular_bytes(path, MAP_FILE_LIMIT)
+    except FileProblem as exc:
+        raise ScenarioError(scenario_path, field, f"map file {path}: {exc}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise bad("not a text file (expected UTF-8 lines 'x,y')") from None
+    points = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        cells = line.split(",")
+        if len(cells) != 2:
+            raise bad(f"line {number}: expected 2 columns 'x,y', found {len(cells)}")
+        try:
+            x, y = float(cells[0]), float(cells[1])
+        except ValueError:
+            raise bad(f"line {number}: expected lines 'x,y' of numbers") from None
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise bad(f"line {number}: coordinates must be finite numbers")
+        points.append((x, y))
+        if len(points) > MAX_POINTS:
+            raise bad(f"more than {MAX_POINTS} points")
+    if not points:
+        raise bad("no points (need lines 'x,y')")
+    pts = np.array(points, dtype=float)
+    if np.abs(pts).max() > MAX_COORDINATE:
+        raise bad(f"coordinates must lie within ±{MAX_COORDINATE:g} m")
     return pts
 
 
@@ -261,9 +388,15 @@ def _resolve_points(source: MapSource, kind: str, scenario_path: Path) -> np.nda
         return read_points_csv(path, scenario_path=scenario_path, field=field)
     if len(source) == 0:
         raise ScenarioError(scenario_path, field, "needs at least one [x, y] point")
+    if len(source) > MAX_POINTS:
+        raise ScenarioError(scenario_path, field, f"more than {MAX_POINTS} points")
     pts = np.asarray(source, dtype=float)
     if not np.all(np.isfinite(pts)):
         raise ScenarioError(scenario_path, field, "coordinates must be finite numbers")
+    if np.abs(pts).max() > MAX_COORDINATE:
+        raise ScenarioError(
+            scenario_path, field, f"coordinates must lie within ±{MAX_COORDINATE:g} m"
+        )
     return pts
 
 
@@ -363,24 +496,108 @@ def parse_scenario(data: object, path: str | Path = "<scenario>") -> Scenario:
         raise ScenarioError(path, field, msg) from None
 
 
+class _StrictLoader(yaml.SafeLoader):
+    """PyYAML's SafeLoader, stricter: a key may appear once in a mapping (PyYAML keeps the last
+    silently). Nesting depth and alias expansion are bounded in `load_yaml`, before anything is
+    constructed."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen: set = set()
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue  # `<<: *base` merges; its keys may be overridden on purpose
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    duplicate = key in seen
+                except TypeError:
+                    continue  # unhashable: PyYAML reports it itself
+                if duplicate:
+                    raise yaml.constructor.ConstructorError(
+                        None,
+                        None,
+                        f"key {one_line(str(key))[:60]!r} appears twice (each key once)",
+                        key_node.start_mark,
+                    )
+                seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+_StrictLoader.add_constructor(
+    yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _StrictLoader.construct_mapping
+)
+
+
+class _YAMLTooLarge(Exception):
+    pass
+
+
+def _expanded_size(node, depth: int, sizes: dict[int, int], active: set[int]) -> int:
+    """Values `node` holds once aliases are expanded (memoised per node, so this is linear in
+    the file, while the expansion itself may be exponential)."""
+    if depth > YAML_MAX_DEPTH:
+        raise _YAMLTooLarge(f"nested deeper than {YAML_MAX_DEPTH} levels")
+    key = id(node)
+    if key in sizes:
+        return sizes[key]
+    if key in active:
+        raise _YAMLTooLarge("an alias refers to the node that holds it")
+    if isinstance(node, yaml.SequenceNode):
+        children = node.value
+    elif isinstance(node, yaml.MappingNode):
+        children = [n for pair in node.value for n in pair]
+    else:
+        children = []
+    active.add(key)
+    total = 1
+    for child in children:
+        total += _expanded_size(child, depth + 1, sizes, active)
+        if total > YAML_MAX_VALUES:
+            raise _YAMLTooLarge(f"expands to more than {YAML_MAX_VALUES} values (through aliases)")
+    active.discard(key)
+    sizes[key] = total
+    return total
+
+
+def load_yaml(text: str) -> object:
+    """One YAML document, strictly (see _StrictLoader); yaml.YAMLError or _YAMLTooLarge."""
+    loader = _StrictLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _expanded_size(node, 0, {}, set())
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
 def load_scenario(path: str | Path) -> tuple[Scenario, World]:
     """Read, validate and resolve a scenario file; raises ScenarioError with a one-line message."""
     path = Path(path)
-    if not path.exists():
-        raise ScenarioError(path, "", "scenario file does not exist")
-    if not path.is_file():
-        raise ScenarioError(path, "", "not a file")
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ScenarioError(path, "", f"cannot read: {exc}") from None
+        raw = read_regular_bytes(path, SCENARIO_FILE_LIMIT)
+    except FileProblem as exc:
+        message = str(exc)
+        if message == "file not found":
+            message = "scenario file does not exist"
+        elif "folder" in message:
+            message = "not a file (a folder)"
+        raise ScenarioError(path, "", message) from None
     try:
-        data = yaml.safe_load(text)
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ScenarioError(path, "", "cannot read: not UTF-8 text") from None
+    try:
+        data = load_yaml(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise ScenarioError(path, "", f"YAML syntax error{where}: {problem}") from None
+        kind = "YAML error" if "appears twice" in problem else "YAML syntax error"
+        raise ScenarioError(path, "", f"{kind}{where}: {problem}") from None
+    except _YAMLTooLarge as exc:
+        raise ScenarioError(path, "", f"YAML {exc}; not a scenario") from None
     except RecursionError:
         raise ScenarioError(path, "", "YAML nested too deeply") from None
     scenario = parse_scenario(data, path)

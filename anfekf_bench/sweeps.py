@@ -1,0 +1,259 @@
+"""Sweeps (SPEC 10): how much mismatch does each filter survive?
+
+A scenario with a `sweep:` block is a grid of cells; each cell is the scenario with the axes'
+values set, validated like any scenario before anything runs, and run as an ordinary scenario
+(same seed in every cell, so cells are paired too; resumable per run, and a complete cell is
+reused on a rerun). The sweep folder holds
+
+    <out>/<name>/cells/cell-000/ ...   one ordinary result folder per cell
+    <out>/<name>/sweep.parquet         one row per (cell, filter): the swept values, the summary
+                                       metrics and the paired ratios to the references with their
+                                       95 % intervals
+    <out>/<name>/manifest.json         the axes, the cells and their values; written last
+"""
+
+from __future__ import annotations
+
+import copy
+import itertools
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .config import Scenario, ScenarioError, SweepAxis, World, parse_scenario, resolve_world
+from .experiment import Plan, execute, make_plan, package_versions
+from .storage import (
+    COMPARISONS_FILE,
+    MANIFEST_FILE,
+    read_json,
+    read_parquet,
+    write_json,
+    write_parquet,
+)
+
+SWEEP_FILE = "sweep.parquet"
+CELLS_DIR = "cells"
+SWEEP_KIND = "anfekf-bench sweep"
+# The per-cell summary metrics kept in the sweep table.
+SUMMARY_METRICS = ("runs", "runs_used", "diverged", "rmse_pos", "rmse_heading", "anees",
+                   "nees_in_bounds", "anis", "gate_rejected")  # fmt: skip
+RATIO_METRICS = ("rmse_pos", "anees")
+
+
+class SweepError(Exception):
+    """A sweep cannot be run as written; `str()` is the one-line message for the user."""
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One grid point: its folder name, the swept values (axis label -> value), the scenario."""
+
+    index: int
+    name: str
+    coords: dict[str, float]
+    scenario: Scenario
+    world: World
+
+
+def _set_path(doc: dict, path: str, value: float, *, source: Path, where: str) -> None:
+    """doc[path] = value for a dotted path of existing keys / list indices, else ScenarioError."""
+    parts = path.split(".")
+    node = doc
+    for depth, part in enumerate(parts):
+        shown = ".".join(parts[: depth + 1])
+        last = depth == len(parts) - 1
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                raise ScenarioError(
+                    source, where, f"{path}: {shown} is not an index of a list of {len(node)}"
+                )
+            key = int(part)
+        elif isinstance(node, dict):
+            if part not in node:
+                known = ", ".join(sorted(map(str, node)))
+                raise ScenarioError(source, where, f"{path}: no field {shown} (there: {known})")
+            key = part
+        else:
+            raise ScenarioError(source, where, f"{path}: {'.'.join(parts[:depth])} is a value")
+        if last:
+            if isinstance(node[key], (dict, list)):
+                raise ScenarioError(source, where, f"{path}: is a block, not a value")
+            node[key] = value
+        else:
+            node = node[key]
+
+
+def _scale(doc: dict, axis: SweepAxis, factor: float) -> None:
+    """A variance factor on the assumed R or Qu: both standard deviations times sqrt(factor)."""
+    keys = (
+        ("sigma_range", "sigma_bearing_deg")
+        if axis.scale == "R"
+        else ("sigma_v", "sigma_gamma_deg")
+    )
+    for key in keys:
+        doc["filter_noise"][key] = doc["filter_noise"][key] * math.sqrt(factor)
+
+
+def expand(scenario: Scenario, source: Path) -> list[Cell]:
+    """Every cell of the scenario's sweep, each validated as a scenario (ScenarioError names the
+    axis or the cell and the field)."""
+    sweep = scenario.sweep
+    base = scenario.model_dump(mode="json", by_alias=True, exclude={"sweep"})
+    grid = itertools.product(*(axis.points() for axis in sweep.axes))
+    cells = []
+    for index, values in enumerate(grid):
+        doc = copy.deepcopy(base)
+        doc["name"] = f"cell-{index:03d}"
+        doc["steps_table"] = sweep.cell_steps
+        coords = {}
+        for i, (axis, value) in enumerate(zip(sweep.axes, values, strict=True)):
+            if axis.field is not None:
+                _set_path(doc, axis.field, value, source=source, where=f"sweep.axes.{i}.field")
+            else:
+                _scale(doc, axis, value)
+            coords[axis.label] = float(value)
+        try:
+            cell = parse_scenario(doc, source)
+        except ScenarioError as exc:
+            shown = ", ".join(f"{k} = {v:g}" for k, v in coords.items())
+            raise ScenarioError(source, f"sweep cell {index} ({shown})", str(exc.message)) from None
+        cells.append(Cell(index, doc["name"], coords, cell, resolve_world(cell.world, source)))
+    return cells
+
+
+def cell_plans(cells: list[Cell], **overrides) -> list[Plan]:
+    """A plan per cell with the command line's overrides (runs, seed, jobs, backend, engine)."""
+    runs, seed, jobs = overrides.pop("runs"), overrides.pop("seed"), overrides.pop("jobs")
+    return [make_plan(c.scenario, c.world, runs, seed, jobs, **overrides) for c in cells]
+
+
+def _complete(folder: Path, plan: Plan) -> bool:
+    """A cell folder with a complete result of this very plan (same fingerprint)."""
+    manifest = folder / MANIFEST_FILE
+    if not manifest.is_file():
+        return False
+    found = read_json(manifest)
+    if not isinstance(found, dict) or found.get("fingerprint") != plan.fingerprint():
+        raise SweepError(
+            f"{folder}: holds a result of another version of this cell; use --force to redo it"
+        )
+    return True
+
+
+def run_sweep(
+    name: str,
+    axes: list[SweepAxis],
+    cells: list[Cell],
+    plans: list[Plan],
+    out_dir: Path,
+    *,
+    force: bool = False,
+    on_cell: Callable[[Cell, str], None] | None = None,
+    on_start: Callable[[str, int, int], None] | None = None,
+    on_result: Callable[[dict], None] | None = None,
+) -> tuple[pd.DataFrame, Path]:
+    """Run (or reuse) every cell, then write the sweep table and manifest."""
+    started = time.time()
+    target = Path(out_dir) / name
+    cells_dir = target / CELLS_DIR
+    reused = []
+    for cell, plan in zip(cells, plans, strict=True):
+        folder = cells_dir / cell.name
+        if not force and _complete(folder, plan):
+            reused.append(cell.name)
+            if on_cell is not None:
+                on_cell(cell, "complete already: reused")
+            continue
+        if on_cell is not None:
+            on_cell(cell, "running")
+        execute(plan, cells_dir, force=force, on_start=on_start, on_result=on_result)
+    table = sweep_table(axes, cells, cells_dir)
+    write_parquet(target / SWEEP_FILE, table)
+    write_json(
+        target / MANIFEST_FILE,
+        {
+            "kind": SWEEP_KIND,
+            "name": name,
+            "axes": [a.model_dump(mode="json") for a in axes],
+            "cells": [{"name": c.name, **c.coords} for c in cells],
+            "runs": plans[0].runs,
+            "seed": plans[0].seed,
+            "engine": plans[0].engine,
+            "reused_cells": reused,
+            "versions": package_versions(),
+            "wall_time_s": round(time.time() - started, 3),
+        },
+    )
+    return table, target
+
+
+def sweep_table(axes: list[SweepAxis], cells: list[Cell], cells_dir: Path) -> pd.DataFrame:
+    """One row per (cell, filter): swept values, summary metrics, ratios to the references."""
+    rows = []
+    for cell in cells:
+        folder = cells_dir / cell.name
+        summary = read_parquet(folder / "summary.parquet")
+        comparisons = read_parquet(folder / COMPARISONS_FILE)
+        kinds = {f.name: f.kind for f in cell.scenario.filters}
+        refs = {
+            "ekf": next((n for n, k in kinds.items() if k == "ekf"), None),
+            "oracle": next((n for n, k in kinds.items() if k == "ekf-oracle"), None),
+        }
+        for rec in summary.to_dict("records"):
+            row = {"cell": cell.name, **cell.coords, "filter": rec["filter"],
+                   "kind": kinds.get(rec["filter"], "")}  # fmt: skip
+            row.update({m: rec.get(m, math.nan) for m in SUMMARY_METRICS})
+            for ref_label, ref in refs.items():
+                for metric in RATIO_METRICS:
+                    hit = comparisons[
+                        (comparisons["filter"] == rec["filter"])
+                        & (comparisons["vs"] == ref)
+                        & (comparisons["metric"] == metric)
+                    ]
+                    found = hit.iloc[0] if len(hit) else None
+                    for part in ("estimate", "lo", "hi"):
+                        key = f"{metric}_vs_{ref_label}" + (
+                            "" if part == "estimate" else f"_{part}"
+                        )
+                        if ref == rec["filter"]:
+                            value = 1.0  # a reference against itself
+                        else:
+                            value = math.nan if found is None else float(found[part])
+                        row[key] = value
+            rows.append(row)
+    table = pd.DataFrame(rows)
+    table["filter"] = pd.Categorical(
+        table["filter"], categories=list(dict.fromkeys(table["filter"]))
+    )
+    return table.sort_values([a.label for a in axes] + ["filter"], kind="stable").reset_index(
+        drop=True
+    )
+
+
+def breakdown_range(
+    table: pd.DataFrame, axis: str, *, within: float = 1.5, metric: str = "rmse_pos_vs_oracle"
+) -> dict[str, tuple[float, float]]:
+    """Per filter, the range of a factor axis around 1 (no mismatch) over which it stays within
+    `within` x the oracle on `metric`: (lowest, highest) factor of that contiguous range; NaN, NaN
+    when it is not within even at the factor closest to 1. Rows must vary along `axis` only."""
+    out = {}
+    for name, rows in table.groupby("filter", observed=True):
+        rows = rows.sort_values(axis)
+        values = rows[axis].to_numpy(dtype=float)
+        ok = (rows[metric] <= within).to_numpy()
+        centre = int(np.argmin(np.abs(np.log(values))))
+        if not ok[centre]:
+            out[str(name)] = (math.nan, math.nan)
+            continue
+        lo = hi = centre
+        while lo > 0 and ok[lo - 1]:
+            lo -= 1
+        while hi < len(ok) - 1 and ok[hi + 1]:
+            hi += 1
+        out[str(name)] = (float(values[lo]), float(values[hi]))
+    return out

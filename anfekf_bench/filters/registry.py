@@ -16,8 +16,16 @@ from .anfekf import ANFEKFSpec
 from .custom import CustomSpec, entry_point_kinds
 from .ekf import EKFSpec, OracleSpec, RobotEKF, gate_threshold
 from .spec import FilterContext, FilterSpec
+from .vb import VBAKFSpec, VBRSpec
 
-SPECS: tuple[type[FilterSpec], ...] = (EKFSpec, OracleSpec, ANFEKFSpec, CustomSpec)
+SPECS: tuple[type[FilterSpec], ...] = (
+    EKFSpec,
+    OracleSpec,
+    ANFEKFSpec,
+    VBRSpec,
+    VBAKFSpec,
+    CustomSpec,
+)
 
 
 def kind_of(spec_class: type[FilterSpec]) -> str:

@@ -22,7 +22,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from .config import Scenario, ScenarioError, SweepAxis, World, parse_scenario, resolve_world
@@ -233,27 +232,3 @@ def sweep_table(axes: list[SweepAxis], cells: list[Cell], cells_dir: Path) -> pd
     return table.sort_values([a.label for a in axes] + ["filter"], kind="stable").reset_index(
         drop=True
     )
-
-
-def breakdown_range(
-    table: pd.DataFrame, axis: str, *, within: float = 1.5, metric: str = "rmse_pos_vs_oracle"
-) -> dict[str, tuple[float, float]]:
-    """Per filter, the range of a factor axis around 1 (no mismatch) over which it stays within
-    `within` x the oracle on `metric`: (lowest, highest) factor of that contiguous range; NaN, NaN
-    when it is not within even at the factor closest to 1. Rows must vary along `axis` only."""
-    out = {}
-    for name, rows in table.groupby("filter", observed=True):
-        rows = rows.sort_values(axis)
-        values = rows[axis].to_numpy(dtype=float)
-        ok = (rows[metric] <= within).to_numpy()
-        centre = int(np.argmin(np.abs(np.log(values))))
-        if not ok[centre]:
-            out[str(name)] = (math.nan, math.nan)
-            continue
-        lo = hi = centre
-        while lo > 0 and ok[lo - 1]:
-            lo -= 1
-        while hi < len(ok) - 1 and ok[hi + 1]:
-            hi += 1
-        out[str(name)] = (float(values[lo]), float(values[hi]))
-    return out

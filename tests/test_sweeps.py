@@ -10,11 +10,11 @@ import pytest
 
 from anfekf_bench.config import ScenarioError, load_scenario
 from anfekf_bench.experiment import execute, make_plan
+from anfekf_bench.report.sweep import breakdown_range, write_sweep_report
 from anfekf_bench.storage import MANIFEST_FILE
 from anfekf_bench.sweeps import (
     CELLS_DIR,
     SWEEP_FILE,
-    breakdown_range,
     cell_plans,
     expand,
     run_sweep,
@@ -189,3 +189,17 @@ def test_breakdown_range_around_factor_one():
     found = breakdown_range(table, "R_factor", within=1.5)
     assert found["a"] == (0.3, 3.0)
     assert all(math.isnan(v) for v in found["b"]), "b is off even without mismatch"
+
+
+@pytest.mark.parametrize("n_axes", [1, 2])
+def test_the_sweep_report_draws_lines_or_heatmaps(tmp_path, n_axes):
+    axes = [{"scale": "R", "values": [0.5, 1.0, 4.0]}, {"scale": "Qu", "values": [0.5, 2.0]}]
+    _, target = _sweep(tmp_path, sweep_doc(axes[:n_axes]), tmp_path / "out")
+    files, text = write_sweep_report(target, tmp_path / "report")
+    assert all(p.is_file() and p.stat().st_size > 5000 for p in files)
+    if n_axes == 1:
+        assert len(files) == 1 and "Break-down" in text and "| ekf-oracle | 0.5 | 4 |" in text
+    else:
+        assert len(files) == 4, "one heatmap figure per metric, a panel per filter"
+        assert "Break-down" not in text
+    assert all(f"({p.name})" in text for p in files), "relative links"

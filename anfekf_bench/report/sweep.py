@@ -1,0 +1,250 @@
+"""The report of a sweep, drawn from its sweep.parquet and manifest only (SPEC 10).
+
+One axis: each metric and each ratio to the oracle against the swept value, one line per filter,
+with the 95 % paired interval as a band (log axes for factor axes). Two axes: one heatmap per
+filter and metric, every cell annotated. A third axis, if any, gives one set per value.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from matplotlib.colors import LogNorm, TwoSlopeNorm
+from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+from ..storage import MANIFEST_FILE, ResultsError, read_json, read_parquet
+from .plots import filter_colour, save_figure
+
+SWEEP_FILE = "sweep.parquet"
+SWEEP_KIND = "anfekf-bench sweep"
+# (column, its interval's columns or None, title, log scale, the value marking "as good as" the
+# reference, or None)
+PANELS = (
+    ("rmse_pos_vs_oracle", ("rmse_pos_vs_oracle_lo", "rmse_pos_vs_oracle_hi"),
+     "position RMSE / oracle (95 % paired interval)", True, 1.0),
+    ("rmse_pos", None, "position RMSE [m] (time mean of the RMSE over runs)", True, None),
+    ("anees_vs_oracle", ("anees_vs_oracle_lo", "anees_vs_oracle_hi"),
+     "ANEES / oracle (95 % paired interval)", True, 1.0),
+    ("nees_in_bounds", None, "share of steps with NEES in the 95 % bounds", False, None),
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class SweepData:
+    """A sweep folder's table and manifest."""
+
+    folder: Path
+    name: str
+    axes: list[str]
+    factor_axes: set[str]
+    table: pd.DataFrame
+    runs: int
+
+
+def is_sweep(folder: Path) -> bool:
+    """A folder `anfekf run` wrote for a sweep (its manifest says so)."""
+    manifest = Path(folder) / MANIFEST_FILE
+    if not (Path(folder) / SWEEP_FILE).is_file() or not manifest.is_file():
+        return False
+    try:
+        doc = read_json(manifest)
+    except ResultsError:
+        return False
+    return isinstance(doc, dict) and doc.get("kind") == SWEEP_KIND
+
+
+def read_sweep(folder: Path) -> SweepData:
+    folder = Path(folder)
+    doc = read_json(folder / MANIFEST_FILE)
+    table = read_parquet(folder / SWEEP_FILE)
+    try:
+        axes = [a["field"] if a.get("field") else f"{a['scale']}_factor" for a in doc["axes"]]
+        factor_axes = {f"{a['scale']}_factor" for a in doc["axes"] if a.get("scale")}
+        factor_axes |= {a["field"] for a in doc["axes"] if a.get("factors")}
+        name, runs = str(doc["name"]), int(doc["runs"])
+    except (KeyError, TypeError, ValueError):
+        raise ResultsError(f"{folder / MANIFEST_FILE}: not a sweep manifest") from None
+    missing = [a for a in axes if a not in table.columns]
+    if missing:
+        raise ResultsError(f"{folder / SWEEP_FILE}: missing the axis columns {', '.join(missing)}")
+    return SweepData(folder, name, axes, factor_axes, table, runs)
+
+
+def _plain(value: float, _pos=None) -> str:
+    """Tick labels like 0.1, 2, 10 on log axes (not 10^-1)."""
+    return f"{value:g}"
+
+
+def _log_axis(axis) -> None:
+    axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(FuncFormatter(_plain))
+    axis.set_minor_formatter(NullFormatter())
+
+
+def line_figure(data: SweepData, axis: str, rows: pd.DataFrame, title: str) -> Figure:
+    """Every panel against one swept axis, a line per filter, interval bands."""
+    fig = Figure(figsize=(10, 7), layout="constrained")
+    grid = fig.subplots(2, 2)
+    for ax, (column, interval, label, log, reference) in zip(grid.ravel(), PANELS, strict=True):
+        for name, sub in rows.groupby("filter", observed=True, sort=False):
+            sub = sub.sort_values(axis)
+            x, y = sub[axis].to_numpy(float), sub[column].to_numpy(float)
+            colour = filter_colour(str(name))
+            ax.plot(x, y, "o-", color=colour, label=str(name), gid=f"{column}/{name}", ms=3)
+            if interval is not None:
+                lo, hi = sub[interval[0]].to_numpy(float), sub[interval[1]].to_numpy(float)
+                ax.fill_between(x, lo, hi, color=colour, alpha=0.15, linewidth=0)
+        if reference is not None:
+            ax.axhline(reference, color="k", lw=0.8, ls=":")
+        values = sorted(rows[axis].unique())
+        if axis in data.factor_axes:
+            ax.set_xscale("log")
+            ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_xticks(values, [f"{v:g}" for v in values])
+        shown = rows[column].to_numpy(float)
+        shown = shown[np.isfinite(shown)]
+        # A log axis only when the values span a decade: below that it shows one tick label.
+        if log and shown.size and shown.min() > 0 and shown.max() / shown.min() >= 10:
+            ax.set_yscale("log")
+            _log_axis(ax.yaxis)
+        ax.set_xlabel(axis)
+        ax.set_title(label)
+    grid[0, 0].legend(loc="best")
+    fig.suptitle(title)
+    return fig
+
+
+def heatmap_figure(
+    data: SweepData, x_axis: str, y_axis: str, rows: pd.DataFrame, column: str, label: str
+) -> Figure:
+    """One heatmap per filter of `column` over two axes, every cell annotated."""
+    names = [str(n) for n in rows["filter"].cat.categories if (rows["filter"] == n).any()]
+    cols = min(3, len(names))
+    nrows = math.ceil(len(names) / cols)
+    fig = Figure(figsize=(4.2 * cols, 3.6 * nrows), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(nrows, cols)).ravel()
+    xs = sorted(rows[x_axis].unique())
+    ys = sorted(rows[y_axis].unique())
+    values = rows[column].to_numpy(float)
+    finite = values[np.isfinite(values) & (values > 0)]
+    ratio = column.endswith("_vs_oracle")
+    if ratio and finite.size:
+        top = max(float(finite.max()), 1.0001)
+        norm = TwoSlopeNorm(vcenter=1.0, vmin=min(float(finite.min()), 0.9999), vmax=top)
+    elif column.startswith("rmse") and finite.size:
+        norm = LogNorm(vmin=float(finite.min()), vmax=float(finite.max()))
+    else:
+        norm = None
+    image = None
+    for ax, name in zip(axes, names, strict=False):
+        sub = rows[rows["filter"] == name].pivot_table(index=y_axis, columns=x_axis, values=column)
+        grid = sub.reindex(index=ys, columns=xs).to_numpy(float)
+        lower_is_better = ratio or column.startswith("rmse")
+        image = ax.imshow(
+            grid, origin="lower", cmap="RdYlGn_r" if lower_is_better else "RdYlGn", norm=norm,
+            aspect="auto", gid=f"{column}/{name}",
+        )  # fmt: skip
+        for (i, j), v in np.ndenumerate(grid):
+            share = column == "nees_in_bounds"
+            text = "-" if not math.isfinite(v) else (f"{v:.0%}" if share else f"{v:#.3g}")
+            ax.text(j, i, text, ha="center", va="center", fontsize=7)
+        ax.set_xticks(range(len(xs)), [f"{v:g}" for v in xs], rotation=45)
+        ax.set_yticks(range(len(ys)), [f"{v:g}" for v in ys])
+        ax.set_xlabel(x_axis)
+        ax.set_ylabel(y_axis)
+        ax.set_title(name)
+    for ax in axes[len(names) :]:
+        ax.set_visible(False)
+    if image is not None:
+        fig.colorbar(image, ax=axes[: len(names)].tolist(), shrink=0.8)
+    fig.suptitle(f"{data.name}: {label}")
+    return fig
+
+
+def breakdown_range(
+    table: pd.DataFrame, axis: str, *, within: float = 1.5, metric: str = "rmse_pos_vs_oracle"
+) -> dict[str, tuple[float, float]]:
+    """Per filter, the range of a factor axis around 1 (no mismatch) over which it stays within
+    `within` x the oracle on `metric`: (lowest, highest) factor of that contiguous range; NaN, NaN
+    when it is not within even at the factor closest to 1. Rows must vary along `axis` only."""
+    out = {}
+    for name, rows in table.groupby("filter", observed=True):
+        rows = rows.sort_values(axis)
+        values = rows[axis].to_numpy(dtype=float)
+        ok = (rows[metric] <= within).to_numpy()
+        centre = int(np.argmin(np.abs(np.log(values))))
+        if not ok[centre]:
+            out[str(name)] = (math.nan, math.nan)
+            continue
+        lo = hi = centre
+        while lo > 0 and ok[lo - 1]:
+            lo -= 1
+        while hi < len(ok) - 1 and ok[hi + 1]:
+            hi += 1
+        out[str(name)] = (float(values[lo]), float(values[hi]))
+    return out
+
+
+def breakdown_lines(data: SweepData, within: float) -> list[str]:
+    """A markdown table of each filter's break-down range on every factor axis of a 1-D sweep."""
+    axes = [a for a in data.axes if a in data.factor_axes]
+    if len(data.axes) != 1 or not axes:
+        return []
+    axis = axes[0]
+    found = breakdown_range(data.table, axis, within=within)
+    lines = [
+        f"Break-down: the range of {axis} around 1 over which a filter stays within {within:g} x"
+        " the oracle's position RMSE ('-': not even at 1).",
+        "",
+        f"| filter | lowest {axis} | highest {axis} |",
+        "|---|---:|---:|",
+    ]
+    for name, (lo, hi) in found.items():
+        shown = ("-", "-") if math.isnan(lo) else (f"{lo:g}", f"{hi:g}")
+        lines.append(f"| {name} | {shown[0]} | {shown[1]} |")
+    return [*lines, ""]
+
+
+def write_sweep_report(
+    folder: Path, out: Path, fmt: str = "png", within: float = 1.5
+) -> tuple[list[Path], str]:
+    """The sweep's figures into `out`; returns the files and the report.md section."""
+    data = read_sweep(folder)
+    out = Path(out)
+    files: list[Path] = []
+    lines = [f"## Sweep {data.name}", ""]
+    lines.append(
+        f"{data.runs} runs per cell, the same seed in every cell (cells are paired); ratios are to"
+        " the EKF given the true noise, with 95 % paired bootstrap intervals."
+    )
+    lines.append("")
+    table = data.table
+    if len(data.axes) == 1:
+        groups = [((), table)]
+        plotted = data.axes
+    else:
+        rest = data.axes[2:]
+        groups = list(table.groupby(rest, sort=True)) if rest else [((), table)]
+        plotted = data.axes[:2]
+    lines += breakdown_lines(data, within)
+    for key, rows in groups:
+        suffix = "" if not key else "-" + "-".join(f"{v:g}" for v in np.atleast_1d(key))
+        if len(plotted) == 1:
+            path = out / f"sweep-{data.name}{suffix}.{fmt}"
+            save_figure(line_figure(data, plotted[0], rows, data.name), path, fmt)
+            files.append(path)
+            lines.append(f"![{data.name}]({path.name})")
+        else:
+            for column, _, label, _, _ in PANELS:
+                path = out / f"sweep-{data.name}-{column}{suffix}.{fmt}"
+                fig = heatmap_figure(data, plotted[0], plotted[1], rows, column, label)
+                save_figure(fig, path, fmt)
+                files.append(path)
+                lines.append(f"![{data.name}: {label}]({path.name})")
+        lines.append("")
+    return files, "\n".join(lines)

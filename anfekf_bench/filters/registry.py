@@ -12,6 +12,7 @@ import numpy as np
 from pydantic import Field
 
 from ..models import Bicycle, control_covariance, measurement_covariance
+from .akhlaghi import AkhlaghiSpec
 from .anfekf import ANFEKFSpec
 from .custom import CustomSpec, entry_point_kinds
 from .ekf import EKFSpec, OracleSpec, RobotEKF, gate_threshold
@@ -22,6 +23,7 @@ SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec,
     OracleSpec,
     ANFEKFSpec,
+    AkhlaghiSpec,
     VBRSpec,
     VBAKFSpec,
     CustomSpec,

@@ -192,26 +192,29 @@ def innovation(x, P, lx, ly, z0, z1):
 
 
 @maybe_njit
-def nis(HPHt, R, nu0, nu1):
-    """nu^T S^-1 nu with S = H P H^T + R by an LU solve with partial pivoting (np.linalg.solve).
-    Returns (ok, nis); ok is False for an exactly singular S (numpy's LinAlgError)."""
-    s00 = HPHt[0] + R[0]
-    s01 = HPHt[1] + R[1]
-    s10 = HPHt[2] + R[2]
-    s11 = HPHt[3] + R[3]
-    b0, b1 = nu0, nu1
-    if abs(s10) > abs(s00):  # row swap
+def lu2(s00, s01, s10, s11):
+    """LAPACK's LU with partial pivoting of a 2 x 2 matrix, as numpy and scipy run it (the
+    multiplier is s10 * (1 / s00)): (swapped, u00, u01, l10, u11). The matrix is singular for
+    LAPACK (numpy's LinAlgError) exactly when u00 or u11 is 0."""
+    swapped = abs(s10) > abs(s00)
+    if swapped:
         s00, s01, s10, s11 = s10, s11, s00, s01
-        b0, b1 = b1, b0
-    if s00 == 0.0:
+    l10 = s10 * (1.0 / s00) if s00 != 0.0 else 0.0
+    return swapped, s00, s01, l10, s11 - l10 * s01
+
+
+@maybe_njit
+def nis(HPHt, R, nu0, nu1):
+    """nu^T S^-1 nu with S = H P H^T + R, by the LU solve of np.linalg.solve. Returns
+    (ok, nis); ok is False for a matrix LAPACK finds singular (numpy's LinAlgError)."""
+    swapped, u00, u01, l10, u11 = lu2(
+        HPHt[0] + R[0], HPHt[1] + R[1], HPHt[2] + R[2], HPHt[3] + R[3]
+    )
+    if u00 == 0.0 or u11 == 0.0:
         return False, math.nan
-    l10 = s10 / s00
-    u11 = s11 - l10 * s01
-    if u11 == 0.0:
-        return False, math.nan
-    y1 = b1 - l10 * b0
-    v1 = y1 / u11
-    v0 = (b0 - s01 * v1) / s00
+    b0, b1 = (nu1, nu0) if swapped else (nu0, nu1)
+    v1 = (b1 - l10 * b0) / u11
+    v0 = (b0 - u01 * v1) / u00
     return True, nu0 * v0 + nu1 * v1
 
 
@@ -236,13 +239,20 @@ def correct(x, P, H, zh, z0, z1, R):
     s01 = (h00 * t01 + h01 * t11) + r01
     s10 = (h10 * t00 + h11 * t10 - t20) + r10
     s11 = (h10 * t01 + h11 * t11 - t21) + r11
-    det = s00 * s11 - s01 * s10
-    if det == 0.0:
+    # S^-1 as scipy.linalg.inv computes it: LU (getrf), then the inverse of U and the solve
+    # with L (getri)
+    swapped, u00, u01, l10, u11 = lu2(s00, s01, s10, s11)
+    if u00 == 0.0 or u11 == 0.0:
         return False, x, P
-    i00 = s11 / det
-    i01 = -s01 / det
-    i10 = -s10 / det
-    i11 = s00 / det
+    v00 = 1.0 / u00
+    v11 = 1.0 / u11
+    v01 = (v00 * u01) * (-v11)
+    i00 = v00 - v01 * l10
+    i01 = v01
+    i10 = 0.0 - v11 * l10
+    i11 = v11
+    if swapped:  # column interchange
+        i00, i01, i10, i11 = i01, i00, i11, i10
     # K = PHT S^-1 (3 x 2)
     k00 = t00 * i00 + t01 * i10
     k01 = t00 * i01 + t01 * i11

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from enum import Enum
@@ -13,15 +14,69 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
+from rich.text import Text
+from typer.core import TyperGroup
 
 from .analysis.metrics import format_number, format_share
-from .config import ScenarioError, load_scenario, one_line, scenario_files
-from .experiment import OutputExists, PlanError, execute, make_plan
+from .config import (
+    MAX_JOBS,
+    MAX_RUNS,
+    MAX_SEED,
+    ScenarioError,
+    load_scenario,
+    one_line,
+    scenario_files,
+)
+from .experiment import (
+    FolderBusy,
+    OutputExists,
+    PlanError,
+    check_plan,
+    execute,
+    make_plan,
+    scenario_folder,
+    survey_output,
+)
 from .runner import BackendUnavailable
 from .sources.simulator import RouteNotCompleted
 from .storage import RUNS_DIR, output_path_problem
 
+# click's exception classes as typer raises them (typer >= 0.17 vendors its own click): found
+# through typer's public BadParameter, so this works with either.
+_ClickException = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+_UsageError = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")
+_NoArgsIsHelp = getattr(sys.modules[_UsageError.__module__], "NoArgsIsHelpError", ())
+
+
+class OneLineUsageErrors(TyperGroup):
+    """Command-line usage errors (an unknown option, a value of the wrong type, a missing
+    argument) as one `error:` line on stderr with exit code 2, not click's framed box."""
+
+    def main(self, *args, standalone_mode: bool = True, **kwargs):
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        try:
+            code = super().main(*args, standalone_mode=False, **kwargs)
+        except _NoArgsIsHelp as exc:  # `anfekf` alone: the help, as before
+            exc.show()
+            sys.exit(exc.exit_code)
+        except _ClickException as exc:
+            message = exc.format_message()
+            ctx = getattr(exc, "ctx", None)
+            if isinstance(exc, _UsageError) and ctx is not None:
+                message += f" (see: {ctx.command_path} --help)"
+            err_console.print(
+                one_line(f"error: {message}"), markup=False, highlight=False, soft_wrap=True
+            )
+            sys.exit(exc.exit_code)
+        except typer.Abort:
+            err_console.print("error: aborted", markup=False, highlight=False)
+            sys.exit(1)
+        sys.exit(code if isinstance(code, int) else 0)
+
+
 app = typer.Typer(
+    cls=OneLineUsageErrors,
     add_completion=False,
     no_args_is_help=True,
     help="Monte Carlo benchmark of the EKF against the adaptive neuro-fuzzy EKF (ANFEKF).",
@@ -99,6 +154,7 @@ def summary_table(title: str, records: list[dict]) -> Table:
         "filter",
         "runs",
         "diverged",
+        "inconsistent",
         "RMSE pos (m)",
         "RMSE head (deg)",
         "ANEES",
@@ -107,9 +163,10 @@ def summary_table(title: str, records: list[dict]) -> Table:
         table.add_column(col, justify="left" if col == "filter" else "right")
     for r in records:
         table.add_row(
-            r["filter"],
+            Text(one_line(str(r["filter"]))),  # plain text: no markup, no control characters
             str(r["runs"]),
             str(r["diverged"]),
+            str(r.get("inconsistent", "-")),
             format_number(r["rmse_pos"], 3),
             format_number(math.degrees(r["rmse_heading"]), 3),
             format_number(r["anees"], 2),
@@ -155,10 +212,16 @@ def run(
     ] = False,
 ) -> None:
     """Run Monte Carlo batches of every filter of a scenario and write Parquet results."""
-    # Checked here rather than by typer's min=, whose error is a multi-line box.
-    for flag, value, least in (("--runs", runs, 1), ("--jobs", jobs, 1), ("--seed", seed, 0)):
+    # Checked here rather than by typer's min=/max=, whose error is a multi-line box.
+    for flag, value, least, most in (
+        ("--runs", runs, 1, MAX_RUNS),
+        ("--jobs", jobs, 1, MAX_JOBS),
+        ("--seed", seed, 0, MAX_SEED),
+    ):
         if value is not None and value < least:
             fail(f"{flag}: must be an integer >= {least} (got {value})")
+        if value is not None and value > most:
+            fail(f"{flag}: must be an integer <= {most} (got {value})")
     kind = None if backend is None else backend.value
     with one_line_errors(debug, (ScenarioError, PlanError)):
         plans = [
@@ -177,6 +240,13 @@ def run(
     if len(set(names)) != len(names):
         fail(f"{scenario}: two scenario files share a name; names must be unique")
     _check_out_dir(out)
+    # Everything that can fail is checked for every scenario before the first one runs (and
+    # again by execute, under the folder's lock, before --force removes anything).
+    for path, plan in zip(scenario_files(scenario), plans, strict=True):
+        with one_line_errors(debug, (PlanError,), prefix=f"{path}: "):
+            check_plan(plan)
+        with one_line_errors(debug, (OutputExists,), prefix=f"{plan.name}: "):
+            survey_output(plan, scenario_folder(out, plan.name), force)
     for plan in plans:
         _run_plan(plan, out, force, debug)
 
@@ -195,7 +265,9 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
 
     def on_start(action: str, done: int, total: int) -> None:
         nonlocal task, saved
-        console.print(f"{plan.name}: {action}", highlight=False)
+        console.print(
+            one_line(f"{plan.name}: {action}"), markup=False, highlight=False, soft_wrap=True
+        )
         task = progress.add_task(plan.name, total=total, completed=done)
         saved = done
 
@@ -209,7 +281,7 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
             one_line_errors(debug, (BackendUnavailable,)),
             one_line_errors(
                 debug,
-                (OutputExists, RouteNotCompleted),
+                (OutputExists, RouteNotCompleted, PlanError, FolderBusy),
                 prefix=f"{plan.name}: ",
                 os_error=f"{plan.name}: cannot write results",
             ),
@@ -229,7 +301,9 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
     tables = table_console()
     tables.print(summary_table(f"{plan.name}: {plan.runs} runs, seed {plan.seed}", records))
     print_comparisons(tables, target)
-    console.print(f"results written to {target}", highlight=False)
+    console.print(
+        one_line(f"results written to {target}"), markup=False, highlight=False, soft_wrap=True
+    )
 
 
 def format_interval(estimate: float, lo: float, hi: float, digits: int = 3) -> str:

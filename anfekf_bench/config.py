@@ -351,6 +351,8 @@ def read_points_csv(path: Path, *, scenario_path: str | Path, field: str) -> np.
     try:
         data = read_regular_bytes(path, MAP_FILE_LIMIT)
     except FileProblem as exc:
+        if str(exc) == "file not found":
+            raise ScenarioError(scenario_path, field, f"map file not found: {path}") from None
         raise ScenarioError(scenario_path, field, f"map file {path}: {exc}") from None
     try:
         text = data.decode("utf-8")

@@ -3,14 +3,23 @@
 Each finished run is saved at once under <out>/<name>/.runs/ (atomically), so an interrupted batch
 loses at most the runs in flight; the next `anfekf run` into the same folder resumes from them when
 the scenario is unchanged. The result files are written last, manifest.json after everything else.
+
+Validate everything first, then touch disk: `check_plan` (values, route, memory) and
+`survey_output` (what <out>/<name> holds, read only) run, and a Dask cluster is reached with its
+workers, before anything is created or removed; the folder is then locked (storage.folder_lock)
+for the whole batch, so two commands cannot mix their runs in it. `--force` removes only this
+tool's files from a folder of anfekf results (never a foreign folder, never through a symlink),
+and only once the batch can start.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
 import platform
+import re
 import shutil
 import time
 from collections.abc import Callable
@@ -18,28 +27,43 @@ from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
-import joblib
 import pandas as pd
 from pydantic import ValidationError
 
 from .analysis.comparisons import comparison_pairs, comparisons_frame, evaluate_claims
 from .analysis.tables import runs_frame, steps_frame, summary_records, update_statistics
 from .config import BackendConfig, Engine, Scenario, World
-from .runner import engine_of, run_batch
-from .sources.simulator import simulate_truth
+from .runner import connect_dask, engine_of, run_batch
+from .sources.simulator import RouteNotCompleted, simulate_truth
 from .storage import (
     CLAIMS_FILE,
     COMPARISONS_FILE,
+    LOCK_FILE,
     MANIFEST_FILE,
+    RUN_FILE_PATTERN,
     RUNS_DIR,
     RUNS_FILE,
     STEPS_FILE,
     SUMMARY_JSON,
     SUMMARY_PARQUET,
+    FileProblem,
+    FolderBusy,
+    ResultsError,
+    RunFileRefused,
+    clear_folder,
+    folder_lock,
+    foreign_entries,
+    read_json,
+    read_regular_bytes,
+    read_run_file,
+    scenario_name_problem,
     write_atomic,
     write_json,
     write_parquet,
+    write_run_file,
 )
+
+__all__ = ["FolderBusy", "OutputExists", "PlanError", "RUNS_DIR", "execute", "make_plan"]
 
 _PACKAGES = (
     "anfekf-bench",
@@ -76,6 +100,10 @@ class Plan:
     @property
     def name(self) -> str:
         return self.scenario.name
+
+    def filter_names(self) -> list[str]:
+        """The filters of every run (a real-data plan has one per filter and naive start)."""
+        return [f.name for f in self.scenario.filters]
 
     def fingerprint(self) -> str:
         """Hash of everything that determines a run's bytes (not jobs or backend: they change
@@ -126,6 +154,12 @@ def make_plan(
     engine: str | None = None,
 ) -> Plan:
     """Apply the command line's overrides (None: keep the scenario file's value)."""
+    if not isinstance(scenario, Scenario):  # a recorded log (SPEC 9): real_experiment
+        from .real_experiment import make_real_plan
+
+        return make_real_plan(
+            scenario, world, runs, seed, jobs, backend=backend, scheduler=scheduler, engine=engine
+        )
     return Plan(
         scenario=scenario,
         world=world,
@@ -170,58 +204,247 @@ def package_versions() -> dict[str, str]:
     return out
 
 
-def prepare_output(plan: Plan, out_dir: Path, force: bool) -> tuple[Path, dict[int, dict], str]:
-    """Create <out>/<name>; return it, the saved runs to resume and a sentence saying what we do."""
-    target = Path(out_dir) / plan.name
-    if target.exists() and not target.is_dir():
+# --------------------------------------------------------------------------------------------
+# Validate first: values, route and memory (nothing on disk is touched)
+
+# Memory model of a batch (see check_plan): what one filter records per step (x 3, P 9, R and Q
+# diagonals 4, errors and NEES 3, with room for more), what the steps table costs per row (its
+# columns, twice while pandas assembles it), one worker process with its libraries loaded.
+FLOATS_PER_TRACE_STEP = 24
+STEPS_TABLE_BYTES_PER_ROW = 2 * 8 * 28
+WORKER_BASE_BYTES = 250 * 2**20
+MEMORY_SHARE = 0.8  # refuse a batch estimated to need more of the machine's memory than this
+
+
+def machine_memory() -> int | None:
+    """Bytes of memory this process may use: physical memory, or a cgroup limit if lower."""
+    try:
+        total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, AttributeError):
+        return None
+    for limit_file in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = Path(limit_file).read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit():
+            total = min(total, int(text))
+    return total
+
+
+def _bytes(n: float) -> str:
+    for unit in ("bytes", "KB", "MB", "GB", "TB"):
+        if n < 1024 or unit == "TB":
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.0f} bytes"  # pragma: no cover
+
+
+def memory_estimate(plan: Plan, control_steps: int) -> int:
+    """Bytes a batch needs at its peak: every run's traces and the steps table in this process,
+    plus each local worker's simulation of one run (its noise for every landmark at every scan)."""
+    recorded = control_steps // plan.scenario.record_every
+    filters = len(plan.scenario.filters)
+    per_run = recorded * (filters * FLOATS_PER_TRACE_STEP + 5) * 8
+    parent = plan.runs * (per_run + recorded * filters * STEPS_TABLE_BYTES_PER_ROW)
+    scans = control_steps // plan.world.sensor_every
+    per_worker = (
+        WORKER_BASE_BYTES
+        + 3 * scans * len(plan.world.landmarks) * 2 * 8
+        + 10 * control_steps * 8
+        + per_run
+    )
+    workers = min(plan.jobs, plan.runs) if plan.backend.kind == "local" else 0
+    return parent + workers * per_worker
+
+
+def check_plan(plan: Plan) -> int:
+    """Everything about a plan that can fail before its batch, checked without touching disk:
+    the route (completed, long enough to record) and the memory the batch needs. Returns the
+    route's control steps; PlanError (a one-line message naming the field) otherwise."""
+    if not isinstance(plan, Plan):  # a recorded log (SPEC 9)
+        from .real_experiment import check_real_plan
+
+        return check_real_plan(plan)
+    problem = scenario_name_problem(plan.name)
+    if problem:
+        raise PlanError(f"name: {problem}")
+    try:
+        control_steps = len(simulate_truth(plan.world).u)
+    except RouteNotCompleted as exc:
+        raise PlanError(f"world.max_steps: {exc}") from None
+    except (OverflowError, ValueError, FloatingPointError, MemoryError) as exc:
+        raise PlanError(f"world: the route cannot be driven ({type(exc).__name__})") from None
+    if control_steps == 0:
+        raise PlanError(
+            "world.waypoints: the route has no control steps (the start is already within"
+            " waypoint_tolerance of every waypoint)"
+        )
+    every = plan.scenario.record_every
+    if every > control_steps:
+        raise PlanError(
+            f"record_every: {every} is longer than the route ({control_steps} control steps);"
+            f" use at most {control_steps}"
+        )
+    need, have = memory_estimate(plan, control_steps), machine_memory()
+    if have is not None and need > MEMORY_SHARE * have:
+        recorded = control_steps // every
+        raise PlanError(
+            f"runs: {plan.runs} runs of {recorded} recorded steps x"
+            f" {len(plan.scenario.filters)} filters (jobs {plan.jobs}) need about {_bytes(need)}"
+            f" of memory, more than {MEMORY_SHARE:.0%} of this machine's {_bytes(have)}; use"
+            " fewer runs, a larger record_every, fewer jobs or a smaller map"
+        )
+    return control_steps
+
+
+# --------------------------------------------------------------------------------------------
+# The scenario folder: confined, surveyed read-only, then (locked) prepared
+
+FINGERPRINT_FILE = "fingerprint"  # in RUNS_DIR: the batch its saved runs belong to
+_RUN_FILE = re.compile(r"run-([0-9]{6,9})\.npz")
+
+
+def scenario_folder(out_dir: Path, name: str) -> Path:
+    """<out>/<name>, a direct child of --out with a safe name, not a symlink, not a file."""
+    problem = scenario_name_problem(name)
+    if problem:
+        raise OutputExists(f"name {name!r}: {problem}")
+    target = Path(out_dir) / name
+    if target.is_symlink():
+        raise OutputExists(
+            f"{target}: is a symbolic link; results are never written (or removed) through one"
+        )
+    if os.path.lexists(target) and not target.is_dir():
         raise OutputExists(f"{target}: exists and is not a folder")
+    return target
+
+
+def _stamp(runs_dir: Path) -> str | None:
+    """The fingerprint of the saved runs, None without one (OutputExists if unreadable)."""
+    path = runs_dir / FINGERPRINT_FILE
+    if not os.path.lexists(path):
+        return None
+    try:
+        return read_regular_bytes(path, 1024).decode("ascii", "replace").strip()
+    except FileProblem as exc:
+        raise OutputExists(f"{path}: {exc}") from None
+
+
+def _is_our_manifest(target: Path) -> bool:
+    try:
+        doc = read_json(target / MANIFEST_FILE)
+    except ResultsError:
+        return False
+    return isinstance(doc, dict) and isinstance(doc.get("fingerprint"), str)
+
+
+def survey_output(plan: Plan, target: Path, force: bool) -> list[str]:
+    """What preparing `target` would remove (--force), or OutputExists when it must not be
+    touched. Reads only; run before anything is written and again under the folder's lock."""
+    if not os.path.lexists(target):
+        return []
+    target = scenario_folder(target.parent, target.name)
+    foreign = foreign_entries(target)
     runs_dir = target / RUNS_DIR
-    if force and target.exists():
-        shutil.rmtree(target)
-        action = "overwriting the previous results (--force)"
-    elif (target / MANIFEST_FILE).exists():
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (
+            f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
+        )
+        raise OutputExists(
+            f"{target}: holds entries this tool did not write ({shown}); "
+            + ("--force removes only anfekf results: " if force else "")
+            + "move them away or use another --out"
+        )
+    ours = sorted(e.name for e in os.scandir(target) if e.name != LOCK_FILE)
+    if force:
+        if ours and not (_is_our_manifest(target) or _stamp(runs_dir) is not None):
+            raise OutputExists(
+                f"{target}: holds no anfekf result (no manifest.json with a fingerprint, no"
+                " saved runs); --force removes only anfekf results"
+            )
+        return ours
+    if os.path.lexists(target / MANIFEST_FILE):
         raise OutputExists(
             f"{target}: holds a complete result already; use --force to overwrite it"
             " or --out to write elsewhere"
         )
-    else:
-        action = "new results"
+    stamp = _stamp(runs_dir)
+    if stamp is not None and stamp != plan.fingerprint():
+        raise OutputExists(
+            f"{target}: holds runs of a different scenario or seed; use --force to discard them"
+        )
+    return []
+
+
+def _load_saved_runs(plan: Plan, runs_dir: Path) -> tuple[dict[int, dict], int]:
+    """The saved runs of this batch, and how many files were refused (and removed: redone)."""
     done: dict[int, dict] = {}
-    stamp = runs_dir / "fingerprint"
-    if runs_dir.is_dir() and stamp.is_file():
-        if stamp.read_text().strip() != plan.fingerprint():
-            raise OutputExists(
-                f"{target}: holds runs of a different scenario or seed; use --force to discard them"
-            )
-        for path in sorted(runs_dir.glob("run-*.joblib")):
-            try:
-                result = joblib.load(path)
-            except Exception:  # a torn file from a crash: redo that run
+    refused = 0
+    names = plan.filter_names()
+    fingerprint = plan.fingerprint()
+    for path in sorted(runs_dir.glob(RUN_FILE_PATTERN)):
+        match = _RUN_FILE.fullmatch(path.name)
+        if match is None or int(match.group(1)) >= plan.runs:
+            continue  # not a name we write, or a run this batch does not ask for
+        run = int(match.group(1))
+        try:
+            result = read_run_file(path, fingerprint)
+            if result.get("run") != run or not isinstance(result.get("filters"), dict):
+                raise RunFileRefused("not the run its name says")
+            if list(result["filters"]) != names:
+                raise RunFileRefused("other filters")
+        except RunFileRefused:
+            refused += 1
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            else:
                 path.unlink(missing_ok=True)
-                continue
-            if result["run"] < plan.runs:
-                done[result["run"]] = result
+            continue
+        done[run] = result
+    return done, refused
+
+
+def prepare_output(plan: Plan, out_dir: Path, force: bool) -> tuple[Path, dict[int, dict], str]:
+    """Prepare <out>/<name> for the batch (call with its lock held: see execute): with --force
+    remove the previous result, else find the saved runs to resume. Returns the folder, the runs
+    to resume and a sentence saying what we do."""
+    target = scenario_folder(out_dir, plan.name)
+    target.mkdir(parents=True, exist_ok=True)
+    doomed = survey_output(plan, target, force)
+    runs_dir = target / RUNS_DIR
+    action = "new results"
+    if force and doomed:
+        removed = clear_folder(target)
+        action = (
+            f"overwriting the previous results (--force): removed {', '.join(removed)}"
+            f" from {target}"
+        )
+    done: dict[int, dict] = {}
+    if _stamp(runs_dir) is not None:
+        done, refused = _load_saved_runs(plan, runs_dir)
         action = f"resuming: {len(done)} of {plan.runs} runs already done in {runs_dir}"
+        if refused:
+            action += f" ({refused} saved run files refused and redone)"
     runs_dir.mkdir(parents=True, exist_ok=True)
+    stamp = runs_dir / FINGERPRINT_FILE
     write_atomic(stamp, lambda tmp: tmp.write_text(plan.fingerprint() + "\n"))
-    for stale in (
-        STEPS_FILE,
-        RUNS_FILE,
-        SUMMARY_PARQUET,
-        SUMMARY_JSON,
-        COMPARISONS_FILE,
-        CLAIMS_FILE,
-    ):
-        (target / stale).unlink(missing_ok=True)
-    # Temporary files of writes a kill cut short (storage.write_atomic names them .<name>.*.tmp).
-    for torn in [*target.glob(".*.tmp"), *runs_dir.glob(".*.tmp")]:
+    # Results of an earlier, unfinished attempt (no manifest: not complete), and temporary files
+    # of writes a kill cut short (storage.write_atomic names them .<name>.*.tmp).
+    for entry in os.scandir(target):
+        stale = entry.name.endswith((".parquet", ".json")) or (
+            entry.name.startswith(".") and entry.name.endswith(".tmp")
+        )
+        if stale and entry.is_file(follow_symlinks=False):
+            os.unlink(entry.path)
+    for torn in runs_dir.glob(".*.tmp"):
         torn.unlink(missing_ok=True)
     return target, done, action
 
 
-def save_run(target: Path, result: dict) -> None:
-    path = target / RUNS_DIR / f"run-{result['run']:06d}.joblib"
-    write_atomic(path, lambda tmp: joblib.dump(result, tmp))
+def save_run(target: Path, result: dict, fingerprint: str) -> None:
+    """Save a finished run in the run store (a data file keyed to the batch's fingerprint)."""
+    write_run_file(target / RUNS_DIR / f"run-{result['run']:06d}.npz", result, fingerprint)
 
 
 def execute(
@@ -233,18 +456,37 @@ def execute(
     on_result: Callable[[dict], None] | None = None,
 ) -> tuple[list[dict], Path]:
     """Run the plan and write its results; returns (summary records, scenario folder)."""
+    if not isinstance(plan, Plan):  # a recorded log (SPEC 9)
+        from .real_experiment import execute_real
+
+        return execute_real(plan, out_dir, force=force, on_start=on_start, on_result=on_result)
     started = time.time()
-    # A route the controller cannot finish fails here, before --force deletes anything.
-    simulate_truth(plan.world)
+    # Validate everything first (nothing is touched): values, route, memory, the folder's state,
+    # the Dask cluster and its workers. Only then lock the folder and (--force) remove.
+    check_plan(plan)
+    survey_output(plan, scenario_folder(out_dir, plan.name), force)
+    client = None
+    if plan.backend.kind == "dask":
+        client = connect_dask(plan.backend.scheduler, plan.backend.connect_timeout_s)
+    try:
+        with folder_lock(Path(out_dir) / plan.name):
+            return _execute_locked(plan, out_dir, force, client, started, on_start, on_result)
+    finally:
+        if client is not None:
+            with contextlib.suppress(Exception):
+                client.close()
+
+
+def _execute_locked(plan, out_dir, force, client, started, on_start, on_result):
     target, done, action = prepare_output(plan, out_dir, force)
+    fingerprint = plan.fingerprint()
 
     def keep(result: dict) -> None:
-        save_run(target, result)
+        save_run(target, result, fingerprint)
         if on_result is not None:
             on_result(result)
 
     results = dict(done)
-    # Reaches a Dask cluster now, so an unreachable one fails before any progress is shown.
     batch = run_batch(
         plan.scenario,
         plan.world,
@@ -257,6 +499,7 @@ def execute(
         scheduler=plan.backend.scheduler,
         connect_timeout_s=plan.backend.connect_timeout_s,
         engine=plan.engine,
+        client=client,
     )
     if on_start is not None:
         on_start(action, len(done), plan.runs)
@@ -274,7 +517,7 @@ def execute(
         "backend": plan.backend.model_dump(mode="json"),
         "engine": plan.engine,
         "engines": {f.name: engine_of(plan.engine, f) for f in plan.scenario.filters},
-        "fingerprint": plan.fingerprint(),
+        "fingerprint": fingerprint,
         "world": {
             "landmarks": plan.world.landmarks.tolist(),
             "waypoints": plan.world.waypoints.tolist(),

@@ -128,7 +128,7 @@ BAD_SCENARIOS = {
         _world(waypoints="route.csv"),
         {"route.csv": "20,0\nforty,8\n"},
         "world.waypoints",
-        ["route.csv", "x,y", "forty"],
+        ["route.csv", "line 2", "x,y"],  # names the line, never quotes the file's content
     ),
     "waypoints-csv-3-columns": (
         _world(waypoints="route.csv"),
@@ -172,7 +172,7 @@ BAD_SCENARIOS = {
         "filters.0",
         ["'ukf'", "'anfekf'"],
     ),
-    "bad-name": (_doc(name="a b/c"), {}, "name", ["pattern"]),
+    "bad-name": (_doc(name="a b/c"), {}, "name", ["letters, digits"]),
     "not-utf8": (None, {}, "", ["cannot read"]),
     "does-not-exist": (None, {}, "", ["does not exist"]),
 }
@@ -569,10 +569,13 @@ def test_cli_table_shows_the_diverged_count(one_run_diverges, tmp_path) -> None:
         if line.count("│") + line.count("┃") >= 3
     ]
     header = next(row for row in rows if "diverged" in row)
-    by_filter = {row[0]: row for row in rows}
+    by_filter: dict[str, list[str]] = {}
+    for row in rows:  # the summary table comes first (other tables follow it)
+        by_filter.setdefault(row[0], row)
     column = header.index("diverged")
     assert by_filter["ekf"][column] == "1"
     assert by_filter["anfekf"][column] == "0"
+    assert by_filter["ekf"][header.index("inconsistent")] == "0"
 
 
 # --- Saved results that are corrupt, truncated or incomplete -----------------------------------

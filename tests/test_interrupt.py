@@ -15,7 +15,6 @@ import sys
 import time
 from pathlib import Path
 
-import joblib
 import pandas as pd
 import pytest
 from typer.testing import CliRunner
@@ -28,8 +27,10 @@ from anfekf_bench.storage import (
     STEPS_FILE,
     SUMMARY_JSON,
     SUMMARY_PARQUET,
+    LOCK_FILE,
     ResultsError,
     read_json,
+    read_run_file,
     scenario_dirs,
     write_atomic,
 )
@@ -48,17 +49,19 @@ def read_steps(folder: Path) -> pd.DataFrame:
 
 
 def assert_nothing_looks_complete(target: Path, runs: int) -> list[int]:
-    """Only the fingerprint, whole run files and *.tmp leftovers; returns the saved run ids."""
+    """Only the lock, the fingerprint, whole run files and *.tmp leftovers; returns the saved
+    run ids."""
     saved = []
+    fingerprint = (target / RUNS_DIR / "fingerprint").read_text().strip()
     for path in sorted(p for p in target.rglob("*") if p.is_file()):
         rel = path.relative_to(target).as_posix()
         assert path.name not in COMPLETE_LOOKING, f"{rel} exists after an interrupted run"
         if path.name.startswith(".") and path.name.endswith(".tmp"):
             continue  # an unfinished write: its name says so
-        if rel == f"{RUNS_DIR}/fingerprint":
+        if rel in (f"{RUNS_DIR}/fingerprint", LOCK_FILE):
             continue
-        assert rel.startswith(f"{RUNS_DIR}/run-") and rel.endswith(".joblib"), rel
-        result = joblib.load(path)  # a file under its final name is whole
+        assert rel.startswith(f"{RUNS_DIR}/run-") and rel.endswith(".npz"), rel
+        result = read_run_file(path, fingerprint)  # a file under its final name is whole
         assert set(result) >= {"run", "step", "filters"}
         saved.append(result["run"])
     assert 0 < len(saved) < runs, f"kill came too late or too early: {len(saved)} of {runs}"
@@ -119,7 +122,7 @@ def test_killed_run_leaves_nothing_complete_and_resumes(kill_scenario, tmp_path,
     )
     try:
         deadline = time.monotonic() + 120
-        while not list((target / RUNS_DIR).glob("run-*.joblib")):
+        while not list((target / RUNS_DIR).glob("run-*.npz")):
             assert proc.poll() is None, proc.communicate()
             assert time.monotonic() < deadline, "no run finished within 120 s"
             time.sleep(0.01)
@@ -200,13 +203,14 @@ def test_torn_run_file_and_stray_temporaries_are_redone(small, tmp_path) -> None
     target = out / "small"
     with pytest.raises(CtrlC):
         execute(plan, out, on_result=_interrupt_after(3))
-    torn = target / RUNS_DIR / "run-000001.joblib"
+    torn = target / RUNS_DIR / "run-000001.npz"
     torn.write_bytes(torn.read_bytes()[:100])
-    (target / RUNS_DIR / ".run-000003.joblib.abc123.tmp").write_bytes(b"half")
+    (target / RUNS_DIR / ".run-000003.npz.abc123.tmp").write_bytes(b"half")
     (target / ".steps.parquet.def456.tmp").write_bytes(b"half")
     rerun = cli("run", str(path), "--out", str(out))
     assert rerun.exit_code == 0, rerun.output
     assert "resuming: 2 of 4 runs" in rerun.stdout
+    assert "(1 saved run files refused and redone)" in rerun.stdout
     assert read_json(target / MANIFEST_FILE)["resumed_runs"] == [0, 2]
     pd.testing.assert_frame_equal(read_steps(target), reference)
     assert not [p for p in target.rglob("*.tmp")]
@@ -241,7 +245,7 @@ def test_interrupted_folder_of_another_seed_refuses(small, tmp_path) -> None:
     assert other.exit_code == 2
     assert len(other.stderr.splitlines()) == 1
     assert "different scenario or seed" in other.stderr and "--force" in other.stderr
-    assert len(list((out / "small" / RUNS_DIR).glob("run-*.joblib"))) == 1, "nothing discarded"
+    assert len(list((out / "small" / RUNS_DIR).glob("run-*.npz"))) == 1, "nothing discarded"
 
 
 def test_folder_missing_its_manifest_is_recomputed(small, tmp_path) -> None:

@@ -98,8 +98,13 @@ class AdaptiveEKF(RobotEKF):
             clip_to_bounds(np.asarray(Qu_diag, float), np.diag(self.Qu0), self.bounds)
         )
 
+    def qu_estimate(self, Q_hat: np.ndarray) -> np.ndarray:
+        """diag(Qu) whose interval noise best matches a state-space estimate Q_hat
+        (`qu_least_squares`, weighted by the inverse of the current P); not clipped, for rules
+        that clamp or average the sample before setting Qu."""
+        return qu_least_squares(Q_hat, self.A_v, self.A_g, np.linalg.inv(self.P))
+
     def set_Qu_from_state_noise(self, Q_hat: np.ndarray) -> None:
-        """Qu from a state-space estimate of the interval's process noise (`qu_least_squares`,
-        weighted by the inverse of the current P), within bounds."""
-        W = np.linalg.inv(self.P)
-        self.set_Qu_diag(qu_least_squares(Q_hat, self.A_v, self.A_g, W))
+        """Qu from a state-space estimate of the interval's process noise (`qu_estimate`),
+        within bounds."""
+        self.set_Qu_diag(self.qu_estimate(Q_hat))

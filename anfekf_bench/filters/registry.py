@@ -16,6 +16,7 @@ from .akhlaghi import AkhlaghiSpec
 from .anfekf import ANFEKFSpec
 from .custom import CustomSpec, entry_point_kinds
 from .ekf import EKFSpec, OracleSpec, RobotEKF, gate_threshold
+from .sage_husa import SageHusaSpec
 from .spec import FilterContext, FilterSpec
 from .vb import VBAKFSpec, VBRSpec
 
@@ -23,6 +24,7 @@ SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec,
     OracleSpec,
     ANFEKFSpec,
+    SageHusaSpec,
     AkhlaghiSpec,
     VBRSpec,
     VBAKFSpec,

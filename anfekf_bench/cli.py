@@ -367,26 +367,36 @@ def report(
     image_format: Annotated[
         str, typer.Option("--format", metavar="png|svg|pdf", help="Figure file format.")
     ] = "png",
+    dpi: Annotated[
+        int,
+        typer.Option(metavar="N", help="Resolution of PNG figures (and of the HTML's images)."),
+    ] = 110,
     debug: Annotated[
-        bool, typer.Option(help="Show tracebacks instead of one-line errors.")
+        bool, typer.Option("--debug", help="Show tracebacks instead of one-line errors.")
     ] = False,
 ) -> None:
-    """Draw the figures and summary table of saved results (never re-runs anything)."""
+    """Draw the figures and tables of saved results into report.md and report.html (never
+    re-runs anything)."""
     # Imported here so that `anfekf run` does not pay for matplotlib.
-    from .report import ImageFormat, rich_table, write_report
+    from .report import HTML_FILE, REPORT_FILE, ImageFormat, rich_table, write_report
     from .storage import ResultsError
 
     formats = [f.value for f in ImageFormat]
     if image_format not in formats:
         fail(f"--format: {image_format!r} is not one of {', '.join(formats)}")
+    if not 10 <= dpi <= 1200:
+        fail(f"--dpi: must be an integer from 10 to 1200 (got {dpi})")
     _check_out_dir(out)
     with one_line_errors(debug, (ResultsError,), os_error=f"{out}: cannot write the report"):
-        done = write_report(results or [Path("results")], out, ImageFormat(image_format))
+        done = write_report(results or [Path("results")], out, ImageFormat(image_format), dpi=dpi)
     table_console().print(rich_table(done.rows))
-    figures = sum(1 for p in done.files if p.suffix != ".md")
+    for warning in done.warnings:
+        console.print(f"warning: {warning}", markup=False, highlight=False, soft_wrap=True)
+    figures = sum(1 for p in done.files if p.suffix not in (".md", ".html"))
     console.print(
         f"report of {len(done.scenarios)} scenarios ({figures} figures) written to"
-        f" {out / 'report.md'}",
+        f" {out / REPORT_FILE} and {out / HTML_FILE}",
+        markup=False,
         highlight=False,
     )
 

@@ -7,8 +7,11 @@ report.py, so a wrong series in the report cannot agree with itself.
 
 from __future__ import annotations
 
+import json
 import math
 import re
+import shutil
+import subprocess
 import zlib
 from pathlib import Path
 
@@ -18,12 +21,15 @@ import pytest
 from scipy.stats import chi2
 from typer.testing import CliRunner
 
+from anfekf_bench.analysis.metrics import format_sig
 from anfekf_bench.cli import app
 from anfekf_bench.config import load_scenario
 from anfekf_bench.experiment import execute, make_plan
 from anfekf_bench.report import plots
 from anfekf_bench.report.report import (
     BAND_PERCENTILES,
+    OUTLIER_FACTOR,
+    claim_interval_problem,
     find_scenarios,
     load_scenario_data,
     summary_rows,
@@ -37,8 +43,10 @@ runner = CliRunner()
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 FIGURE_KINDS = ("rmse", "nees", "noise", "map")
 SCENARIOS = {
-    # Wrong R, the ANFEKF adapts R.
-    "tiny_r": {},
+    # Wrong R, the ANFEKF adapts R; a claim (3 runs: its interval may well be too wide).
+    "tiny_r": {
+        "claims": [{"filter": "anfekf", "vs": "ekf", "metric": "rmse_pos", "at_most": 0.9}],
+    },
     # Wrong Q, the ANFEKF adapts Q.
     "tiny_q": {
         "filter_noise": {"sigma_v": 0.03, "sigma_gamma_deg": 0.5},
@@ -106,6 +114,8 @@ def test_report_holds_every_figure_and_the_markdown(report_dir):
     for name in SCENARIOS:
         assert f"| {name} | anfekf | {RUNS}/{RUNS} |" in md
     assert "tiny_q" in stdout and "anfekf" in stdout and "report.md" in stdout
+    assert "report.html" in stdout
+    assert (out / "report.html").read_text(encoding="utf-8").startswith("<!DOCTYPE html>")
 
 
 @pytest.mark.parametrize(
@@ -114,6 +124,8 @@ def test_report_holds_every_figure_and_the_markdown(report_dir):
     ids=["svg", "pdf"],
 )
 def test_other_formats_are_valid_files(results, tmp_path, fmt, header):
+    """SVG and PDF figures; report.md embeds SVG but links PDF files (a markdown viewer shows no
+    PDF image), and report.html embeds an image of every figure either way."""
     out = tmp_path / "rep"
     result = runner.invoke(
         app, ["report", str(results / "tiny_r"), "--out", str(out), "--format", fmt]
@@ -126,7 +138,17 @@ def test_other_formats_are_valid_files(results, tmp_path, fmt, header):
     for f in files:
         head = f.read_bytes()[:2000]
         assert header in head and f.stat().st_size > 1000, f.name
-    assert f"tiny_r_map.{fmt}" in (out / "report.md").read_text(encoding="utf-8")
+    md = (out / "report.md").read_text(encoding="utf-8")
+    assert f"tiny_r_map.{fmt}" in md
+    embedded = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
+    linked = re.findall(r"(?<!!)\[[^\]]*\]\(([^)]+\.pdf)\)", md)
+    if fmt == "pdf":
+        assert embedded == [] and sorted(linked) == [f.name for f in files]
+    else:
+        assert sorted(embedded) == [f.name for f in files] and linked == []
+    page = (out / "report.html").read_text(encoding="utf-8")
+    mime = "image/svg+xml" if fmt == "svg" else "image/png"
+    assert page.count(f'<img src="data:{mime};base64,') == len(files)
 
 
 @pytest.mark.parametrize("fmt", ["png", "svg", "pdf"])
@@ -159,7 +181,25 @@ def test_rmse_figure_plots_the_rmse_over_runs_and_the_run_spread(results, scenar
             lo, hi = np.percentile(err, BAND_PERCENTILES, axis=0)
             assert band.min() == pytest.approx(lo.min()) and band.max() == pytest.approx(hi.max())
     assert f"{RUNS} runs" in fig.get_suptitle() and scenario in fig.get_suptitle()
-    assert [ax.get_ylabel() for ax in fig.axes] == ["position RMSE [m]", "heading RMSE [deg]"]
+    labels = [ax.get_ylabel() for ax in fig.axes]
+    assert labels == ["position RMSE [m]", "heading RMSE [deg]", "position RMSE / ekf-oracle (log)"]
+
+
+def _sig3(x: float) -> str:
+    """x to 3 significant digits, written independently of format_sig."""
+    text = f"{x:#.3g}"
+    assert "e" not in text, x
+    return text.rstrip(".")
+
+
+@pytest.mark.parametrize(
+    ("value", "text"),
+    [(0.0574, "0.0574"), (1.0449, "1.04"), (18.94, "18.9"), (121.61, "122"), (9.996, "10.0"),
+     (0.203, "0.203"), (3.602, "3.60"), (12345.6, "12346"), (1e-6, "0.00000100"), (0, "0"),
+     (math.nan, "-"), (math.inf, "-"), (-0.5, "-0.500")],
+)  # fmt: skip
+def test_numbers_have_three_significant_digits_in_plain_notation(value, text):
+    assert format_sig(value) == text
 
 
 @pytest.mark.parametrize("scenario", list(SCENARIOS))
@@ -169,9 +209,10 @@ def test_legend_numbers_are_the_saved_summary(results, scenario):
     rmse_texts = _legend_texts(plots.rmse_figure(sc))
     nees_texts = _legend_texts(plots.nees_figure(sc))
     for name, rec in summary.iterrows():
-        rmse = f"{name}: {rec.rmse_pos:.3f} m, {math.degrees(rec.rmse_heading):.3f} deg"
+        head = math.degrees(rec.rmse_heading)
+        rmse = f"{name}: {_sig3(rec.rmse_pos)} m, {_sig3(head)} deg"
         assert rmse in rmse_texts
-        nees = f"{name}: ANEES {rec.anees:.2f}, {100 * rec.nees_in_bounds:.1f} % in bounds"
+        nees = f"{name}: ANEES {_sig3(rec.anees)}, {100 * rec.nees_in_bounds:.1f} % in bounds"
         assert nees in nees_texts
 
 
@@ -186,13 +227,20 @@ def test_nees_figure_plots_the_run_average_and_the_chi_square_bounds(results, sc
     hi = chi2.ppf(0.975, 3 * RUNS) / RUNS
     assert _artist(fig, f"nees_bound_lo/{RUNS}").get_ydata()[0] == pytest.approx(lo)
     assert _artist(fig, f"nees_bound_hi/{RUNS}").get_ydata()[0] == pytest.approx(hi)
-    assert f"95 % bounds, {RUNS} runs: [{lo:.2f}, {hi:.2f}]" in _legend_texts(fig)
+    assert f"95 % bounds, {RUNS} runs: [{_sig3(lo)}, {_sig3(hi)}]" in _legend_texts(fig)
     assert fig.axes[0].get_yscale() == "log"
+    # The median over runs beside the mean: a single run cannot hide what a typical run does.
+    for name in ("ekf", "anfekf", "ekf-oracle"):
+        median = _artist(fig, f"nees_median/{name}").get_ydata()
+        np.testing.assert_allclose(median, np.median(_pivot(steps, name, "nees"), axis=0))
 
 
 def _deg2(sigma_deg: float) -> float:
-    """A variance in rad² from a standard deviation in degrees."""
-    return math.radians(sigma_deg) ** 2
+    """A variance in deg² (the noise figure shows angles in degrees, like the whole report)."""
+    return sigma_deg**2
+
+
+_SHOWN = {"R_rr": 1.0, "R_bb": math.degrees(1.0) ** 2, "Q_vv": 1.0, "Q_gg": math.degrees(1.0) ** 2}
 
 
 @pytest.mark.parametrize(
@@ -213,13 +261,17 @@ def test_noise_figure_plots_the_adapted_diagonal_against_the_truth(
     assert sc.adapted_columns == columns
     fig = plots.noise_figure(sc)
     for col, true, assumed in zip(columns, true_var, assumed_var, strict=True):
+        stored = _pivot(steps, "anfekf", col) * _SHOWN[col]  # rad² in the file, deg² shown
         adapted = _artist(fig, f"noise/{col}/anfekf").get_ydata()
-        np.testing.assert_allclose(adapted, _pivot(steps, "anfekf", col).mean(axis=0))
+        np.testing.assert_allclose(adapted, stored.mean(axis=0))
+        median = _artist(fig, f"noise_median/{col}/anfekf").get_ydata()
+        np.testing.assert_allclose(median, np.median(stored, axis=0))
         assert adapted[0] == pytest.approx(assumed)  # starts from the filter's assumption
         assert _artist(fig, f"noise_true/{col}").get_ydata()[0] == pytest.approx(true)
         fixed = _artist(fig, f"noise_fixed/{col}/ekf").get_ydata()
         np.testing.assert_allclose(fixed, assumed)
     assert all(ax.get_yscale() == "log" for ax in fig.axes if ax.get_visible())
+    assert all("rad" not in ax.get_ylabel() for ax in fig.axes)  # one angle unit: degrees
 
 
 def test_map_figure_draws_the_world_run_zero_and_its_ellipses(results):
@@ -247,12 +299,14 @@ def test_map_figure_draws_the_world_run_zero_and_its_ellipses(results):
     assert {ax.get_xlabel() for ax in fig.axes} == {"x [m]"}
 
 
-def test_summary_rows_and_overview_bars_equal_the_saved_summary(results):
+def test_summary_rows_and_overview_ratios_equal_the_saved_summary_and_comparisons(results):
     scenarios = [load_scenario_data(results / s) for s in SCENARIOS]
     rows = summary_rows(scenarios)
     fig = plots.overview_figure(rows)
     for scenario in SCENARIOS:
         saved = pd.read_parquet(results / scenario / "summary.parquet").set_index("filter")
+        comp = pd.read_parquet(results / scenario / "comparisons.parquet")
+        comp = comp.set_index(["filter", "vs", "metric"])
         for row in (r for r in rows if r.scenario == scenario):
             rec = saved.loc[row.filter]
             assert row.rmse_pos == pytest.approx(rec.rmse_pos)
@@ -260,10 +314,40 @@ def test_summary_rows_and_overview_bars_equal_the_saved_summary(results):
             assert row.nees_in_bounds == pytest.approx(rec.nees_in_bounds)
             assert row.vs_ekf == pytest.approx(rec.rmse_pos / saved.loc["ekf"].rmse_pos)
             assert row.vs_oracle == pytest.approx(rec.rmse_pos / saved.loc["ekf-oracle"].rmse_pos)
-            bar = _artist(fig, f"overview_rmse_pos/{scenario}/{row.filter}")
-            assert bar.get_height() == pytest.approx(rec.rmse_pos)
             bar = _artist(fig, f"overview_nees_in_bounds/{scenario}/{row.filter}")
             assert bar.get_height() == pytest.approx(100 * rec.nees_in_bounds)
+            if row.filter == "ekf-oracle":
+                continue  # the reference: the dashed line at 1
+            for key, metric in (("rmse_ratio", "rmse_pos"), ("anees_ratio", "anees")):
+                saved_ratio = rec[metric] / saved.loc["ekf-oracle"][metric]
+                c = comp.loc[(row.filter, "ekf-oracle", metric)]
+                point = _artist(fig, f"overview_{key}/{scenario}/{row.filter}").get_ydata()[0]
+                # No run diverged: the paired estimate is the summaries' ratio.
+                assert point == pytest.approx(saved_ratio) == pytest.approx(c.estimate)
+                if np.isfinite(c.lo) and np.isfinite(c.hi) and c.hi > c.lo:
+                    segment = _artist(fig, f"overview_{key}_ci/{scenario}/{row.filter}")
+                    lo_hi = segment.get_segments()[0][:, 1]
+                    assert sorted(lo_hi) == pytest.approx([c.lo, c.hi])
+    ratio_axes = [ax for ax in fig.axes if ax.get_yscale() == "log"]
+    assert len(ratio_axes) == 2
+
+
+def test_rmse_ratio_panel_shows_the_gap_to_the_oracle(results):
+    """Where ANFEKF's line lies on the oracle's, the ratio panel separates them: the plotted
+    ratio is the ratio of the RMSE-over-runs curves, its level line the summary's ratio."""
+    steps = read_steps(results / "tiny_r")
+    saved = pd.read_parquet(results / "tiny_r" / "summary.parquet").set_index("filter")
+    fig = plots.rmse_figure(load_scenario_data(results / "tiny_r"))
+    oracle = np.sqrt((_pivot(steps, "ekf-oracle", "pos_err") ** 2).mean(axis=0))
+    for name in ("ekf", "anfekf"):
+        mine = np.sqrt((_pivot(steps, name, "pos_err") ** 2).mean(axis=0))
+        curve = _artist(fig, f"rmse_ratio/{name}").get_ydata()
+        np.testing.assert_allclose(curve, mine / oracle)
+        level = _artist(fig, f"rmse_ratio_mean/{name}").get_ydata()[0]
+        assert level == pytest.approx(saved.loc[name].rmse_pos / saved.loc["ekf-oracle"].rmse_pos)
+        legend = f"{name}: {_sig3(level)}"
+        assert any(t.startswith(legend) for t in _legend_texts(fig))
+    assert fig.axes[2].get_yscale() == "log"
 
 
 def test_diverged_runs_are_left_out_of_curves_bounds_and_table(results, tmp_path):
@@ -403,3 +487,215 @@ def test_unknown_format_is_refused(results, tmp_path):
     result = runner.invoke(app, ["report", str(results), "--out", str(tmp_path), "--format", "jpg"])
     assert result.exit_code == 2
     assert "--format" in result.stderr and "png, svg, pdf" in result.stderr
+
+
+def test_the_html_report_is_written_again_byte_for_byte(results, tmp_path):
+    pages = []
+    for attempt in ("a", "b"):
+        write_report([results / "tiny_q"], tmp_path / attempt, dpi=40)
+        pages.append((tmp_path / attempt / "report.html").read_bytes())
+    assert pages[0] == pages[1]
+
+
+# --------------------------------------------------------------------------- figure details
+
+
+def _draw(fig) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig).draw()
+
+
+def test_log_axes_have_plain_tick_labels(results):
+    """2, 3, 5, 10, 0.5, never 2x10^0 or 10^-1."""
+    sc = load_scenario_data(results / "tiny_q")
+    figs = [plots.rmse_figure(sc), plots.nees_figure(sc), plots.noise_figure(sc)]
+    figs.append(plots.overview_figure(summary_rows([sc])))
+    checked = 0
+    for fig in figs:
+        _draw(fig)
+        for ax in fig.axes:
+            if ax.get_yscale() != "log" or not ax.get_visible():
+                continue
+            labels = [t.get_text() for t in ax.get_yticklabels() if t.get_text()]
+            assert len(labels) >= 2, (ax.get_ylabel(), labels)
+            for text in labels:
+                assert re.fullmatch(r"[0-9]+(\.[0-9]+)?", text), (ax.get_ylabel(), labels)
+            checked += 1
+    assert checked >= 5
+
+
+@pytest.mark.parametrize(
+    ("vmin", "vmax"), [(0.95, 1.1), (1.0, 20.0), (0.01, 3.0), (1e-6, 1e4), (2.0, 2.0)]
+)
+def test_the_log_locator_labels_every_range(vmin, vmax):
+    ticks = plots.PlainLogLocator().tick_values(vmin, vmax)
+    assert len(ticks) >= 1 and np.all(ticks > 0)
+    texts = [plots.plain_number(t) for t in ticks]
+    assert all(re.fullmatch(r"[0-9]+(\.[0-9]+)?", t) for t in texts), texts
+
+
+def test_titles_do_not_repeat_the_scenario_name(results):
+    """A scenario named 'consistency' once read 'consistency: consistency, ...'."""
+    import dataclasses
+
+    sc = dataclasses.replace(load_scenario_data(results / "tiny_r"), name="consistency")
+    figs = [plots.rmse_figure(sc), plots.nees_figure(sc), plots.noise_figure(sc)]
+    figs += [plots.map_figure(sc), plots.overview_figure(summary_rows([sc]))]
+    for fig in figs:
+        titles = [fig.get_suptitle()] + [ax.get_title() for ax in fig.axes]
+        for title in titles:
+            words = re.findall(r"[a-z]+", title.lower())
+            assert not any(a == b for a, b in zip(words, words[1:], strict=False)), title
+
+
+def test_outlier_runs_are_marked_and_the_median_shown(results, tmp_path):
+    """One run whose NEES is 1000 x the others' drags the run-averaged NEES and the mean adapted
+    R far from every other run: it is named as an outlier, drawn thin, and the median stays."""
+    folder = _copy_scenario(results, tmp_path / "res" / "tiny_r")
+    steps = read_steps(folder)
+    wild = (steps["filter"] == "anfekf") & (steps["run"] == 1)
+    steps.loc[wild, "nees"] *= 1000.0
+    steps.loc[wild, "R_rr"] *= 1000.0
+    steps.to_parquet(folder / "steps.parquet")
+    sc = load_scenario_data(folder)
+    anf = next(f for f in sc.filters if f.name == "anfekf")
+    assert anf.outliers == (1,)
+    per_run = _pivot(steps, "anfekf", "nees").mean(axis=1)
+    assert per_run[1] > OUTLIER_FACTOR * np.median(per_run)
+    assert all(f.outliers == () for f in sc.filters if f.name != "anfekf")
+    fig = plots.nees_figure(sc)
+    np.testing.assert_allclose(_artist(fig, "nees_outlier/anfekf/1").get_ydata(),
+                               _pivot(steps, "anfekf", "nees")[1])  # fmt: skip
+    assert any("anfekf run 1: outlier" in t for t in _legend_texts(fig))
+    assert "outlier" in fig.axes[0].get_title()
+    median = _artist(fig, "nees_median/anfekf").get_ydata()
+    np.testing.assert_allclose(median, np.median(_pivot(steps, "anfekf", "nees"), axis=0))
+    noise = plots.noise_figure(sc)
+    np.testing.assert_allclose(_artist(noise, "noise_outlier/R_rr/anfekf/1").get_ydata(),
+                               _pivot(steps, "anfekf", "R_rr")[1])  # fmt: skip
+    assert "outlier" in noise.get_suptitle() and "median" in noise.get_suptitle()
+    out = tmp_path / "rep"
+    write_report([folder], out, dpi=40)
+    md = (out / "report.md").read_text(encoding="utf-8")
+    assert "outlier runs drawn thin: anfekf run 1" in md
+    # The per-run table (runs.parquet) names it too.
+    assert re.search(r"\| anfekf \|[^\n]*\| 1 \|", md), md
+
+
+# --------------------------------------------------------------------------- report.md / html
+
+
+def test_report_states_noise_mismatch_ratios_with_intervals_and_warnings(report_dir, results):
+    out, _ = report_dir
+    md = (out / "report.md").read_text(encoding="utf-8")
+    # True against assumed noise (tiny_r: range 0.1 m true, 2 m assumed; bearing 1 vs 0.1 deg).
+    assert "| range σr [m] | 0.100 | 2.00 | 20.0 |" in md
+    assert "| bearing σb [deg] | 1.00 | 0.100 | 0.100 |" in md
+    assert "**Noise mismatch:** the filters assume range σr 2.00 m for a true 0.100 m" in md
+    # Links relative to the report folder: the report can be moved with its results.
+    assert str(results) not in md and "[../tiny_r](../tiny_r)" in md
+    # Ratio columns with the saved paired intervals.
+    comp = pd.read_parquet(results / "tiny_r" / "comparisons.parquet")
+    c = comp.set_index(["filter", "vs", "metric"]).loc[("anfekf", "ekf-oracle", "rmse_pos")]
+    shown = f"{format_sig(c.estimate)} [{format_sig(c.lo)}, {format_sig(c.hi)}]"
+    row = next(line for line in md.splitlines() if line.startswith("| tiny_r | anfekf |"))
+    assert shown in row.split(" | ")[9]
+    assert "RMSE / oracle [95 % CI]" in md
+    # 3 runs: too few for the NEES bounds to discriminate.
+    assert "> **Warning:** tiny_r: only 3 runs (fewer than 10)" in md
+    assert "> **Warning:** tiny_q: only 3 runs" in md
+    # The claims and their verdicts, with the warning each record carries.
+    claims = json.loads((results / "tiny_r" / "claims.json").read_text(encoding="utf-8"))
+    assert claims
+    for claim in claims:
+        line = next(x for x in md.splitlines() if x.startswith(f"| {claim['claim']} |"))
+        assert f"| {claim['verdict']} |" in line
+        assert (claim["warning"] or "") in line
+
+
+@pytest.mark.parametrize(
+    ("record", "problem"),
+    [
+        ({"at_most": 0.9, "estimate": 0.8, "lo": 0.7, "hi": 1.1, "method": "BCa"}, "straddles"),
+        ({"at_most": 0.9, "estimate": 0.8, "lo": 0.7, "hi": 0.85, "method": "BCa"}, None),
+        ({"at_least": 1, "estimate": 2, "lo": None, "hi": None, "method": "undefined"},
+         "no 95 % interval"),
+        ({"at_least": 0.85, "estimate": 0.9, "lo": None, "hi": None, "method": "point"}, None),
+    ],
+)  # fmt: skip
+def test_a_claim_whose_interval_is_too_wide_is_a_warning(record, problem):
+    found = claim_interval_problem(record)
+    assert (found is None) if problem is None else (problem in found)
+
+
+def test_dpi_sets_the_figure_resolution(results, tmp_path):
+    sizes = {}
+    for dpi in (40, 80):
+        out = tmp_path / f"d{dpi}"
+        result = runner.invoke(
+            app, ["report", str(results / "tiny_q"), "--out", str(out), "--dpi", str(dpi)]
+        )
+        assert result.exit_code == 0, result.output
+        head = (out / "overview.png").read_bytes()[16:24]
+        sizes[dpi] = (int.from_bytes(head[:4], "big"), int.from_bytes(head[4:], "big"))
+    assert sizes[80][0] == pytest.approx(2 * sizes[40][0], abs=2)
+    bad = runner.invoke(app, ["report", str(results), "--out", str(tmp_path / "x"), "--dpi", "0"])
+    assert bad.exit_code == 2 and "--dpi" in bad.stderr
+
+
+def test_html_report_is_self_contained_with_sortable_tables(report_dir):
+    out, _ = report_dir
+    page = (out / "report.html").read_text(encoding="utf-8")
+    figures = sorted(p.name for p in out.glob("*.png"))
+    images = re.findall(r'<img src="([^"]+)"', page)
+    assert len(images) == len(figures)
+    assert all(src.startswith("data:image/png;base64,") for src in images)
+    # Nothing fetched from anywhere: no external scripts, styles or images.
+    assert not re.search(r'(src|href)="(https?:)?//', page)
+    assert "<script src" not in page and "<link" not in page
+    # Sortable tables: every header cell clickable, numbers sort by their value.
+    assert page.count('<table class="sortable">') >= 1 + 2 * len(SCENARIOS)
+    assert 'data-sort="' in page and 'addEventListener("click"' in page
+    for name in SCENARIOS:
+        assert f'id="scenario-{name}"' in page
+
+
+CHROMIUM = next(
+    (shutil.which(n) for n in ("chromium", "chromium-browser") if shutil.which(n)), None
+)
+
+
+def _chromium(page: Path, profile: Path, *args: str) -> subprocess.CompletedProcess:
+    command = [
+        CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
+        "--no-first-run", "--disable-background-networking", "--disable-component-update",
+        "--disable-sync", "--hide-scrollbars", f"--user-data-dir={profile}", *args,
+        page.resolve().as_uri(),
+    ]  # fmt: skip
+    return subprocess.run(command, capture_output=True, timeout=180, check=False)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (apt-get install chromium)")
+def test_html_report_opens_in_a_headless_browser_with_every_image(report_dir, tmp_path):
+    """The acceptance check: Chromium loads report.html, every image decodes, and a screenshot
+    of the page is not blank."""
+    from PIL import Image
+
+    out, _ = report_dir
+    page = out / "report.html"
+    dom = _chromium(page, tmp_path / "profile-dom", "--dump-dom")
+    assert dom.returncode == 0, dom.stderr[-2000:]
+    found = re.search(rb'data-images-ok="(\d+)/(\d+)"', dom.stdout)
+    assert found, "the page's load handler did not run"
+    ok, total = int(found.group(1)), int(found.group(2))
+    assert total == len(list(out.glob("*.png"))) and ok == total
+    shot = tmp_path / "shot.png"
+    done = _chromium(page, tmp_path / "profile-shot", f"--screenshot={shot}",
+                     "--window-size=1280,2400")  # fmt: skip
+    assert done.returncode == 0 and shot.exists(), done.stderr[-2000:]
+    pixels = np.asarray(Image.open(shot).convert("L"), dtype=float)
+    assert pixels.shape == (2400, 1280)
+    assert pixels.std() > 20  # text, tables and figures: far from one flat colour
+    assert (pixels < 128).mean() > 0.01  # dark ink somewhere

@@ -53,6 +53,21 @@ def format_number(x: float | None, digits: int) -> str:
     return "-" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
 
 
+def format_sig(x: float | None, digits: int = 3) -> str:
+    """`x` to `digits` significant digits in plain notation (0.0574, 1.05, 18.9, 122; never
+    1.05e+00), so that a 1 % difference shows; '-' when undefined."""
+    if x is None or not math.isfinite(x):
+        return "-"
+    if x == 0:
+        return "0"
+    decimals = max(0, digits - 1 - math.floor(math.log10(abs(x))))
+    text = f"{x:.{decimals}f}"
+    # Rounding may carry into a new digit (9.996 -> 10.00): drop the extra decimal.
+    if decimals and len(text.lstrip("-").replace(".", "").lstrip("0")) > digits:
+        text = f"{x:.{decimals - 1}f}"
+    return text
+
+
 def format_share(x: float | None) -> str:
     """A share (0..1) as a percentage; '-' when undefined."""
     return "-" if x is None or not math.isfinite(x) else f"{100 * x:.1f} %"

@@ -11,7 +11,7 @@ import math
 import zlib
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, BinaryIO
 
 import matplotlib
 
@@ -21,12 +21,19 @@ import numpy as np  # noqa: E402
 from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.patches import Ellipse, Rectangle  # noqa: E402
+from matplotlib.ticker import (  # noqa: E402
+    FuncFormatter,
+    Locator,
+    LogLocator,
+    MaxNLocator,
+    NullFormatter,  # noqa: E402
+)
 
-from ..analysis.metrics import format_number, format_share  # noqa: E402
+from ..analysis.metrics import format_share, format_sig  # noqa: E402
 from ..storage import write_atomic  # noqa: E402
 
 if TYPE_CHECKING:  # report.py imports this module; these names are for annotations only
-    from .report import Band, FilterSeries, ScenarioData, SummaryRow
+    from .report import Band, FilterSeries, Ratio, ScenarioData, SummaryRow
 
 DPI = 110
 ELLIPSE_SIGMA = 3.0
@@ -62,13 +69,64 @@ def _style(f: FilterSeries) -> dict:
     return {"color": filter_colour(f.name), "linestyle": "--" if f.kind == "ekf-oracle" else "-"}
 
 
-def save_figure(fig: Figure, path: Path, fmt: str = "png") -> None:
-    """Write `fig` atomically in format png, svg or pdf (no timestamps: reproducible files)."""
+def save_figure(fig: Figure, path: Path | BinaryIO, fmt: str = "png", dpi: int = DPI) -> None:
+    """Write `fig` in format png, svg or pdf (no timestamps: reproducible files): to a path
+    atomically, or into an open binary file."""
+    metadata = _METADATA.get(fmt, {})
     with matplotlib.rc_context(_RC):
+        if not isinstance(path, (str, Path)):
+            fig.savefig(path, format=fmt, dpi=dpi, metadata=metadata)
+            return
         write_atomic(
-            Path(path),
-            lambda tmp: fig.savefig(tmp, format=fmt, dpi=DPI, metadata=_METADATA.get(fmt, {})),
+            Path(path), lambda tmp: fig.savefig(tmp, format=fmt, dpi=dpi, metadata=metadata)
         )
+
+
+def plain_number(x: float, pos=None) -> str:
+    """A tick label in plain notation: 2, 3, 0.05, 1000 (never 2x10^0 or 1e-05)."""
+    if not math.isfinite(x) or x <= 0:
+        return ""
+    return np.format_float_positional(float(f"{x:.3g}"), trim="-")
+
+
+class PlainLogLocator(Locator):
+    """Ticks for a log axis that are worth labelling in plain numbers, chosen by the view's span:
+    under a factor 4, evenly spaced ticks (0.9, 1, 1.1, 1.2); up to 30, 1-2-3-4-6 in each decade;
+    up to 1000, 1-2-5; beyond, the powers of ten (every n-th when there are many)."""
+
+    def __call__(self):
+        vmin, vmax = self.axis.get_view_interval()
+        return self.tick_values(vmin, vmax)
+
+    def tick_values(self, vmin: float, vmax: float) -> np.ndarray:
+        vmin, vmax = sorted((vmin, vmax))
+        if not (math.isfinite(vmin) and math.isfinite(vmax)) or vmax <= 0:
+            return np.array([1.0])
+        vmin = vmin if vmin > 0 else vmax / 1e3
+        span = vmax / vmin
+        if span < 4:
+            ticks = MaxNLocator(nbins=5, steps=[1, 2, 2.5, 5, 10]).tick_values(vmin, vmax)
+            return ticks[ticks > 0]
+        if span <= 30:
+            subs = (1, 2, 3, 4, 6)
+        elif span <= 1000:
+            subs = (1, 2, 5)
+        else:
+            subs = (1,)
+        lo, hi = math.floor(math.log10(vmin)), math.ceil(math.log10(vmax))
+        every = max(1, math.ceil((hi - lo) / 8)) if subs == (1,) else 1
+        ticks = [m * 10.0**k for k in range(lo, hi + 1, every) for m in subs]
+        return np.array([t for t in ticks if vmin / 1.001 <= t <= vmax * 1.001] or [10.0**lo])
+
+
+def plain_log_axis(ax: Axes, which: str = "y") -> None:
+    """Log scale with plain tick labels (2, 3, 4, 6, 10) and unlabelled minor ticks."""
+    axis = ax.yaxis if which == "y" else ax.xaxis
+    (ax.set_yscale if which == "y" else ax.set_xscale)("log")
+    axis.set_major_locator(PlainLogLocator())
+    axis.set_major_formatter(FuncFormatter(plain_number))
+    axis.set_minor_locator(LogLocator(base=10, subs=tuple(range(2, 10))))
+    axis.set_minor_formatter(NullFormatter())
 
 
 def _band(
@@ -99,25 +157,82 @@ def _runs_text(sc: ScenarioData) -> str:
     return f"{sc.runs} runs" + (" (diverged runs left out: see legend)" if lost else "")
 
 
+def rmse_ratio_curve(f: FilterSeries, ref: FilterSeries) -> np.ndarray:
+    """Position RMSE over runs of `f` divided by `ref`'s, at each step (NaN where undefined)."""
+    with np.errstate(all="ignore"):
+        ratio = f.pos.line / ref.pos.line
+    return np.where(np.isfinite(ratio) & (ratio > 0), ratio, np.nan)
+
+
+# The ratio panel zooms on the filters whose time-mean ratio lies within this factor of 1: the
+# lines that coincide with the reference above. Farther filters leave the zoomed axis (their gap
+# is plain in the panels above); the legend gives every ratio with its interval.
+NEAR_FACTOR = 1.25
+
+
+def _ratio_panel(ax: Axes, sc: ScenarioData, ref: FilterSeries, others: list) -> None:
+    near = []
+    for f in others:
+        ratio = sc.ratio(f.name, ref)
+        style = _style(f)
+        curve = rmse_ratio_curve(f, ref)
+        interval = (
+            f" [{format_sig(ratio.lo)}, {format_sig(ratio.hi)}]" if ratio.has_interval else ""
+        )
+        is_near = 1 / NEAR_FACTOR <= ratio.estimate <= NEAR_FACTOR
+        ax.plot(f.t, curve, lw=1.0, gid=f"rmse_ratio/{f.name}", alpha=1.0 if is_near else 0.35,
+                label=f"{f.name}: {format_sig(ratio.estimate)}{interval}", **style)  # fmt: skip
+        # The table's ratio (time-mean RMSE over time-mean RMSE) as a level line.
+        ax.axhline(ratio.estimate, color=style["color"], lw=1.6, ls=(0, (6, 2)), alpha=0.8,
+                   gid=f"rmse_ratio_mean/{f.name}")  # fmt: skip
+        if is_near:
+            near.append(curve)
+    ax.axhline(1.0, color="black", lw=0.8)
+    plain_log_axis(ax)
+    zoomed = ""
+    if near and len(near) < len(others):
+        values = np.concatenate(near)
+        values = values[np.isfinite(values)]
+        if values.size:
+            lo, hi = np.percentile(values, (0.5, 99.5))
+            lo, hi = min(lo, 0.98), max(hi, 1.02)
+            ax.set_ylim(lo / 1.03, hi * 1.03)
+            zoomed = f"; axis zoomed on the filters within {NEAR_FACTOR:g} x of {ref.name}"
+    ax.set_ylabel(f"position RMSE / {ref.name} (log)")
+    ax.legend(loc="upper left", fontsize=7, ncols=min(len(others), 3),
+              title=f"RMSE / {ref.name}, time means [95 % interval]", title_fontsize=7)  # fmt: skip
+    ax.set_title(
+        f"ratio to {ref.name} at each step (dashed level: the ratio of the time means){zoomed}",
+        fontsize=8,
+    )
+
+
 @matplotlib.rc_context(_RC)
 def rmse_figure(sc: ScenarioData) -> Figure:
-    """Position and heading RMSE over time per filter, with the spread over runs shaded."""
-    fig = Figure(figsize=(9, 6), layout="constrained")
-    ax_pos, ax_head = fig.subplots(2, 1, sharex=True)
+    """Position and heading RMSE over time per filter, with the spread over runs shaded, and
+    (log scale) each filter's position RMSE divided by the reference's, where lines that
+    coincide in the top panel come apart."""
+    ref = sc.reference()
+    others = [f for f in sc.filters if ref is not None and f.name != ref.name]
+    rows = 3 if others else 2
+    fig = Figure(figsize=(9, 8.4 if others else 6), layout="constrained")
+    axes = fig.subplots(rows, 1, sharex=True, height_ratios=[1.2, 1, 1][:rows])
+    ax_pos, ax_head = axes[0], axes[1]
     lo, hi = _percentiles()
     for f in sc.filters:
         s = f.summary
         head = math.degrees(s["rmse_heading"]) if math.isfinite(s["rmse_heading"]) else math.nan
-        label = (
-            f"{f.name}: {format_number(s['rmse_pos'], 3)} m, {format_number(head, 3)} deg{_lost(f)}"
-        )
+        label = f"{f.name}: {format_sig(s['rmse_pos'])} m, {format_sig(head)} deg{_lost(f)}"
         _band(ax_pos, f.t, f.pos, f, "rmse_pos", label)
         _band(ax_head, f.t, f.heading, f, "rmse_heading", None)
     ax_pos.set_ylabel("position RMSE [m]")
     ax_head.set_ylabel("heading RMSE [deg]")
-    ax_head.set_xlabel("time [s]")
     for ax in (ax_pos, ax_head):
         ax.set_ylim(bottom=0)
+    if others:
+        _ratio_panel(axes[2], sc, ref, others)
+    axes[-1].set_xlabel("time [s]")
+    for ax in axes:
         ax.set_xlim(sc.filters[0].t[0], sc.filters[0].t[-1])
     # Below the axes: error spikes reach any corner, a legend inside would hide some.
     fig.legend(
@@ -135,49 +250,86 @@ def rmse_figure(sc: ScenarioData) -> Figure:
     return fig
 
 
+def _outlier_label(f: FilterSeries, run: int) -> str:
+    i = int(np.flatnonzero(f.run_ids == run)[0])
+    return f"{f.name} run {run}: outlier, mean NEES {format_sig(float(f.run_mean_nees[i]))}"
+
+
 @matplotlib.rc_context(_RC)
 def nees_figure(sc: ScenarioData) -> Figure:
-    """Run-averaged NEES per filter (log scale) with the two-sided 95 % chi-square bounds."""
-    fig = Figure(figsize=(9, 5.2), layout="constrained")
+    """Run-averaged NEES per filter (log scale) with the two-sided 95 % chi-square bounds, the
+    median over runs (dotted) and the outlier runs (thin) that pull the average up."""
+    from .report import OUTLIER_FACTOR
+
+    fig = Figure(figsize=(9, 5.6), layout="constrained")
     ax = fig.subplots()
     for f in sc.filters:
         s = f.summary
         share = format_share(s["nees_in_bounds"])
-        label = f"{f.name}: ANEES {format_number(s['anees'], 2)}, {share} in bounds{_lost(f)}"
-        ax.plot(f.t, f.nees, lw=1.0, label=label, gid=f"nees/{f.name}", **_style(f))
+        label = f"{f.name}: ANEES {format_sig(s['anees'])}, {share} in bounds{_lost(f)}"
+        ax.plot(f.t, f.nees, lw=1.2, label=label, gid=f"nees/{f.name}", **_style(f))
+        ax.plot(f.t, f.nees_median, lw=0.9, ls=":", color=filter_colour(f.name),
+                gid=f"nees_median/{f.name}")  # fmt: skip
+        for run, values in f.outlier_nees.items():
+            ax.plot(f.t, values, lw=0.5, alpha=0.45, color=filter_colour(f.name),
+                    label=_outlier_label(f, run), gid=f"nees_outlier/{f.name}/{run}")  # fmt: skip
     # Filters that lost runs to divergence average fewer runs: their bounds are wider.
     for n, (lo, hi) in sorted({(f.runs_used, f.bounds) for f in sc.filters if f.runs_used}):
-        label = f"95 % bounds, {n} runs: [{lo:.2f}, {hi:.2f}]"
+        label = f"95 % bounds, {n} runs: [{format_sig(lo)}, {format_sig(hi)}]"
         ax.axhspan(lo, hi, color="#2ca02c", alpha=0.08, lw=0)
-        ax.axhline(lo, color="black", lw=0.9, ls=":", label=label, gid=f"nees_bound_lo/{n}")
-        ax.axhline(hi, color="black", lw=0.9, ls=":", gid=f"nees_bound_hi/{n}")
+        ax.axhline(lo, color="black", lw=0.9, ls=(0, (1, 2)), label=label, gid=f"nees_bound_lo/{n}")
+        ax.axhline(hi, color="black", lw=0.9, ls=(0, (1, 2)), gid=f"nees_bound_hi/{n}")
     ax.axhline(3.0, color="#2ca02c", lw=0.8, alpha=0.6, label="expected value 3 (pose dim.)")
-    ax.set_yscale("log")
+    ax.plot([], [], color="grey", ls=":", lw=0.9,
+            label="dotted: median over runs (a consistent filter's: 2.37)")  # fmt: skip
+    plain_log_axis(ax)
+    # Limits from the averages, medians and bounds: a single run's NEES swings over decades and
+    # would squeeze them (outlier runs may leave the axis).
+    shown = [f.nees for f in sc.filters] + [f.nees_median for f in sc.filters]
+    shown.append(np.array([b for f in sc.filters for b in f.bounds]))
+    values = np.concatenate(shown)
+    values = values[np.isfinite(values) & (values > 0)]
+    if values.size:
+        ax.set_ylim(values.min() / 1.5, values.max() * 1.5)
     ax.set_xlim(sc.filters[0].t[0], sc.filters[0].t[-1])
     ax.set_xlabel("time [s]")
-    ax.set_ylabel("run-averaged NEES [-] (log)")
+    ax.set_ylabel("NEES [-] (log)")
     fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", ncols=2)
-    fig.suptitle(f"{sc.name}: consistency, NEES averaged over {_runs_text(sc)}")
+    outliers = sum(len(f.outliers) for f in sc.filters)
+    note = (
+        f"; thin: outlier runs (mean NEES > {OUTLIER_FACTOR:g} x the median run's)"
+        if outliers
+        else "; no outlier runs"
+    )
+    fig.suptitle(f"{sc.name}: NEES averaged over {_runs_text(sc)}")
+    ax.set_title(f"solid: run-averaged NEES; dotted: median over runs{note}", fontsize=8)
     return fig
 
 
 @matplotlib.rc_context(_RC)
 def noise_figure(sc: ScenarioData) -> Figure:
-    """The adapted R/Q diagonal over time (mean over runs and spread) against the true value."""
+    """The adapted R/Q diagonal over time (mean and median over runs, spread, outlier runs)
+    against the true and the assumed value."""
     from .report import NOISE_COLUMNS
 
     columns = sc.adapted_columns
     ncols = 2
     nrows = math.ceil(len(columns) / ncols)
-    fig = Figure(figsize=(9, 3.4 * nrows + 0.6), layout="constrained")
+    fig = Figure(figsize=(9, 3.6 * nrows + 0.8), layout="constrained")
     axes = np.atleast_1d(fig.subplots(nrows, ncols, sharex=True, squeeze=False)).ravel()
     lo, hi = _percentiles()
     ekf = next((f for f in sc.filters if f.kind == "ekf"), None)
     for ax, col in zip(axes, columns, strict=False):
-        what, unit = NOISE_COLUMNS[col]
+        what, unit, _ = NOISE_COLUMNS[col]
         for f in sc.filters:
-            if f.adapts and col.startswith(f.adapts):
-                _band(ax, f.t, f.noise[col], f, f"noise/{col}", f"{f.name} (adapted)")
+            if f.adapts and col in _adapted(f.adapts):
+                _band(ax, f.t, f.noise[col], f, f"noise/{col}", f"{f.name}: mean over runs")
+                ax.plot(f.t, f.noise[col].median, lw=1.0, ls="--", color=filter_colour(f.name),
+                        label=f"{f.name}: median", gid=f"noise_median/{col}/{f.name}")  # fmt: skip
+                for run, values in f.outlier_noise.get(col, {}).items():
+                    ax.plot(f.t, values, lw=0.5, alpha=0.45, color=filter_colour(f.name),
+                            label=f"{f.name} run {run} (outlier)",
+                            gid=f"noise_outlier/{col}/{f.name}/{run}")  # fmt: skip
         if ekf is not None:
             ax.plot(
                 ekf.t,
@@ -185,7 +337,7 @@ def noise_figure(sc: ScenarioData) -> Figure:
                 lw=1.2,
                 ls=":",
                 color=filter_colour(ekf.name),
-                label=f"{ekf.name} (fixed)",
+                label=f"assumed ({ekf.name}, fixed): {format_sig(float(ekf.noise[col].line[0]))}",
                 gid=f"noise_fixed/{col}/{ekf.name}",
             )
         true = sc.true_noise[col]
@@ -194,22 +346,29 @@ def noise_figure(sc: ScenarioData) -> Figure:
             color="black",
             lw=1.0,
             ls="--",
-            label=f"true: {true:.3g} {unit}",
+            label=f"true: {format_sig(true)} {unit}",
             gid=f"noise_true/{col}",
         )
-        ax.set_yscale("log")
+        plain_log_axis(ax)
         ax.set_title(f"{what} {col}", fontsize=9)
         ax.set_ylabel(f"{col} [{unit}] (log)")
-        ax.legend(loc="best")
+        ax.legend(loc="best", fontsize=7)
     for ax in axes[len(columns) :]:
         ax.set_visible(False)
     for ax in axes[max(len(columns) - ncols, 0) : len(columns)]:
         ax.set_xlabel("time [s]")
     fig.suptitle(
-        f"{sc.name}: adapted noise covariance, mean over {_runs_text(sc)} "
-        f"(band: {lo:g}-{hi:g} % of runs); ekf-oracle uses the true value"
+        f"{sc.name}: adapted noise covariance over {_runs_text(sc)}\nsolid: mean, dashed: median,"
+        f" band: {lo:g}-{hi:g} % of runs, thin: outlier runs; ekf-oracle uses the true value",
+        fontsize=9,
     )
     return fig
+
+
+def _adapted(adapts: str) -> tuple[str, ...]:
+    from .report import _ADAPTED
+
+    return _ADAPTED[adapts]
 
 
 def ellipse(centre: np.ndarray, cov: np.ndarray, sigma: float = ELLIPSE_SIGMA, **kw) -> Ellipse:
@@ -304,47 +463,104 @@ def _spacing(tr) -> float:
     return float(np.median(np.diff(tr.t[idx]))) if len(idx) > 1 else float(tr.t[idx[0]])
 
 
+# In every group: the plain EKF first, then the adaptive filters, the oracle (reference) last.
+_RANK = {"ekf": 0, "anfekf": 1, "ekf-oracle": 3}
+
+
+def _ratio_points(ax: Axes, groups: dict, width: float, key: str, get, labelled: set[str]) -> None:
+    """One point per filter and scenario at its ratio, with its 95 % interval as error bar."""
+    for j, (scen, group) in enumerate(groups.items()):
+        for i, row in enumerate(group):
+            ratio: Ratio | None = get(row)
+            if ratio is None or not math.isfinite(ratio.estimate) or ratio.estimate <= 0:
+                continue
+            x = j + (i - (len(group) - 1) / 2) * width
+            colour = filter_colour(row.filter)
+            if ratio.has_interval:
+                err = [[max(ratio.estimate - ratio.lo, 0.0)], [max(ratio.hi - ratio.estimate, 0.0)]]
+            else:
+                err = None
+            bars = ax.errorbar(
+                [x], [ratio.estimate], yerr=err, fmt="o", ms=5, color=colour, ecolor=colour,
+                elinewidth=1.4, capsize=3,
+                label=None if row.filter in labelled else row.filter,
+            )  # fmt: skip
+            bars.lines[0].set_gid(f"overview_{key}/{scen}/{row.filter}")
+            if err is not None:
+                bars.lines[2][0].set_gid(f"overview_{key}_ci/{scen}/{row.filter}")
+            labelled.add(row.filter)
+            ax.annotate(format_sig(ratio.estimate), (x, ratio.hi if ratio.has_interval else
+                        ratio.estimate), xytext=(0, 3), textcoords="offset points",
+                        ha="center", va="bottom", fontsize=6.5)  # fmt: skip
+
+
 @matplotlib.rc_context(_RC)
 def overview_figure(rows: Sequence[SummaryRow]) -> Figure:
-    """Position RMSE and the share of steps with NEES in bounds, per filter and scenario."""
+    """Per scenario and filter: position RMSE and ANEES divided by the oracle EKF's (log scale,
+    95 % paired bootstrap intervals as error bars), and the share of steps with NEES in bounds.
+
+    Ratios to the reference on a log axis: a filter 1 % worse than the oracle shows as 1.01, and
+    one diverging filter (RMSE 20 x) cannot flatten the others into the floor."""
     scenarios = list(dict.fromkeys(r.scenario for r in rows))
-    # In every group: the plain EKF first, then the adaptive filters, the oracle (reference) last.
-    rank = {"ekf": 0, "anfekf": 1, "ekf-oracle": 3}
-    ordered = sorted(rows, key=lambda r: rank.get(r.kind, 2))
+    ordered = sorted(rows, key=lambda r: _RANK.get(r.kind, 2))
     groups = {s: [r for r in ordered if r.scenario == s] for s in scenarios}
     width = 0.8 / max(len(g) for g in groups.values())
-    fig = Figure(figsize=(max(8.0, 2.6 * len(scenarios) + 3), 4.6), layout="constrained")
-    ax_rmse, ax_cons = fig.subplots(1, 2)
-    panels = ((ax_rmse, "rmse_pos", 1.0, "%.2f"), (ax_cons, "nees_in_bounds", 100.0, "%.0f"))
-    labelled: set[tuple[str, str]] = set()
+    fig = Figure(figsize=(max(11.0, 3.4 * len(scenarios) + 1.5), 5.0), layout="constrained")
+    ax_rmse, ax_anees, ax_cons = fig.subplots(1, 3, width_ratios=[1.2, 1.2, 1])
+    labelled: set[str] = set()
+    _ratio_points(ax_rmse, groups, width, "rmse_ratio", lambda r: r.rmse_vs_oracle, labelled)
+    _ratio_points(ax_anees, groups, width, "anees_ratio", lambda r: r.anees_vs_oracle, labelled)
     for j, (scen, group) in enumerate(groups.items()):
         for i, row in enumerate(group):
             centre = j + (i - (len(group) - 1) / 2) * width
-            for ax, key, scale, fmt in panels:
-                value = getattr(row, key) * scale
-                bars = ax.bar(
-                    centre,
-                    value if math.isfinite(value) else 0.0,  # all runs diverged: an empty slot
-                    width,
-                    color=filter_colour(row.filter),
-                    label=None if (key, row.filter) in labelled else row.filter,
-                    gid=f"overview_{key}/{scen}/{row.filter}",
-                )
-                labelled.add((key, row.filter))
-                ax.bar_label(bars, fmt=fmt, fontsize=6, padding=1)
-    for ax in (ax_rmse, ax_cons):
-        ax.set_xticks(np.arange(len(scenarios)), scenarios)
+            value = 100 * row.nees_in_bounds
+            bars = ax_cons.bar(
+                centre,
+                value if math.isfinite(value) else 0.0,  # all runs diverged: an empty slot
+                width,
+                color=filter_colour(row.filter),
+                label=None if row.filter in labelled else row.filter,
+                gid=f"overview_nees_in_bounds/{scen}/{row.filter}",
+            )
+            labelled.add(row.filter)
+            ax_cons.bar_label(bars, labels=[format_sig(value)], fontsize=6, padding=2, rotation=90)
+    ticks = [_tick(s, groups[s]) for s in scenarios]
+    for ax in (ax_rmse, ax_anees, ax_cons):
+        ax.set_xticks(np.arange(len(scenarios)), ticks)
+        ax.set_xlim(-0.6, len(scenarios) - 0.4)
         ax.grid(axis="x", visible=False)
-    ax_rmse.set_ylabel("position RMSE [m] (time mean of RMSE curve)")
-    ax_rmse.set_title("accuracy: lower is better")
+    oracle = next((r.oracle_name for r in rows if r.kind == "ekf-oracle"), "ekf-oracle")
+    for ax, what in ((ax_rmse, "position RMSE"), (ax_anees, "ANEES")):
+        ax.axhline(1.0, color=filter_colour(oracle), lw=1.0, ls="--",
+                   label=f"{oracle} (= 1)" if oracle not in labelled else None)  # fmt: skip
+        labelled.add(oracle)
+        plain_log_axis(ax)
+        ax.set_ylabel(f"{what} / {oracle}'s (log)")
+        ax.margins(y=0.12)
+    ax_rmse.set_title("accuracy: position RMSE / oracle's (lower is better)")
+    ax_anees.set_title("ANEES / oracle's (oracle's ANEES is about 3)")
     ax_cons.set_ylabel("steps with run-averaged NEES in 95 % bounds [%]")
-    ax_cons.set_ylim(0, 105)
-    ax_cons.set_title("consistency: higher is better")
-    handles, labels = ax_rmse.get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncols=len(labels))
+    ax_cons.set_ylim(0, 108)
+    ax_cons.set_title("steps with NEES in 95 % bounds (higher is better)")
+    handles, labels = [], []
+    for ax in (ax_rmse, ax_anees, ax_cons):
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 6),
+               title="error bars: 95 % paired bootstrap interval over runs")  # fmt: skip
     runs = "/".join(str(n) for n in sorted({r.runs for r in rows}))
     fig.suptitle(f"Overview: {len(scenarios)} scenarios, {runs} runs each")
     return fig
+
+
+def _tick(scenario: str, group: list) -> str:
+    """The scenario's x label, with a warning when its runs are too few."""
+    from .report import FEW_RUNS
+
+    used = min(r.runs_used for r in group)
+    return f"{scenario}\n(only {used} runs)" if used < FEW_RUNS else scenario
 
 
 def _percentiles() -> tuple[float, float]:

@@ -1,15 +1,20 @@
 """`anfekf report`: the series behind every figure and table, computed from saved results only.
 
-Nothing is re-run. A scenario folder's steps.parquet and manifest.json (read through storage's
-readers) become plain arrays (`ScenarioData`): the same metric functions the runner uses
-(`filter_arrays`, `rmse_curve`, `nees_bounds`, `summarize_filter`) compute them, so a figure's line
-and the table's number can never disagree. plots.py draws these arrays; `write_report` writes the
-figures and report.md.
+Nothing is re-run (run, store and plot are separate steps). A scenario folder's steps.parquet and
+manifest.json (read through storage's readers) become plain arrays (`ScenarioData`): the same
+metric functions the runner uses (`filter_arrays`, `rmse_curve`, `nees_bounds`,
+`summarize_filter`) compute them, so a figure's line and the table's number can never disagree.
+The paired comparisons (comparisons.parquet: ratios with 95 % bootstrap intervals), the claims'
+verdicts (claims.json) and the per-run metrics (runs.parquet) are shown as saved. plots.py draws
+the arrays; `write_report` writes the figures, report.md and report.html (one self-contained
+file, document.py).
 """
 
 from __future__ import annotations
 
+import io
 import math
+import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -24,41 +29,75 @@ from rich.table import Table
 from rich.text import Text
 
 from ..analysis.metrics import (
-    format_number,
     format_share,
+    format_sig,
     nees_bounds,
     rmse_curve,
     summarize_filter,
 )
+from ..analysis.statistics import Interval, interval_too_wide, too_few_runs
 from ..analysis.tables import filter_arrays
 from ..config import NoiseSigmas
 from ..models import control_covariance, measurement_covariance
 from ..storage import (
+    CLAIMS_FILE,
+    COMPARISONS_FILE,
     MANIFEST_FILE,
+    RUNS_FILE,
     ResultsError,
+    read_json,
     read_manifest,
+    read_parquet,
     read_steps,
     scenario_dirs,
     write_atomic,
 )
 from . import plots
+from .document import (
+    Cell,
+    Document,
+    FigureBlock,
+    Heading,
+    Paragraph,
+    TableBlock,
+    Warning,
+    to_html,
+    to_markdown,
+)
 
 BAND_PERCENTILES = (10.0, 90.0)  # the shaded band: this spread of the per-run values over runs
 ELLIPSE_COUNT = 8  # 3-sigma ellipses along run 0's path, evenly spaced in time
 REPORT_FILE = "report.md"
+HTML_FILE = "report.html"
+# An outlier run: its time-mean NEES exceeds this many times the median run's (of the same
+# filter). One such run can move the run-averaged NEES (and the mean adapted noise) far from
+# where the other runs are; the figures mark them and show the median beside the mean.
+OUTLIER_FACTOR = 5.0
+MAX_OUTLIERS_DRAWN = 3  # per filter, the worst ones
+FEW_RUNS = 10  # below this, intervals are wide and the NEES bounds hardly discriminate
 
-# The adapted covariance diagonals in steps.parquet, with what they mean and their units.
-NOISE_COLUMNS: dict[str, tuple[str, str]] = {
-    "R_rr": ("R range variance", "m²"),
-    "R_bb": ("R bearing variance", "rad²"),
-    "Q_vv": ("Q speed variance", "(m/s)²"),
-    "Q_gg": ("Q steering variance", "rad²"),
+_DEG2 = (180.0 / math.pi) ** 2
+# The adapted covariance diagonals in steps.parquet: what they mean, the unit they are shown in,
+# and the factor from the stored unit (angles are stored in rad², shown in deg² like every other
+# angle of the report).
+NOISE_COLUMNS: dict[str, tuple[str, str, float]] = {
+    "R_rr": ("R range variance", "m²", 1.0),
+    "R_bb": ("R bearing variance", "deg²", _DEG2),
+    "Q_vv": ("Q speed variance", "(m/s)²", 1.0),
+    "Q_gg": ("Q steering variance", "deg²", _DEG2),
 }
-_ADAPTED = {"R": ("R_rr", "R_bb"), "Q": ("Q_vv", "Q_gg")}
+_ADAPTED = {"R": ("R_rr", "R_bb"), "Q": ("Q_vv", "Q_gg"), "RQ": ("R_rr", "R_bb", "Q_vv", "Q_gg")}
 _NEEDED_COLUMNS = {
     "t", "x_true", "y_true", "x_est", "y_est", "P_xx", "P_xy", "P_yy", "heading_err", "diverged",
     *NOISE_COLUMNS,
 }  # fmt: skip
+# The noise a scenario states, in the units of its YAML keys.
+SIGMAS = (
+    ("sigma_v", "speed σv", "m/s"),
+    ("sigma_gamma_deg", "steering σγ", "deg"),
+    ("sigma_range", "range σr", "m"),
+    ("sigma_bearing_deg", "bearing σb", "deg"),
+)
 
 
 class ImageFormat(str, Enum):
@@ -73,9 +112,10 @@ class ImageFormat(str, Enum):
 class Band:
     """A curve over time with the spread over runs around it (all arrays of length steps)."""
 
-    line: np.ndarray
+    line: np.ndarray  # the mean over runs (RMSE over runs for errors)
     lo: np.ndarray
     hi: np.ndarray
+    median: np.ndarray  # the median over runs: what a typical run does
 
 
 @dataclass(frozen=True)
@@ -83,17 +123,23 @@ class FilterSeries:
     """Everything the figures show about one filter of one scenario (diverged runs left out)."""
 
     name: str
-    kind: str  # ekf, ekf-oracle, anfekf
-    adapts: str | None  # "R" or "Q" for an adapting ANFEKF, else None
+    kind: str  # ekf, ekf-oracle, anfekf, ...
+    adapts: str | None  # "R", "Q" or "RQ" for an adapting ANFEKF, else None
     runs: int
     runs_used: int
     t: np.ndarray  # [s]
     pos: Band  # line: RMSE over runs [m]; band: percentiles of the per-run position error
     heading: Band  # as pos, in degrees
     nees: np.ndarray  # run-averaged NEES
+    nees_median: np.ndarray  # median over runs of the NEES at each step
     bounds: tuple[float, float]  # two-sided 95 % chi-square bounds for runs_used runs
-    noise: dict[str, Band]  # R/Q diagonal column -> mean over runs and percentiles
+    noise: dict[str, Band]  # R/Q diagonal column -> mean over runs and percentiles (shown unit)
     summary: dict  # summarize_filter's record: rmse_pos, rmse_heading, anees, nees_in_bounds, ...
+    run_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  # kept runs
+    run_mean_nees: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per kept run
+    outliers: tuple[int, ...] = ()  # run ids, worst first (see OUTLIER_FACTOR)
+    outlier_nees: dict[int, np.ndarray] = field(default_factory=dict)  # drawn outliers' NEES
+    outlier_noise: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -109,6 +155,21 @@ class Track:
 
 
 @dataclass(frozen=True)
+class Ratio:
+    """A paired ratio of comparisons.parquet: filter / vs with its 95 % bootstrap interval."""
+
+    estimate: float
+    lo: float
+    hi: float
+    runs_used: int
+    p_value: float = math.nan
+
+    @property
+    def has_interval(self) -> bool:
+        return math.isfinite(self.lo) and math.isfinite(self.hi)
+
+
+@dataclass(frozen=True)
 class ScenarioData:
     """One result folder, reduced to the series the report draws."""
 
@@ -118,10 +179,16 @@ class ScenarioData:
     runs: int
     seed: int | None
     filters: list[FilterSeries]
-    true_noise: dict[str, float]  # noise column -> true variance in that column's units
+    true_noise: dict[str, float]  # noise column -> true variance in that column's shown unit
     landmarks: np.ndarray  # (n, 2) [m]
     waypoints: np.ndarray  # (m, 2) [m]
     track: Track
+    true_sigmas: NoiseSigmas = NoiseSigmas()
+    assumed_sigmas: NoiseSigmas = NoiseSigmas()
+    # (filter, vs, metric) -> ratio, from comparisons.parquet (empty for results without it)
+    comparisons: dict[tuple[str, str, str], Ratio] = field(default_factory=dict)
+    claims: list[dict] = field(default_factory=list)  # claims.json
+    per_run: pd.DataFrame | None = None  # runs.parquet, when the results have it
 
     @property
     def slug(self) -> str:
@@ -133,6 +200,27 @@ class ScenarioData:
         """The R/Q diagonal columns some filter adapts, in NOISE_COLUMNS order."""
         wanted = {c for f in self.filters if f.adapts for c in _ADAPTED[f.adapts]}
         return [c for c in NOISE_COLUMNS if c in wanted]
+
+    def reference(self) -> FilterSeries | None:
+        """The filter ratios are taken against: the oracle EKF, else the plain EKF."""
+        return _first_of_kind(self, "ekf-oracle") or _first_of_kind(self, "ekf")
+
+    def ratio(self, name: str, ref: FilterSeries | None, metric: str = "rmse_pos") -> Ratio | None:
+        """filter `name` / `ref` on `metric`: the saved paired comparison (with its interval),
+        else the ratio of the two summaries (no interval); None without a reference."""
+        if ref is None or ref.name == name:
+            return None
+        saved = self.comparisons.get((name, ref.name, metric))
+        if saved is not None:
+            return saved
+        f = next(f for f in self.filters if f.name == name)
+        num, den = f.summary.get(metric, math.nan), ref.summary.get(metric, math.nan)
+        value = num / den if den and math.isfinite(den) else math.nan
+        return Ratio(value, math.nan, math.nan, min(f.runs_used, ref.runs_used))
+
+    @property
+    def few_runs(self) -> bool:
+        return too_few_runs(min(f.runs_used for f in self.filters), FEW_RUNS)
 
 
 @dataclass(frozen=True)
@@ -152,6 +240,14 @@ class SummaryRow:
     nees_hi: float
     vs_ekf: float  # rmse_pos / the scenario's EKF's rmse_pos (nan without an EKF)
     vs_oracle: float  # rmse_pos / the oracle EKF's rmse_pos (nan without one)
+    # Paired ratios with their 95 % intervals (comparisons.parquet); None for the reference
+    # itself or without that reference.
+    rmse_vs_ekf: Ratio | None = None
+    rmse_vs_oracle: Ratio | None = None
+    anees_vs_oracle: Ratio | None = None
+    outliers: tuple[int, ...] = ()
+    ekf_name: str = "ekf"
+    oracle_name: str = "ekf-oracle"
 
 
 @dataclass
@@ -162,6 +258,7 @@ class ReportResult:
     scenarios: list[ScenarioData]
     rows: list[SummaryRow]
     files: list[Path] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
 
 
 # --------------------------------------------------------------------------- finding results
@@ -206,20 +303,20 @@ def _points(manifest: dict, key: str, path: Path) -> np.ndarray:
 
 
 def true_variances(sigmas: NoiseSigmas) -> dict[str, float]:
-    """The true noise as the R/Q diagonal entries steps.parquet records (angles in radians)."""
+    """The noise as the R/Q diagonal entries the noise figure shows (angles in deg²)."""
     sv, sg, sr, sb = sigmas.radians()
     R, Qu = measurement_covariance(sr, sb), control_covariance(sv, sg)
-    return {"R_rr": R[0, 0], "R_bb": R[1, 1], "Q_vv": Qu[0, 0], "Q_gg": Qu[1, 1]}
+    stored = {"R_rr": R[0, 0], "R_bb": R[1, 1], "Q_vv": Qu[0, 0], "Q_gg": Qu[1, 1]}
+    return {col: float(value * NOISE_COLUMNS[col][2]) for col, value in stored.items()}
 
 
-def _true_noise(manifest: dict, path: Path) -> dict[str, float]:
+def _sigmas(manifest: dict, key: str, path: Path) -> NoiseSigmas:
     try:
-        sigmas = NoiseSigmas.model_validate(manifest["scenario"].get("true_noise") or {})
+        return NoiseSigmas.model_validate(manifest["scenario"].get(key) or {})
     except ValidationError as exc:
         err = exc.errors()[0]
         where = ".".join(str(p) for p in err["loc"])
-        raise ResultsError(f"{path}: scenario.true_noise.{where}: {err['msg']}") from None
-    return true_variances(sigmas)
+        raise ResultsError(f"{path}: scenario.{key}.{where}: {err['msg']}") from None
 
 
 def _filter_specs(manifest: dict, path: Path) -> dict[str, dict]:
@@ -235,21 +332,38 @@ def _adapts(spec: dict) -> str | None:
     return spec.get("adapt", "R") if spec.get("adapt", "R") in _ADAPTED else None
 
 
+def _percentiles(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    lo, hi = np.percentile(values, BAND_PERCENTILES, axis=0)
+    return lo, hi, np.median(values, axis=0)
+
+
 def _band(values: np.ndarray) -> Band:
-    """Mean over runs with the percentile band, for (runs, steps) values."""
+    """Mean over runs with the percentile band and the median, for (runs, steps) values."""
     if len(values) == 0:
         empty = np.full(values.shape[1], np.nan)
-        return Band(empty, empty, empty)
-    lo, hi = np.percentile(values, BAND_PERCENTILES, axis=0)
-    return Band(values.mean(axis=0), lo, hi)
+        return Band(empty, empty, empty, empty)
+    return Band(values.mean(axis=0), *_percentiles(values))
 
 
 def _error_band(err: np.ndarray) -> Band:
     """RMSE over runs (the paper's curve) with the percentile band of the per-run errors."""
     if len(err) == 0:
         return _band(err)
-    lo, hi = np.percentile(err, BAND_PERCENTILES, axis=0)
-    return Band(rmse_curve(err), lo, hi)
+    return Band(rmse_curve(err), *_percentiles(err))
+
+
+def outlier_runs(run_ids: np.ndarray, run_mean_nees: np.ndarray) -> tuple[int, ...]:
+    """The runs whose time-mean NEES exceeds OUTLIER_FACTOR x the median run's, worst first."""
+    values = np.asarray(run_mean_nees, dtype=float)
+    if values.size < 3:
+        return ()
+    with np.errstate(invalid="ignore"):
+        median = float(np.nanmedian(np.where(np.isinf(values), np.nan, values)))
+    if not math.isfinite(median) or median <= 0:
+        return ()
+    bad = np.flatnonzero(values > OUTLIER_FACTOR * median)
+    order = bad[np.argsort(-values[bad], kind="stable")]
+    return tuple(int(run_ids[i]) for i in order)
 
 
 def filter_series(steps: pd.DataFrame, name: str, spec: dict) -> FilterSeries:
@@ -257,7 +371,17 @@ def filter_series(steps: pd.DataFrame, name: str, spec: dict) -> FilterSeries:
     a = filter_arrays(steps, name)
     ok = ~np.asarray(a["diverged"], dtype=bool)
     n = int(ok.sum())
-    avg_nees = a["nees"][ok].mean(axis=0) if n else np.full(len(a["t"]), np.nan)
+    nees = a["nees"][ok]
+    steps_n = len(a["t"])
+    with np.errstate(all="ignore"):
+        avg_nees = nees.mean(axis=0) if n else np.full(steps_n, np.nan)
+        med_nees = np.median(nees, axis=0) if n else np.full(steps_n, np.nan)
+        run_mean = nees.mean(axis=1) if n else np.zeros(0)
+    run_ids = np.asarray(a["run"])[ok]
+    outliers = outlier_runs(run_ids, run_mean)
+    drawn = outliers[:MAX_OUTLIERS_DRAWN]
+    row_of = {int(r): i for i, r in enumerate(run_ids)}
+    noise = {col: a[col][ok] * NOISE_COLUMNS[col][2] for col in NOISE_COLUMNS}
     return FilterSeries(
         name=name,
         kind=str(spec.get("kind", "?")),
@@ -268,9 +392,15 @@ def filter_series(steps: pd.DataFrame, name: str, spec: dict) -> FilterSeries:
         pos=_error_band(a["pos_err"][ok]),
         heading=_error_band(np.degrees(a["heading_err"][ok])),
         nees=avg_nees,
+        nees_median=med_nees,
         bounds=nees_bounds(n) if n else (math.nan, math.nan),
-        noise={col: _band(a[col][ok]) for col in NOISE_COLUMNS},
+        noise={col: _band(values) for col, values in noise.items()},
         summary=summarize_filter(a["pos_err"], a["heading_err"], a["nees"], a["diverged"]),
+        run_ids=run_ids,
+        run_mean_nees=run_mean,
+        outliers=outliers,
+        outlier_nees={r: nees[row_of[r]] for r in drawn},
+        outlier_noise={col: {r: noise[col][row_of[r]] for r in drawn} for col in NOISE_COLUMNS},
     )
 
 
@@ -298,6 +428,62 @@ def run_track(steps: pd.DataFrame, names: list[str], run: int | None = None) -> 
     )
 
 
+def _float(value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def read_comparisons(folder: Path) -> dict[tuple[str, str, str], Ratio]:
+    """comparisons.parquet as (filter, vs, metric) -> Ratio; empty when the file is absent
+    (results written before comparisons existed)."""
+    path = Path(folder) / COMPARISONS_FILE
+    if not os.path.lexists(path):
+        return {}
+    df = read_parquet(path)
+    needed = {"filter", "vs", "metric", "estimate", "lo", "hi", "runs_used"}
+    if not needed <= set(df.columns):
+        missing = ", ".join(sorted(needed - set(df.columns)))
+        raise ResultsError(f"{path}: missing columns {missing}")
+    out = {}
+    for r in df.itertuples(index=False):
+        if getattr(r, "kind", "ratio") != "ratio":
+            continue
+        out[(str(r.filter), str(r.vs), str(r.metric))] = Ratio(
+            _float(r.estimate),
+            _float(r.lo),
+            _float(r.hi),
+            int(r.runs_used),
+            _float(getattr(r, "p_value", math.nan)),
+        )
+    return out
+
+
+def read_claims(folder: Path) -> list[dict]:
+    """claims.json (a list of verdict records); empty when absent."""
+    path = Path(folder) / CLAIMS_FILE
+    if not os.path.lexists(path):
+        return []
+    doc = read_json(path)
+    if not isinstance(doc, list) or not all(isinstance(c, dict) for c in doc):
+        raise ResultsError(f"{path}: expected a list of claim records")
+    return doc
+
+
+def read_per_run(folder: Path) -> pd.DataFrame | None:
+    """runs.parquet, or None when absent."""
+    path = Path(folder) / RUNS_FILE
+    if not os.path.lexists(path):
+        return None
+    df = read_parquet(path)
+    missing = {"filter", "run", "rmse_pos", "mean_nees", "diverged"} - set(df.columns)
+    if missing:
+        raise ResultsError(f"{path}: missing columns {', '.join(sorted(missing))}")
+    df["filter"] = df["filter"].astype(str)
+    return df
+
+
 def load_scenario_data(folder: Path) -> ScenarioData:
     """Read one scenario folder and compute every series the report draws."""
     folder = Path(folder)
@@ -309,6 +495,9 @@ def load_scenario_data(folder: Path) -> ScenarioData:
     manifest = _manifest(folder)
     manifest_path = folder / MANIFEST_FILE
     specs = _filter_specs(manifest, manifest_path)
+    from .consistency import check_saved_result  # one batch's steps, whole, under plain names
+
+    check_saved_result(folder, steps, manifest)
     names = [str(n) for n in steps["filter"].cat.categories if (steps["filter"] == n).any()]
     unknown = [n for n in names if n not in specs]
     if unknown:
@@ -324,6 +513,7 @@ def load_scenario_data(folder: Path) -> ScenarioData:
             f"{steps_path}: filters or runs have different numbers of steps ({exc})"
         ) from None
     scenario = manifest["scenario"]
+    true_sigmas = _sigmas(manifest, "true_noise", manifest_path)
     return ScenarioData(
         name=str(scenario.get("name", folder.name)),
         description=str(scenario.get("description", "")),
@@ -331,10 +521,15 @@ def load_scenario_data(folder: Path) -> ScenarioData:
         runs=max(f.runs for f in filters),
         seed=manifest.get("seed"),
         filters=filters,
-        true_noise=_true_noise(manifest, manifest_path),
+        true_noise=true_variances(true_sigmas),
         landmarks=_points(manifest, "landmarks", manifest_path),
         waypoints=_points(manifest, "waypoints", manifest_path),
         track=track,
+        true_sigmas=true_sigmas,
+        assumed_sigmas=_sigmas(manifest, "filter_noise", manifest_path),
+        comparisons=read_comparisons(folder),
+        claims=read_claims(folder),
+        per_run=read_per_run(folder),
     )
 
 
@@ -386,44 +581,75 @@ def summary_rows(scenarios: Sequence[ScenarioData]) -> list[SummaryRow]:
                     nees_hi=s["nees_hi"],
                     vs_ekf=_ratio(s["rmse_pos"], ekf),
                     vs_oracle=_ratio(s["rmse_pos"], oracle),
+                    rmse_vs_ekf=sc.ratio(f.name, ekf),
+                    rmse_vs_oracle=sc.ratio(f.name, oracle),
+                    anees_vs_oracle=sc.ratio(f.name, oracle, "anees"),
+                    outliers=f.outliers,
+                    ekf_name=ekf.name if ekf else "ekf",
+                    oracle_name=oracle.name if oracle else "ekf-oracle",
                 )
             )
     return rows
 
 
+def format_ratio(r: Ratio | None, *, reference: bool = False, sep: str = " ") -> str:
+    """'1.05 [1.03, 1.08]' (3 significant digits); 'ref.' for the reference itself."""
+    if r is None:
+        return "ref." if reference else "-"
+    text = format_sig(r.estimate)
+    if r.has_interval:
+        text += f"{sep}[{format_sig(r.lo)}, {format_sig(r.hi)}]"
+    return text
+
+
+def _ratio_cell(r: Ratio | None, row: SummaryRow, ref_name: str, sep: str = " ") -> Cell:
+    is_ref = row.filter == ref_name
+    return Cell(format_ratio(r, reference=is_ref, sep=sep), r.estimate if r else None)
+
+
 TABLE_HEADER = (
     "scenario", "filter", "runs used", "diverged", "RMSE pos [m]", "RMSE heading [deg]", "ANEES",
-    "NEES in 95 % bounds", "RMSE / ekf", "RMSE / oracle",
+    "NEES in 95 % bounds", "RMSE / ekf [95 % CI]", "RMSE / oracle [95 % CI]",
+    "ANEES / oracle [95 % CI]", "outlier runs",
 )  # fmt: skip
+_NUMERIC = (False, False) + (True,) * (len(TABLE_HEADER) - 2)
 
 
-def table_cells(row: SummaryRow) -> list[str]:
-    """The formatted cells of one summary row, shared by report.md and the terminal table."""
+def table_row(row: SummaryRow, sep: str = " ") -> list[Cell]:
+    """The cells of one summary row, shared by report.md, report.html and the terminal."""
     return [
-        row.scenario,
-        row.filter,
-        f"{row.runs_used}/{row.runs}",
-        str(row.runs - row.runs_used),
-        format_number(row.rmse_pos, 3),
-        format_number(row.rmse_heading_deg, 3),
-        format_number(row.anees, 2),
-        format_share(row.nees_in_bounds),
-        format_number(row.vs_ekf, 2),
-        format_number(row.vs_oracle, 2),
+        Cell(row.scenario),
+        Cell(row.filter),
+        Cell(f"{row.runs_used}/{row.runs}", row.runs_used),
+        Cell(str(row.runs - row.runs_used), row.runs - row.runs_used),
+        Cell(format_sig(row.rmse_pos), row.rmse_pos),
+        Cell(format_sig(row.rmse_heading_deg), row.rmse_heading_deg),
+        Cell(format_sig(row.anees), row.anees),
+        Cell(format_share(row.nees_in_bounds), row.nees_in_bounds),
+        _ratio_cell(row.rmse_vs_ekf, row, row.ekf_name, sep),
+        _ratio_cell(row.rmse_vs_oracle, row, row.oracle_name, sep),
+        _ratio_cell(row.anees_vs_oracle, row, row.oracle_name, sep),
+        Cell(str(len(row.outliers)), len(row.outliers)),
     ]
 
 
-# The terminal table: the same cells under two-line headers, so it fits 80 columns.
+def table_cells(row: SummaryRow) -> list[str]:
+    """The formatted cells of one summary row (text only)."""
+    return [c.text for c in table_row(row)]
+
+
+# The terminal table: the same cells under two-line headers, intervals on a second line.
 TERMINAL_HEADER = (
     "scenario", "filter", "runs\nused", "div-\nerged", "RMSE\npos [m]", "RMSE\nhead [deg]", "ANEES",
-    "NEES in\nbounds", "RMSE\n/ ekf", "RMSE\n/ oracle",
+    "NEES in\nbounds", "RMSE\n/ ekf", "RMSE\n/ oracle", "ANEES\n/ oracle", "out-\nliers",
 )  # fmt: skip
 
 
 def rich_table(rows: Sequence[SummaryRow]) -> Table:
     """The summary table for the terminal."""
     table = Table(
-        title="Summary across scenarios (RMSE: time mean of the RMSE-over-runs curve)",
+        title="Summary across scenarios (RMSE: time mean of the RMSE-over-runs curve;"
+        " ratios: paired, 95 % bootstrap interval below)",
         title_justify="left",
         box=box.SIMPLE_HEAD,
         pad_edge=False,
@@ -436,22 +662,145 @@ def rich_table(rows: Sequence[SummaryRow]) -> Table:
     for row in rows:
         if previous is not None and row.scenario != previous:
             table.add_section()
-        table.add_row(*table_cells(row))
+        table.add_row(*(Text(c.text) for c in table_row(row, sep="\n")))
         previous = row.scenario
     return table
 
 
 def markdown_table(rows: Sequence[SummaryRow]) -> str:
     """The summary table as GitHub markdown."""
-    lines = [
-        "| " + " | ".join(TABLE_HEADER) + " |",
-        "|" + "|".join(["---"] * 2 + ["---:"] * (len(TABLE_HEADER) - 2)) + "|",
-    ]
-    lines += ["| " + " | ".join(table_cells(r)) + " |" for r in rows]
-    return "\n".join(lines)
+    return to_markdown(Document("", [summary_table(rows)])).split("\n", 2)[2].strip()
 
 
-# --------------------------------------------------------------------------- report.md
+def summary_table(rows: Sequence[SummaryRow]) -> TableBlock:
+    return TableBlock(TABLE_HEADER, [table_row(r) for r in rows], _NUMERIC)
+
+
+def noise_table(sc: ScenarioData) -> TableBlock:
+    """The true noise against what the filters assume (the oracle EKF is given the truth)."""
+    rows = []
+    for key, what, unit in SIGMAS:
+        true, assumed = getattr(sc.true_sigmas, key), getattr(sc.assumed_sigmas, key)
+        rows.append(
+            [
+                Cell(f"{what} [{unit}]"),
+                Cell(format_sig(true), true),
+                Cell(format_sig(assumed), assumed),
+                Cell(format_sig(assumed / true), assumed / true),
+            ]
+        )
+    return TableBlock(("noise", "true", "assumed by the filters", "assumed / true"), rows,
+                      (False, True, True, True))  # fmt: skip
+
+
+def mismatch_sentence(sc: ScenarioData) -> str:
+    """One sentence naming each sigma the filters get wrong, and by what factor."""
+    wrong = []
+    for key, what, unit in SIGMAS:
+        true, assumed = getattr(sc.true_sigmas, key), getattr(sc.assumed_sigmas, key)
+        if not math.isclose(true, assumed, rel_tol=1e-9):
+            wrong.append(
+                f"{what} {format_sig(assumed)} {unit} for a true {format_sig(true)} {unit}"
+                f" ({format_sig(assumed / true)} x)"
+            )
+    oracle = _first_of_kind(sc, "ekf-oracle")
+    given = f" `{oracle.name}` is given the true noise." if oracle else ""
+    if not wrong:
+        return "**Noise:** the filters assume the true noise (no mismatch)." + given
+    return "**Noise mismatch:** the filters assume " + "; ".join(wrong) + "." + given
+
+
+def per_run_table(sc: ScenarioData) -> TableBlock | None:
+    """runs.parquet summarised per filter: the spread of the runs' own RMSE and mean NEES."""
+    df = sc.per_run
+    if df is None or len(df) == 0:
+        return None
+    rows = []
+    lo_p, hi_p = BAND_PERCENTILES
+    for f in sc.filters:
+        sub = df[(df["filter"] == f.name) & ~df["diverged"].astype(bool)]
+        if len(sub) == 0:
+            continue
+        rmse, nees = sub["rmse_pos"].to_numpy(float), sub["mean_nees"].to_numpy(float)
+        lo, hi = np.percentile(rmse, BAND_PERCENTILES)
+        worst = sub.iloc[int(np.nanargmax(nees))] if np.isfinite(nees).any() else None
+        worst_text = (
+            "-" if worst is None else f"{format_sig(float(worst.mean_nees))} (run {worst.run})"
+        )
+        outliers = ", ".join(str(r) for r in f.outliers[:8]) + (
+            f" (+{len(f.outliers) - 8})" if len(f.outliers) > 8 else ""
+        )
+        rows.append(
+            [
+                Cell(f.name),
+                Cell(format_sig(float(np.median(rmse))), float(np.median(rmse))),
+                Cell(f"{format_sig(lo)} - {format_sig(hi)}", lo),
+                Cell(format_sig(float(np.median(nees))), float(np.median(nees))),
+                Cell(worst_text, None if worst is None else float(worst.mean_nees)),
+                Cell(outliers or "none", len(f.outliers)),
+            ]
+        )
+    header = (
+        "filter", "run RMSE pos [m]: median", f"{lo_p:g}-{hi_p:g} % of runs",
+        "run mean NEES: median", "worst run",
+        f"outlier runs (mean NEES > {OUTLIER_FACTOR:g} x median)",
+    )  # fmt: skip
+    return TableBlock(header, rows, (False, True, True, True, True, False))
+
+
+def claims_table(sc: ScenarioData) -> TableBlock | None:
+    if not sc.claims:
+        return None
+    rows = []
+    for c in sc.claims:
+        r = Ratio(_float(c.get("estimate")), _float(c.get("lo")), _float(c.get("hi")), 0)
+        rows.append(
+            [
+                Cell(str(c.get("claim", "?"))),
+                Cell(format_ratio(r), r.estimate),
+                Cell(str(c.get("verdict", "?"))),
+                Cell(str(c.get("runs_used", "-")), _float(c.get("runs_used"))),
+                Cell(str(c.get("source") or "")),
+                Cell(str(c.get("warning") or "")),
+            ]
+        )
+    header = ("claim", "estimate [95 % CI]", "verdict", "runs", "source", "warning")
+    return TableBlock(header, rows, (False, True, False, True, False, False))
+
+
+def scenario_warnings(sc: ScenarioData) -> list[str]:
+    """What the reader must know before trusting this scenario's numbers."""
+    out = []
+    used = min(f.runs_used for f in sc.filters)
+    if sc.few_runs:
+        lo, hi = nees_bounds(used) if used else (math.nan, math.nan)
+        out.append(
+            f"{sc.name}: only {used} runs (fewer than {FEW_RUNS}): the 95 % NEES bounds"
+            f" [{format_sig(lo)}, {format_sig(hi)}] are so wide that 'NEES in bounds' hardly"
+            " discriminates, and the ratio intervals are wide; use more runs for conclusions."
+        )
+    for c in sc.claims:
+        problem = claim_interval_problem(c)
+        if problem:
+            out.append(f"{sc.name}: claim '{c.get('claim', '?')}' ({c.get('verdict', '?')}):"
+                       f" {problem}.")  # fmt: skip
+    return out
+
+
+def claim_interval_problem(claim: dict) -> str | None:
+    """Why a claim's interval cannot support it (too wide: it straddles the threshold, or
+    undefined), else None. A share decided on its point estimate has no interval to judge."""
+    if claim.get("method") == "point":
+        return None
+    threshold = claim.get("at_most") if claim.get("at_most") is not None else claim.get("at_least")
+    if threshold is None:
+        return claim.get("warning") or None
+    interval = Interval(_float(claim.get("estimate")), _float(claim.get("lo")),
+                        _float(claim.get("hi")), 0.95, 0, str(claim.get("method", "")))  # fmt: skip
+    return interval_too_wide(interval, float(threshold))
+
+
+# --------------------------------------------------------------------------- the document
 
 
 def figure_name(scenario: str, kind: str, fmt: ImageFormat) -> str:
@@ -459,59 +808,118 @@ def figure_name(scenario: str, kind: str, fmt: ImageFormat) -> str:
     return f"{scenario}_{kind}.{fmt.value}" if scenario else f"{kind}.{fmt.value}"
 
 
+INTRO = (
+    "Generated by `anfekf report` from saved results only (steps.parquet, runs.parquet,"
+    " comparisons.parquet, claims.json, manifest.json); nothing was re-run. RMSE: the time mean"
+    " of the RMSE-over-runs curve `sqrt(mean_runs(ex² + ey²))`; ANEES: the time mean of the"
+    " run-averaged NEES; *NEES in bounds*: the share of recorded steps whose run-averaged NEES"
+    " lies strictly inside the two-sided 95 % chi-square bounds for the runs used. Ratios divide"
+    " a filter's metric by the plain EKF's or by the oracle EKF's (the EKF given the true noise),"
+    " paired over the runs neither diverged in, with a 95 % paired bootstrap interval in"
+    " brackets (BCa, over runs). Diverged runs are left out of every mean. Angles are in degrees"
+    " throughout. Numbers have 3 significant digits. An *outlier run* is one whose time-mean NEES"
+    f" exceeds {OUTLIER_FACTOR:g} times the median run's; the figures mark them and show the"
+    " median over runs beside the mean."
+)
+
+CAPTIONS = {
+    "rmse": "Position and heading RMSE over time, and each filter's position RMSE divided by"
+    " {ref}'s (log scale: the gap between lines that coincide above)",
+    "nees": "Run-averaged NEES (solid) and median over runs (dotted) against the 95 % chi-square"
+    " bounds{outliers}",
+    "noise": "Adapted noise covariance (mean over runs solid, median dashed, 10-90 % band) against"
+    " the true and the assumed value{outliers}",
+    "map": "Map, true path and run {run}'s estimates with 3-sigma ellipses",
+}
+
+
+def _outlier_note(sc: ScenarioData) -> str:
+    marked = [(f.name, f.outliers) for f in sc.filters if f.outliers]
+    if not marked:
+        return "; no outlier runs"
+    parts = []
+    for name, runs in marked:
+        shown = ", ".join(str(r) for r in runs[:MAX_OUTLIERS_DRAWN])
+        more = len(runs) - MAX_OUTLIERS_DRAWN
+        parts.append(f"{name} run{'s' if len(runs) > 1 else ''} {shown}"
+                     + (f" and {more} more" if more > 0 else ""))  # fmt: skip
+    return "; outlier runs drawn thin: " + "; ".join(parts)
+
+
+def caption(sc: ScenarioData, kind: str) -> str:
+    ref = sc.reference()
+    return CAPTIONS[kind].format(
+        run=sc.track.run,
+        ref=f"`{ref.name}`" if ref else "the reference",
+        outliers=_outlier_note(sc),
+    )
+
+
+def build_document(
+    scenarios: Sequence[ScenarioData],
+    rows: Sequence[SummaryRow],
+    figures: dict[str, dict[str, FigureBlock]],
+    overview: FigureBlock,
+    out_dir: Path,
+) -> Document:
+    """The report's content, once, for report.md and report.html."""
+    doc = Document("anfekf-bench report")
+    doc.add(Paragraph(INTRO), Heading("Summary"))
+    for sc in scenarios:
+        for text in scenario_warnings(sc):
+            doc.add(Warning(text))
+    doc.add(summary_table(rows), overview)
+    for sc in scenarios:
+        doc.add(Heading(sc.name, anchor=f"scenario-{sc.slug}"))
+        if sc.description:
+            doc.add(Paragraph(sc.description))
+        seed = f", seed {sc.seed}" if sc.seed is not None else ""
+        link = Path(os.path.relpath(sc.folder.resolve(), Path(out_dir).resolve())).as_posix()
+        doc.add(Paragraph(f"{sc.runs} runs{seed}; results in [{link}]({link})."))
+        doc.add(Paragraph(mismatch_sentence(sc)), noise_table(sc))
+        for text in scenario_warnings(sc):
+            doc.add(Warning(text))
+        claims = claims_table(sc)
+        if claims is not None:
+            doc.add(Paragraph("**Claims** declared by the scenario, decided on the interval:"),
+                    claims)  # fmt: skip
+        per_run = per_run_table(sc)
+        if per_run is not None:
+            doc.add(Paragraph("**Per run** (runs.parquet; diverged runs left out):"), per_run)
+        for kind in ("rmse", "nees", "noise", "map"):
+            block = figures[sc.slug].get(kind)
+            if block is None:
+                doc.add(Paragraph(f"*{CAPTIONS[kind].split(' (')[0]}: no filter of this scenario"
+                                  " adapts R or Q.*"))  # fmt: skip
+            else:
+                doc.add(block)
+    return doc
+
+
 def render_markdown(
     scenarios: Sequence[ScenarioData],
     rows: Sequence[SummaryRow],
-    figures: dict[str, dict[str, str]],
-    overview: str,
+    figures: dict[str, dict[str, FigureBlock]],
+    overview: FigureBlock,
+    out_dir: Path = Path("."),
 ) -> str:
     """report.md: the summary table, the overview and every scenario's figures."""
-    out = [
-        "# anfekf-bench report",
-        "",
-        "Generated by `anfekf report` from saved results only (steps.parquet, manifest.json).",
-        "RMSE: the time mean of the RMSE-over-runs curve `sqrt(mean_runs(ex² + ey²))`; ANEES: the",
-        "time mean of the run-averaged NEES; *in bounds*: the share of recorded steps whose",
-        "run-averaged NEES lies strictly inside the two-sided 95 % chi-square bounds for the runs",
-        "used. Ratios divide a filter's position RMSE by the plain EKF's and by the oracle EKF's",
-        "(the EKF given the true noise). Diverged runs are left out of every mean.",
-        "",
-        "## Summary",
-        "",
-        markdown_table(rows),
-        "",
-        f"![RMSE and consistency per filter across scenarios]({overview})",
-        "",
-    ]
-    captions = {
-        "rmse": "Position and heading RMSE over time",
-        "nees": "Run-averaged NEES against the 95 % chi-square bounds",
-        "noise": "Adapted noise covariance against the true value",
-        "map": "Map, true path and run {run}'s estimates with 3-sigma ellipses",
-    }
-    for sc in scenarios:
-        out += [f"## {sc.name}", ""]
-        if sc.description:
-            out += [sc.description, ""]
-        seed = f", seed {sc.seed}" if sc.seed is not None else ""
-        out += [f"{sc.runs} runs{seed}; results in `{sc.folder}`.", ""]
-        for kind, caption in captions.items():
-            name = figures[sc.slug].get(kind)
-            caption = caption.format(run=sc.track.run)
-            if name is None:
-                out += [f"*{caption}: no filter of this scenario adapts R or Q.*", ""]
-            else:
-                out += [f"![{sc.name}: {caption}]({name})", ""]
-    return "\n".join(out)
+    return to_markdown(build_document(scenarios, rows, figures, overview, out_dir))
 
 
 # --------------------------------------------------------------------------- the command
 
 
 def write_report(
-    results_dirs: Sequence[Path], out_dir: Path, fmt: ImageFormat = ImageFormat.png
+    results_dirs: Sequence[Path],
+    out_dir: Path,
+    fmt: ImageFormat = ImageFormat.png,
+    *,
+    dpi: int = plots.DPI,
+    html: bool = True,
 ) -> ReportResult:
-    """Read every scenario under `results_dirs`, write its figures and report.md to `out_dir`.
+    """Read every scenario under `results_dirs`, write its figures, report.md and report.html
+    to `out_dir`.
 
     Everything is read (and checked) before anything is written, so bad input leaves no partial
     report behind.
@@ -523,25 +931,50 @@ def write_report(
     _check_unique_names(scenarios)
     rows = summary_rows(scenarios)
     result = ReportResult(out_dir=out_dir, scenarios=scenarios, rows=rows)
+    result.warnings = [w for sc in scenarios for w in scenario_warnings(sc)]
     out_dir.mkdir(parents=True, exist_ok=True)
 
-    def save(fig, name: str) -> str:
+    def save(fig, name: str, text: str) -> FigureBlock:
         path = out_dir / name
-        plots.save_figure(fig, path, fmt.value)
+        plots.save_figure(fig, path, fmt.value, dpi=dpi)
         result.files.append(path)
-        return name
+        if not html:
+            image, mime = b"", "image/png"
+        elif fmt is ImageFormat.pdf:  # a browser does not show a PDF in <img>: embed a PNG
+            buf = io.BytesIO()
+            plots.save_figure(fig, buf, "png", dpi=dpi)
+            image, mime = buf.getvalue(), "image/png"
+        else:
+            image = path.read_bytes()
+            mime = "image/svg+xml" if fmt is ImageFormat.svg else "image/png"
+        return FigureBlock(name, text, image, mime, link_only=fmt is ImageFormat.pdf)
 
-    figures: dict[str, dict[str, str]] = {}
+    figures: dict[str, dict[str, FigureBlock]] = {}
     for sc in scenarios:
         made = figures[sc.slug] = {}
-        made["rmse"] = save(plots.rmse_figure(sc), figure_name(sc.slug, "rmse", fmt))
-        made["nees"] = save(plots.nees_figure(sc), figure_name(sc.slug, "nees", fmt))
+        label = f"{sc.name}: "
+        made["rmse"] = save(plots.rmse_figure(sc), figure_name(sc.slug, "rmse", fmt),
+                            label + caption(sc, "rmse"))  # fmt: skip
+        made["nees"] = save(plots.nees_figure(sc), figure_name(sc.slug, "nees", fmt),
+                            label + caption(sc, "nees"))  # fmt: skip
         if sc.adapted_columns:
-            made["noise"] = save(plots.noise_figure(sc), figure_name(sc.slug, "noise", fmt))
-        made["map"] = save(plots.map_figure(sc), figure_name(sc.slug, "map", fmt))
-    overview = save(plots.overview_figure(rows), figure_name("", "overview", fmt))
-    text = render_markdown(scenarios, rows, figures, overview) + "\n"
-    md = out_dir / REPORT_FILE
-    write_atomic(md, lambda tmp: tmp.write_text(text, encoding="utf-8"))
-    result.files.append(md)
+            made["noise"] = save(plots.noise_figure(sc), figure_name(sc.slug, "noise", fmt),
+                                 label + caption(sc, "noise"))  # fmt: skip
+        made["map"] = save(plots.map_figure(sc), figure_name(sc.slug, "map", fmt),
+                           label + caption(sc, "map"))  # fmt: skip
+    overview = save(
+        plots.overview_figure(rows),
+        figure_name("", "overview", fmt),
+        "Per scenario: each filter's position RMSE and ANEES divided by the oracle EKF's"
+        " (log scale, 95 % paired bootstrap intervals as error bars) and its share of steps with"
+        " NEES in the 95 % bounds",
+    )
+    doc = build_document(scenarios, rows, figures, overview, out_dir)
+    outputs = {REPORT_FILE: to_markdown(doc)}
+    if html:
+        outputs[HTML_FILE] = to_html(doc)
+    for name, text in outputs.items():
+        path = out_dir / name
+        write_atomic(path, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
+        result.files.append(path)
     return result

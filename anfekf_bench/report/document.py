@@ -1,0 +1,254 @@
+"""The report as a list of blocks, written twice: as GitHub markdown (report.md) and as one
+self-contained HTML file (report.html: figures embedded as data URIs, tables sortable by a click
+on their header, a few lines of inline JavaScript, nothing fetched from anywhere).
+
+Text in blocks uses a small markdown subset that both writers understand: `code`, **bold** and
+[links](relative/path). Both files are reproducible: no dates, no random ids.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class Cell:
+    """A table cell: the text shown and, for numbers, the value a column sorts by."""
+
+    text: str
+    sort: float | None = None
+
+
+@dataclass(frozen=True)
+class Heading:
+    text: str
+    level: int = 2
+    anchor: str = ""
+
+
+@dataclass(frozen=True)
+class Paragraph:
+    text: str
+
+
+@dataclass(frozen=True)
+class Warning:  # noqa: A001 - a block of the report, not the builtin exception
+    text: str
+
+
+@dataclass(frozen=True)
+class TableBlock:
+    header: Sequence[str]
+    rows: Sequence[Sequence[Cell | str]]
+    numeric: Sequence[bool] = ()  # right-aligned columns
+    caption: str = ""
+
+
+@dataclass(frozen=True)
+class FigureBlock:
+    """A figure: its file beside the report, a caption, and the image the HTML embeds."""
+
+    file: str  # relative to the report folder
+    caption: str
+    image: bytes = b""  # PNG or SVG bytes for the HTML
+    mime: str = "image/png"
+    link_only: bool = False  # markdown links the file instead of embedding it (PDF)
+
+
+Block = Heading | Paragraph | Warning | TableBlock | FigureBlock
+
+
+@dataclass
+class Document:
+    title: str
+    blocks: list[Block] = field(default_factory=list)
+
+    def add(self, *blocks: Block) -> None:
+        self.blocks.extend(blocks)
+
+
+# --------------------------------------------------------------------------- markdown
+
+
+def _md_cell(cell: Cell | str) -> str:
+    text = cell.text if isinstance(cell, Cell) else cell
+    return text.replace("|", "\\|").replace("\n", " ")
+
+
+def _md_table(t: TableBlock) -> list[str]:
+    numeric = list(t.numeric) + [False] * (len(t.header) - len(t.numeric))
+    out = []
+    if t.caption:
+        out += [t.caption, ""]
+    out.append("| " + " | ".join(_md_cell(h) for h in t.header) + " |")
+    out.append("|" + "|".join("---:" if n else "---" for n in numeric) + "|")
+    out += ["| " + " | ".join(_md_cell(c) for c in row) + " |" for row in t.rows]
+    return out
+
+
+def to_markdown(doc: Document) -> str:
+    out = [f"# {doc.title}", ""]
+    for b in doc.blocks:
+        if isinstance(b, Heading):
+            out += ["#" * b.level + " " + b.text, ""]
+        elif isinstance(b, Paragraph):
+            out += [b.text, ""]
+        elif isinstance(b, Warning):
+            out += [f"> **Warning:** {b.text}", ""]
+        elif isinstance(b, TableBlock):
+            out += [*_md_table(b), ""]
+        elif isinstance(b, FigureBlock):
+            if b.link_only:
+                out += [f"[{b.caption} ({b.file})]({b.file})", ""]
+            else:
+                out += [f"![{b.caption}]({b.file})", ""]
+    return "\n".join(out).rstrip() + "\n"
+
+
+# --------------------------------------------------------------------------- HTML
+
+_CODE = re.compile(r"`([^`]+)`")
+_BOLD = re.compile(r"\*\*([^*]+)\*\*")
+_EM = re.compile(r"(?<![*\w])\*([^*\s][^*]*)\*(?![*\w])")
+_LINK = re.compile(r"\[([^\]]+)\]\(([^)\s]+)\)")
+
+
+def inline_html(text: str) -> str:
+    """The markdown subset of a block's text as HTML (everything else escaped)."""
+    out = html.escape(text, quote=True)
+    out = _CODE.sub(r"<code>\1</code>", out)
+    out = _BOLD.sub(r"<strong>\1</strong>", out)
+    out = _EM.sub(r"<em>\1</em>", out)
+    return _LINK.sub(r'<a href="\2">\1</a>', out)
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "section"
+
+
+def data_uri(data: bytes, mime: str) -> str:
+    return f"data:{mime};base64,{base64.b64encode(data).decode('ascii')}"
+
+
+def _html_table(t: TableBlock) -> list[str]:
+    numeric = list(t.numeric) + [False] * (len(t.header) - len(t.numeric))
+    out = ['<table class="sortable">']
+    if t.caption:
+        out.append(f"<caption>{inline_html(t.caption)}</caption>")
+    heads = "".join(
+        f'<th class="{"num" if n else "text"}" title="click to sort">{inline_html(h)}</th>'
+        for h, n in zip(t.header, numeric, strict=True)
+    )
+    out += ["<thead><tr>" + heads + "</tr></thead>", "<tbody>"]
+    for row in t.rows:
+        cells = []
+        for cell, n in zip(row, numeric, strict=True):
+            cell = cell if isinstance(cell, Cell) else Cell(cell)
+            key = (
+                f' data-sort="{cell.sort!r}"'
+                if cell.sort is not None and cell.sort == cell.sort  # NaN sorts as text
+                else ""
+            )
+            cls = ' class="num"' if n else ""
+            cells.append(f"<td{cls}{key}>{inline_html(cell.text)}</td>")
+        out.append("<tr>" + "".join(cells) + "</tr>")
+    out += ["</tbody>", "</table>"]
+    return out
+
+
+_STYLE = """
+body { font: 15px/1.45 system-ui, -apple-system, "Segoe UI", sans-serif; color: #222;
+       max-width: 1400px; margin: 2em auto; padding: 0 1em; background: #fff; }
+h1, h2, h3 { line-height: 1.2; }
+h2 { border-bottom: 1px solid #ddd; padding-bottom: .2em; margin-top: 2em; }
+table { border-collapse: collapse; margin: 1em 0; font-size: 13px; display: block;
+        overflow-x: auto; max-width: 100%; }
+caption { text-align: left; font-weight: 600; padding: .3em 0; }
+th, td { border: 1px solid #ccc; padding: .25em .5em; white-space: nowrap; }
+th { background: #f3f3f3; cursor: pointer; user-select: none; white-space: nowrap; }
+th[aria-sort="ascending"]::after { content: " \\25B2"; }
+th[aria-sort="descending"]::after { content: " \\25BC"; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
+tbody tr:nth-child(even) { background: #fafafa; }
+figure { margin: 1.5em 0; }
+figure img { max-width: 100%; height: auto; border: 1px solid #eee; }
+figcaption { color: #555; font-size: 13px; }
+.warning { background: #fff4d6; border-left: 4px solid #e0a100; padding: .5em .8em; margin: 1em 0; }
+.broken { outline: 3px solid #c00; }
+code { background: #f3f3f3; padding: 0 .2em; }
+"""
+
+# Click a header to sort by it (again: the other way). Numbers sort by data-sort; a cell without
+# one sorts as text, after the numbers. On load, images that failed to decode are outlined and
+# counted on <body data-images-ok="n/m">, so a broken report is visible (and testable).
+_SCRIPT = """
+document.querySelectorAll("table.sortable").forEach(function (table) {
+  table.querySelectorAll("th").forEach(function (th, col) {
+    th.addEventListener("click", function () {
+      var up = th.getAttribute("aria-sort") !== "ascending";
+      table.querySelectorAll("th").forEach(function (h) { h.removeAttribute("aria-sort"); });
+      th.setAttribute("aria-sort", up ? "ascending" : "descending");
+      var body = table.tBodies[0], rows = Array.prototype.slice.call(body.rows);
+      function key(row) {
+        var c = row.cells[col], s = c.getAttribute("data-sort");
+        return s === null ? [1, c.textContent] : [0, parseFloat(s)];
+      }
+      rows.sort(function (a, b) {
+        var x = key(a), y = key(b), d = x[0] - y[0];
+        if (d === 0) { d = x[0] === 0 ? x[1] - y[1] : String(x[1]).localeCompare(String(y[1])); }
+        return up ? d : -d;
+      });
+      rows.forEach(function (r) { body.appendChild(r); });
+    });
+  });
+});
+window.addEventListener("load", function () {
+  var imgs = document.images, ok = 0;
+  for (var i = 0; i < imgs.length; i++) {
+    if (imgs[i].complete && imgs[i].naturalWidth > 0) { ok++; }
+    else { imgs[i].className += " broken"; }
+  }
+  document.body.setAttribute("data-images-ok", ok + "/" + imgs.length);
+});
+"""
+
+
+def to_html(doc: Document) -> str:
+    out = [
+        "<!DOCTYPE html>",
+        '<html lang="en">',
+        "<head>",
+        '<meta charset="utf-8">',
+        '<meta name="viewport" content="width=device-width, initial-scale=1">',
+        f"<title>{html.escape(doc.title)}</title>",
+        f"<style>{_STYLE}</style>",
+        "</head>",
+        "<body>",
+        f"<h1>{html.escape(doc.title)}</h1>",
+    ]
+    for b in doc.blocks:
+        if isinstance(b, Heading):
+            anchor = b.anchor or _slug(b.text)
+            out.append(f'<h{b.level} id="{html.escape(anchor)}">{inline_html(b.text)}</h{b.level}>')
+        elif isinstance(b, Paragraph):
+            out.append(f"<p>{inline_html(b.text)}</p>")
+        elif isinstance(b, Warning):
+            text = inline_html(b.text)
+            out.append(f'<div class="warning"><strong>Warning:</strong> {text}</div>')
+        elif isinstance(b, TableBlock):
+            out += _html_table(b)
+        elif isinstance(b, FigureBlock):
+            alt = html.escape(b.caption, quote=True)
+            link = f' <a href="{html.escape(b.file, quote=True)}">{html.escape(b.file)}</a>'
+            out += [
+                "<figure>",
+                f'<img src="{data_uri(b.image, b.mime)}" alt="{alt}">',
+                f"<figcaption>{inline_html(b.caption)}.{link}</figcaption>",
+                "</figure>",
+            ]
+    out += [f"<script>{_SCRIPT}</script>", "</body>", "</html>"]
+    return "\n".join(out) + "\n"

@@ -1,0 +1,85 @@
+"""Checks that a saved result is one batch's, before `anfekf report` draws anything from it.
+
+A result folder can be edited by hand or assembled from copies: a steps table copied from another
+scenario, rows duplicated, runs missing. The metric code would then average whatever it is given
+and the report would look fine. These checks refuse such a folder in one line instead
+(`ResultsError`), naming the file and what is wrong.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..config import FILTER_NAME_PATTERN
+from ..storage import MANIFEST_FILE, STEPS_FILE, ResultsError, scenario_name_problem
+
+
+def _manifest_runs(manifest: dict, where: Path) -> int:
+    runs = manifest.get("runs")
+    if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
+        raise ResultsError(f"{where}: runs: expected an integer >= 1, found {runs!r:.40}")
+    return runs
+
+
+def check_saved_result(folder: Path, steps: pd.DataFrame, manifest: dict) -> None:
+    """ResultsError unless `steps` (steps.parquet) is the table of the batch `manifest` describes:
+    its scenario, every filter and run once, the same steps for every (filter, run), plain names.
+    """
+    folder = Path(folder)
+    steps_path, manifest_path = folder / STEPS_FILE, folder / MANIFEST_FILE
+    scenario = manifest.get("scenario")
+    name = scenario.get("name") if isinstance(scenario, dict) else None
+    if not isinstance(name, str) or scenario_name_problem(name):
+        raise ResultsError(f"{manifest_path}: scenario.name: not a valid scenario name")
+    found = sorted(str(s) for s in pd.unique(steps["scenario"].astype(str)))
+    if found != [name]:
+        shown = ", ".join(repr(s[:40]) for s in found[:3])
+        raise ResultsError(
+            f"{steps_path}: holds scenario {shown}, but {manifest_path} is scenario {name!r};"
+            " the two files come from different results"
+        )
+    filters = [str(f) for f in pd.unique(steps["filter"].astype(str))]
+    for filt in filters:
+        if not FILTER_NAME_PATTERN.fullmatch(filt):
+            raise ResultsError(f"{steps_path}: filter name {filt[:40]!r} is not plain text")
+    specs = scenario.get("filters")
+    declared = (
+        [s.get("name") for s in specs if isinstance(s, dict)] if isinstance(specs, list) else []
+    )
+    absent = [d for d in declared if d not in filters]
+    if absent:
+        raise ResultsError(
+            f"{steps_path}: filter {str(absent[0])[:40]!r} of {manifest_path} has no rows"
+        )
+    key = steps[["filter", "run", "step"]].astype({"filter": str})
+    if key.duplicated().any():
+        dup = key[key.duplicated()].iloc[0]
+        raise ResultsError(
+            f"{steps_path}: duplicated rows (filter {dup['filter'][:40]!r}, run {dup['run']},"
+            f" step {dup['step']} appears more than once)"
+        )
+    runs = _manifest_runs(manifest, manifest_path)
+    expected = np.arange(runs)
+    for filt, rows in key.groupby("filter", sort=False):
+        have = np.unique(rows["run"].to_numpy())
+        if not np.array_equal(have, expected):
+            missing = np.setdiff1d(expected, have)
+            extra = np.setdiff1d(have, expected)
+            what = (
+                f"runs {', '.join(map(str, missing[:5]))} missing"
+                if missing.size
+                else f"runs {', '.join(map(str, extra[:5]))} not in the batch"
+            )
+            raise ResultsError(
+                f"{steps_path}: filter {filt[:40]!r}: {what} ({manifest_path} says {runs} runs)"
+            )
+    counts = key.groupby(["filter", "run"], sort=False).size()
+    if counts.nunique() != 1:
+        raise ResultsError(f"{steps_path}: filters or runs have different numbers of steps")
+    ordered = key.sort_values(["filter", "run", "step"])["step"].to_numpy()
+    grid = ordered.reshape(len(counts), int(counts.iloc[0]))
+    if not (grid == grid[0]).all():
+        raise ResultsError(f"{steps_path}: filters or runs were recorded at different steps")

@@ -12,6 +12,19 @@ per-repeat ratios (`paired_ratio`), so load from elsewhere on the machine hits b
 - every scenario file of the configs folder (the paper's four, 50 runs each) run end to end by
   `experiment.execute` in a subprocess of its own: wall time, peak memory (see `scenario_probe`)
   and the size of its steps.parquet.
+
+The fast engine against the filterpy engine (SPEC 11, issue 14), on the same data in one process:
+
+- per-control-step cost of each filter kind (EKF, ANFEKF adapting R, Q and RQ) on both engines
+  (`filterpy_engine.run_filter` and `fast.run_filter_fast`, engine calls only: filters and
+  contexts are built outside the timed call, no metrics) and their paired ratio fast / filterpy;
+  the fast side includes flattening the run's scans (its cache is cleared before every pass);
+- compile time apart: numba compiling every kernel from scratch, and loading them from its
+  on-disk cache, each in a fresh interpreter (full sizes only);
+- end to end with the fast engine (kernels warmed in this process and in the workers first, so
+  compile is excluded): the step scenario's runs through `experiment.execute` on 2 workers, its
+  summaries compared with those of the filterpy run of the same file; and a sweep-sized batch,
+  10 cells x 30 runs x 5 filters = 1500 filter-runs, summaries only (no steps.parquet).
 """
 
 from __future__ import annotations
@@ -35,10 +48,11 @@ from filterpy.kalman import ExtendedKalmanFilter
 from rich.table import Table
 
 from .analysis.tables import add_trace_metrics, recorded_steps
-from .config import Scenario, World, load_scenario, scenario_files
+from .config import Scenario, World, load_scenario, parse_scenario, scenario_files
+from .engines import fast
 from .engines.filterpy_engine import run_filter
 from .experiment import execute, machine_info, make_plan, package_versions
-from .filters import ANFEKFSpec, EKFSpec, RobotEKF, build_filter
+from .filters import ANFEKFSpec, EKFSpec, FilterContext, FilterSpec, RobotEKF, build_filter
 from .models import F_jacobian, G_jacobian, H_jacobian, f, h, residual_z
 from .runner import run_batch, simulate
 from .sources.simulator import RunData
@@ -48,7 +62,27 @@ from .storage import STEPS_FILE, output_path_problem, write_json
 # measurement for both filters, so the bare loop (no gate) and the harness do the same updates.
 STEP_SCENARIO = "correct.yaml"
 BATCH_SCENARIO = "wrong_r.yaml"
+# The fast engine end to end: the step scenario (four filters) as a whole, and the base of the
+# sweep-sized batch (its filter_noise.sigma_range scaled per cell, like a one-axis sweep).
+E2E_SCENARIO = STEP_SCENARIO
+SWEEP_BASE = BATCH_SCENARIO
 MIB = 2**20
+
+# The filter kinds timed on both engines.
+ENGINE_KINDS: dict[str, FilterSpec] = {
+    "ekf": EKFSpec(name="ekf"),
+    "anfekf_R": ANFEKFSpec(name="anfekf", kind="anfekf", adapt="R"),
+    "anfekf_Q": ANFEKFSpec(name="anfekf-q", kind="anfekf", adapt="Q"),
+    "anfekf_RQ": ANFEKFSpec(name="anfekf-rq", kind="anfekf", adapt="RQ"),
+}
+# The sweep-sized batch's five filters (all run by the fast engine).
+SWEEP_FILTERS = [
+    {"name": "ekf", "kind": "ekf"},
+    {"name": "anfekf", "kind": "anfekf", "adapt": "R"},
+    {"name": "anfekf-q", "kind": "anfekf", "adapt": "Q"},
+    {"name": "anfekf-rq", "kind": "anfekf", "adapt": "RQ"},
+    {"name": "ekf-oracle", "kind": "ekf-oracle"},
+]
 
 # figure: (comparison, limit, unit) on the 2-core machine (issue 6)
 TARGETS: dict[str, tuple[str, float, str]] = {
@@ -57,6 +91,12 @@ TARGETS: dict[str, tuple[str, float, str]] = {
     "anfekf_over_ekf_step_cost": ("<=", 1.5, "x"),
     "steps_parquet_mb": ("<=", 50.0, "MiB"),
     "peak_rss_mb": ("<=", 2048.0, "MiB"),
+    # issue 14
+    "fast_step_ratio_ekf": ("<=", 0.01, "x"),
+    "fast_step_ratio_anfekf": ("<=", 0.01, "x"),
+    "fast_e2e_scenario_s": ("<=", 2.0, "s"),
+    "fast_sweep_batch_s": ("<=", 30.0, "s"),
+    "fast_summary_max_rel_diff": ("<=", 1e-9, ""),
 }
 
 
@@ -76,6 +116,31 @@ DEFINITIONS = {
     "steps_parquet_mb": "largest steps.parquet over the scenarios (MiB)",
     "wall_time_paper_scenarios_s": "experiment.execute wall time of each scenario file in a"
     " fresh process (worker start-up included), and their sum",
+    "engine_step_us": "per filter kind: median time per control step of filterpy_engine.run_filter"
+    " and of fast.run_filter_fast (engine calls only: filters and contexts built outside, no"
+    " metrics; the fast pass includes flattening the run's scans) and the median over repeats of"
+    " their paired ratio fast / filterpy",
+    "fast_step_ratio_ekf": "engine_step_us ratio fast / filterpy of the EKF",
+    "fast_step_ratio_anfekf": "the largest engine_step_us ratio fast / filterpy of the ANFEKF"
+    " adapting R, Q and RQ",
+    "fast_prep_step_us": "of the fast pass: flattening the run's scans into arrays, per step",
+    "fast_jit": "whether the fast engine's kernels are numba-compiled (false: plain Python)",
+    "fast_warm_up_s": "this process's first fast-engine calls: numba compiling the kernels, or"
+    " loading them from its on-disk cache",
+    "fast_compile_s": "numba compiling every kernel from an empty cache, in a fresh interpreter"
+    " (import excluded); null at quick sizes or without numba",
+    "fast_cache_load_s": "the same kernels loaded from numba's on-disk cache in a fresh"
+    " interpreter (import excluded)",
+    "fast_engine_max_abs_diff": "largest |fast - filterpy| of x, P, R_diag, Q_diag over the timed"
+    " run and filter kinds (the same update, rejection and divergence counts are required)",
+    "fast_e2e_scenario_s": "experiment.execute wall time of the step scenario file's runs on the"
+    " fast engine, 2 workers, kernels warmed in this process and the workers (compile"
+    " excluded); simulation, filters, metrics and Parquet included",
+    "fast_summary_max_rel_diff": "largest relative difference of a summary figure of that run from"
+    " the filterpy run of the same file (the scenario probe)",
+    "fast_sweep_batch_s": "wall time of a sweep-sized batch on the fast engine: cells x runs x 5"
+    " filters (1500 filter-runs at full size), each cell an experiment.execute with summaries"
+    " only (steps_table false), 2 workers kept warm across cells",
 }
 
 
@@ -92,10 +157,18 @@ class BenchSizes:
     batch_repeats: int = 3
     scenario_runs: int | None = None  # None: each scenario file's own runs (50)
     waypoints: int | None = None  # None: the full route; n: only its first n waypoints
+    fast_inner: int = 10  # fast-engine passes per timed call (one pass takes about a millisecond)
+    compile_probe: bool = True  # time numba's compile and cache load in fresh interpreters
+    e2e_jobs: int = 2  # workers of the fast end-to-end figures
+    sweep_cells: int = 10  # the sweep-sized batch: cells x runs x 5 filters
+    sweep_runs: int = 30
 
 
 FULL = BenchSizes()
-QUICK = BenchSizes(repeats=2, batch_runs=2, batch_repeats=1, scenario_runs=2, waypoints=3)
+QUICK = BenchSizes(
+    repeats=2, batch_runs=2, batch_repeats=1, scenario_runs=2, waypoints=3, fast_inner=2,
+    compile_probe=False, e2e_jobs=1, sweep_cells=2, sweep_runs=2,
+)  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------
@@ -173,6 +246,10 @@ class StepSetup:
     def _build(self, spec) -> RobotEKF:
         return build_filter(spec, self.scenario, self.world)
 
+    def context(self, spec: FilterSpec) -> FilterContext:
+        """What the fast engine starts from: the context `build_filter` gives this spec."""
+        return context_of(self._build(spec))
+
 
 def step_setup(scenario: Scenario, world: World) -> StepSetup:
     """Simulate once; every timed filter pass reuses these data (simulation is not timed)."""
@@ -227,6 +304,231 @@ def update_counts(setup: StepSetup) -> dict[str, dict[str, int]]:
         harness_pass(flt, setup.data, setup.world, setup.scenario.record_every, setup.x_true)
         out[name] = {"fused": flt.n_updates, "rejected": flt.n_rejected}
     return out
+
+
+# ---------------------------------------------------------------------------------------------
+# The fast engine against the filterpy engine, per step
+
+
+def context_of(flt: RobotEKF) -> FilterContext:
+    """The FilterContext a freshly built filter was made from (x0, P0, Qu, R, model, dt, gate)."""
+    return FilterContext(
+        x0=flt.x.copy(), P0=flt.P.copy(), Qu=flt.Qu.copy(), R=flt.R.copy(), model=flt.model,
+        dt=flt.dt, gate=flt.gate,
+    )  # fmt: skip
+
+
+def _fast_passes(spec: FilterSpec, ctx: FilterContext, setup: StepSetup, n: int) -> None:
+    """`n` fast-engine passes, each flattening the run's scans afresh (as a run's first filter)."""
+    every = setup.scenario.record_every
+    for _ in range(n):
+        fast.clear_cache()
+        fast.run_filter_fast(spec, ctx, setup.data, setup.world, every)
+
+
+def time_engine_costs(setup: StepSetup, repeats: int, inner: int) -> dict[str, dict[str, list]]:
+    """Seconds per pass of each filter kind on the filterpy and on the fast engine.
+
+    Within each repeat every kind is timed on filterpy and then on the fast engine, back to back
+    (the fast side as the mean of `inner` passes); filters and contexts are built outside.
+    """
+    every = setup.scenario.record_every
+    times = {kind: {"filterpy": [], "fast": []} for kind in ENGINE_KINDS}
+    for _ in range(repeats):
+        for kind, spec in ENGINE_KINDS.items():
+            flt = setup._build(spec)
+            times[kind]["filterpy"].append(
+                _timed(partial(run_filter, flt, setup.data, setup.world, every))
+            )
+            ctx = setup.context(spec)
+            times[kind]["fast"].append(
+                _timed(partial(_fast_passes, spec, ctx, setup, inner)) / inner
+            )
+    return times
+
+
+def time_scan_flattening(setup: StepSetup, repeats: int) -> list[float]:
+    """Seconds the fast engine spends turning the run's scans into arrays, `repeats` times."""
+
+    def flatten() -> None:
+        fast.clear_cache()
+        fast.flat_scans(setup.data, setup.world)
+
+    out = [_timed(flatten) for _ in range(repeats)]
+    fast.clear_cache()
+    return out
+
+
+def engine_agreement(setup: StepSetup) -> tuple[dict[str, dict], float]:
+    """Each kind once on both engines: their counts (which must be equal) and the largest
+    |fast - filterpy| of x, P, R_diag and Q_diag."""
+    every = setup.scenario.record_every
+    counts, worst = {}, 0.0
+    for kind, spec in ENGINE_KINDS.items():
+        ref = run_filter(setup._build(spec), setup.data, setup.world, every)
+        out = fast.run_filter_fast(spec, setup.context(spec), setup.data, setup.world, every)
+        keys = ("n_updates", "n_rejected", "diverged")
+        if any(ref[k] != out[k] for k in keys):
+            raise BenchError(
+                f"{kind}: the fast engine's counts differ from filterpy's:"
+                f" {[ref[k] for k in keys]} vs {[out[k] for k in keys]}"
+            )
+        counts[kind] = {"fused": out["n_updates"], "rejected": out["n_rejected"]}
+        for key in ("x", "P", "R_diag", "Q_diag"):
+            d = np.abs(ref[key] - out[key])
+            if np.isfinite(d).any():
+                worst = max(worst, float(np.nanmax(d)))
+    return counts, worst
+
+
+def engine_figures(times: dict[str, dict[str, list]], K: int) -> dict[str, dict[str, float]]:
+    """Per kind: median us per step on each engine and the paired ratio fast / filterpy."""
+    return {
+        kind: {
+            "filterpy": statistics.median(t["filterpy"]) / K * 1e6,
+            "fast": statistics.median(t["fast"]) / K * 1e6,
+            "ratio": paired_ratio(t["fast"], t["filterpy"]),
+        }
+        for kind, t in times.items()
+    }
+
+
+_COMPILE_CODE = (
+    "import json, time\n"
+    "from anfekf_bench.engines import fast\n"
+    "print(json.dumps({'jit': fast.JIT, 'warm_up_s': fast.warm_up()}))\n"
+)
+
+
+def compile_probe(cache_dir: Path) -> dict:
+    """numba compiling every kernel into an empty on-disk cache, then a second fresh interpreter
+    loading them from it: {"compile_s", "cache_load_s"} (None without numba)."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache_dir))
+    out = []
+    for _ in range(2):
+        proc = subprocess.run(
+            [sys.executable, "-c", _COMPILE_CODE], capture_output=True, text=True, env=env,
+            check=False,
+        )  # fmt: skip
+        if proc.returncode != 0:
+            tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+            raise BenchError(f"fast-engine compile probe failed: {tail}")
+        out.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    if not out[0]["jit"]:
+        return {"compile_s": None, "cache_load_s": None}
+    return {"compile_s": out[0]["warm_up_s"], "cache_load_s": out[1]["warm_up_s"]}
+
+
+# ---------------------------------------------------------------------------------------------
+# The fast engine end to end
+
+
+def _warm_worker() -> int:
+    """In a worker: load (or compile) the fast engine's kernels; its process id."""
+    fast.warm_up()
+    return os.getpid()
+
+
+def warm_workers(jobs: int) -> None:
+    """Start joblib's reusable pool of `jobs` workers and warm the fast engine in each, so that
+    the timed batches (which reuse the pool) exclude compile and cache loading."""
+    if jobs <= 1:
+        return
+    from joblib import Parallel, delayed
+
+    seen: set[int] = set()
+    for _ in range(10):
+        seen |= set(Parallel(n_jobs=jobs)(delayed(_warm_worker)() for _ in range(2 * jobs)))
+        if len(seen) >= jobs:
+            return
+
+
+def sweep_cells(base: Scenario, cells: int, runs: int) -> list[Scenario]:
+    """A one-axis sweep's cells: the base scenario with five filters, summaries only, the fast
+    engine, and its assumed range noise scaled by factors from 0.25 to 4 (one per cell)."""
+    doc = base.model_dump(mode="json")
+    doc.update(runs=runs, steps_table=False, engine="fast", filters=SWEEP_FILTERS)
+    for key in ("claims", "compare"):  # they name the base's filters
+        if key in doc:
+            doc[key] = []
+    out = []
+    for i, factor in enumerate(np.geomspace(0.25, 4.0, cells)):
+        cell = json.loads(json.dumps(doc))
+        cell["name"] = f"{base.name}-cell{i}"
+        cell["filter_noise"]["sigma_range"] = base.filter_noise.sigma_range * float(factor)
+        out.append(parse_scenario(cell, f"<{base.name} cell {i}>"))
+    return out
+
+
+def _timed_execute(scenario: Scenario, world: World, out_dir: Path, runs: int | None, jobs: int):
+    """(wall seconds, summary records) of one `experiment.execute` on the fast engine."""
+    plan = make_plan(scenario, world, runs, None, jobs, engine="fast")
+    t0 = time.perf_counter()
+    records, _ = execute(plan, out_dir, force=True)
+    return time.perf_counter() - t0, records
+
+
+def summary_max_rel_diff(a: list[dict], b: list[dict]) -> float:
+    """Largest relative difference of a numeric summary figure between two engines' summaries
+    of the same runs (inf when a filter, a figure or a NaN is in one only)."""
+    by_name = {r["filter"]: r for r in b}
+    if set(by_name) != {r["filter"] for r in a}:
+        return float("inf")
+    worst = 0.0
+    for ra in a:
+        rb = by_name[ra["filter"]]
+        for key, va in ra.items():
+            vb = rb.get(key)
+            if isinstance(va, bool) or not isinstance(va, (int, float)):
+                continue
+            if not isinstance(vb, (int, float)):
+                return float("inf")
+            if np.isnan(va) or np.isnan(vb):
+                if not (np.isnan(va) and np.isnan(vb)):
+                    return float("inf")
+                continue
+            scale = max(abs(va), abs(vb))
+            worst = max(worst, abs(va - vb) / scale if scale > 0 else 0.0)
+    return worst
+
+
+def fast_end_to_end(configs: Path, sizes: BenchSizes, tmp: Path, say) -> dict:
+    """The step scenario on the fast engine and the sweep-sized batch, workers warmed first."""
+    scenario, world = load_scenario(configs / E2E_SCENARIO)
+    world = trimmed(world, sizes.waypoints)
+    base, base_world = load_scenario(configs / SWEEP_BASE)
+    base_world = trimmed(base_world, sizes.waypoints)
+    cells = sweep_cells(base, sizes.sweep_cells, sizes.sweep_runs)
+    fast.warm_up()
+    warm_workers(sizes.e2e_jobs)
+    runs = scenario.runs if sizes.scenario_runs is None else sizes.scenario_runs
+    say(f"fast engine end to end: {scenario.name}, {runs} runs on {sizes.e2e_jobs} workers")
+    wall, records = _timed_execute(
+        scenario, world, tmp / "e2e", sizes.scenario_runs, sizes.e2e_jobs
+    )
+    n = sizes.sweep_cells * sizes.sweep_runs * len(SWEEP_FILTERS)
+    say(f"fast engine sweep-sized batch: {sizes.sweep_cells} cells x {sizes.sweep_runs} runs x"
+        f" {len(SWEEP_FILTERS)} filters = {n} filter-runs, summaries only")  # fmt: skip
+    cell_walls = [
+        _timed_execute(cell, base_world, tmp / "sweep", None, sizes.e2e_jobs)[0] for cell in cells
+    ]
+    _shutdown_workers()
+    return {
+        "scenario": scenario.name,
+        "runs": runs,
+        "jobs": sizes.e2e_jobs,
+        "wall_s": wall,
+        "summary": records,
+        "sweep": {
+            "base": base.name,
+            "cells": sizes.sweep_cells,
+            "runs": sizes.sweep_runs,
+            "filters": len(SWEEP_FILTERS),
+            "filter_runs": n,
+            "cell_wall_s": cell_walls,
+            "wall_s": sum(cell_walls),
+        },
+    }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -311,7 +613,7 @@ def scenario_probe(path: str, out_dir: str, runs: int | None, waypoints: int | N
     scenario, world = load_scenario(path)
     plan = make_plan(scenario, trimmed(world, waypoints), runs, None, None)
     t0 = time.perf_counter()
-    _, target = execute(plan, Path(out_dir), force=True)
+    records, target = execute(plan, Path(out_dir), force=True)
     wall = time.perf_counter() - t0
     children = {}
     for pid in _child_pids():
@@ -330,6 +632,8 @@ def scenario_probe(path: str, out_dir: str, runs: int | None, waypoints: int | N
         "peak_rss_children_mb": sorted(children.values(), reverse=True),
         "peak_rss_mb": main_mb + sum(children.values()),
         "steps_parquet_mb": (target / STEPS_FILE).stat().st_size / MIB,
+        "engine": plan.engine,
+        "summary": records,  # compared with the fast engine's (run_bench drops it from the JSON)
     }
 
 
@@ -361,7 +665,10 @@ def targets_met(report: dict) -> dict[str, dict]:
     out = {}
     for key, (op, limit, unit) in TARGETS.items():
         value = report[key]
-        met = value <= limit if op == "<=" else value >= limit
+        if value is None:
+            met = False
+        else:
+            met = value <= limit if op == "<=" else value >= limit
         out[key] = {"target": f"{op} {limit:g} {unit}".strip(), "value": value, "met": bool(met)}
     return out
 
@@ -402,6 +709,20 @@ def run_bench(
         statistics.median(step_s[k]) / K * 1e6 for k in ("bare", "ekf", "anfekf")
     )
 
+    say("fast engine: kernels compiled or loaded from numba's cache")
+    fast_warm_up_s = fast.warm_up()
+    counts, fast_diff = engine_agreement(setup)
+    kinds = ", ".join(ENGINE_KINDS)
+    say(f"per-step cost on filterpy and fast engines: {kinds}; {sizes.repeats} repeats")
+    engine_s = time_engine_costs(setup, sizes.repeats, sizes.fast_inner)
+    engine_us = engine_figures(engine_s, K)
+    prep_s = time_scan_flattening(setup, max(sizes.repeats, 5))
+    compiled = {"compile_s": None, "cache_load_s": None}
+    if sizes.compile_probe and fast.JIT:
+        say("fast engine: numba compile and cache load, each in a fresh interpreter")
+        with tempfile.TemporaryDirectory(prefix="anfekf-numba-") as cache_dir:
+            compiled = compile_probe(Path(cache_dir))
+
     say(f"batch of {sizes.batch_runs} runs on 1 and on 2 workers, {sizes.batch_repeats} repeats")
     batch_scenario, batch_world = load_scenario(configs / BATCH_SCENARIO)
     batch_world = trimmed(batch_world, sizes.waypoints)
@@ -415,6 +736,14 @@ def run_bench(
             say(f"scenario {path.name} end to end in a subprocess")
             res = probe_in_subprocess(path, Path(tmp), sizes.scenario_runs, sizes.waypoints)
             scenarios[res.pop("name")] = res
+        e2e = fast_end_to_end(configs, sizes, Path(tmp), say)
+    reference = scenarios[e2e["scenario"]]
+    summary_diff = None  # no filterpy reference when the file itself asks for the fast engine
+    if reference["engine"] == "filterpy":
+        summary_diff = summary_max_rel_diff(reference["summary"], e2e.pop("summary"))
+    e2e.pop("summary", None)
+    for res in scenarios.values():
+        res.pop("summary", None)
     walls = {name: r["wall_time_s"] for name, r in scenarios.items()}
     walls["total"] = sum(walls.values())
 
@@ -436,11 +765,27 @@ def run_bench(
         "batch_1_worker_s": t1,
         "batch_2_workers_s": t2,
         "speedup_2_workers": paired_ratio(batch_s["jobs_1"], batch_s["jobs_2"]),
+        "fast_jit": fast.JIT,
+        "engine_step_us": engine_us,
+        "engine_updates": counts,
+        "fast_step_ratio_ekf": engine_us["ekf"]["ratio"],
+        "fast_step_ratio_anfekf": max(
+            v["ratio"] for k, v in engine_us.items() if k.startswith("anfekf")
+        ),
+        "fast_prep_step_us": statistics.median(prep_s) / K * 1e6,
+        "fast_engine_max_abs_diff": fast_diff,
+        "fast_warm_up_s": fast_warm_up_s,
+        "fast_compile_s": compiled["compile_s"],
+        "fast_cache_load_s": compiled["cache_load_s"],
+        "fast_e2e_scenario_s": e2e["wall_s"],
+        "fast_e2e": e2e,
+        "fast_summary_max_rel_diff": summary_diff,
+        "fast_sweep_batch_s": e2e["sweep"]["wall_s"],
         "peak_rss_mb": max(r["peak_rss_mb"] for r in scenarios.values()),
         "steps_parquet_mb": max(r["steps_parquet_mb"] for r in scenarios.values()),
         "wall_time_paper_scenarios_s": walls,
         "scenarios": scenarios,
-        "raw_seconds": {"step_pass": step_s, "batch": batch_s},
+        "raw_seconds": {"step_pass": step_s, "batch": batch_s, "engine_pass": engine_s},
         "bench_wall_time_s": time.time() - started,
         "machine": machine_info(),
         "load_average_1min": {"start": load_before[0], "end": os.getloadavg()[0]},
@@ -452,7 +797,9 @@ def run_bench(
     return report
 
 
-def _value(x: float) -> str:
+def _value(x: float | None) -> str:
+    if x is None:
+        return "-"
     return f"{x:.3g}" if abs(x) < 100 else f"{x:.0f}"
 
 
@@ -476,10 +823,33 @@ def bench_table(report: dict) -> Table:
         ("peak_rss_mb", "MiB"),
         ("steps_parquet_mb", "MiB"),
     ]
-    for key, unit in rows:
+
+    def row(key: str, value: float | None, unit: str) -> None:
         t = report["targets"].get(key)
         met = "-" if t is None else ("yes" if t["met"] else "NO")
-        table.add_row(key, f"{_value(report[key])} {unit}", "-" if t is None else t["target"], met)
+        shown = f"{_value(value)} {unit}".strip() if value is not None else "-"
+        table.add_row(key, shown, "-" if t is None else t["target"], met)
+
+    for key, unit in rows:
+        row(key, report[key], unit)
     for name, wall in report["wall_time_paper_scenarios_s"].items():
         table.add_row(f"wall_time_s ({name})", f"{_value(wall)} s", "-", "-")
+    engine = "numba" if report["fast_jit"] else "plain Python, numba not installed"
+    table.add_section()
+    for kind, figures in report["engine_step_us"].items():
+        table.add_row(f"step_us {kind}: filterpy", f"{_value(figures['filterpy'])} us", "-", "-")
+        table.add_row(f"step_us {kind}: fast ({engine})", f"{figures['fast']:.3g} us", "-", "-")
+    for key, unit in (
+        ("fast_step_ratio_ekf", "x"),
+        ("fast_step_ratio_anfekf", "x"),
+        ("fast_prep_step_us", "us"),
+        ("fast_engine_max_abs_diff", ""),
+        ("fast_warm_up_s", "s"),
+        ("fast_compile_s", "s"),
+        ("fast_cache_load_s", "s"),
+        ("fast_e2e_scenario_s", "s"),
+        ("fast_summary_max_rel_diff", ""),
+        ("fast_sweep_batch_s", "s"),
+    ):
+        row(key, report[key], unit)
     return table

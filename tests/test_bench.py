@@ -30,6 +30,12 @@ NUMBER_KEYS = [
     "batch_2_workers_s",
     "peak_rss_mb",
     "steps_parquet_mb",
+    "fast_step_ratio_ekf",
+    "fast_step_ratio_anfekf",
+    "fast_prep_step_us",
+    "fast_warm_up_s",
+    "fast_e2e_scenario_s",
+    "fast_sweep_batch_s",
 ]
 
 
@@ -94,6 +100,36 @@ def test_quick_bench_writes_every_figure(tmp_path):
     assert doc["machine"]["cores"] >= 1 and doc["machine"]["cpu_model"]
     assert doc["versions"]["filterpy"] != "not installed"
     assert len(doc["raw_seconds"]["step_pass"]["bare"]) == bench.QUICK.repeats
+    # the fast engine against filterpy: every kind on both, same data, same counts
+    assert set(doc["engine_step_us"]) == set(bench.ENGINE_KINDS)
+    for kind, figures in doc["engine_step_us"].items():
+        assert all(_finite_positive(figures[k]) for k in ("filterpy", "fast", "ratio")), kind
+        assert len(doc["raw_seconds"]["engine_pass"][kind]["fast"]) == bench.QUICK.repeats
+    assert doc["engine_updates"]["ekf"] == doc["updates"]["ekf"]
+    assert doc["fast_engine_max_abs_diff"] < 1e-9
+    assert doc["fast_summary_max_rel_diff"] < 1e-9  # summaries of both engines, same runs
+    assert doc["fast_compile_s"] is None  # a fresh-interpreter compile: full sizes only
+    assert doc["fast_e2e"]["runs"] == 2 and doc["fast_e2e"]["sweep"]["filter_runs"] == 20
+    assert "step_us anfekf_RQ: fast" in result.output and "fast_sweep_batch_s" in result.output
+
+
+def test_sweep_cells_are_fast_summary_only_scenarios_of_five_filters():
+    base = parse_scenario(small_scenario(name="base", claims=[]))
+    cells = bench.sweep_cells(base, 3, 4)
+    assert [c.name for c in cells] == ["base-cell0", "base-cell1", "base-cell2"]
+    for cell in cells:
+        assert (cell.runs, cell.steps_table, cell.engine) == (4, False, "fast")
+        assert [f.name for f in cell.filters] == [f["name"] for f in bench.SWEEP_FILTERS]
+    ranges = [c.filter_noise.sigma_range for c in cells]
+    assert ranges == pytest.approx([0.5, 2.0, 8.0])  # 0.25 .. 4 x the base's 2.0
+
+
+def test_summary_difference():
+    a = [{"filter": "ekf", "rmse_pos": 1.0, "anees": float("nan"), "runs": 3, "scenario": "s"}]
+    b = [{"filter": "ekf", "rmse_pos": 1.0 + 1e-12, "anees": float("nan"), "runs": 3}]
+    assert bench.summary_max_rel_diff(a, b) == pytest.approx(1e-12, rel=1e-3)
+    assert bench.summary_max_rel_diff(a, [{**b[0], "anees": 1.0}]) == math.inf
+    assert bench.summary_max_rel_diff(a, [{**b[0], "filter": "other"}]) == math.inf
 
 
 def _no_wrong_r(tmp_path: Path) -> list[str]:

@@ -49,7 +49,6 @@ from rich.table import Table
 
 from .analysis.tables import add_trace_metrics, recorded_steps
 from .config import Scenario, World, load_scenario, parse_scenario, scenario_files
-from .engines import fast
 from .engines.filterpy_engine import run_filter
 from .experiment import execute, machine_info, make_plan, package_versions
 from .filters import ANFEKFSpec, EKFSpec, FilterContext, FilterSpec, RobotEKF, build_filter
@@ -320,6 +319,10 @@ def context_of(flt: RobotEKF) -> FilterContext:
 
 def _fast_passes(spec: FilterSpec, ctx: FilterContext, setup: StepSetup, n: int) -> None:
     """`n` fast-engine passes, each flattening the run's scans afresh (as a run's first filter)."""
+    # Imported here: the scenario probes import this module, and numba would weigh on their
+    # peak memory.
+    from .engines import fast
+
     every = setup.scenario.record_every
     for _ in range(n):
         fast.clear_cache()
@@ -349,6 +352,7 @@ def time_engine_costs(setup: StepSetup, repeats: int, inner: int) -> dict[str, d
 
 def time_scan_flattening(setup: StepSetup, repeats: int) -> list[float]:
     """Seconds the fast engine spends turning the run's scans into arrays, `repeats` times."""
+    from .engines import fast
 
     def flatten() -> None:
         fast.clear_cache()
@@ -362,6 +366,8 @@ def time_scan_flattening(setup: StepSetup, repeats: int) -> list[float]:
 def engine_agreement(setup: StepSetup) -> tuple[dict[str, dict], float]:
     """Each kind once on both engines: their counts (which must be equal) and the largest
     |fast - filterpy| of x, P, R_diag and Q_diag."""
+    from .engines import fast
+
     every = setup.scenario.record_every
     counts, worst = {}, 0.0
     for kind, spec in ENGINE_KINDS.items():
@@ -425,6 +431,8 @@ def compile_probe(cache_dir: Path) -> dict:
 
 def _warm_worker() -> int:
     """In a worker: load (or compile) the fast engine's kernels; its process id."""
+    from .engines import fast
+
     fast.warm_up()
     return os.getpid()
 
@@ -494,6 +502,8 @@ def summary_max_rel_diff(a: list[dict], b: list[dict]) -> float:
 
 def fast_end_to_end(configs: Path, sizes: BenchSizes, tmp: Path, say) -> dict:
     """The step scenario on the fast engine and the sweep-sized batch, workers warmed first."""
+    from .engines import fast
+
     scenario, world = load_scenario(configs / E2E_SCENARIO)
     world = trimmed(world, sizes.waypoints)
     base, base_world = load_scenario(configs / SWEEP_BASE)
@@ -696,6 +706,8 @@ def run_bench(
     say: Callable[[str], None] = lambda _: None,
 ) -> dict:
     """Measure everything, write `out` (JSON, atomically) and return the report."""
+    from .engines import fast
+
     configs, out = Path(configs), Path(out)
     files = check_inputs(configs, out)
     started = time.time()

@@ -17,7 +17,10 @@ of the same kernels (`kernels.pure_module()`), which is what runs without numba.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -162,6 +165,44 @@ def test_kernels_are_compiled_when_numba_is_installed():
     pure = KERNELS["pure"]
     assert not pure.JIT
     assert not isinstance(pure.run_kernel, numba.core.registry.CPUDispatcher)
+
+
+_WITHOUT_NUMBA = """
+import json, sys
+sys.modules["numba"] = None  # `import numba` now raises ImportError, as when it is not installed
+from pathlib import Path
+import numpy as np
+from anfekf_bench.config import parse_scenario, resolve_world
+from anfekf_bench.engines import fast, kernels
+from anfekf_bench.engines.filterpy_engine import run_filter
+from anfekf_bench.filters.registry import build_filter
+from anfekf_bench.runner import simulate
+
+assert not fast.JIT and not kernels.JIT and type(kernels.run_kernel).__name__ == "function"
+scenario = parse_scenario(json.loads(sys.argv[1]))
+world = resolve_world(scenario.world, Path("small.yaml"))
+data = simulate(scenario, world, np.random.SeedSequence(3))
+for spec in scenario.filters:
+    flt = build_filter(spec, scenario, world)
+    ctx = fast.FilterContext(x0=flt.x.copy(), P0=flt.P.copy(), Qu=flt.Qu.copy(), R=flt.R.copy(),
+                             model=flt.model, dt=flt.dt, gate=flt.gate)
+    ref = run_filter(flt, data, world, 1)
+    out = fast.run_filter_fast(spec, ctx, data, world, 1)
+    assert (out["n_updates"], out["n_rejected"]) == (ref["n_updates"], ref["n_rejected"])
+    assert np.abs(out["x"] - ref["x"]).max() < 1e-9, spec.name
+print("ok", "numba" in sys.modules and sys.modules["numba"] is None)
+"""
+
+
+def test_runs_without_numba():
+    """With numba not importable the fast engine runs the same kernels as plain Python."""
+    doc = small_scenario(filters=[{"name": "a", "kind": "anfekf", "adapt": "RQ"}])
+    proc = subprocess.run(
+        [sys.executable, "-c", _WITHOUT_NUMBA, json.dumps(doc)], capture_output=True, text=True,
+        check=False, cwd=Path(__file__).resolve().parent.parent,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["ok", "True"]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -46,7 +46,7 @@ class FlatScans:
     """The scans of one run as the kernel reads them: scan i's measurements are rows
     start[i] .. start[i + 1] - 1 of `landmarks` (their map positions) and `z`."""
 
-    __slots__ = ("start", "landmarks", "z", "__weakref__")
+    __slots__ = ("start", "landmarks", "z")
 
     def __init__(self, start: np.ndarray, landmarks: np.ndarray, z: np.ndarray):
         self.start = start
@@ -153,7 +153,8 @@ def run_filter_fast(
         lo, hi = 1.0, 1.0
         from_all, window, clip = True, 1, 1.0
     has_gate = ctx.gate is not None
-    k = _jit_kernels if (jit and JIT) else _pure_kernels()
+    # Without numba the module's own kernels are already plain Python.
+    k = _pure_kernels() if (JIT and not jit) else _jit_kernels
     diverged, j, nis_sum, n_updates, n_rejected = k.run_kernel(
         np.ascontiguousarray(data.u_odo, dtype=float), int(every),
         flat.start, flat.landmarks, flat.z,

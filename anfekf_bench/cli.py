@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -15,7 +16,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 from rich.text import Text
-from typer.core import TyperGroup
+from typer.core import TyperGroup, TyperOption
 
 from .analysis.metrics import format_number, format_share
 from .config import (
@@ -37,6 +38,7 @@ from .experiment import (
     scenario_folder,
     survey_output,
 )
+from .provenance import version_line
 from .runner import BackendUnavailable
 from .sources.simulator import RouteNotCompleted
 from .storage import RUNS_DIR, output_path_problem
@@ -74,15 +76,62 @@ class OneLineUsageErrors(TyperGroup):
             sys.exit(1)
         sys.exit(code if isinstance(code, int) else 0)
 
+    def invoke(self, ctx):
+        # The reader of our output went away (`anfekf ... | head`): stop quietly with the code a
+        # process killed by SIGPIPE has, not click's exit 1 (which `check` uses for a
+        # regression) nor a traceback.
+        try:
+            return super().invoke(ctx)
+        except BrokenPipeError:
+            stdout_gone()
+            raise typer.Exit(EXIT_BROKEN_PIPE) from None
+
+
+EXIT_BROKEN_PIPE = 128 + 13  # as a process killed by SIGPIPE
+
+
+def stdout_gone() -> None:
+    """Point stdout at /dev/null: its reader closed the pipe, and Python's final flush of what
+    is left in the buffer must not fail again (that would print an error and exit 120)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):  # no real stdout (tests): nothing to redirect
+        pass
+
+
+# typer writes "<bool>" after every flag in --help, as if it took a value; a flag takes none.
+_display_type = TyperOption.display_type_rich
+
+
+def _no_flag_metavar(self, ctx):
+    return None if getattr(self, "is_flag", False) else _display_type(self, ctx)
+
+
+TyperOption.display_type_rich = _no_flag_metavar
+
 
 app = typer.Typer(
     cls=OneLineUsageErrors,
-    add_completion=False,
+    add_completion=True,
+    context_settings={"help_option_names": ["-h", "--help"]},
     no_args_is_help=True,
     help="Monte Carlo benchmark of the EKF against the adaptive neuro-fuzzy EKF (ANFEKF).",
 )
-console = Console()
-err_console = Console(stderr=True)
+
+
+class PipeAwareConsole(Console):
+    """rich's Console, but a closed stdout (`anfekf ... | head`) raises BrokenPipeError for the
+    command to handle (rich's own handler exits 1, which `check` reserves for a regression)."""
+
+    def on_broken_pipe(self) -> None:
+        stdout_gone()
+        raise BrokenPipeError(32, "the reader of stdout went away")
+
+
+console = PipeAwareConsole()
+err_console = PipeAwareConsole(stderr=True)
 WIDE_LOG = 120  # columns for tables when the output is not a terminal
 
 
@@ -93,7 +142,7 @@ def table_console() -> Console:
     fragments; a log line has no width limit, so print them wide there.
     """
     if not console.is_terminal and console.width < WIDE_LOG:
-        return Console(file=console.file, width=WIDE_LOG)
+        return PipeAwareConsole(file=console.file, width=WIDE_LOG)
     return console
 
 
@@ -114,8 +163,25 @@ class Backend(str, Enum):
     dask = "dask"
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        console.print(version_line(), markup=False, highlight=False)
+        raise typer.Exit()
+
+
 @app.callback()
-def _root() -> None:
+def _root(
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version",
+            "-V",
+            callback=_print_version,
+            is_eager=True,
+            help="Print the version (and git commit) and exit.",
+        ),
+    ] = False,
+) -> None:
     """Monte Carlo benchmark of the EKF against the adaptive neuro-fuzzy EKF (ANFEKF)."""
 
 
@@ -194,7 +260,9 @@ def run(
     out: Annotated[Path, typer.Option(help="Output folder; results go to OUT/<name>/.")] = Path(
         "results"
     ),
-    force: Annotated[bool, typer.Option(help="Overwrite a complete earlier result.")] = False,
+    force: Annotated[
+        bool, typer.Option("--force", help="Overwrite a complete earlier result.")
+    ] = False,
     backend: Annotated[
         Optional[Backend],
         typer.Option(help="Run on local processes or a Dask cluster (default: the file's)."),
@@ -208,7 +276,7 @@ def run(
         typer.Option(help="filterpy (reference) or fast (numeric kernels; default: the file's)."),
     ] = None,
     debug: Annotated[
-        bool, typer.Option(help="Show tracebacks instead of one-line errors.")
+        bool, typer.Option("--debug", help="Show tracebacks instead of one-line errors.")
     ] = False,
 ) -> None:
     """Run Monte Carlo batches of every filter of a scenario and write Parquet results."""
@@ -375,8 +443,7 @@ def report(
         bool, typer.Option("--debug", help="Show tracebacks instead of one-line errors.")
     ] = False,
 ) -> None:
-    """Draw the figures and tables of saved results into report.md and report.html (never
-    re-runs anything)."""
+    """Draw figures and tables of saved results: report.md and report.html (never re-runs)."""
     # Imported here so that `anfekf run` does not pay for matplotlib.
     from .report import HTML_FILE, REPORT_FILE, ImageFormat, rich_table, write_report
     from .storage import ResultsError
@@ -411,11 +478,13 @@ def check(
         typer.Option(help="Baseline JSON to compare with; without it only the claims are checked."),
     ] = None,
     update: Annotated[
-        bool, typer.Option(help="Rewrite BASELINE from RESULTS, on purpose (README).")
+        bool, typer.Option("--update", help="Rewrite BASELINE from RESULTS, on purpose (README).")
     ] = False,
-    strict: Annotated[bool, typer.Option(help="An inconclusive claim fails the gate too.")] = False,
+    strict: Annotated[
+        bool, typer.Option("--strict", help="An inconclusive claim fails the gate too.")
+    ] = False,
     debug: Annotated[
-        bool, typer.Option(help="Show tracebacks instead of one-line errors.")
+        bool, typer.Option("--debug", help="Show tracebacks instead of one-line errors.")
     ] = False,
 ) -> None:
     """Regression gate: compare results with a baseline and check the scenarios' claims (exit 1)."""
@@ -424,7 +493,11 @@ def check(
 
     with one_line_errors(debug, (ResultsError, BaselineError)):
         found = run_check(results, baseline, update=update, strict=strict)
-    print_report(found, table_console())
+    try:
+        print_report(found, table_console())
+        sys.stdout.flush()
+    except BrokenPipeError:  # `anfekf check ... | head`: the verdict stands, the rest is unread
+        stdout_gone()
     raise typer.Exit(found.exit_code)
 
 
@@ -437,10 +510,13 @@ def bench(
         Path, typer.Option(help="Folder of the paper's scenario files (each is run end to end).")
     ] = Path("configs"),
     quick: Annotated[
-        bool, typer.Option(help="Tiny sizes (2 runs, short route): the machinery, not the targets.")
+        bool,
+        typer.Option(
+            "--quick", help="Tiny sizes (2 runs, short route): the machinery, not the targets."
+        ),
     ] = False,
     debug: Annotated[
-        bool, typer.Option(help="Show tracebacks instead of one-line errors.")
+        bool, typer.Option("--debug", help="Show tracebacks instead of one-line errors.")
     ] = False,
 ) -> None:
     """Measure harness overhead, ANFEKF cost, 2-worker speedup, memory, Parquet size, wall time."""

@@ -37,9 +37,47 @@ def nees_bounds(runs: int, dim: int = 3, confidence: float = 0.95) -> tuple[floa
     return float(chi2.ppf(alpha / 2, dof) / runs), float(chi2.ppf(1 - alpha / 2, dof) / runs)
 
 
+def nan_aware_mean(x: np.ndarray, axis=None):
+    """np.mean, or, when `x` holds NaN, np.nanmean (NaN where a slice has no value).
+
+    NaN marks a step without a score: on a recorded log, a time whose ground truth must not be
+    used (a Vicon gap or mis-fit) or the padding after a segment's end (real_experiment). A
+    simulated run has none (a diverged run is left out before any mean), so its metrics are
+    computed exactly as by np.mean.
+    """
+    x = np.asarray(x, dtype=float)
+    if not np.isnan(x).any():
+        return np.mean(x, axis=axis)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a slice with no value at all: NaN
+        return np.nanmean(x, axis=axis)
+
+
 def rmse_curve(err: np.ndarray) -> np.ndarray:
-    """RMSE over runs at each step: sqrt(mean_runs err^2) for err (runs, steps)."""
-    return np.sqrt(np.mean(np.square(err), axis=0))
+    """RMSE over runs at each step: sqrt(mean_runs err^2) for err (runs, steps); NaN entries
+    (steps without a score) are left out of the mean (`nan_aware_mean`)."""
+    return np.sqrt(nan_aware_mean(np.square(err), axis=0))
+
+
+def runs_counted(values: np.ndarray) -> np.ndarray:
+    """How many runs have a value at each step, for (runs, steps) values."""
+    return np.sum(~np.isnan(np.asarray(values, dtype=float)), axis=-2)
+
+
+def share_inside_bounds(avg: np.ndarray, counts: np.ndarray, confidence: float = 0.95) -> float:
+    """Share of the steps with at least one run whose run-averaged NEES `avg` lies strictly
+    inside the bounds for the `counts` runs averaged there (steps without a score differ in
+    their run counts: recorded logs)."""
+    avg, counts = np.asarray(avg, dtype=float), np.asarray(counts)
+    has = counts > 0
+    if not has.any():
+        return float("nan")
+    inside = np.zeros(len(avg), dtype=bool)
+    for n in np.unique(counts[has]):
+        lo, hi = nees_bounds(int(n), confidence=confidence)
+        at = counts == n
+        inside[at] = (avg[at] > lo) & (avg[at] < hi)
+    return float(np.mean(inside[has]))
 
 
 def share_inside(values: np.ndarray, lo: float, hi: float) -> float:
@@ -83,6 +121,9 @@ def summarize_filter(
     rmse_pos / rmse_heading: the time mean of the RMSE-over-runs curve [m] / [rad].
     anees: the time mean of the run-averaged NEES; nees_in_bounds: the share of steps whose
     run-averaged NEES lies strictly inside the 95 % chi-square bounds for the runs kept.
+    NaN entries of kept runs are steps without a score (recorded logs): every mean leaves them
+    out, and a step's NEES bounds are those for the runs that have it (nees_lo / nees_hi: for
+    all runs kept).
     """
     ok = ~np.asarray(diverged, dtype=bool)
     n = int(ok.sum())
@@ -103,8 +144,19 @@ def summarize_filter(
             nees_in_bounds=nan,
         )
         return record
-    avg_nees = nees_[ok].mean(axis=0)
     lo, hi = nees_bounds(n)
+    if np.isnan(nees_[ok]).any():  # steps without a score (recorded logs): see nan_aware_mean
+        avg_nees = nan_aware_mean(nees_[ok], axis=0)
+        record.update(
+            rmse_pos=float(nan_aware_mean(rmse_curve(pos_err[ok]))),
+            rmse_heading=float(nan_aware_mean(rmse_curve(heading_err[ok]))),
+            anees=float(nan_aware_mean(avg_nees)),
+            nees_lo=lo,
+            nees_hi=hi,
+            nees_in_bounds=share_inside_bounds(avg_nees, runs_counted(nees_[ok])),
+        )
+        return record
+    avg_nees = nees_[ok].mean(axis=0)
     record.update(
         rmse_pos=float(rmse_curve(pos_err[ok]).mean()),
         rmse_heading=float(rmse_curve(heading_err[ok]).mean()),

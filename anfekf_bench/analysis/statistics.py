@@ -25,7 +25,14 @@ from typing import Literal, NamedTuple
 import numpy as np
 from scipy import stats
 
-from .metrics import nees_bounds, rmse_curve, share_inside
+from .metrics import (
+    nan_aware_mean,
+    nees_bounds,
+    rmse_curve,
+    runs_counted,
+    share_inside,
+    share_inside_bounds,
+)
 
 Statistic = Callable[[np.ndarray], "float | np.ndarray"]
 Kind = Literal["ratio", "difference"]
@@ -93,12 +100,17 @@ def _float_or_array(x: np.ndarray) -> float | np.ndarray:
 def rmse_statistic(err: np.ndarray) -> float | np.ndarray:
     """Time mean of the RMSE-over-runs curve, for err (..., runs, steps): rmse_pos, rmse_heading."""
     err = np.asarray(err, dtype=float)
-    return _float_or_array(rmse_curve(np.moveaxis(err, -2, 0)).mean(axis=-1))
+    curve = rmse_curve(np.moveaxis(err, -2, 0))
+    if np.isnan(curve).any():  # steps without a score (recorded logs): metrics.nan_aware_mean
+        return _float_or_array(nan_aware_mean(curve, axis=-1))
+    return _float_or_array(curve.mean(axis=-1))
 
 
 def mean_statistic(nees: np.ndarray) -> float | np.ndarray:
     """Time mean of the run-averaged values, for nees (..., runs, steps): anees."""
     nees = np.asarray(nees, dtype=float)
+    if np.isnan(nees).any():  # steps without a score (recorded logs): metrics.nan_aware_mean
+        return _float_or_array(nan_aware_mean(nan_aware_mean(nees, axis=-2), axis=-1))
     return _float_or_array(nees.mean(axis=-2).mean(axis=-1))
 
 
@@ -111,6 +123,13 @@ def in_bounds_statistic(nees: np.ndarray) -> float | np.ndarray:
     consistent filter, 95 % intervals covered the true 95 % share in 5-12 % of trials).
     """
     nees = np.asarray(nees, dtype=float)
+    if np.isnan(nees).any():  # steps without a score: bounds for the runs each step has
+        avg, counts = nan_aware_mean(nees, axis=-2), runs_counted(nees)
+        if avg.ndim == 1:
+            return share_inside_bounds(avg, counts)
+        rows = zip(avg.reshape(-1, avg.shape[-1]), counts.reshape(-1, avg.shape[-1]), strict=True)
+        flat = [share_inside_bounds(a, c) for a, c in rows]
+        return np.array(flat).reshape(avg.shape[:-1])
     lo, hi = nees_bounds(nees.shape[-2])
     avg = nees.mean(axis=-2)
     if avg.ndim == 1:
@@ -138,13 +157,14 @@ def common_runs(*diverged: np.ndarray) -> np.ndarray:
 
 
 def per_run_rmse(err: np.ndarray) -> np.ndarray:
-    """Each run's own RMSE over time, (runs,) from err (runs, steps): sqrt(mean_steps err^2)."""
+    """Each run's own RMSE over time, (runs,) from err (runs, steps): sqrt(mean_steps err^2)
+    (NaN entries, steps without a score, left out)."""
     return rmse_curve(np.asarray(err, dtype=float).T)
 
 
 def per_run_mean(x: np.ndarray) -> np.ndarray:
-    """Each run's mean over time, (runs,) from x (runs, steps)."""
-    return np.asarray(x, dtype=float).mean(axis=1)
+    """Each run's mean over time, (runs,) from x (runs, steps) (NaN entries left out)."""
+    return nan_aware_mean(np.asarray(x, dtype=float), axis=1)
 
 
 def _check_settings(resamples: int, confidence: float) -> None:

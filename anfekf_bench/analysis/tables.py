@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from .metrics import nees, pose_errors, summarize_filter
+from .metrics import nan_aware_mean, nees, pose_errors, summarize_filter
 
 STEP_COLUMNS = [
     "scenario", "filter", "run", "step", "t",
@@ -125,6 +125,13 @@ def update_statistics(results: list[dict], filter_names: list[str]) -> dict[str,
     return stats
 
 
+def _peak(peak, values: np.ndarray) -> float:
+    """The largest value (NaN for none, or only NaN)."""
+    if not len(values) or np.isnan(values).all():
+        return float(np.max(values)) if len(values) else float("nan")
+    return float(peak(values))
+
+
 RUN_COLUMNS = [
     "scenario", "filter", "run", "rmse_pos", "rmse_heading", "mean_nees", "max_nees", "diverged",
     "n_updates", "n_rejected", "anis",
@@ -143,13 +150,17 @@ def runs_frame(scenario_name: str, filter_names: list[str], results: list[dict])
     for name in filter_names:
         for res in results:
             tr = res["filters"][name]
+            # A run that did not diverge may hold NaN at steps without a score (recorded logs):
+            # they are left out; a diverged run keeps NaN metrics.
+            mean = np.mean if tr["diverged"] else nan_aware_mean
+            peak = np.max if tr["diverged"] or not np.isnan(tr["nees"]).any() else np.nanmax
             with np.errstate(all="ignore"):
                 rows.append({
                     "run": res["run"],
-                    "rmse_pos": float(np.sqrt(np.mean(np.square(tr["pos_err"])))),
-                    "rmse_heading": float(np.sqrt(np.mean(np.square(tr["heading_err"])))),
-                    "mean_nees": float(np.mean(tr["nees"])),
-                    "max_nees": float(np.max(tr["nees"])) if len(tr["nees"]) else float("nan"),
+                    "rmse_pos": float(np.sqrt(mean(np.square(tr["pos_err"])))),
+                    "rmse_heading": float(np.sqrt(mean(np.square(tr["heading_err"])))),
+                    "mean_nees": float(mean(tr["nees"])),
+                    "max_nees": _peak(peak, tr["nees"]),
                     "diverged": bool(tr["diverged"]),
                     "n_updates": int(tr["n_updates"]),
                     "n_rejected": int(tr["n_rejected"]),

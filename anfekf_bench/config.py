@@ -602,6 +602,10 @@ def load_scenario(path: str | Path) -> tuple[Scenario, World]:
         raise ScenarioError(path, "", f"YAML {exc}; not a scenario") from None
     except RecursionError:
         raise ScenarioError(path, "", "YAML nested too deeply") from None
+    if isinstance(data, dict) and "data" in data:  # a recorded log, not the simulator (SPEC 9)
+        from .sources.recorded import load_recorded
+
+        return load_recorded(data, path)
     scenario = parse_scenario(data, path)
     return scenario, resolve_world(scenario.world, path)
 

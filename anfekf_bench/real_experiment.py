@@ -1,0 +1,482 @@
+"""A real-data scenario end to end (SPEC 9): tune the reference, run the held-out segments, write.
+
+1. **Tune** (`tune`): the `ekf-tuned` reference's noise by a grid search on the training part
+   (`sources.recorded.TuningConfig`): every training segment is cold-started from ground truth
+   and the plain EKF is run for every noise setting at once (`engines.events.run_ekf_grid`, plain
+   numpy, the settings split over `jobs` processes); the criterion is the pooled position RMSE
+   over the scorable evaluation times of all training segments.
+2. **Run** (`run_segment`): each held-out segment is one Monte Carlo "run": every filter instance
+   (each filter from each naive start, and ekf-tuned) is cold-started from ground truth at the
+   segment's start and stepped over its events (`engines.events.run_filter_events`).
+3. **Align**: a run's per-step arrays are indexed by the evaluation time's rank in its segment
+   (step k = the segment's k-th odometry stamp; t = seconds since the segment's cold start).
+   Segments differ by a few stamps, so shorter ones are padded with NaN up to the longest.
+   Ground truth is NaN wherever it must not be scored (a Vicon gap, a mis-fit, the padding):
+   errors and NEES are NaN there and every metric leaves NaN out (analysis.metrics).
+4. **Write** what a simulated scenario writes (steps, runs, summary, comparisons against
+   ekf-tuned, claims, manifest), through the same tables and the same run store, so a batch is
+   resumed segment by segment after an interruption.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from joblib import Parallel, delayed
+
+from .analysis.comparisons import comparisons_frame, evaluate_claims
+from .analysis.tables import (
+    add_trace_metrics,
+    runs_frame,
+    steps_frame,
+    summary_records,
+    update_statistics,
+)
+from .engines.events import Timeline, run_ekf_grid, run_filter_events, timeline
+from .filters.ekf import gate_threshold
+from .filters.spec import FilterContext
+from .models import Unicycle
+from .sources import mrclam
+from .sources.recorded import (
+    RealScenario,
+    Recording,
+    Segment,
+    naive_covariances,
+    p0,
+)
+from .storage import MANIFEST_FILE, RUNS_DIR, scenario_name_problem, write_json
+
+LOST_LOCK_M = 1.0  # a run whose position error exceeds this at a scored time has lost lock
+
+
+class RealPlanError(ValueError):
+    """Command-line overrides a real-data scenario cannot take (one-line message)."""
+
+
+@dataclass(frozen=True)
+class RealPlan:
+    """A real-data scenario with the command line's overrides applied: the runs are its held-out
+    segments, the seed only seeds the bootstrap intervals."""
+
+    scenario: RealScenario
+    world: Recording
+    seed: int
+    jobs: int
+    engine: str = "filterpy"
+
+    @property
+    def name(self) -> str:
+        return self.scenario.name
+
+    @property
+    def runs(self) -> int:
+        return len(self.world.test_segments)
+
+    def filter_names(self) -> list[str]:
+        return self.scenario.instance_names()
+
+    def fingerprint(self) -> str:
+        """Hash of what determines a segment's bytes: the scenario, the log's content, the code."""
+        from .experiment import code_version
+
+        doc = {
+            "scenario": self.scenario.model_dump(mode="json", exclude={"jobs"}),
+            "data": self.world.digest,
+            "code": code_version(),
+        }
+        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def make_real_plan(
+    scenario: RealScenario,
+    recording: Recording,
+    runs: int | None,
+    seed: int | None,
+    jobs: int | None,
+    *,
+    backend: str | None = None,
+    scheduler: str | None = None,
+    engine: str | None = None,
+) -> RealPlan:
+    """`experiment.make_plan` for a real-data scenario; PlanError for overrides it cannot take."""
+    from .experiment import PlanError
+
+    if runs is not None:
+        raise PlanError(
+            f"--runs {runs}: a real-data scenario's runs are its held-out segments (set"
+            " segment_s in the scenario file)"
+        )
+    if backend not in (None, "local") or scheduler is not None:
+        raise PlanError("--backend dask: a real-data scenario runs on local processes only")
+    return RealPlan(
+        scenario=scenario,
+        world=recording,
+        seed=scenario.seed if seed is None else seed,
+        jobs=scenario.jobs if jobs is None else jobs,
+        engine=engine or "filterpy",
+    )
+
+
+def check_real_plan(plan: RealPlan) -> int:
+    """What can fail before the batch; returns the held-out evaluation times."""
+    from .experiment import PlanError
+
+    problem = scenario_name_problem(plan.name)
+    if problem:
+        raise PlanError(f"name: {problem}")
+    return sum(
+        int(np.sum((plan.world.log.odo_t > s.t0) & (plan.world.log.odo_t <= s.end)))
+        for s in plan.world.test_segments
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Segments as filter inputs
+
+
+@dataclass(frozen=True, eq=False)
+class SegmentInputs:
+    """What a filter consumes and is scored against on one segment."""
+
+    segment: Segment
+    timeline: Timeline
+    t: np.ndarray  # evaluation times (odometry stamps) [s, log time]
+    truth: np.ndarray  # (n, 3) ground truth there, NaN where it is not scorable
+    scored: np.ndarray  # (n,) bool
+
+
+def segment_inputs(rec: Recording, seg: Segment) -> SegmentInputs:
+    tl = timeline(mrclam.events(rec.log, seg.t0, seg.end))
+    t = tl.record_t
+    truth = np.column_stack(mrclam.interpolate_truth(rec.log, t)).reshape(-1, 3)
+    scored = rec.scorable(t) & np.all(np.isfinite(truth), axis=1)
+    truth[~scored] = np.nan
+    return SegmentInputs(seg, tl, t, truth, scored)
+
+
+# --------------------------------------------------------------------------------------------
+# 1. Tuning
+
+
+AXES = ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing")
+
+
+def _score_chunk(exps: np.ndarray, naive: np.ndarray, segs, P0, gate, T0) -> np.ndarray:
+    """(G, 5): sq_sum, count, max_err, n_updates, n_rejected over every training segment."""
+    sig = naive * np.exp2(exps)
+    Qu, R = sig[:, :2] ** 2, sig[:, 2:] ** 2
+    out = np.zeros((len(exps), 5))
+    for s in segs:
+        sc = run_ekf_grid(s.timeline, s.segment.pose, P0, Qu, R, gate, T0, s.truth[:, :2], s.scored)
+        out[:, 0] += sc.sq_sum
+        out[:, 1] += sc.count
+        out[:, 2] = np.maximum(out[:, 2], sc.max_err)
+        out[:, 3] += sc.n_updates
+        out[:, 4] += sc.n_rejected
+    return out
+
+
+def _score(exps: np.ndarray, naive, segs, P0, gate, T0, jobs: int) -> np.ndarray:
+    """`_score_chunk` with the segments split over `jobs` processes (each runs the whole grid on
+    its share: the per-call overhead of numpy is split too, not only the arithmetic)."""
+    parts = max(1, min(jobs, len(segs)))
+    if parts == 1:
+        return _score_chunk(exps, naive, segs, P0, gate, T0)
+    groups = [segs[i::parts] for i in range(parts)]
+    found = Parallel(n_jobs=parts)(
+        delayed(_score_chunk)(exps, naive, g, P0, gate, T0) for g in groups
+    )
+    out = np.sum(found, axis=0)
+    out[:, 2] = np.max([f[:, 2] for f in found], axis=0)
+    return out
+
+
+def _criterion(scores: np.ndarray) -> np.ndarray:
+    with np.errstate(all="ignore"):
+        rmse = np.sqrt(scores[:, 0] / scores[:, 1])
+    return np.where(np.isfinite(rmse), rmse, np.inf)
+
+
+def tune(scenario: RealScenario, rec: Recording, jobs: int = 1) -> dict:
+    """The grid search of `ekf-tuned` on the training segments (see the module doc).
+
+    Returns the chosen standard deviations (sigma_v, sigma_w_rad, sigma_range,
+    sigma_bearing_rad), their log2 multipliers of the naive values, the criterion there, the
+    stages (settings and best value of each), the share of coarse settings that lost lock (a
+    position error above 1 m) and the time it took.
+    """
+    started = time.perf_counter()
+    segs = [segment_inputs(rec, s) for s in rec.train_segments]
+    naive = scenario.naive.sigmas()
+    P0 = p0(scenario)
+    gate = gate_threshold(scenario.gate_probability)
+    T0 = scenario.odometry_period_s
+    axes = scenario.tuning.axes()
+    coarse = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 4)
+    scores = _score(coarse, naive, segs, P0, gate, T0, jobs)
+    crit = _criterion(scores)
+    all_exps, all_scores, all_crit = [coarse], [scores], [crit]
+    best = int(np.argmin(crit))
+    stages = [{"stage": "coarse (step 2^1)", "settings": len(coarse), "best": float(crit[best])}]
+    best_exp = coarse[best]
+    if scenario.tuning.refine:
+        offsets = np.stack(np.meshgrid(*[[-1.0, 0.0, 1.0]] * 4, indexing="ij"), -1).reshape(-1, 4)
+        for step, label in ((0.5, "2^(1/2)"), (0.25, "2^(1/4)")):
+            exps = best_exp + step * offsets
+            s = _score(exps, naive, segs, P0, gate, T0, jobs)
+            c = _criterion(s)
+            all_exps.append(exps)
+            all_scores.append(s)
+            all_crit.append(c)
+            stages.append({"stage": f"refine (step {label})", "settings": len(exps),
+                           "best": float(c.min())})  # fmt: skip
+            best_exp = np.vstack(all_exps)[int(np.argmin(np.concatenate(all_crit)))]
+    exps = np.vstack(all_exps)
+    crit = np.concatenate(all_crit)
+    scores = np.vstack(all_scores)
+    i = int(np.argmin(crit))
+    best_exp = exps[i]
+    sig = naive * np.exp2(best_exp)
+    seen = scores[i, 3] + scores[i, 4]
+    return {
+        "criterion": "pooled position RMSE over the scorable evaluation times of the training"
+        " segments [m]",
+        "sigma_v": float(sig[0]),
+        "sigma_w_rad": float(sig[1]),
+        "sigma_range": float(sig[2]),
+        "sigma_bearing_rad": float(sig[3]),
+        "log2_multipliers": {a: float(e) for a, e in zip(AXES, best_exp, strict=True)},
+        "train_rmse_pos": float(crit[i]),
+        "train_max_pos_err": float(scores[i, 2]),
+        "train_gate_rejected": float(scores[i, 4] / seen) if seen else math.nan,
+        "train_segments": len(segs),
+        "settings": int(len(exps)),
+        "coarse_lost_lock_share": float(np.mean(scores[: len(coarse), 2] > LOST_LOCK_M)),
+        "stages": stages,
+        "seconds": round(time.perf_counter() - started, 3),
+    }
+
+
+def tuned_covariances(tuned: dict) -> tuple[np.ndarray, np.ndarray]:
+    sv, sw = tuned["sigma_v"], tuned["sigma_w_rad"]
+    sr, sb = tuned["sigma_range"], tuned["sigma_bearing_rad"]
+    return np.diag([sv * sv, sw * sw]), np.diag([sr * sr, sb * sb])
+
+
+# --------------------------------------------------------------------------------------------
+# 2. The held-out segments
+
+
+def _pad(a: np.ndarray, n: int) -> np.ndarray:
+    if len(a) == n:
+        return a
+    out = np.full((n, *a.shape[1:]), np.nan, dtype=float)
+    out[: len(a)] = a
+    return out
+
+
+def run_segment(
+    scenario: RealScenario, inputs: SegmentInputs, tuned: dict | None, n_steps: int
+) -> dict:
+    """One held-out segment as a Monte Carlo run: every filter instance from ground truth."""
+    seg = inputs.segment
+    model = Unicycle(scenario.odometry_period_s)
+    gate = gate_threshold(scenario.gate_probability)
+    n = len(inputs.t)
+    truth = _pad(inputs.truth, n_steps)
+    filters = {}
+    for name, spec, m in scenario.instances():
+        if m is None:
+            Qu, R = tuned_covariances(tuned)
+        else:
+            Qu, R = naive_covariances(scenario, m)
+        ctx = FilterContext(
+            x0=np.array(seg.pose, dtype=float), P0=p0(scenario), Qu=Qu, R=R, model=model,
+            dt=scenario.odometry_period_s, gate=gate,
+        )  # fmt: skip
+        trace = run_filter_events(spec.build(ctx), inputs.timeline)
+        for key in ("x", "P", "R_diag", "Q_diag", "P_infl"):
+            trace[key] = _pad(trace[key], n_steps)
+        filters[name] = add_trace_metrics(trace, truth)
+    return {
+        "run": seg.index,
+        "control_steps": n,
+        "step": np.arange(1, n_steps + 1),
+        "t": _pad(inputs.t - seg.t0, n_steps),
+        "x_true": truth,
+        "filters": filters,
+    }
+
+
+def _run_one(scenario, inputs, tuned, n_steps) -> list[dict]:
+    return [run_segment(scenario, inputs, tuned, n_steps)]
+
+
+# --------------------------------------------------------------------------------------------
+# 3. Tables
+
+
+def real_summary(records: list[dict], ordered: list[dict], scenario: RealScenario) -> list[dict]:
+    """The summary records plus what matters on real data, per filter instance: its base filter
+    and start, the pooled RMSE over all scored times, the largest error, the runs that lost lock
+    (an error above LOST_LOCK_M at a scored time)."""
+    meta = {name: (spec.name, m) for name, spec, m in scenario.instances()}
+    out = []
+    for rec in records:
+        name = rec["filter"]
+        traces = [r["filters"][name] for r in ordered if not r["filters"][name]["diverged"]]
+        err = np.concatenate([t["pos_err"] for t in traces]) if traces else np.zeros(0)
+        err = err[np.isfinite(err)]
+        per_run_max = [
+            float(np.nanmax(t["pos_err"])) if np.isfinite(t["pos_err"]).any() else math.nan
+            for t in traces
+        ]
+        base, m = meta[name]
+        rec = dict(rec)
+        rec.update(
+            base_filter=base,
+            start=m,
+            rmse_pos_pooled=float(np.sqrt(np.mean(err**2))) if len(err) else math.nan,
+            max_pos_err=float(np.max(err)) if len(err) else math.nan,
+            lost_lock_runs=int(sum(v > LOST_LOCK_M for v in per_run_max)),
+        )
+        out.append(rec)
+    return out
+
+
+def real_result_tables(plan: RealPlan, ordered: list[dict]):
+    from .experiment import ResultTables
+
+    names = plan.filter_names()
+    ref = plan.scenario.reference()
+    pairs = [(n, ref) for n in names if ref is not None and n != ref]
+    for pair in plan.scenario.compare:
+        if tuple(pair) not in pairs:
+            pairs.append(tuple(pair))
+    steps = steps_frame(plan.name, names, ordered)
+    records = summary_records(steps, update_statistics(ordered, names))
+    import pandas as pd
+
+    comparisons = (
+        comparisons_frame(steps, pairs, seed=plan.seed)
+        if pairs
+        else pd.DataFrame(
+            columns=[
+                "scenario", "filter", "vs", "metric", "kind", "runs_used", "estimate", "lo",
+                "hi", "method", "p_value", "test",
+            ]
+        )
+    )  # fmt: skip
+    return ResultTables(
+        steps=steps,
+        runs=runs_frame(plan.name, names, ordered),
+        summary=real_summary(records, ordered, plan.scenario),
+        comparisons=comparisons,
+        claims=evaluate_claims(steps, plan.scenario.claims, seed=plan.seed),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# 4. End to end
+
+
+def execute_real(
+    plan: RealPlan,
+    out_dir: Path,
+    *,
+    force: bool = False,
+    on_start: Callable[[str, int, int], None] | None = None,
+    on_result: Callable[[dict], None] | None = None,
+) -> tuple[list[dict], Path]:
+    """`experiment.execute` for a real-data scenario: same folder rules, run store and files."""
+    from .experiment import (
+        folder_lock,
+        package_versions,
+        prepare_output,
+        save_run,
+        scenario_folder,
+        survey_output,
+        write_result_tables,
+    )
+    from .experiment import machine_info as _machine
+    from .runner import _orphan_safe
+
+    started = time.time()
+    check_real_plan(plan)
+    survey_output(plan, scenario_folder(out_dir, plan.name), force)
+    with folder_lock(Path(out_dir) / plan.name):
+        target, done, action = prepare_output(plan, out_dir, force)
+        fingerprint = plan.fingerprint()
+        rec, scenario = plan.world, plan.scenario
+        tuned = None
+        if scenario.reference() is not None:
+            tuned = tune(scenario, rec, plan.jobs)
+            action += (
+                f"; ekf-tuned on {tuned['train_segments']} training segments"
+                f" ({tuned['settings']} settings, {tuned['seconds']:.1f} s): sigma_v"
+                f" {tuned['sigma_v']:.4g} m/s, sigma_w {tuned['sigma_w_rad']:.4g} rad/s,"
+                f" sigma_range {tuned['sigma_range']:.4g} m, sigma_bearing"
+                f" {tuned['sigma_bearing_rad']:.4g} rad (training RMSE"
+                f" {tuned['train_rmse_pos']:.4f} m)"
+            )
+        inputs = [segment_inputs(rec, s) for s in rec.test_segments]
+        n_steps = max(len(i.t) for i in inputs)
+        if on_start is not None:
+            on_start(action, len(done), plan.runs)
+        run_started = time.perf_counter()
+        todo = [i for i in inputs if i.segment.index not in done]
+        results = dict(done)
+        if todo:
+            calls = (delayed(_run_one)(scenario, i, tuned, n_steps) for i in todo)
+            jobs = min(plan.jobs, len(todo))
+            parallel = Parallel(n_jobs=jobs, return_as="generator_unordered")
+            for chunk in parallel(_orphan_safe(calls)):
+                for result in chunk:
+                    save_run(target, result, fingerprint)
+                    results[result["run"]] = result
+                    if on_result is not None:
+                        on_result(result)
+        run_seconds = time.perf_counter() - run_started
+        ordered = [results[i] for i in range(plan.runs)]
+        tables = real_result_tables(plan, ordered)
+        write_result_tables(target, tables, steps_table=scenario.steps_table)
+        manifest = {
+            "scenario": scenario.model_dump(mode="json"),
+            "kind": "recorded",
+            "runs": plan.runs,
+            "seed": plan.seed,
+            "jobs": plan.jobs,
+            "backend": {"kind": "local"},
+            "engine": "filterpy",
+            "engines": {name: "filterpy" for name in plan.filter_names()},
+            "fingerprint": fingerprint,
+            "filters": [
+                {"name": n, "base": spec.name, "kind": spec.kind, "start": m}
+                for n, spec, m in scenario.instances()
+            ],
+            "world": {
+                "landmarks": rec.landmarks.tolist(),
+                "waypoints": [],
+                "control_steps": n_steps,
+            },
+            "data": rec.summary(),
+            "tuning": tuned,
+            "alignment": "step k of a run is the k-th odometry stamp of its segment; t is seconds"
+            " since the segment's cold start; shorter segments are padded with NaN",
+            "resumed_runs": sorted(done),
+            "versions": package_versions(),
+            "machine": _machine(),
+            "run_seconds": round(run_seconds, 3),
+            "wall_time_s": round(time.time() - started, 3),
+        }
+        write_json(target / MANIFEST_FILE, manifest)
+        shutil.rmtree(target / RUNS_DIR, ignore_errors=True)
+    return tables.summary, target

@@ -1,0 +1,494 @@
+"""Real-data scenarios (SPEC 9): a scenario file that names a recorded log instead of a world.
+
+A document with a `data:` key is a `RealScenario` (`config.load_scenario` hands it here):
+
+    name: mrclam-d9
+    data: {kind: mrclam, path: builtin}       # or {kind: log, path: my-log/} (docs/REAL_DATA.md)
+    split_fraction: 0.5                        # training part | held-out part
+    segment_s: 60                              # held-out (and training) segments [s]
+    naive: {sigma_v: 0.1, sigma_w_rad: 0.1, sigma_range: 0.1, sigma_bearing_rad: 0.05}
+    starts: [0.25, 1, 4]                       # each filter runs once per start
+    filters:
+      - {name: ekf, kind: ekf}
+      - {name: ekf-tuned, kind: ekf-tuned}
+      - {name: anfekf, kind: anfekf, adapt: RQ}
+
+Angles of this block are in radians, as their keys say (`_rad`): the unit of the data and of the
+research notes. Every filter but `ekf-tuned` runs once per naive start m, as the instance
+`"<name> x<m>"` (e.g. `anfekf x0.25`), starting from the naive standard deviations times m (the
+variances times m^2). `ekf-tuned` is the fixed EKF whose noise the grid search on the training
+part chose (`TuningConfig`, real_experiment.tune). Resolving the file reads the log and cuts it
+(`Recording`): nothing is run here.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, ClassVar, Literal, Union
+
+import numpy as np
+from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
+
+from ..config import ClaimSpec, ScenarioError, _format_validation_error
+from ..filters.ekf import RobotEKF
+from ..filters.registry import SPECS, expand_entry_points
+from ..filters.spec import FilterContext, FilterSpec
+from ..schema import PositiveFloat, StrictModel
+from . import mrclam
+
+BUILTIN = "builtin"
+
+
+class TunedEKFSpec(FilterSpec):
+    """The reference of a real-data scenario: the EKF with the noise the grid search on the
+    training part found (one instance, no naive starts)."""
+
+    kind: Literal["ekf-tuned"]
+
+    def build(self, ctx: FilterContext) -> RobotEKF:
+        return RobotEKF(**ctx.kwargs())
+
+
+REAL_SPECS: tuple[type[FilterSpec], ...] = (*SPECS, TunedEKFSpec)
+REAL_KINDS = tuple(s.model_fields["kind"].annotation.__args__[0] for s in REAL_SPECS)
+RealFilterSpec = Annotated[Union[REAL_SPECS], Field(discriminator="kind")]  # noqa: UP007
+
+
+class DataConfig(StrictModel):
+    """Where the log comes from."""
+
+    kind: Literal["mrclam", "log"] = Field(
+        "mrclam",
+        description="mrclam: UTIAS MRCLAM (the built-in copy, or a folder of its .dat files);"
+        " log: a folder in the user-log schema (docs/REAL_DATA.md)",
+    )
+    path: str = Field(
+        BUILTIN, min_length=1, description="'builtin' (mrclam only) or a folder, relative to the"
+        " scenario file",
+    )  # fmt: skip
+    robot: Annotated[int, Field(ge=1, le=5)] | None = Field(
+        None, description="mrclam folder of the whole dataset: read Robot<k>_*.dat"
+    )
+
+    @model_validator(mode="after")
+    def _builtin_is_mrclam(self) -> DataConfig:
+        if self.path == BUILTIN and self.kind != "mrclam":
+            raise ValueError("path 'builtin' is the MRCLAM copy: use kind mrclam, or a folder")
+        if self.robot is not None and (self.kind != "mrclam" or self.path == BUILTIN):
+            raise ValueError("robot selects Robot<k>_*.dat in an MRCLAM folder only")
+        return self
+
+
+class NaiveNoise(StrictModel):
+    """The naive guess every start scales (research notes: the prototype's values).
+
+    sigma_v [m/s] and sigma_w_rad [rad/s] are per odometry step of `odometry_period_s` (the
+    Unicycle's rate-consistent Qu); sigma_range [m], sigma_bearing_rad [rad].
+    """
+
+    sigma_v: PositiveFloat = 0.1
+    sigma_w_rad: PositiveFloat = 0.1
+    sigma_range: PositiveFloat = 0.1
+    sigma_bearing_rad: PositiveFloat = 0.05
+
+    def sigmas(self) -> np.ndarray:
+        """(sv, sw, sr, sb)."""
+        return np.array([self.sigma_v, self.sigma_w_rad, self.sigma_range, self.sigma_bearing_rad])
+
+
+Exponents = tuple[Annotated[float, Field(ge=-20, le=20)], Annotated[float, Field(ge=-20, le=20)]]
+
+
+class TuningConfig(StrictModel):
+    """The grid search behind `ekf-tuned` (real_experiment.tune).
+
+    Coarse stage: every combination of multipliers 2^e of the naive standard deviations, e from
+    the first to the last exponent of each range in steps of 1 (the research notes' grid:
+    10 x 10 x 6 x 6 = 3,600 settings). Refinement (`refine`): the 3^4 settings around the best
+    one with steps of 2^(1/2), then again with 2^(1/4). Criterion: the position RMSE over every
+    scorable evaluation time of the training segments (pooled); a setting that loses lock scores
+    high and one whose estimate stops being finite scores infinite.
+    """
+
+    sigma_v: Exponents = (-4, 5)
+    sigma_w: Exponents = (-4, 5)
+    sigma_range: Exponents = (-3, 2)
+    sigma_bearing: Exponents = (-3, 2)
+    refine: bool = True
+
+    @model_validator(mode="after")
+    def _ordered(self) -> TuningConfig:
+        for key in ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing"):
+            lo, hi = getattr(self, key)
+            if lo > hi:
+                raise ValueError(f"{key}: the first exponent must not exceed the last")
+            if hi - lo > 40:
+                raise ValueError(f"{key}: at most 41 exponents")
+        return self
+
+    def axes(self) -> list[np.ndarray]:
+        """The exponent values of each of (sv, sw, sr, sb)."""
+        return [
+            np.arange(lo, hi + 0.5)
+            for lo, hi in (self.sigma_v, self.sigma_w, self.sigma_range, self.sigma_bearing)
+        ]
+
+    def size(self) -> int:
+        return int(np.prod([len(a) for a in self.axes()]))
+
+
+MAX_GRID = 20_000
+
+
+class RealScenario(StrictModel):
+    """One real-data scenario file (see the module doc)."""
+
+    kind: ClassVar[str] = "recorded"
+    sweep: ClassVar[None] = None  # a real-data scenario is not a sweep (config.SweepSpec)
+
+    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    description: str = ""
+    seed: int = Field(0, ge=0, le=2**63 - 1, description="seed of the bootstrap intervals")
+    jobs: int = Field(2, ge=1, le=1024, description="local worker processes")
+    steps_table: bool = True
+    data: DataConfig
+    split_fraction: Annotated[float, Field(gt=0, lt=1)] = Field(
+        0.5, description="training part: this share of the ground-truth span, from its start"
+    )
+    split_at_s: PositiveFloat | None = Field(
+        None, description="split this many seconds after the first ground-truth stamp instead"
+    )
+    segment_s: PositiveFloat = Field(
+        60.0, description="segment length [s] of both parts; each segment is cold-started"
+    )
+    min_scorable_s: Annotated[float, Field(ge=0, allow_inf_nan=False)] = Field(
+        10.0, description="segments with less scorable ground truth are left out"
+    )
+    max_gap_s: PositiveFloat = Field(0.5, description="Vicon gaps longer than this are not scored")
+    misfit_detection: bool = Field(
+        True, description="leave out detected Vicon mis-fits (mrclam.MisfitRule); false for a"
+        " robot that reverses",
+    )  # fmt: skip
+    odometry_period_s: PositiveFloat = Field(
+        0.12, description="T0 of the Unicycle: the step the naive sigma_v, sigma_w refer to"
+    )
+    naive: NaiveNoise = NaiveNoise()
+    starts: list[PositiveFloat] = Field(
+        [0.25, 1.0, 4.0], min_length=1, max_length=20,
+        description="multipliers of the naive standard deviations each filter starts from",
+    )  # fmt: skip
+    tuning: TuningConfig = TuningConfig()
+    p0_std_xy: PositiveFloat = Field(0.05, description="initial std of x and y [m]")
+    p0_std_phi_rad: PositiveFloat = Field(0.05, description="initial std of the heading [rad]")
+    gate_probability: Annotated[float, Field(gt=0, lt=1)] | None = Field(
+        0.999, description="chi-square validation gate (eq. 26); null switches it off"
+    )
+    filters: list[RealFilterSpec] = Field(
+        default_factory=lambda: [TunedEKFSpec(name="ekf-tuned", kind="ekf-tuned")], min_length=1
+    )
+    claims: list[ClaimSpec] = Field(default_factory=list)
+    compare: list[tuple[str, str]] = Field(
+        default_factory=list, description="extra (filter, vs) pairs, besides each vs ekf-tuned"
+    )
+
+    @field_validator("starts")
+    @classmethod
+    def _unique_starts(cls, starts: list[float]) -> list[float]:
+        labels = [start_label(m) for m in starts]
+        if len(set(labels)) != len(labels):
+            raise ValueError("starts must differ (as printed with 3 significant digits)")
+        return starts
+
+    @field_validator("tuning")
+    @classmethod
+    def _grid_size(cls, tuning: TuningConfig) -> TuningConfig:
+        if tuning.size() > MAX_GRID:
+            raise ValueError(f"the coarse grid has {tuning.size()} settings; at most {MAX_GRID}")
+        return tuning
+
+    @field_validator("filters")
+    @classmethod
+    def _filters(cls, filters: list) -> list:
+        names = [f.name for f in filters]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ValueError(f"filter names must be unique; repeated: {', '.join(dupes)}")
+        if any(f.kind == "ekf-oracle" for f in filters):
+            raise ValueError("ekf-oracle needs the true noise, which a recorded log does not have")
+        if sum(f.kind == "ekf-tuned" for f in filters) > 1:
+            raise ValueError("at most one ekf-tuned filter (the reference)")
+        return filters
+
+    @field_validator("claims", "compare")
+    @classmethod
+    def _name_instances(cls, items: list, info: ValidationInfo) -> list:
+        filters = info.data.get("filters")
+        starts = info.data.get("starts")
+        if filters is None or starts is None:
+            return items
+        names = set(instance_names(filters, starts))
+        for i, item in enumerate(items):
+            wanted = (item.filter, item.vs) if isinstance(item, ClaimSpec) else item
+            for value in wanted:
+                if value is not None and value not in names:
+                    known = ", ".join(sorted(names))
+                    raise ValueError(f"entry {i}: no filter named {value!r} (filters: {known})")
+        return items
+
+    def instances(self) -> list[tuple[str, FilterSpec, float | None]]:
+        """(instance name, spec, start multiplier or None for ekf-tuned), in scenario order."""
+        return list(_instances(self.filters, self.starts))
+
+    def instance_names(self) -> list[str]:
+        return [name for name, _, _ in self.instances()]
+
+    def reference(self) -> str | None:
+        """The instance every other is compared with: the ekf-tuned filter, if any."""
+        return next((f.name for f in self.filters if f.kind == "ekf-tuned"), None)
+
+
+def start_label(m: float) -> str:
+    """'0.25', '1', '4': a start multiplier as it appears in instance names."""
+    return f"{m:.3g}"
+
+
+def _instances(filters, starts):
+    for spec in filters:
+        if spec.kind == "ekf-tuned":
+            yield spec.name, spec, None
+        else:
+            for m in starts:
+                yield f"{spec.name} x{start_label(m)}", spec, float(m)
+
+
+def instance_names(filters, starts) -> list[str]:
+    return [name for name, _, _ in _instances(filters, starts)]
+
+
+# --------------------------------------------------------------------------------------------
+# Validation with one-line errors
+
+
+def _allowed_keys(loc: tuple) -> list[str]:
+    from pydantic import BaseModel
+
+    model: type[BaseModel] | None = RealScenario
+    spec_by_kind = {k: s for k, s in zip(REAL_KINDS, REAL_SPECS, strict=True)}
+    for part in loc:
+        if isinstance(part, int):
+            continue
+        if part in spec_by_kind:
+            model = spec_by_kind[part]
+            continue
+        field = model.model_fields.get(part) if model is not None else None
+        if field is None:
+            return []
+        ann = field.annotation
+        model = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
+    return sorted(model.model_fields) if model is not None else []
+
+
+def parse_real_scenario(data: dict, path: str | Path = "<scenario>") -> RealScenario:
+    """Validate a real-data scenario document; ScenarioError (one line) if it is not valid."""
+    if isinstance(data.get("filters"), list):
+        data = {**data, "filters": [expand_entry_points(item) for item in data["filters"]]}
+    try:
+        return RealScenario.model_validate(data)
+    except ValidationError as exc:
+        field, msg = _format_validation_error(exc)
+        err = exc.errors()[0]
+        loc = [str(p) for p in err["loc"]]
+        if len(loc) >= 3 and loc[0] == "filters" and loc[2] == "ekf-tuned":
+            field = ".".join(loc[:2] + loc[3:])
+        if err["type"] == "extra_forbidden":
+            allowed = _allowed_keys(tuple(err["loc"][:-1]))
+            msg = "unknown key" + (f" (allowed: {', '.join(allowed)})" if allowed else "")
+        raise ScenarioError(path, field, msg) from None
+
+
+# --------------------------------------------------------------------------------------------
+# The resolved log: spans, segments, cold starts
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One part of the log run on its own: [start, end], cold-started from ground truth at t0
+    (the first scorable time at or after `start`) with `pose`."""
+
+    index: int
+    start: float
+    end: float
+    t0: float
+    pose: np.ndarray
+    scorable_s: float
+
+    def as_dict(self) -> dict:
+        return {
+            "index": self.index, "start": self.start, "end": self.end, "t0": self.t0,
+            "pose": [float(v) for v in self.pose], "scorable_s": self.scorable_s,
+        }  # fmt: skip
+
+
+@dataclass(frozen=True, eq=False)
+class Recording:
+    """A real-data scenario's log, resolved: where scoring is allowed, the two parts, segments.
+
+    `landmarks` (the map, (n, 2)) and `waypoints` (empty) stand where a simulated world has them.
+    """
+
+    log: mrclam.RobotLog
+    source: str
+    exclusions: mrclam.Exclusions
+    misfit: mrclam.MisfitRule | None
+    train: mrclam.Span
+    held_out: mrclam.Span
+    train_segments: list[Segment]
+    test_segments: list[Segment]
+    digest: str
+
+    @property
+    def landmarks(self) -> np.ndarray:
+        return np.column_stack([self.log.landmark_x, self.log.landmark_y])
+
+    @property
+    def waypoints(self) -> np.ndarray:
+        return np.zeros((0, 2))
+
+    def scorable(self, t) -> np.ndarray:
+        return self.exclusions.scorable(t)
+
+    def summary(self) -> dict:
+        """What the manifest says about the data."""
+        ex = self.exclusions
+        return {
+            "source": self.source,
+            "log": self.log.name,
+            "digest": self.digest,
+            "t_origin": self.log.t_origin,
+            "span": [self.log.t_start, self.log.t_end],
+            "counts": self.log.counts(),
+            "gaps": ex.gaps.tolist(),
+            "misfits": ex.misfits.tolist(),
+            "train": [self.train.start, self.train.end],
+            "held_out": [self.held_out.start, self.held_out.end],
+            "train_scorable_s": ex.scorable_seconds(self.train.start, self.train.end),
+            "held_out_scorable_s": ex.scorable_seconds(self.held_out.start, self.held_out.end),
+            "train_segments": [s.as_dict() for s in self.train_segments],
+            "segments": [s.as_dict() for s in self.test_segments],
+            "landmarks": {
+                "id": self.log.landmark_id.tolist(),
+                "x": self.log.landmark_x.tolist(),
+                "y": self.log.landmark_y.tolist(),
+            },
+        }
+
+
+def log_digest(log: mrclam.RobotLog) -> str:
+    """SHA-256 (16 hex digits) of a log's arrays: a resumed batch must see the same data."""
+    h = hashlib.sha256()
+    for name in (
+        "odo_t odo_v odo_w meas_t meas_landmark meas_range meas_bearing landmark_id landmark_x "
+        "landmark_y truth_t truth_x truth_y truth_phi"
+    ).split():
+        a = np.ascontiguousarray(getattr(log, name))
+        h.update(name.encode() + str(a.dtype).encode() + a.tobytes())
+    return h.hexdigest()[:16]
+
+
+def read_log(cfg: DataConfig, scenario_path: Path) -> tuple[mrclam.RobotLog, str]:
+    """The log a scenario names, and a description of where it came from."""
+    if cfg.path == BUILTIN:
+        return mrclam.load_builtin(), f"built-in {mrclam.BUILTIN_NAME}"
+    folder = Path(cfg.path)
+    if not folder.is_absolute():
+        folder = scenario_path.parent / folder
+    if cfg.kind == "mrclam":
+        return mrclam.read_mrclam(folder, robot=cfg.robot), f"MRCLAM folder {cfg.path}"
+    return mrclam.read_user_log(folder), f"log folder {cfg.path}"
+
+
+def cut_segments(
+    log: mrclam.RobotLog,
+    span: mrclam.Span,
+    length_s: float,
+    ex: mrclam.Exclusions,
+    misfit: mrclam.MisfitRule | None,
+    min_scorable_s: float,
+) -> list[Segment]:
+    """`mrclam.segments` of a span, each with its cold start; segments with less than
+    `min_scorable_s` of scorable ground truth (or none after their start) are left out."""
+    out = []
+    for seg in mrclam.segments(span.start, span.end, length_s):
+        scorable_s = ex.scorable_seconds(seg.start, seg.end)
+        if scorable_s < max(min_scorable_s, 1e-9):
+            continue
+        try:
+            t0, pose = mrclam.cold_start(log, seg.start, ex.max_gap_s, misfit)
+        except ValueError:
+            continue
+        if t0 >= seg.end:
+            continue
+        out.append(Segment(len(out), seg.start, seg.end, t0, pose, scorable_s))
+    return out
+
+
+def resolve_recording(scenario: RealScenario, scenario_path: Path) -> Recording:
+    """Read the log and cut it; ScenarioError (one line) if it cannot be used."""
+    try:
+        log, source = read_log(scenario.data, scenario_path)
+    except mrclam.LogError as exc:
+        raise ScenarioError(scenario_path, "data", str(exc)) from None
+    misfit = mrclam.MisfitRule() if scenario.misfit_detection else None
+    ex = mrclam.exclusions(log, scenario.max_gap_s, misfit)
+    if scenario.split_at_s is not None:
+        at = log.t_start + scenario.split_at_s
+        field = "split_at_s"
+    else:
+        at = log.t_start + scenario.split_fraction * (log.t_end - log.t_start)
+        field = "split_fraction"
+    try:
+        train, held_out = mrclam.split(log, at)
+    except ValueError as exc:
+        raise ScenarioError(scenario_path, field, str(exc)) from None
+    parts = {}
+    for name, span in (("training", train), ("held-out", held_out)):
+        parts[name] = cut_segments(
+            log, span, scenario.segment_s, ex, misfit, scenario.min_scorable_s
+        )
+        if not parts[name]:
+            raise ScenarioError(
+                scenario_path,
+                "segment_s",
+                f"the {name} part ({span.start:.1f}-{span.end:.1f} s) has no segment with"
+                f" {scenario.min_scorable_s:g} s of scorable ground truth",
+            )
+    return Recording(
+        log=log,
+        source=source,
+        exclusions=ex,
+        misfit=misfit,
+        train=train,
+        held_out=held_out,
+        train_segments=parts["training"],
+        test_segments=parts["held-out"],
+        digest=log_digest(log),
+    )
+
+
+def load_recorded(data: dict, path: str | Path) -> tuple[RealScenario, Recording]:
+    """`config.load_scenario` for a document with a `data:` key."""
+    path = Path(path)
+    scenario = parse_real_scenario(data, path)
+    return scenario, resolve_recording(scenario, path)
+
+
+def naive_covariances(scenario: RealScenario, m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(Qu, R) of the naive guess with every standard deviation times m."""
+    sv, sw, sr, sb = scenario.naive.sigmas() * m
+    return np.diag([sv * sv, sw * sw]), np.diag([sr * sr, sb * sb])
+
+
+def p0(scenario: RealScenario) -> np.ndarray:
+    return np.diag([scenario.p0_std_xy**2, scenario.p0_std_xy**2, scenario.p0_std_phi_rad**2])

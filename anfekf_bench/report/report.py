@@ -52,7 +52,7 @@ from ..storage import (
     scenario_dirs,
     write_atomic,
 )
-from . import plots
+from . import plots, real
 from .document import (
     Cell,
     Document,
@@ -926,13 +926,21 @@ def write_report(
     """
     out_dir = Path(out_dir)
     fmt = ImageFormat(fmt)
-    folders = find_scenarios(results_dirs, out_dir)
+    folders, recorded = real.split_folders(find_scenarios(results_dirs, out_dir))
+    real_data = [real.load_real(f) for f in recorded]  # real-data results: report/real.py
     scenarios = [load_scenario_data(f) for f in folders]
     _check_unique_names(scenarios)
     rows = summary_rows(scenarios)
     result = ReportResult(out_dir=out_dir, scenarios=scenarios, rows=rows)
     result.warnings = [w for sc in scenarios for w in scenario_warnings(sc)]
     out_dir.mkdir(parents=True, exist_ok=True)
+    if real_data:
+        real_files, real_text = real.write_real_report(real_data, out_dir, fmt.value, dpi)
+        result.files += real_files
+        if not scenarios:  # only real data: report.md is its section
+            write_atomic(out_dir / REPORT_FILE, lambda tmp: tmp.write_text(real_text, "utf-8"))
+            result.files.append(out_dir / REPORT_FILE)
+            return result
 
     def save(fig, name: str, text: str) -> FigureBlock:
         path = out_dir / name
@@ -971,6 +979,9 @@ def write_report(
     )
     doc = build_document(scenarios, rows, figures, overview, out_dir)
     outputs = {REPORT_FILE: to_markdown(doc)}
+    if real_data:
+        link = real.REAL_REPORT_FILE
+        outputs[REPORT_FILE] += f"\nReal-data results: [{link}]({link})\n"
     if html:
         outputs[HTML_FILE] = to_html(doc)
     for name, text in outputs.items():

@@ -1,0 +1,414 @@
+"""Report figures and tables of real-data results (SPEC 9), from saved results only.
+
+A real-data result folder (manifest `kind: recorded`, written by real_experiment) holds its
+held-out segments as runs. Its section of the report (`real-data.md` and the figures) shows:
+
+- `<name>_track`: the map, the Vicon path at the scored evaluation times and the estimates of
+  ekf-tuned, of the naive EKF (x1) and of the adaptive instance with the lowest position RMSE;
+- `<name>_errors`: position and heading error over the held-out part's time (segments placed at
+  their log times, each starting from ground truth) for the same filters;
+- `<name>_noise`: the adapted R (range, bearing) and Qu (speed, turn rate) standard deviations
+  over time, of every adaptive filter started from the naive guess (x1), against the tuned ones;
+- `<name>_ratios`: every instance's held-out position RMSE over ekf-tuned's, with the paired 95 %
+  bootstrap interval (log scale), grouped by filter, one marker per naive start;
+- a table: per instance its RMSE (the Monte Carlo statistic and pooled), the ratio with its
+  interval, heading RMSE, NEES in bounds, gate rejections and the segments that lost lock.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..analysis.metrics import format_number, format_share
+from ..storage import (
+    COMPARISONS_FILE,
+    SUMMARY_JSON,
+    ResultsError,
+    read_json,
+    read_manifest,
+    read_parquet,
+    read_steps,
+    write_atomic,
+)
+
+REAL_REPORT_FILE = "real-data.md"
+LOST_LOCK_M = 1.0
+# The track and error figures show three filters: the reference, the naive EKF, the best adaptive.
+SHOWN_COLOURS = ("#1f77b4", "#d62728", "#2ca02c")
+
+
+def _palette(n: int) -> list:
+    from matplotlib import colormaps
+
+    cmap = colormaps["tab20"]
+    return [cmap(i % 20) for i in range(n)]
+
+
+def is_real_result(folder: Path) -> bool:
+    """Whether a result folder holds a real-data scenario (its manifest says kind recorded)."""
+    try:
+        return read_manifest(Path(folder)).get("kind") == "recorded"
+    except ResultsError:
+        return False
+
+
+def split_folders(folders: Sequence[Path]) -> tuple[list[Path], list[Path]]:
+    """(simulated result folders, real-data result folders)."""
+    real = [f for f in folders if is_real_result(f)]
+    return [f for f in folders if f not in real], real
+
+
+@dataclass(frozen=True)
+class RealData:
+    """One real-data result, as the figures use it."""
+
+    name: str
+    description: str
+    folder: Path
+    manifest: dict
+    steps: pd.DataFrame
+    summary: list[dict]
+    comparisons: pd.DataFrame
+
+    @property
+    def slug(self) -> str:
+        return self.name
+
+    @property
+    def reference(self) -> str | None:
+        return next((f["name"] for f in self.manifest["filters"] if f["kind"] == "ekf-tuned"),
+                    None)  # fmt: skip
+
+    def instances(self) -> list[dict]:
+        return list(self.manifest["filters"])
+
+    def record(self, name: str) -> dict:
+        return next(r for r in self.summary if r["filter"] == name)
+
+
+def load_real(folder: Path) -> RealData:
+    folder = Path(folder)
+    manifest = read_manifest(folder)
+    for key in ("filters", "data", "scenario"):
+        if key not in manifest:
+            raise ResultsError(f"{folder}: manifest.json has no {key!r}: not a real-data result")
+    summary = read_json(folder / SUMMARY_JSON)
+    if not isinstance(summary, list):
+        raise ResultsError(f"{folder / SUMMARY_JSON}: expected a list of records")
+    return RealData(
+        name=str(manifest["scenario"].get("name", folder.name)),
+        description=str(manifest["scenario"].get("description", "")),
+        folder=folder,
+        manifest=manifest,
+        steps=read_steps(folder),
+        summary=summary,
+        comparisons=read_parquet(folder / COMPARISONS_FILE),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Series
+
+
+def _value(x) -> float:
+    return math.nan if x is None else float(x)
+
+
+def shown_filters(rd: RealData) -> list[str]:
+    """ekf-tuned, the naive EKF from x1 (else its first start), and the best adaptive instance."""
+    out = []
+    if rd.reference:
+        out.append(rd.reference)
+    plain = [f for f in rd.instances() if f["kind"] == "ekf"]
+    if plain:
+        x1 = [f for f in plain if f["start"] == 1.0]
+        out.append((x1 or plain)[0]["name"])
+    adaptive = [f["name"] for f in rd.instances() if f["kind"] not in ("ekf", "ekf-tuned")]
+    if adaptive:
+        best = min(adaptive, key=lambda n: _nan_last(_value(rd.record(n)["rmse_pos"])))
+        out.append(best)
+    return out
+
+
+def _nan_last(x: float) -> float:
+    return x if math.isfinite(x) else math.inf
+
+
+def absolute_times(rd: RealData, sub: pd.DataFrame) -> np.ndarray:
+    """Log times [s] of rows of the steps table: the segment's cold start plus t."""
+    t0 = {int(s["index"]): float(s["t0"]) for s in rd.manifest["data"]["segments"]}
+    return sub["run"].map(t0).to_numpy(dtype=float) + sub["t"].to_numpy(dtype=float)
+
+
+def _one(rd: RealData, name: str) -> pd.DataFrame:
+    sub = rd.steps[rd.steps["filter"] == name].sort_values(["run", "step"])
+    sub = sub[np.isfinite(sub["t"].to_numpy(dtype=float))]
+    return sub.assign(t_abs=absolute_times(rd, sub))
+
+
+def _broken(sub: pd.DataFrame, columns: list[str]) -> list[np.ndarray]:
+    """Columns with a NaN row between segments, so that lines do not join across runs."""
+    parts = []
+    for _, g in sub.groupby("run", sort=True):
+        parts.append(g[columns].to_numpy(dtype=float))
+        parts.append(np.full((1, len(columns)), np.nan))
+    return np.vstack(parts) if parts else np.zeros((0, len(columns)))
+
+
+# --------------------------------------------------------------------------------------------
+# Figures
+
+
+def _figure(rows: int, cols: int, size: tuple[float, float]):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=size, layout="constrained")
+    axes = fig.subplots(rows, cols, squeeze=False)
+    return fig, axes
+
+
+def track_figure(rd: RealData):
+    fig, axes = _figure(1, 1, (7.5, 6.5))
+    ax = axes[0, 0]
+    lm = rd.manifest["data"]["landmarks"]
+    ax.plot(lm["x"], lm["y"], "k^", ms=7, gid="landmarks", label="landmarks")
+    for i, x, y in zip(lm["id"], lm["x"], lm["y"], strict=True):
+        ax.annotate(str(i), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
+    names = shown_filters(rd)
+    if names:
+        truth = _broken(_one(rd, names[0]), ["x_true", "y_true"])
+        ax.plot(truth[:, 0], truth[:, 1], color="k", lw=1.6, alpha=0.45, gid="truth",
+                label="Vicon (scored times)")  # fmt: skip
+    for name, colour in zip(names, SHOWN_COLOURS, strict=False):
+        est = _broken(_one(rd, name), ["x_est", "y_est"])
+        ax.plot(est[:, 0], est[:, 1], lw=0.9, color=colour, gid=f"est/{name}", label=name)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"{rd.name}: held-out segments against Vicon")
+    ax.legend(loc="best")
+    return fig
+
+
+def _mark_segments(ax, rd: RealData) -> None:
+    """Dotted lines at the cold starts, grey where nothing is scored; x limited to the part."""
+    a, b = rd.manifest["data"]["held_out"]
+    ax.set_xlim(a, b)
+    for s in rd.manifest["data"]["segments"]:
+        ax.axvline(float(s["t0"]), color="0.6", lw=0.6, ls=":")
+    for a, b in rd.manifest["data"]["misfits"] + rd.manifest["data"]["gaps"]:
+        ax.axvspan(a, b, color="0.85", lw=0)
+
+
+def errors_figure(rd: RealData):
+    fig, axes = _figure(2, 1, (9.5, 6.5))
+    for name, colour in zip(shown_filters(rd), SHOWN_COLOURS, strict=False):
+        sub = _broken(_one(rd, name), ["t_abs", "pos_err", "heading_err"])
+        axes[0, 0].plot(sub[:, 0], sub[:, 1], lw=0.8, color=colour, gid=f"pos/{name}",
+                        label=name)  # fmt: skip
+        axes[1, 0].plot(sub[:, 0], np.degrees(sub[:, 2]), lw=0.8, color=colour,
+                        gid=f"heading/{name}")  # fmt: skip
+    for ax, label in ((axes[0, 0], "position error [m]"), (axes[1, 0], "heading error [deg]")):
+        _mark_segments(ax, rd)
+        ax.set_yscale("log")
+        ax.set_ylabel(label)
+    axes[1, 0].set_xlabel("log time [s] (dotted: segment cold starts; grey: not scored)")
+    axes[0, 0].legend(loc="upper left")
+    axes[0, 0].set_title(f"{rd.name}: errors on the held-out part")
+    return fig
+
+
+NOISE = (
+    ("R_rr", "range std [m]", "sigma_range"),
+    ("R_bb", "bearing std [rad]", "sigma_bearing_rad"),
+    ("Q_vv", "speed std [m/s]", "sigma_v"),
+    ("Q_gg", "turn-rate std [rad/s]", "sigma_w_rad"),
+)
+
+
+def noise_figure(rd: RealData):
+    """Adapted noise (as standard deviations) of the adaptive filters started at x1."""
+    fig, axes = _figure(2, 2, (10, 6.5))
+    tuned = rd.manifest.get("tuning") or {}
+    naive = rd.manifest["scenario"]["naive"]
+    starts = {f["start"] for f in rd.instances() if f["start"] is not None}
+    start = 1.0 if 1.0 in starts else (min(starts) if starts else None)
+    adaptive = [f["name"] for f in rd.instances()
+                if f["kind"] not in ("ekf", "ekf-tuned") and f["start"] == start]  # fmt: skip
+    colours = _palette(len(adaptive))
+    for ax, (col, label, key) in zip(axes.ravel(), NOISE, strict=True):
+        for name, colour in zip(adaptive, colours, strict=True):
+            sub = _broken(_one(rd, name), ["t_abs", col])
+            ax.plot(
+                sub[:, 0], np.sqrt(sub[:, 1]), lw=0.6, color=colour, gid=f"{col}/{name}", label=name
+            )
+        if key in tuned:
+            ax.axhline(tuned[key], color="k", ls="--", lw=1, gid=f"{col}/tuned", label="ekf-tuned")
+        if start is not None:
+            ax.axhline(naive[key] * start, color="0.5", ls=":", lw=1, label=f"naive x{start:g}")
+        _mark_segments(ax, rd)
+        ax.set_yscale("log")
+        ax.set_ylabel(label)
+        ax.set_xlabel("log time [s]")
+    axes[0, 0].legend(loc="best", fontsize=6, ncol=2)
+    fig.suptitle(f"{rd.name}: adapted R and Q (start x{start:g}) against the tuned values")
+    return fig
+
+
+def ratio_rows(rd: RealData) -> list[dict]:
+    """Per instance: its ratio of position RMSE to ekf-tuned's with the paired interval."""
+    ref = rd.reference
+    rows = []
+    c = rd.comparisons
+    for f in rd.instances():
+        name = f["name"]
+        rec = rd.record(name)
+        hit = c[(c["filter"] == name) & (c["vs"] == ref) & (c["metric"] == "rmse_pos")]
+        est, lo, hi = (
+            (float(hit["estimate"].iloc[0]), float(hit["lo"].iloc[0]), float(hit["hi"].iloc[0]))
+            if len(hit) else (1.0 if name == ref else math.nan, math.nan, math.nan)
+        )  # fmt: skip
+        rows.append({
+            "filter": name, "base": f["base"], "kind": f["kind"], "start": f["start"],
+            "rmse_pos": _value(rec["rmse_pos"]), "rmse_pos_pooled": _value(rec["rmse_pos_pooled"]),
+            "rmse_heading_deg": math.degrees(_value(rec["rmse_heading"])),
+            "ratio": est, "lo": lo, "hi": hi, "anees": _value(rec["anees"]),
+            "nees_in_bounds": _value(rec["nees_in_bounds"]),
+            "gate_rejected": _value(rec.get("gate_rejected")),
+            "lost_lock_runs": int(rec.get("lost_lock_runs", 0)), "runs": int(rec["runs"]),
+            "diverged": int(rec["diverged"]),
+        })  # fmt: skip
+    return rows
+
+
+def ratio_figure(rd: RealData):
+    rows = [r for r in ratio_rows(rd) if r["kind"] != "ekf-tuned"]
+    bases = list(dict.fromkeys(r["base"] for r in rows))
+    starts = sorted({r["start"] for r in rows})
+    fig, axes = _figure(1, 1, (8, 0.35 * len(bases) * max(1, len(starts)) + 1.5))
+    ax = axes[0, 0]
+    markers = "os^Dv<>p"
+    colours = dict(zip(bases, _palette(len(bases)), strict=True))
+    y = 0
+    ticks, labels = [], []
+    for base in bases:
+        for k, m in enumerate(starts):
+            r = next((r for r in rows if r["base"] == base and r["start"] == m), None)
+            if r is None:
+                continue
+            err = None
+            if math.isfinite(r["lo"]) and math.isfinite(r["hi"]):
+                err = [[r["ratio"] - r["lo"]], [r["hi"] - r["ratio"]]]
+            ax.errorbar([r["ratio"]], [y], xerr=err, fmt=markers[k % len(markers)],
+                        color=colours[base], ms=5, capsize=2,
+                        gid=f"ratio/{r['filter']}")  # fmt: skip
+            ticks.append(y)
+            labels.append(f"{base} x{m:g}" + (" (lost lock)" if r["lost_lock_runs"] else ""))
+            y -= 1
+        y -= 0.5
+    ax.axvline(1.0, color="k", lw=1)
+    ax.set_xscale("log")
+    ax.set_yticks(ticks, labels, fontsize=7)
+    ax.set_xlabel("held-out position RMSE / ekf-tuned's (95 % paired bootstrap interval)")
+    ax.set_title(f"{rd.name}: every filter from every naive start")
+    return fig
+
+
+# --------------------------------------------------------------------------------------------
+# Markdown
+
+
+def markdown_table(rd: RealData) -> str:
+    header = (
+        "filter", "start", "RMSE pos [m]", "pooled [m]", "ratio to ekf-tuned [95 %]",
+        "RMSE head [deg]", "ANEES", "NEES in bounds", "gate rejected", "lost lock",
+    )  # fmt: skip
+    lines = ["| " + " | ".join(header) + " |", "|---|---|" + "---:|" * (len(header) - 2)]
+    for r in ratio_rows(rd):
+        ratio = format_number(r["ratio"], 2)
+        if math.isfinite(r["lo"]):
+            ratio += f" [{r['lo']:.2f}, {r['hi']:.2f}]"
+        lines.append("| " + " | ".join([
+            r["base"], "tuned" if r["start"] is None else f"x{r['start']:g}",
+            format_number(r["rmse_pos"], 3), format_number(r["rmse_pos_pooled"], 3), ratio,
+            format_number(r["rmse_heading_deg"], 1), format_number(r["anees"], 1),
+            format_share(r["nees_in_bounds"]), format_share(r["gate_rejected"]),
+            f"{r['lost_lock_runs']}/{r['runs']}",
+        ]) + " |")  # fmt: skip
+    return "\n".join(lines)
+
+
+def markdown(rd: RealData, figures: dict[str, str]) -> str:
+    m = rd.manifest
+    data, tuned = m["data"], m.get("tuning")
+    out = [f"## {rd.name} (real data)", ""]
+    if rd.description:
+        out += [rd.description, ""]
+    out += [
+        f"Log: {data['source']} ({data['log']}); held-out part {data['held_out'][0]:.1f}-"
+        f"{data['held_out'][1]:.1f} s with {data['held_out_scorable_s']:.0f} s of scorable ground"
+        f" truth, in {m['runs']} segments, each cold-started from ground truth (the runs of the"
+        " statistics below: one robot, one sensor, consecutive stretches of one drive, so not"
+        " independent repeats; docs/REAL_DATA.md).",
+        "",
+    ]
+    if tuned:
+        out += [
+            f"ekf-tuned: sigma_v {tuned['sigma_v']:.4g} m/s, sigma_w {tuned['sigma_w_rad']:.4g}"
+            f" rad/s, sigma_range {tuned['sigma_range']:.4g} m, sigma_bearing"
+            f" {tuned['sigma_bearing_rad']:.4g} rad, chosen among {tuned['settings']} settings on"
+            f" {tuned['train_segments']} training segments (training RMSE"
+            f" {tuned['train_rmse_pos']:.4f} m; {100 * tuned['coarse_lost_lock_share']:.0f} % of"
+            " the coarse grid lost lock).",
+            "",
+        ]
+    out += [
+        "RMSE pos: the time mean of the RMSE-over-segments curve (segments aligned by the rank of"
+        " the evaluation time in the segment); pooled: over every scored time of every segment."
+        f" Lost lock: segments whose position error exceeds {LOST_LOCK_M:g} m at a scored time.",
+        "",
+        markdown_table(rd),
+        "",
+    ]
+    captions = {
+        "ratios": "every filter from every naive start against ekf-tuned",
+        "track": "the held-out segments against Vicon, with the map",
+        "errors": "position and heading error over time",
+        "noise": "adapted R and Q against the tuned values",
+    }
+    for key, caption in captions.items():
+        if key in figures:
+            out += [f"![{rd.name}: {caption}]({figures[key]})", ""]
+    return "\n".join(out)
+
+
+def write_real_report(
+    results: Sequence[RealData], out_dir: Path, fmt: str, dpi: int | None = None
+) -> tuple[list[Path], str]:
+    """Write the figures of every real-data result and real-data.md into `out_dir`; returns the
+    files written and the markdown (report.md's real-data part)."""
+    from . import plots
+
+    files = []
+    parts = ["# Real data", "", "Generated by `anfekf report` from saved results only.", ""]
+    for rd in results:
+        figures = {}
+        for key, draw in (("ratios", ratio_figure), ("track", track_figure),
+                          ("errors", errors_figure), ("noise", noise_figure)):  # fmt: skip
+            name = f"{rd.slug}_{key}.{fmt}"
+            path = Path(out_dir) / name
+            plots.save_figure(draw(rd), path, fmt, dpi=dpi or plots.DPI)
+            files.append(path)
+            figures[key] = name
+        parts.append(markdown(rd, figures))
+    text = "\n".join(parts) + "\n"
+    md = Path(out_dir) / REAL_REPORT_FILE
+    write_atomic(md, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+    files.append(md)
+    return files, text

@@ -4,7 +4,8 @@
 mutate nothing shared. The truth path is computed once per batch and shipped with the tasks.
 Run i draws from `SeedSequence(seed).spawn(runs)[i]` only (SPEC 6), so results do not depend on
 the number of workers or on the order in which runs finish. The same holds on a Dask
-cluster (`backend="dask"`): joblib's dask backend ships the same calls to the cluster's workers.
+cluster (`backend="dask"`): the same calls are submitted to the cluster's workers, one Dask task
+each, and a batch whose workers are all gone (or whose scheduler is) ends in one line.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from collections.abc import Callable, Iterable, Iterator
 from typing import Literal
 
 import numpy as np
-from joblib import Parallel, delayed
+from joblib import Parallel, delayed, parallel_config
 
 from .analysis.tables import add_trace_metrics, recorded_steps
 from .config import Engine, Scenario, World
@@ -151,8 +152,10 @@ def run_batch(
         results = _run_on_dask(client, calls, scheduler, connect_timeout_s)
     else:
         n_calls = math.ceil(len(tasks) / size)
-        parallel = Parallel(n_jobs=min(jobs, n_calls), return_as="generator_unordered")
-        results = parallel(_orphan_safe(calls))
+        # Each worker process starts by watching this one (see _watch_parent).
+        with parallel_config(backend="loky", initializer=_watch_parent, initargs=(os.getpid(),)):
+            parallel = Parallel(n_jobs=min(jobs, n_calls), return_as="generator_unordered")
+            results = parallel(calls)
     return _announce(results, on_result)
 
 
@@ -331,28 +334,15 @@ def connect_dask(scheduler: str | None, timeout_s: float):
 PARENT_POLL_S = 0.2
 
 
-def _orphan_safe(calls: Iterable) -> Iterator:
-    """Each joblib call wrapped so that the worker process running it exits when this process
-    dies. loky keeps idle workers for minutes; after a kill -9 of the parent they would live on,
-    holding its stdout/stderr open (`anfekf run ... | tee log` would never end)."""
-    parent = os.getpid()
-    for func, args, kwargs in calls:
-        yield delayed(_watched_call)(parent, func, args, kwargs)
-
-
-_watching: int | None = None
-
-
-def _watched_call(parent: int, func, args, kwargs):
-    """Run `func` in a worker, first starting (once per process) a daemon thread that ends the
-    process when its parent `parent` is gone. In the parent itself (jobs 1) nothing is started."""
-    global _watching
-    if os.getpid() != parent and _watching != parent:
-        _watching = parent
+def _watch_parent(parent: int) -> None:
+    """loky worker initializer: start a daemon thread that ends this worker process when its
+    parent `parent` is gone. loky keeps workers for minutes; after a kill -9 of the parent they
+    would live on, holding its stdout/stderr open (`anfekf run ... | tee log` would never end).
+    Not called with jobs 1 (joblib then runs the batch in the calling process)."""
+    if os.getpid() != parent:
         threading.Thread(
             target=_exit_with_parent, args=(parent,), name="anfekf-parent-watch", daemon=True
         ).start()
-    return func(*args, **kwargs)
 
 
 def _exit_with_parent(parent: int) -> None:

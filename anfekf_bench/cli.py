@@ -42,6 +42,7 @@ from .provenance import version_line
 from .runner import BackendUnavailable
 from .sources.simulator import RouteNotCompleted
 from .storage import RUNS_DIR, output_path_problem
+from .sweeps import CELLS_DIR, SweepError, cell_complete, cell_plans, expand, run_sweep
 
 # click's exception classes as typer raises them (typer >= 0.17 vendors its own click): found
 # through typer's public BadParameter, so this works with either.
@@ -307,16 +308,90 @@ def run(
     names = [p.name for p in plans]
     if len(set(names)) != len(names):
         fail(f"{scenario}: two scenario files share a name; names must be unique")
+    # A sweep's cells are expanded and validated as scenarios now, before anything runs.
+    sweeps: dict[str, tuple] = {}
+    with one_line_errors(debug, (ScenarioError, PlanError)):
+        for path, plan in zip(scenario_files(scenario), plans, strict=True):
+            if plan.scenario.sweep is not None:
+                cells = expand(plan.scenario, path)
+                overrides = dict(backend=kind, scheduler=scheduler, engine=plan.engine)
+                sweeps[plan.name] = (cells, cell_plans(cells, runs=runs, seed=seed, jobs=jobs,
+                                                       **overrides))  # fmt: skip
     _check_out_dir(out)
     # Everything that can fail is checked for every scenario before the first one runs (and
     # again by execute, under the folder's lock, before --force removes anything).
     for path, plan in zip(scenario_files(scenario), plans, strict=True):
+        checked = sweeps[plan.name][1] if plan.name in sweeps else [plan]
         with one_line_errors(debug, (PlanError,), prefix=f"{path}: "):
-            check_plan(plan)
-        with one_line_errors(debug, (OutputExists,), prefix=f"{plan.name}: "):
-            survey_output(plan, scenario_folder(out, plan.name), force)
+            check_plan(checked[0])  # the cells differ in noise only: one check serves all
+        with one_line_errors(debug, (OutputExists, SweepError), prefix=f"{plan.name}: "):
+            if plan.name not in sweeps:
+                survey_output(plan, scenario_folder(out, plan.name), force)
+                continue
+            for cell, cell_plan in zip(*sweeps[plan.name], strict=True):
+                folder = Path(out) / plan.name / CELLS_DIR / cell.name
+                if force or not cell_complete(folder, cell_plan):
+                    survey_output(cell_plan, folder, force)
     for plan in plans:
-        _run_plan(plan, out, force, debug)
+        if plan.name in sweeps:
+            _run_sweep(plan, *sweeps[plan.name], out, force, debug)
+        else:
+            _run_plan(plan, out, force, debug)
+
+
+def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
+    """Every cell of a sweep with one progress bar over all its runs, then the sweep table."""
+    progress = Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=False,
+    )
+    total = sum(p.runs for p in plans)
+    task = progress.add_task(f"{plan.name}: {len(cells)} cells", total=total)
+
+    def on_cell(cell, what: str) -> None:
+        shown = ", ".join(f"{k} = {v:g}" for k, v in cell.coords.items())
+        progress.console.print(
+            one_line(f"{plan.name} {cell.name} ({shown}): {what}"), markup=False, highlight=False
+        )
+        if what.startswith("complete"):
+            progress.advance(task, plans[cell.index].runs)
+
+    def on_start(_action: str, done: int, _total: int) -> None:
+        progress.advance(task, done)
+
+    try:
+        with (
+            one_line_errors(debug, (BackendUnavailable,)),
+            one_line_errors(
+                debug,
+                (OutputExists, RouteNotCompleted, PlanError, FolderBusy, SweepError),
+                prefix=f"{plan.name}: ",
+                os_error=f"{plan.name}: cannot write results",
+            ),
+            progress,
+        ):
+            table, target = run_sweep(
+                plan.name, plan.scenario.sweep.axes, cells, plans, out, force=force,
+                on_cell=on_cell, on_start=on_start, on_result=lambda _: progress.advance(task),
+            )  # fmt: skip
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        fail(
+            f"{plan.name}: interrupted; finished cells and runs are saved in"
+            f" {Path(out) / plan.name}: run the same command again to resume",
+            code=130,
+        )
+    console.print(
+        f"sweep {plan.name}: {len(cells)} cells x {plans[0].runs} runs written to {target}"
+        f" (sweep.parquet; `anfekf report {out}` draws it)",
+        markup=False,
+        highlight=False,
+    )
 
 
 def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
@@ -446,6 +521,7 @@ def report(
     """Draw figures and tables of saved results: report.md and report.html (never re-runs)."""
     # Imported here so that `anfekf run` does not pay for matplotlib.
     from .report import HTML_FILE, REPORT_FILE, ImageFormat, rich_table, write_report
+    from .report.sweep import find_sweeps, has_scenario_results, write_sweeps_report
     from .storage import ResultsError
 
     formats = [f.value for f in ImageFormat]
@@ -454,8 +530,15 @@ def report(
     if not 10 <= dpi <= 1200:
         fail(f"--dpi: must be an integer from 10 to 1200 (got {dpi})")
     _check_out_dir(out)
+    folders = results or [Path("results")]
     with one_line_errors(debug, (ResultsError,), os_error=f"{out}: cannot write the report"):
-        done = write_report(results or [Path("results")], out, ImageFormat(image_format), dpi=dpi)
+        sweep_folders = find_sweeps(folders)
+        written = write_sweeps_report(sweep_folders, out, image_format) if sweep_folders else None
+        if written is not None:
+            console.print(f"sweep report written to {written}", markup=False, highlight=False)
+        if sweep_folders and not has_scenario_results(folders):
+            return
+        done = write_report(folders, out, ImageFormat(image_format), dpi=dpi)
     table_console().print(rich_table(done.rows))
     for warning in done.warnings:
         console.print(f"warning: {warning}", markup=False, highlight=False, soft_wrap=True)

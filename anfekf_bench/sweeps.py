@@ -131,7 +131,7 @@ def cell_plans(cells: list[Cell], **overrides) -> list[Plan]:
     return [make_plan(c.scenario, c.world, runs, seed, jobs, **overrides) for c in cells]
 
 
-def _complete(folder: Path, plan: Plan) -> bool:
+def cell_complete(folder: Path, plan: Plan) -> bool:
     """A cell folder with a complete result of this very plan (same fingerprint)."""
     manifest = folder / MANIFEST_FILE
     if not manifest.is_file():
@@ -163,7 +163,7 @@ def run_sweep(
     reused = []
     for cell, plan in zip(cells, plans, strict=True):
         folder = cells_dir / cell.name
-        if not force and _complete(folder, plan):
+        if not force and cell_complete(folder, plan):
             reused.append(cell.name)
             if on_cell is not None:
                 on_cell(cell, "complete already: reused")

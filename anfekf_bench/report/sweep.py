@@ -248,3 +248,46 @@ def write_sweep_report(
                 lines.append(f"![{data.name}: {label}]({path.name})")
         lines.append("")
     return files, "\n".join(lines)
+
+
+SWEEPS_REPORT = "sweeps.md"
+
+
+def find_sweeps(folders: list[Path]) -> list[Path]:
+    """The sweep folders among `folders` and their children."""
+    found = []
+    for folder in map(Path, folders):
+        if is_sweep(folder):
+            found.append(folder)
+        elif folder.is_dir():
+            found += sorted(p for p in folder.iterdir() if p.is_dir() and is_sweep(p))
+    return found
+
+
+def has_scenario_results(folders: list[Path]) -> bool:
+    """Whether any folder holds (or is) an ordinary scenario result, besides the sweeps."""
+
+    def is_result(p: Path) -> bool:
+        return (p / "manifest.json").is_file() and (p / "summary.parquet").is_file()
+
+    for folder in map(Path, folders):
+        if is_result(folder) or (
+            folder.is_dir() and any(is_result(p) for p in folder.iterdir() if p.is_dir())
+        ):
+            return True
+    return False
+
+
+def write_sweeps_report(folders: list[Path], out: Path, fmt: str = "png") -> Path:
+    """Every sweep's figures and its section into `out`/sweeps.md; returns that file."""
+    from ..storage import write_atomic
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    sections = ["# Sweeps", ""]
+    for folder in folders:
+        _, text = write_sweep_report(folder, out, fmt)
+        sections += [text, ""]
+    path = out / SWEEPS_REPORT
+    write_atomic(path, lambda tmp: tmp.write_text("\n".join(sections), encoding="utf-8"))
+    return path

@@ -105,13 +105,23 @@ def test_nonfinite_statistic_gives_nan_bounds():
     a = _arrays()["pos_err"]
     iv = paired_bootstrap(a, np.zeros_like(a), rmse_statistic)  # statistic(b) == 0
     assert math.isinf(iv.estimate) and math.isnan(iv.lo) and math.isnan(iv.hi)
-    nan_run = a.copy()
-    nan_run[4, 2] = np.nan  # e.g. a diverged run left in
+    inf_run = a.copy()
+    inf_run[4, 2] = np.inf  # e.g. a diverged run left in (NaN marks an unscored step instead)
     for iv in (
-        paired_bootstrap(nan_run, a, rmse_statistic),
-        bootstrap_one(nan_run, mean_statistic),
+        paired_bootstrap(inf_run, a, rmse_statistic),
+        bootstrap_one(inf_run, mean_statistic),
     ):
         assert math.isnan(iv.lo) and math.isnan(iv.hi) and iv.method == "undefined"
+
+
+def test_the_run_weight_path_equals_indexing_the_runs():
+    """The BLAS path (run means through resample weights) gives the interval of the plain one."""
+    a, b = _arrays()["pos_err"], _arrays(seed=5)["pos_err"]
+    fast = paired_bootstrap(a, b, rmse_statistic, resamples=300)
+    plain = paired_bootstrap(a, b, lambda x: rmse_statistic(x), resamples=300)  # no run-mean form
+    assert fast.method == plain.method == "BCa"
+    for key in ("estimate", "lo", "hi"):
+        assert getattr(fast, key) == pytest.approx(getattr(plain, key), rel=1e-12)
 
 
 def test_zero_in_some_resamples_gives_nan_bounds():

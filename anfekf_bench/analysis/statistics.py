@@ -137,6 +137,33 @@ def in_bounds_statistic(nees: np.ndarray) -> float | np.ndarray:
     return np.apply_along_axis(share_inside, -1, avg, lo, hi)
 
 
+# The statistics above take a mean over runs first: statistic(x) = g(mean over runs of h(x)). A
+# resample of run indices is then a weight per run, and the run means of every resample at once
+# are one matrix product (`_resampled`): no (resamples, runs, steps) copy of the data.
+rmse_statistic.run_mean_form = (np.square, lambda m: np.sqrt(m).mean(axis=-1))
+mean_statistic.run_mean_form = (lambda x: x, lambda m: m.mean(axis=-1))
+
+
+def _resampled(statistic: Statistic, x: np.ndarray) -> Callable[[np.ndarray], np.ndarray] | None:
+    """statistic(x[idx]) for stacks of run indices idx (..., k), through the weights of each
+    resample's runs; None when the statistic has no run-mean form or x has NaN (unscored steps)."""
+    form = getattr(statistic, "run_mean_form", None)
+    if form is None or np.isnan(x).any():
+        return None
+    h, g = form
+    hx = h(x)
+    runs = x.shape[0]
+
+    def of(idx: np.ndarray) -> np.ndarray:
+        flat = idx.reshape(-1, idx.shape[-1])
+        weights = np.zeros((flat.shape[0], runs))
+        np.add.at(weights, (np.arange(flat.shape[0])[:, None], flat), 1.0)
+        weights /= flat.shape[-1]
+        return g(weights @ hx).reshape(idx.shape[:-1])
+
+    return of
+
+
 METRICS: Mapping[str, MetricSpec] = MappingProxyType(
     {
         "rmse_pos": MetricSpec("pos_err", rmse_statistic),
@@ -271,7 +298,11 @@ def paired_bootstrap(
         with np.errstate(all="ignore"):
             return np.divide(sa, sb) if kind == "ratio" else np.subtract(sa, sb)
 
+    fast_a, fast_b = _resampled(statistic, a), _resampled(statistic, b)
+
     def theta(idx: np.ndarray) -> float | np.ndarray:
+        if fast_a is not None and fast_b is not None:
+            return combine(fast_a(idx), fast_b(idx))
         return combine(statistic(a[idx]), statistic(b[idx]))
 
     runs = a.shape[0]
@@ -304,8 +335,9 @@ def bootstrap_one(
     runs = a.shape[0]
     with np.errstate(all="ignore"):
         estimate = float(statistic(a)) if runs else float("nan")
+    fast = _resampled(statistic, a)
     return _bootstrap(
-        lambda idx: statistic(a[idx]),
+        fast if fast is not None else (lambda idx: statistic(a[idx])),
         estimate,
         runs,
         a.size,

@@ -142,6 +142,8 @@ def test_supports_the_built_in_filters_only():
         pass
 
     assert not fast.supports(MySpec(name="mine"))
+    assert fast.supports(VARIANTS["ekf"], Bicycle(0.025, 4.0))
+    assert not fast.supports(VARIANTS["ekf"], Unicycle())
 
 
 def test_refuses_what_it_does_not_implement(small):

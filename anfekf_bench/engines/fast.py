@@ -33,9 +33,10 @@ JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (EKFSpec, OracleSpec, ANFEKFSpec)
 
 
-def supports(spec: FilterSpec) -> bool:
-    """Whether the fast engine implements this filter (else run it on filterpy)."""
-    return type(spec) in SUPPORTED_SPECS
+def supports(spec: FilterSpec, model: object | None = None) -> bool:
+    """Whether the fast engine implements this filter (else run it on filterpy); with `model`,
+    also whether it implements that motion model (the bicycle only)."""
+    return type(spec) in SUPPORTED_SPECS and (model is None or isinstance(model, Bicycle))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import shutil
 import time
 from collections.abc import Callable
@@ -30,7 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from joblib import Parallel, delayed
+from joblib import Parallel, delayed, parallel_config
 
 from .analysis.comparisons import comparisons_frame, evaluate_claims
 from .analysis.tables import (
@@ -169,6 +170,14 @@ def segment_inputs(rec: Recording, seg: Segment) -> SegmentInputs:
 AXES = ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing")
 
 
+def local_workers():
+    """joblib's loky workers as the simulated batches start them: each watches this process and
+    ends with it (runner._watch_parent)."""
+    from .runner import _watch_parent
+
+    return parallel_config(backend="loky", initializer=_watch_parent, initargs=(os.getpid(),))
+
+
 def _score_chunk(exps: np.ndarray, naive: np.ndarray, segs, P0, gate, T0) -> np.ndarray:
     """(G, 5): sq_sum, count, max_err, n_updates, n_rejected over every training segment."""
     sig = naive * np.exp2(exps)
@@ -191,9 +200,10 @@ def _score(exps: np.ndarray, naive, segs, P0, gate, T0, jobs: int) -> np.ndarray
     if parts == 1:
         return _score_chunk(exps, naive, segs, P0, gate, T0)
     groups = [segs[i::parts] for i in range(parts)]
-    found = Parallel(n_jobs=parts)(
-        delayed(_score_chunk)(exps, naive, g, P0, gate, T0) for g in groups
-    )
+    with local_workers():
+        found = Parallel(n_jobs=parts)(
+            delayed(_score_chunk)(exps, naive, g, P0, gate, T0) for g in groups
+        )
     out = np.sum(found, axis=0)
     out[:, 2] = np.max([f[:, 2] for f in found], axis=0)
     return out
@@ -407,7 +417,6 @@ def execute_real(
         write_result_tables,
     )
     from .experiment import machine_info as _machine
-    from .runner import _orphan_safe
 
     started = time.time()
     check_real_plan(plan)
@@ -437,8 +446,9 @@ def execute_real(
         if todo:
             calls = (delayed(_run_one)(scenario, i, tuned, n_steps) for i in todo)
             jobs = min(plan.jobs, len(todo))
-            parallel = Parallel(n_jobs=jobs, return_as="generator_unordered")
-            for chunk in parallel(_orphan_safe(calls)):
+            with local_workers():
+                chunks = Parallel(n_jobs=jobs, return_as="generator_unordered")(calls)
+            for chunk in chunks:
                 for result in chunk:
                     save_run(target, result, fingerprint)
                     results[result["run"]] = result

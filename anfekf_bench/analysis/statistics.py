@@ -24,6 +24,7 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 from scipy import stats
+from threadpoolctl import threadpool_limits
 
 from .metrics import (
     nan_aware_mean,
@@ -156,9 +157,9 @@ def _resampled(statistic: Statistic, x: np.ndarray) -> Callable[[np.ndarray], np
 
     def of(idx: np.ndarray) -> np.ndarray:
         flat = idx.reshape(-1, idx.shape[-1])
-        weights = np.zeros((flat.shape[0], runs))
-        np.add.at(weights, (np.arange(flat.shape[0])[:, None], flat), 1.0)
-        weights /= flat.shape[-1]
+        rows = flat.shape[0]
+        cells = (flat + runs * np.arange(rows)[:, None]).ravel()
+        weights = np.bincount(cells, minlength=rows * runs).reshape(rows, runs) / flat.shape[-1]
         return g(weights @ hx).reshape(idx.shape[:-1])
 
     return of
@@ -239,6 +240,14 @@ def _bootstrap(
         batch=max(1, _BATCH_CELLS // max(cells, 1)),
     )
     rng = np.random.default_rng(seed)
+    # Small products: BLAS threads cost more than they give (40x slower on a busy machine).
+    with threadpool_limits(1, user_api="blas"):
+        return _bootstrap_interval(data, common, rng, resamples, estimate, interval)
+
+
+def _bootstrap_interval(data, common, rng, resamples, estimate, interval) -> Interval:
+    """`_bootstrap`'s work once the statistic is set up: percentile, checks, then BCa."""
+    nan = float("nan")
     with np.errstate(all="ignore"):  # inf / NaN resamples are handled below
         res = stats.bootstrap(
             data, n_resamples=int(resamples), method="percentile", **common, **{_RNG_KEYWORD: rng}

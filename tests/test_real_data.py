@@ -461,3 +461,22 @@ def test_ekf_tuned_reaches_the_notes_reference_on_the_held_out_half(tmp_path):
     # The naive EKF with the gate on loses lock at the first turn (notes: 6.19 m, 95 % gated).
     naive = summary["ekf x1"]
     assert naive["lost_lock_runs"] == 1 and naive["gate_rejected"] > 0.5
+
+
+def test_an_interrupted_real_batch_resumes_from_its_saved_segments(tmp_path):
+    from anfekf_bench.experiment import execute, make_plan
+
+    scenario, rec = load_scenario(user_scenario(tmp_path))
+    plan = make_plan(scenario, rec, None, None, None)
+
+    def stop(_):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        execute(plan, tmp_path / "out", on_result=stop)
+    said = []
+    records, folder = execute(plan, tmp_path / "out", on_start=lambda a, d, t: said.append((d, t)))
+    assert said == [(1, 2)]
+    assert read_json(folder / "manifest.json")["resumed_runs"] in ([0], [1])
+    fresh, _ = execute(plan, tmp_path / "again")
+    assert fresh == records  # the resumed result equals an uninterrupted one

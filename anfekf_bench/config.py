@@ -339,7 +339,8 @@ def _builtin_csv(kind: str) -> Path:
 
 
 def read_points_csv(path: Path, *, scenario_path: str | Path, field: str) -> np.ndarray:
-    """Read `x,y` lines (comments with #) into an (n, 2) array, with a clean error on failure.
+    """Read `x,y` lines (comments with #; an optional first line `x,y` is a header) into an
+    (n, 2) array, with a clean error on failure.
 
     Only a regular file is read (a FIFO, device or folder is refused at once), and an error
     names the line, never quotes it: the path may point at any file.
@@ -359,11 +360,15 @@ def read_points_csv(path: Path, *, scenario_path: str | Path, field: str) -> np.
     except UnicodeDecodeError:
         raise bad("not a text file (expected UTF-8 lines 'x,y')") from None
     points = []
+    header_allowed = True
     for number, line in enumerate(text.splitlines(), start=1):
         line = line.split("#", 1)[0].strip()
         if not line:
             continue
         cells = line.split(",")
+        first, header_allowed = header_allowed, False
+        if first and [c.strip().lower() for c in cells] == ["x", "y"]:
+            continue  # the column names, as spreadsheets and pandas write them
         if len(cells) != 2:
             raise bad(f"line {number}: expected 2 columns 'x,y', found {len(cells)}")
         try:

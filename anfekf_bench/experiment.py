@@ -31,7 +31,14 @@ import pandas as pd
 from pydantic import ValidationError
 
 from .analysis.comparisons import comparison_pairs, comparisons_frame, evaluate_claims
-from .analysis.tables import runs_frame, steps_frame, summary_records, update_statistics
+from .analysis.tables import (
+    column_units,
+    parquet_frame,
+    runs_frame,
+    steps_frame,
+    summary_records,
+    update_statistics,
+)
 from .config import BackendConfig, Engine, Scenario, World
 from .runner import connect_dask, engine_of, run_batch
 from .sources.simulator import RouteNotCompleted, simulate_truth
@@ -508,7 +515,12 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result):
     ordered = [results[i] for i in range(plan.runs)]
     tables = result_tables(plan, ordered)
     records = tables.summary
-    write_result_tables(target, tables, steps_table=plan.scenario.steps_table)
+    write_result_tables(
+        target,
+        tables,
+        steps_table=plan.scenario.steps_table,
+        metadata={"scenario": plan.name, "seed": str(plan.seed), "fingerprint": fingerprint},
+    )
     manifest = {
         "scenario": plan.scenario.model_dump(mode="json"),
         "runs": plan.runs,
@@ -564,12 +576,24 @@ def result_tables(plan: Plan, ordered: list[dict]) -> ResultTables:
     )
 
 
-def write_result_tables(target: Path, tables: ResultTables, *, steps_table: bool) -> None:
-    """Write every table atomically; steps.parquet only when the scenario asks for it."""
+def write_result_tables(
+    target: Path, tables: ResultTables, *, steps_table: bool, metadata: dict | None = None
+) -> None:
+    """Write every table atomically; steps.parquet only when the scenario asks for it.
+
+    Every Parquet file has scenario and filter as plain strings (they join across files) and
+    says in its key-value metadata where it came from: `metadata` (scenario, seed,
+    fingerprint), the units of its columns, the package version and git commit.
+    """
+
+    def parquet(name: str, df: pd.DataFrame) -> None:
+        df = parquet_frame(df)
+        write_parquet(target / name, df, {**(metadata or {}), "units": column_units(df)})
+
     if steps_table:
-        write_parquet(target / STEPS_FILE, tables.steps)
-    write_parquet(target / RUNS_FILE, tables.runs)
-    write_parquet(target / SUMMARY_PARQUET, pd.DataFrame(tables.summary))
+        parquet(STEPS_FILE, tables.steps)
+    parquet(RUNS_FILE, tables.runs)
+    parquet(SUMMARY_PARQUET, pd.DataFrame(tables.summary))
     write_json(target / SUMMARY_JSON, tables.summary)
-    write_parquet(target / COMPARISONS_FILE, tables.comparisons)
+    parquet(COMPARISONS_FILE, tables.comparisons)
     write_json(target / CLAIMS_FILE, tables.claims)

@@ -34,6 +34,8 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from .provenance import git_commit, package_version
+
 STEPS_FILE = "steps.parquet"
 SUMMARY_PARQUET = "summary.parquet"
 SUMMARY_JSON = "summary.json"
@@ -221,8 +223,38 @@ def write_json(path: Path, obj) -> None:
     write_atomic(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
 
 
-def write_parquet(path: Path, df: pd.DataFrame) -> None:
+PARQUET_KEY_PREFIX = "anfekf."  # our keys in a Parquet file's key-value metadata
+
+
+def parquet_provenance(path: Path) -> dict[str, str]:
+    """A Parquet file's `anfekf.*` key-value metadata (version, git_commit, seed, fingerprint,
+    units as JSON, ...), read from its footer: what a copied file says about its origin."""
+    with _open_result(Path(path), PARQUET_LIMIT) as fh:
+        try:
+            meta = pq.read_metadata(fh).metadata or {}
+        except (pa.ArrowException, OSError, ValueError) as exc:
+            raise ResultsError(f"{path}: not a readable Parquet file ({exc})") from None
+    prefix = PARQUET_KEY_PREFIX.encode()
+    return {
+        k[len(prefix) :].decode("utf-8", "replace"): v.decode("utf-8", "replace")
+        for k, v in meta.items()
+        if k.startswith(prefix)
+    }
+
+
+def write_parquet(path: Path, df: pd.DataFrame, metadata: dict[str, object] | None = None) -> None:
+    """Write `df` atomically, with `anfekf.<key>` entries in the file's key-value metadata: this
+    package's version and git commit always, then `metadata` (text, or JSON for others)."""
     table = pa.Table.from_pandas(df, preserve_index=False)
+    found = {"version": package_version(), "git_commit": git_commit() or "unknown"}
+    found.update(metadata or {})
+    ours = {
+        f"{PARQUET_KEY_PREFIX}{k}".encode(): (
+            v if isinstance(v, str) else json.dumps(v, sort_keys=True)
+        ).encode()
+        for k, v in found.items()
+    }
+    table = table.replace_schema_metadata({**(table.schema.metadata or {}), **ours})
     write_atomic(path, lambda tmp: pq.write_table(table, tmp, compression="zstd"))
 
 

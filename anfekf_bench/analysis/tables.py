@@ -93,10 +93,19 @@ def filter_arrays(steps: pd.DataFrame, name: str) -> dict[str, np.ndarray]:
     return out
 
 
+def filter_names(steps: pd.DataFrame) -> list[str]:
+    """The filters of a steps table in scenario order: the categories' order in memory, the
+    order of appearance in a file read back (where `filter` is plain text)."""
+    col = steps["filter"]
+    if isinstance(col.dtype, pd.CategoricalDtype):
+        return [str(n) for n in col.cat.categories if (col == n).any()]
+    return [str(n) for n in dict.fromkeys(col)]
+
+
 def summary_records(steps: pd.DataFrame, update_stats: dict[str, dict] | None = None) -> list[dict]:
     """One summary record per filter, computed from the steps table alone (plus NIS totals)."""
     scenario = str(steps["scenario"].iloc[0])
-    names = [str(n) for n in steps["filter"].cat.categories if (steps["filter"] == n).any()]
+    names = filter_names(steps)
     records = []
     for name in names:
         a = filter_arrays(steps, name)
@@ -173,3 +182,35 @@ def runs_frame(scenario_name: str, filter_names: list[str], results: list[dict])
     df["filter"] = pd.Categorical(df["filter"], categories=filter_names)
     df["run"] = df["run"].astype(np.int32)
     return df[RUN_COLUMNS]
+
+
+# The unit of every column the result files hold (written into each Parquet file's metadata as
+# `anfekf.units`); columns not listed are counts, flags, names or dimensionless.
+COLUMN_UNITS: dict[str, str] = {
+    "t": "s",
+    **dict.fromkeys(("x_true", "y_true", "x_est", "y_est", "pos_err", "rmse_pos"), "m"),
+    **dict.fromkeys(("phi_true", "phi_est", "heading_err", "rmse_heading"), "rad"),
+    "P_xx": "m^2", "P_xy": "m^2", "P_yy": "m^2", "P_xphi": "m rad", "P_yphi": "m rad",
+    "P_phiphi": "rad^2", "R_rr": "m^2", "R_bb": "rad^2", "Q_vv": "(m/s)^2", "Q_gg": "rad^2",
+    **dict.fromkeys(("nees", "mean_nees", "max_nees", "anees", "nees_lo", "nees_hi"), "1"),
+    **dict.fromkeys(("anis", "estimate", "lo", "hi", "p_value", "P_infl"), "1"),
+    **dict.fromkeys(("nees_in_bounds", "gate_rejected"), "share (0..1)"),
+}  # fmt: skip
+# Columns that name things: plain strings in every result file, so that steps, runs, summary and
+# comparisons join on them in any tool (a pandas categorical is written as a dictionary type,
+# and polars refuses to join a dictionary column of one file with a string column of another).
+KEY_COLUMNS = ("scenario", "filter", "vs")
+
+
+def parquet_frame(df: pd.DataFrame) -> pd.DataFrame:
+    """`df` as a result file stores it: the key columns as plain strings (see KEY_COLUMNS)."""
+    df = df.copy(deep=False)
+    for col in KEY_COLUMNS:
+        if col in df.columns:
+            df[col] = df[col].astype(str)
+    return df
+
+
+def column_units(df: pd.DataFrame) -> dict[str, str]:
+    """The units of `df`'s columns that have one (COLUMN_UNITS)."""
+    return {c: COLUMN_UNITS[c] for c in df.columns if c in COLUMN_UNITS}

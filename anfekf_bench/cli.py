@@ -41,7 +41,13 @@ from .experiment import (
 from .provenance import version_line
 from .runner import BackendUnavailable
 from .sources.simulator import RouteNotCompleted
-from .storage import RUNS_DIR, output_path_problem
+from .storage import (
+    MANIFEST_FILE,
+    RUNS_DIR,
+    ResultsError,
+    output_path_problem,
+    read_manifest,
+)
 from .sweeps import CELLS_DIR, SweepError, cell_complete, cell_plans, expand, run_sweep
 
 # click's exception classes as typer raises them (typer >= 0.17 vendors its own click): found
@@ -264,6 +270,13 @@ def run(
     force: Annotated[
         bool, typer.Option("--force", help="Overwrite a complete earlier result.")
     ] = False,
+    skip_existing: Annotated[
+        bool,
+        typer.Option(
+            "--skip-existing",
+            help="Keep the scenarios whose output folder holds a complete result; run the others.",
+        ),
+    ] = False,
     backend: Annotated[
         Optional[Backend],
         typer.Option(help="Run on local processes or a Dask cluster (default: the file's)."),
@@ -291,6 +304,8 @@ def run(
             fail(f"{flag}: must be an integer >= {least} (got {value})")
         if value is not None and value > most:
             fail(f"{flag}: must be an integer <= {most} (got {value})")
+    if force and skip_existing:
+        fail("--force and --skip-existing: choose one (overwrite complete results, or keep them)")
     kind = None if backend is None else backend.value
     with one_line_errors(debug, (ScenarioError, PlanError)):
         plans = [
@@ -320,23 +335,56 @@ def run(
     _check_out_dir(out)
     # Everything that can fail is checked for every scenario before the first one runs (and
     # again by execute, under the folder's lock, before --force removes anything).
+    skipped: dict[str, str] = {}  # --skip-existing: scenario -> what its folder holds
     for path, plan in zip(scenario_files(scenario), plans, strict=True):
         checked = sweeps[plan.name][1] if plan.name in sweeps else [plan]
         with one_line_errors(debug, (PlanError,), prefix=f"{path}: "):
             check_plan(checked[0])  # the cells differ in noise only: one check serves all
         with one_line_errors(debug, (OutputExists, SweepError), prefix=f"{plan.name}: "):
             if plan.name not in sweeps:
-                survey_output(plan, scenario_folder(out, plan.name), force)
+                target = scenario_folder(out, plan.name)
+                held = None if force else complete_result(target, plan)
+                if held is not None and skip_existing:
+                    skipped[plan.name] = held
+                    continue
+                if held is not None:
+                    raise OutputExists(
+                        f"{target}: holds a complete result already ({held}); use --force to"
+                        " overwrite it, --skip-existing to keep it and run the other scenarios,"
+                        " or --out to write elsewhere"
+                    )
+                survey_output(plan, target, force)
                 continue
             for cell, cell_plan in zip(*sweeps[plan.name], strict=True):
                 folder = Path(out) / plan.name / CELLS_DIR / cell.name
                 if force or not cell_complete(folder, cell_plan):
                     survey_output(cell_plan, folder, force)
     for plan in plans:
-        if plan.name in sweeps:
+        if plan.name in skipped:
+            target = scenario_folder(out, plan.name)
+            console.print(
+                one_line(f"{plan.name}: {target} holds a complete result ({skipped[plan.name]});"
+                         " skipped (--skip-existing)"),
+                markup=False, highlight=False, soft_wrap=True,
+            )  # fmt: skip
+        elif plan.name in sweeps:
             _run_sweep(plan, *sweeps[plan.name], out, force, debug)
         else:
             _run_plan(plan, out, force, debug)
+
+
+def complete_result(target: Path, plan) -> str | None:
+    """What a complete result in `target` holds ('the same runs and seed', 'runs 20, seed 7'),
+    or None when the folder holds no complete result (no manifest.json)."""
+    if not (target / MANIFEST_FILE).is_file():
+        return None
+    try:
+        manifest = read_manifest(target)
+    except ResultsError:
+        return "its manifest.json is unreadable"
+    if manifest.get("fingerprint") == plan.fingerprint():
+        return f"this scenario with the same {plan.runs} runs and seed {plan.seed}"
+    return f"{manifest.get('runs', '?')} runs, seed {manifest.get('seed', '?')}"
 
 
 def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -15,7 +16,7 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from anfekf_bench.analysis.gate import DEFAULT_TOLERANCES, Tolerance, judge
+from anfekf_bench.analysis.gate import DEFAULT_TOLERANCES, Tolerance, judge, shown_metric
 from anfekf_bench.cli import app
 from anfekf_bench.storage import (
     CLAIMS_FILE,
@@ -174,11 +175,33 @@ def test_a_metric_beyond_tolerance_fails_with_its_row(gate, filt, metric, value,
         return
     assert result.exit_code == 1, result.output
     assert len(fails) == 1, fails
-    assert fails[0].startswith(f"FAIL wrong_r / {filt} / {metric}: ")
+    assert fails[0].startswith(f"FAIL wrong_r / {filt} / {shown_metric(metric)}: ")
     assert fails[0].endswith(f": {verdict}")
     assert "tolerance ±" in fails[0]
     assert "regression gate FAILED: 1 of" in result.output
     assert "--update" in result.output, "a failure says how to refresh on purpose"
+
+
+def test_angles_are_shown_in_degrees_with_their_unit(gate):
+    """One angle unit per surface: the check table and its FAIL lines show the heading RMSE in
+    degrees, labelled, like every other table (the files keep radians)."""
+    results, baseline = gate
+    scenarios = paper_like()
+    scenarios["wrong_r"]["ekf-oracle"]["rmse_heading"] = 0.013  # rad; the baseline has 0.012
+    write_results(results, scenarios)
+    result = runner.invoke(app, ["check", str(results), "--baseline", str(baseline)],
+                           env={"COLUMNS": "200"})  # fmt: skip
+    fails = _fail_lines(result.output)
+    assert fails == [
+        "FAIL wrong_r / ekf-oracle / rmse_heading [deg]: 0.6875 -> 0.7448 (+8.3 %;"
+        " tolerance ±3 % relative): worse"
+    ]
+    assert "rmse_heading [deg]" in result.output and "rmse_pos [m]" in result.output
+    assert re.search(r"rmse_heading \[deg\]\s+│\s+0\.6875\s+│\s+0\.6875", result.output)
+    assert not re.search(r"│ rmse_heading\s+│", result.output)  # never a bare (radian) row
+    assert json.loads(baseline.read_text())["scenarios"]["wrong_r"]["filters"]["anfekf"][
+        "rmse_heading"
+    ] == pytest.approx(0.012)  # stored in radians, as summary.parquet
 
 
 def test_a_missing_filter_fails(gate):

@@ -4,6 +4,7 @@ value, output piped into `head`, and a folder run that checks every output folde
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -122,3 +123,49 @@ def test_other_commands_piped_into_head_stop_quietly(checked_results, tmp_path):
     done = _closed_reader(["report", str(checked_results), "--out", str(tmp_path / "r")])
     assert done.returncode == EXIT_BROKEN_PIPE, done.stderr
     assert "Traceback" not in done.stderr and "Exception ignored" not in done.stderr
+
+
+# --------------------------------------------------------------------------- a folder of scenarios
+
+
+@pytest.fixture
+def two_scenarios(tmp_path) -> Path:
+    folder = tmp_path / "configs"
+    folder.mkdir()
+    for name in ("alpha", "beta"):
+        write_scenario(folder / f"{name}.yaml", small_scenario(name=name, runs=2, record_every=8))
+    return folder
+
+
+def test_folder_run_checks_every_output_folder_before_running_any(two_scenarios, tmp_path):
+    """beta already complete: the folder run stops with exit 2 before alpha runs."""
+    out = tmp_path / "out"
+    first = runner.invoke(app, ["run", str(two_scenarios / "beta.yaml"), "--out", str(out)])
+    assert first.exit_code == 0, first.output
+    before = (out / "beta" / "manifest.json").read_bytes()
+    result = runner.invoke(app, ["run", str(two_scenarios), "--out", str(out)])
+    assert result.exit_code == 2, result.output
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: beta: ")
+    assert "complete result" in lines[0] and "--skip-existing" in lines[0]
+    assert not (out / "alpha").exists()  # nothing ran, nothing was created
+    assert "alpha" not in result.stdout
+    assert (out / "beta" / "manifest.json").read_bytes() == before
+
+
+def test_skip_existing_runs_the_others(two_scenarios, tmp_path):
+    out = tmp_path / "out"
+    assert (
+        runner.invoke(app, ["run", str(two_scenarios / "beta.yaml"), "--out", str(out)]).exit_code
+        == 0
+    )
+    before = (out / "beta" / "manifest.json").read_bytes()
+    result = runner.invoke(app, ["run", str(two_scenarios), "--out", str(out), "--skip-existing"])
+    assert result.exit_code == 0, result.output
+    assert re.search(r"beta: .*complete result.*skipped \(--skip-existing\)", result.stdout)
+    assert (out / "alpha" / "manifest.json").is_file()
+    assert (out / "beta" / "manifest.json").read_bytes() == before  # kept as it was
+    both = runner.invoke(
+        app, ["run", str(two_scenarios), "--out", str(out), "--skip-existing", "--force"]
+    )
+    assert both.exit_code == 2 and "--skip-existing" in both.stderr and "--force" in both.stderr

@@ -462,6 +462,26 @@ def judge(metric: str, tolerance: Tolerance, base: float, now: float) -> str:
     return "changed"
 
 
+# How the gate shows a metric: its name with its unit, and the factor from the stored unit. The
+# files keep radians; every table a user reads shows angles in degrees (one unit per surface).
+SHOWN_UNITS: dict[str, tuple[str, float]] = {
+    "rmse_pos": ("rmse_pos [m]", 1.0),
+    "rmse_heading": ("rmse_heading [deg]", 180.0 / math.pi),
+}
+
+
+def shown_metric(metric: str) -> str:
+    """`metric` with the unit it is shown in ('rmse_heading [deg]')."""
+    return SHOWN_UNITS.get(metric, (metric, 1.0))[0]
+
+
+def _in_shown_unit(metric: str, x: float | None) -> float | None:
+    """A stored value in the unit it is shown in."""
+    if x is None or isinstance(x, int) or metric not in SHOWN_UNITS:
+        return x
+    return x * SHOWN_UNITS[metric][1]
+
+
 def _fmt_value(x: float | None) -> str:
     if x is None:
         return "-"
@@ -472,13 +492,20 @@ def _fmt_value(x: float | None) -> str:
     return f"{x:.4g}"
 
 
-def _fmt_delta(tolerance: Tolerance, base: float, now: float) -> str:
+def _fmt_delta(tolerance: Tolerance, base: float, now: float, metric: str = "") -> str:
     if math.isnan(base) or math.isnan(now):
         return "-"
     change = tolerance.change(base, now)
     if tolerance.kind == "relative":
         return f"{100 * change:+.1f} %"
-    return f"{change:+.3g}"
+    return f"{_in_shown_unit(metric, change):+.3g}"
+
+
+def _describe(tolerance: Tolerance, metric: str) -> str:
+    """The tolerance as shown: an absolute one in the metric's shown unit."""
+    if tolerance.kind == "relative" or metric not in SHOWN_UNITS:
+        return tolerance.describe()
+    return f"±{_in_shown_unit(metric, tolerance.limit):g} absolute"
 
 
 def compare_metric(
@@ -487,11 +514,14 @@ def compare_metric(
     verdict = judge(metric, tolerance, base, now)
     detail = ""
     if verdict != "ok":
+        before, after = (_fmt_value(_in_shown_unit(metric, x)) for x in (base, now))
         detail = (
-            f"{scenario} / {filt} / {metric}: {_fmt_value(base)} -> {_fmt_value(now)}"
-            f" ({_fmt_delta(tolerance, base, now)}; tolerance {tolerance.describe()}): {verdict}"
+            f"{scenario} / {filt} / {shown_metric(metric)}: {before} -> {after}"
+            f" ({_fmt_delta(tolerance, base, now, metric)};"
+            f" tolerance {_describe(tolerance, metric)}): {verdict}"
         )
-    return Row(scenario, filt, metric, base, now, _fmt_delta(tolerance, base, now), verdict, detail)
+    delta = _fmt_delta(tolerance, base, now, metric)
+    return Row(scenario, filt, metric, base, now, delta, verdict, detail)
 
 
 def _setup_rows(base: ScenarioSummary, now: ScenarioSummary) -> list[Row]:
@@ -647,9 +677,9 @@ def comparison_table(rows: list[Row], title: str) -> Table:
         cells = (
             r.scenario,
             r.filter,
-            r.metric,
-            _fmt_value(r.baseline),
-            _fmt_value(r.now),
+            shown_metric(r.metric),
+            _fmt_value(_in_shown_unit(r.metric, r.baseline)),
+            _fmt_value(_in_shown_unit(r.metric, r.now)),
             r.delta,
             r.verdict,
         )

@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 ANFEKF := $(VENV)/bin/anfekf
 OUT    ?= results
 
-.PHONY: setup reproduce run report test lint format bench gate clean
+.PHONY: setup reproduce run report test lint format bench gate clean readme
 
 setup: $(VENV)/.installed
 
@@ -35,6 +35,10 @@ lint: setup
 format: setup
 	$(VENV)/bin/ruff check --fix .
 	$(VENV)/bin/ruff format .
+
+## The README's reference tables (scenario keys, filter kinds), generated from the models.
+readme: setup
+	$(PY) -m anfekf_bench.docgen README.md
 
 bench: setup
 	$(ANFEKF) bench --out $(OUT)/bench.json

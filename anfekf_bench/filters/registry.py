@@ -55,11 +55,12 @@ def expand_entry_points(item: object) -> object:
     return {"name": item.get("name"), "kind": "custom", "class": registered[kind], "params": params}
 
 
-def build_filter(spec: FilterSpec, scenario, world) -> RobotEKF:
-    """A fresh filter for one run: the oracle gets the true noise, every other the assumed one."""
+def filter_context(spec: FilterSpec, scenario, world) -> FilterContext:
+    """What `spec`'s filter starts from in a run of `scenario` on the simulated `world`: the
+    oracle gets the true noise, every other filter the assumed one."""
     noise = scenario.true_noise if spec.uses_true_noise else scenario.filter_noise
     sv, sg, sr, sb = noise.radians()
-    ctx = FilterContext(
+    return FilterContext(
         x0=world.x0,
         P0=np.eye(3) * scenario.p0,
         Qu=control_covariance(sv, sg),
@@ -68,4 +69,8 @@ def build_filter(spec: FilterSpec, scenario, world) -> RobotEKF:
         dt=world.T,
         gate=gate_threshold(scenario.gate_probability),
     )
-    return spec.build(ctx)
+
+
+def build_filter(spec: FilterSpec, scenario, world) -> RobotEKF:
+    """A fresh filter for one run of `scenario` (see `filter_context`)."""
+    return spec.build(filter_context(spec, scenario, world))

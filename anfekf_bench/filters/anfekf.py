@@ -90,29 +90,82 @@ class ANFEKFSpec(AdaptiveSpec):
         return ANFEKF(**ctx.kwargs(), params=self)
 
 
-class ANFEKF(AdaptiveEKF):
+class CovarianceMatchingEKF(AdaptiveEKF):
+    """Covariance matching over a window of innovations (SPEC 4, eqs. 30-32): the ANFEKF before
+    its ANFIS, shared with its non-fuzzy ablation (`cm-scale`).
+
+    At each landmark that feeds adaptation, before the gain: the squared innovation joins the
+    window of the last N (gated or not), C = (1/N) sum nu nu^T (eq. 30, diagonal), the theoretical
+    S = H P- H^T + R (eq. 24), the normalised mismatch d_ii = (S_ii - C_ii) / (S_ii + C_ii) and
+    its change Delta d; once the window is full, the rule: `_adapt_R` at every landmark (R
+    events), then `_adapt_Q` at the first landmark of a scan (Q events, SPEC 7: there P- holds
+    exactly the interval's process noise), with S recomputed after an R step. `params` needs
+    `adapt` ("R", "Q" or "RQ") and `window` (N) besides the common adaptive rules.
+    """
+
+    def __init__(self, *args, params: AdaptiveSpec, **kwargs):
+        self.adapts = frozenset(params.adapt)
+        super().__init__(*args, params=params, **kwargs)
+        self.spec = params
+        # Squared innovations (the diagonal of nu nu^T: only it is matched) of the last N.
+        self.window: deque[np.ndarray] = deque(maxlen=params.window)
+        self.d_prev: np.ndarray | None = None
+        self._first_of_scan = True
+
+    def begin_scan(self) -> None:
+        self._first_of_scan = True
+
+    def before_gain(self, inn: Innovation) -> None:
+        if self.feeds_adaptation(inn):
+            self.supervise(inn.nu, inn.H, inn.HPHt)
+        self._first_of_scan = False
+
+    def supervise(self, nu: np.ndarray, H: np.ndarray, HPHt: np.ndarray) -> None:
+        """Covariance matching and the adaptation of one landmark (SPEC 4)."""
+        self.window.append(nu * nu)
+        if len(self.window) < self.window.maxlen or not self.spec.adaptation:
+            return
+        C = np.mean(self.window, axis=0)
+        HPH = np.diag(HPHt)
+        S = HPH + np.diag(self.R)
+        d = mismatch(S, C)
+        dd = np.zeros(2) if self.d_prev is None else d - self.d_prev
+        self.d_prev = d
+        if "R" in self.adapts:
+            self._adapt_R(d, dd, HPH, C)
+            S = HPH + np.diag(self.R)
+        if "Q" in self.adapts and self._first_of_scan:
+            self._adapt_Q(d, H, HPH, S, C)
+
+    def _adapt_R(self, d: np.ndarray, dd: np.ndarray, HPH: np.ndarray, C: np.ndarray) -> None:
+        """R from the mismatch d (and its change dd) of both channels."""
+        raise NotImplementedError
+
+    def _adapt_Q(
+        self, d: np.ndarray, H: np.ndarray, HPH: np.ndarray, S: np.ndarray, C: np.ndarray
+    ) -> None:
+        """Qu from the mismatch d; S is the theoretical S after any R step of this landmark."""
+        raise NotImplementedError
+
+
+class ANFEKF(CovarianceMatchingEKF):
     """EKF plus ANFIS supervisors: R (two ANFIS, Sec. 5.1), Qu (one, Sec. 5.2), or both.
 
     At each landmark, before the gain (SPEC 4): covariance matching over the last N innovations,
     C = (1/N) sum nu nu^T (eq. 30), theoretical S = H P- H^T + R (eq. 24), normalised mismatch
-    d_ii = (S_ii - C_ii) / (S_ii + C_ii) and its change; ANFIS output o; then
-    R_ii <- R_ii exp(o_i) (eq. 33) at every landmark (R events) and Qu <- Qu exp(o) (eq. 44) at
-    the first landmark of a scan (Q events, SPEC 7: there P- holds exactly the interval's process
-    noise); then one steepest-descent step on E = e^2 / 2, e the mismatch left after the
-    adaptation (eqs. 39-42). With adapt RQ the R step runs first and the Q step matches the S it
-    leaves.
+    d_ii = (S_ii - C_ii) / (S_ii + C_ii) and its change (`CovarianceMatchingEKF`); ANFIS output
+    o; then R_ii <- R_ii exp(o_i) (eq. 33) at every landmark (R events) and Qu <- Qu exp(o)
+    (eq. 44) at the first landmark of a scan (Q events, SPEC 7: there P- holds exactly the
+    interval's process noise); then one steepest-descent step on E = e^2 / 2, e the mismatch left
+    after the adaptation (eqs. 39-42). With adapt RQ the R step runs first and the Q step matches
+    the S it leaves.
     """
 
     params: ANFEKFSpec
 
     def __init__(self, *args, params: ANFEKFSpec, **kwargs):
-        self.adapts = frozenset(params.adapt)
         super().__init__(*args, params=params, **kwargs)
         spec = params
-        self.spec = spec
-        # Squared innovations (the diagonal of nu nu^T: only it is matched) of the last N.
-        self.window: deque[np.ndarray] = deque(maxlen=spec.window)
-        self.d_prev: np.ndarray | None = None
         self.eta = tuple(spec.learning_rate)
         r_init = anfis.init_params(
             centres0=spec.centres_d, width0=spec.width_d, centres1=spec.centres_dd,
@@ -132,7 +185,6 @@ class ANFEKF(AdaptiveEKF):
         # first-order dS/dQ model of SPEC 4.
         self.Q_interval = np.zeros((3, 3))
         self._updated_since_predict = False
-        self._first_of_scan = True
 
     def predict(self, u=0, dt: float | None = None):
         super().predict(u, dt)
@@ -143,31 +195,9 @@ class ANFEKF(AdaptiveEKF):
             self._updated_since_predict = False
         self.Q_interval += self.Q
 
-    def begin_scan(self) -> None:
-        self._first_of_scan = True
-
-    def before_gain(self, inn: Innovation) -> None:
-        if self.feeds_adaptation(inn):
-            self.supervise(inn.nu, inn.H, inn.HPHt)
-        self._first_of_scan = False
-
     def supervise(self, nu: np.ndarray, H: np.ndarray, HPHt: np.ndarray) -> None:
-        """Covariance matching and the adaptation of one landmark (SPEC 4)."""
         self._updated_since_predict = True
-        self.window.append(nu * nu)
-        if len(self.window) < self.window.maxlen or not self.spec.adaptation:
-            return
-        C = np.mean(self.window, axis=0)
-        HPH = np.diag(HPHt)
-        S = HPH + np.diag(self.R)
-        d = mismatch(S, C)
-        dd = np.zeros(2) if self.d_prev is None else d - self.d_prev
-        self.d_prev = d
-        if "R" in self.adapts:
-            self._adapt_R(d, dd, HPH, C)
-            S = HPH + np.diag(self.R)
-        if "Q" in self.adapts and self._first_of_scan:
-            self._adapt_Q(d, H, HPH, S, C)
+        super().supervise(nu, H, HPHt)
 
     def _learn(self, i: int, grad: anfis.ANFISParams | None) -> None:
         if self.spec.learning and grad is not None:

@@ -14,8 +14,10 @@ from pydantic import Field
 from ..models import Bicycle, control_covariance, measurement_covariance
 from .akhlaghi import AkhlaghiSpec
 from .anfekf import ANFEKFSpec
+from .cm_scale import CMScaleSpec
 from .custom import CustomSpec, entry_point_kinds
 from .ekf import EKFSpec, OracleSpec, RobotEKF, gate_threshold
+from .iae import IAESpec
 from .sage_husa import SageHusaSpec
 from .spec import FilterContext, FilterSpec
 from .vb import VBAKFSpec, VBRSpec
@@ -26,6 +28,8 @@ SPECS: tuple[type[FilterSpec], ...] = (
     ANFEKFSpec,
     SageHusaSpec,
     AkhlaghiSpec,
+    IAESpec,
+    CMScaleSpec,
     VBRSpec,
     VBAKFSpec,
     CustomSpec,

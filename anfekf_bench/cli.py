@@ -591,11 +591,13 @@ def report(
     for warning in done.warnings:
         console.print(f"warning: {warning}", markup=False, highlight=False, soft_wrap=True)
     figures = sum(1 for p in done.files if p.suffix not in (".md", ".html"))
+    pages = [str(p) for p in done.files if p.name in (REPORT_FILE, HTML_FILE)]
     console.print(
         f"report of {len(done.scenarios)} scenarios ({figures} figures) written to"
-        f" {out / REPORT_FILE} and {out / HTML_FILE}",
+        f" {' and '.join(pages)}",
         markup=False,
         highlight=False,
+        soft_wrap=True,
     )
 
 

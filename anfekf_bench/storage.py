@@ -337,8 +337,8 @@ def scenario_dirs(results_dir: Path) -> list[Path]:
         candidates = sorted(p for p in results_dir.iterdir() if _is_result_dir(p))
     if not candidates:
         raise ResultsError(
-            f"{results_dir}: no results found (expected {STEPS_FILE} in it or in its sub-folders;"
-            " run `anfekf run` first)"
+            f"{results_dir}: no results found (expected {STEPS_FILE} or {SUMMARY_PARQUET} in"
+            " it or in its sub-folders; run `anfekf run` first)"
         )
     for folder in candidates:
         _require_manifest(folder)
@@ -384,8 +384,13 @@ def _check_parquet_footer(path: Path) -> None:
 
 
 def _is_result_dir(path: Path) -> bool:
-    """A scenario folder, complete or not: it has a results file or saved runs."""
-    return (path / STEPS_FILE).exists() or (path / RUNS_DIR).is_dir()
+    """A scenario folder, complete or not: it has a results file or saved runs (a result of a
+    scenario with `steps_table: false` has summary.parquet but no steps.parquet)."""
+    return (
+        (path / STEPS_FILE).exists()
+        or (path / SUMMARY_PARQUET).exists()
+        or (path / RUNS_DIR).is_dir()
+    )
 
 
 def read_steps(scenario_dir: Path) -> pd.DataFrame:

@@ -424,8 +424,10 @@ def _empty(tmp_path, results) -> Path:
 
 
 def _no_steps(tmp_path, results) -> Path:
+    """Neither steps.parquet nor summary.parquet (a result without steps has a summary)."""
     folder = _copy_scenario(results, tmp_path / "res" / "tiny_r")
     (folder / "steps.parquet").unlink()
+    (folder / "summary.parquet").unlink()
     return folder
 
 
@@ -456,7 +458,7 @@ def _same_scenario_twice(tmp_path, results) -> Path:
 BAD_RESULTS = {
     "missing_folder": (_missing, "results folder does not exist"),
     "empty_folder": (_empty, "no results found"),
-    "no_steps_parquet": (_no_steps, "no results found"),
+    "no_steps_or_summary_parquet": (_no_steps, "no results found"),
     "corrupt_steps_parquet": (_corrupt_steps, "not a readable Parquet file"),
     "no_manifest": (_no_manifest, "no manifest.json"),
     "bad_manifest": (_bad_manifest, "scenario.filters"),
@@ -699,3 +701,26 @@ def test_html_report_opens_in_a_headless_browser_with_every_image(report_dir, tm
     assert pixels.shape == (2400, 1280)
     assert pixels.std() > 20  # text, tables and figures: far from one flat colour
     assert (pixels < 128).mean() > 0.01  # dark ink somewhere
+
+
+def test_a_result_without_steps_is_reported_from_its_tables(tmp_path):
+    """`steps_table: false` writes no steps.parquet: the report still shows its summary rows,
+    paired ratios, claims and per-run spread (no figures over time), and check still reads it."""
+    doc = small_scenario(
+        name="nosteps", runs=2, record_every=8, steps_table=False,
+        claims=[{"filter": "anfekf", "vs": "ekf", "metric": "rmse_pos", "at_most": 1000.0}],
+    )  # fmt: skip
+    scenario, world = load_scenario(write_scenario(tmp_path / "nosteps.yaml", doc))
+    _, target = execute(make_plan(scenario, world, None, None, 1), tmp_path / "results")
+    assert not (target / "steps.parquet").exists()
+    out = tmp_path / "report"
+    result = runner.invoke(app, ["report", str(tmp_path / "results"), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    md = (out / "report.md").read_text(encoding="utf-8")
+    saved = pd.read_parquet(target / "summary.parquet").set_index("filter")
+    row = next(line for line in md.splitlines() if line.startswith("| nosteps | anfekf |"))
+    assert f"| {format_sig(saved.loc['anfekf'].rmse_pos)} |" in row
+    assert "no steps.parquet" in md and "| anfekf rmse_pos <= 1000 x ekf |" in md
+    assert sorted(p.name for p in out.glob("*.png")) == ["overview.png"]
+    checked = runner.invoke(app, ["check", str(tmp_path / "results")])
+    assert checked.exit_code == 0, checked.output

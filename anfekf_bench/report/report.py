@@ -44,11 +44,13 @@ from ..storage import (
     COMPARISONS_FILE,
     MANIFEST_FILE,
     RUNS_FILE,
+    STEPS_FILE,
     ResultsError,
     read_json,
     read_manifest,
     read_parquet,
     read_steps,
+    read_summary,
     scenario_dirs,
     write_atomic,
 )
@@ -182,7 +184,7 @@ class ScenarioData:
     true_noise: dict[str, float]  # noise column -> true variance in that column's shown unit
     landmarks: np.ndarray  # (n, 2) [m]
     waypoints: np.ndarray  # (m, 2) [m]
-    track: Track
+    track: Track | None  # None: the result has no steps.parquet (steps_table: false)
     true_sigmas: NoiseSigmas = NoiseSigmas()
     assumed_sigmas: NoiseSigmas = NoiseSigmas()
     # (filter, vs, metric) -> ratio, from comparisons.parquet (empty for results without it)
@@ -217,6 +219,11 @@ class ScenarioData:
         num, den = f.summary.get(metric, math.nan), ref.summary.get(metric, math.nan)
         value = num / den if den and math.isfinite(den) else math.nan
         return Ratio(value, math.nan, math.nan, min(f.runs_used, ref.runs_used))
+
+    @property
+    def has_steps(self) -> bool:
+        """Whether the result has steps.parquet (the figures over time need it)."""
+        return self.track is not None
 
     @property
     def few_runs(self) -> bool:
@@ -533,6 +540,85 @@ def load_scenario_data(folder: Path) -> ScenarioData:
     )
 
 
+NO_STEPS_NOTE = (
+    "*No figures over time: this result has no steps.parquet (its scenario sets"
+    " `steps_table: false`). The rows above come from summary.parquet, the ratios from"
+    " comparisons.parquet, the per-run spread and outlier runs from runs.parquet.*"
+)
+_NO_SERIES = np.zeros(0)
+
+
+def load_summary_only(folder: Path) -> ScenarioData:
+    """A result without steps.parquet (`steps_table: false`), as the tables need it: each
+    filter's summary record (summary.parquet), its runs (runs.parquet), no series over time."""
+    folder = Path(folder)
+    manifest = _manifest(folder)
+    manifest_path = folder / MANIFEST_FILE
+    specs = _filter_specs(manifest, manifest_path)
+    summary = read_summary(folder)
+    where = folder / "summary.parquet"
+    needed = {"filter", "runs", "runs_used", "rmse_pos", "rmse_heading", "anees",
+              "nees_in_bounds", "nees_lo", "nees_hi"}  # fmt: skip
+    if not needed <= set(summary.columns):
+        raise ResultsError(
+            f"{where}: missing columns {', '.join(sorted(needed - set(summary.columns)))}"
+        )
+    per_run = read_per_run(folder)
+    empty = Band(_NO_SERIES, _NO_SERIES, _NO_SERIES, _NO_SERIES)
+    filters = []
+    for rec in summary.to_dict(orient="records"):
+        name = str(rec["filter"])
+        if name not in specs:
+            raise ResultsError(f"{where}: filter {name!r} is not in {manifest_path}")
+        record = {k: (_float(v) if k not in ("filter", "scenario") else v) for k, v in rec.items()}
+        record["runs"], record["runs_used"] = int(rec["runs"]), int(rec["runs_used"])
+        ids, means = np.zeros(0, dtype=int), np.zeros(0)
+        if per_run is not None:
+            mine = per_run[(per_run["filter"] == name) & ~per_run["diverged"].astype(bool)]
+            ids, means = mine["run"].to_numpy(int), mine["mean_nees"].to_numpy(float)
+        filters.append(
+            FilterSeries(
+                name=name,
+                kind=str(specs[name].get("kind", "?")),
+                adapts=_adapts(specs[name]),
+                runs=record["runs"],
+                runs_used=record["runs_used"],
+                t=_NO_SERIES,
+                pos=empty,
+                heading=empty,
+                nees=_NO_SERIES,
+                nees_median=_NO_SERIES,
+                bounds=(record["nees_lo"], record["nees_hi"]),
+                noise={},
+                summary=record,
+                run_ids=ids,
+                run_mean_nees=means,
+                outliers=outlier_runs(ids, means),
+            )  # fmt: skip
+        )
+    if not filters:
+        raise ResultsError(f"{where}: holds no filters")
+    scenario = manifest["scenario"]
+    true_sigmas = _sigmas(manifest, "true_noise", manifest_path)
+    return ScenarioData(
+        name=str(scenario.get("name", folder.name)),
+        description=str(scenario.get("description", "")),
+        folder=folder,
+        runs=max(f.runs for f in filters),
+        seed=manifest.get("seed"),
+        filters=filters,
+        true_noise=true_variances(true_sigmas),
+        landmarks=_points(manifest, "landmarks", manifest_path),
+        waypoints=_points(manifest, "waypoints", manifest_path),
+        track=None,
+        true_sigmas=true_sigmas,
+        assumed_sigmas=_sigmas(manifest, "filter_noise", manifest_path),
+        comparisons=read_comparisons(folder),
+        claims=read_claims(folder),
+        per_run=per_run,
+    )
+
+
 def _check_unique_names(scenarios: Sequence[ScenarioData]) -> None:
     """Figures are named after scenarios, so two results of one scenario would overwrite."""
     seen: dict[str, Path] = {}
@@ -656,8 +742,11 @@ def rich_table(rows: Sequence[SummaryRow]) -> Table:
         collapse_padding=True,
     )
     for i, col in enumerate(TERMINAL_HEADER):
-        # Text, not str: "[m]" would be read as rich markup and vanish.
-        table.add_column(Text(col), justify="left" if i < 2 else "right", no_wrap=i < 2)
+        # Text, not str: "[m]" would be read as rich markup and vanish. An interval stays on one
+        # line (its own, below the ratio).
+        ratio = "/" in col
+        table.add_column(Text(col), justify="left" if i < 2 else "right", no_wrap=i < 2 or ratio,
+                         min_width=14 if ratio else None)  # fmt: skip
     previous = None
     for row in rows:
         if previous is not None and row.scenario != previous:
@@ -849,7 +938,7 @@ def _outlier_note(sc: ScenarioData) -> str:
 def caption(sc: ScenarioData, kind: str) -> str:
     ref = sc.reference()
     return CAPTIONS[kind].format(
-        run=sc.track.run,
+        run=sc.track.run if sc.track is not None else "-",
         ref=f"`{ref.name}`" if ref else "the reference",
         outliers=_outlier_note(sc),
     )
@@ -886,6 +975,9 @@ def build_document(
         per_run = per_run_table(sc)
         if per_run is not None:
             doc.add(Paragraph("**Per run** (runs.parquet; diverged runs left out):"), per_run)
+        if not sc.has_steps:
+            doc.add(Paragraph(NO_STEPS_NOTE))
+            continue
         for kind in ("rmse", "nees", "noise", "map"):
             block = figures[sc.slug].get(kind)
             if block is None:
@@ -928,7 +1020,10 @@ def write_report(
     fmt = ImageFormat(fmt)
     folders, recorded = real.split_folders(find_scenarios(results_dirs, out_dir))
     real_data = [real.load_real(f) for f in recorded]  # real-data results: report/real.py
-    scenarios = [load_scenario_data(f) for f in folders]
+    scenarios = [
+        load_scenario_data(f) if os.path.lexists(f / STEPS_FILE) else load_summary_only(f)
+        for f in folders
+    ]
     _check_unique_names(scenarios)
     rows = summary_rows(scenarios)
     result = ReportResult(out_dir=out_dir, scenarios=scenarios, rows=rows)
@@ -960,6 +1055,8 @@ def write_report(
     figures: dict[str, dict[str, FigureBlock]] = {}
     for sc in scenarios:
         made = figures[sc.slug] = {}
+        if not sc.has_steps:
+            continue  # no steps.parquet: tables only (the overview includes it)
         label = f"{sc.name}: "
         made["rmse"] = save(plots.rmse_figure(sc), figure_name(sc.slug, "rmse", fmt),
                             label + caption(sc, "rmse"))  # fmt: skip

@@ -99,10 +99,10 @@ def _file_kind(mode: int) -> str:
     return "special file"
 
 
-def _size(n: int) -> str:
+def _size(n: float) -> str:
     for unit in ("bytes", "KB", "MB", "GB"):
         if n < 1024 or unit == "GB":
-            return f"{n} {unit}" if unit == "bytes" else f"{n:.0f} {unit}"
+            return f"{n:.1f}".rstrip("0").rstrip(".") + f" {unit}"
         n /= 1024
     return f"{n} bytes"  # pragma: no cover
 
@@ -350,6 +350,8 @@ def scenario_dirs(results_dir: Path) -> list[Path]:
 def _require_manifest(folder: Path) -> Path:
     """manifest.json is written last: without it the other files may be partial or stale."""
     path = Path(folder) / MANIFEST_FILE
+    if os.path.lexists(path) and not path.is_file():  # a FIFO, device or folder: never opened
+        raise ResultsError(f"{path}: not a regular file")
     if not path.is_file():
         raise ResultsError(
             f"{folder}: incomplete result (no {MANIFEST_FILE}; the run was interrupted or is"

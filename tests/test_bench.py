@@ -103,7 +103,9 @@ def test_quick_bench_writes_every_figure(tmp_path):
     # the fast engine against filterpy: every kind on both, same data, same counts
     assert set(doc["engine_step_us"]) == set(bench.ENGINE_KINDS)
     for kind, figures in doc["engine_step_us"].items():
-        assert all(_finite_positive(figures[k]) for k in ("filterpy", "fast", "ratio")), kind
+        keys = ("filterpy", "fast", "ratio", "ratio_with_prep")
+        assert all(_finite_positive(figures[k]) for k in keys), kind
+        assert figures["ratio_with_prep"] > figures["fast"] / figures["filterpy"]
         assert len(doc["raw_seconds"]["engine_pass"][kind]["fast"]) == bench.QUICK.repeats
     assert doc["engine_updates"]["ekf"] == doc["updates"]["ekf"]
     assert doc["fast_engine_max_abs_diff"] < 1e-9

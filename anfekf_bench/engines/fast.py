@@ -13,6 +13,7 @@ is not implemented here: the caller runs it on filterpy.
 
 from __future__ import annotations
 
+import functools
 import math
 import weakref
 
@@ -185,18 +186,32 @@ def run_filter_fast(
 
 def _anfis_rows(spec: ANFEKFSpec) -> np.ndarray:
     """The starting ANFIS parameters as ANFEKF.__init__ makes them, one kernel row each: the
-    R-ANFIS of range and of bearing (rows 0, 1) and the Q-ANFIS (row 2)."""
-    r_init = anfis.init_params(
-        centres0=spec.centres_d, width0=spec.width_d, centres1=spec.centres_dd,
-        width1=spec.width_dd, singleton_scale=spec.singleton_scale,
+    R-ANFIS of range and of bearing (rows 0, 1) and the Q-ANFIS (row 2); a fresh copy (the
+    kernel trains them in place)."""
+    key = (
+        tuple(spec.centres_d), float(spec.width_d), tuple(spec.centres_dd),
+        float(spec.width_dd), float(spec.singleton_scale),
     )  # fmt: skip
+    return _anfis_start(*key).copy()
+
+
+@functools.lru_cache(maxsize=64)
+def _anfis_start(
+    centres_d: tuple, width_d: float, centres_dd: tuple, width_dd: float, singleton_scale: float
+) -> np.ndarray:
+    r_init = anfis.init_params(
+        centres0=centres_d, width0=width_d, centres1=centres_dd, width1=width_dd,
+        singleton_scale=singleton_scale,
+    )  # fmt: skip
+    # The Q-ANFIS's inputs d_11 and d_22 are two mismatches of the same scale.
     q_init = anfis.init_params(
-        centres0=spec.centres_d, width0=spec.width_d, centres1=spec.centres_d,
-        width1=spec.width_d, singleton_scale=spec.singleton_scale,
+        centres0=centres_d, width0=width_d, centres1=centres_d, width1=width_d,
+        singleton_scale=singleton_scale,
     )  # fmt: skip
     rows = np.empty((3, _jit_kernels.N_ANFIS))
     for i, p in enumerate((r_init, r_init, q_init)):
         rows[i] = np.concatenate([p.m.ravel(), p.delta.ravel(), p.w])
+    rows.setflags(write=False)
     return rows
 
 

@@ -570,6 +570,9 @@ def test_outlier_runs_are_marked_and_the_median_shown(results, tmp_path):
     np.testing.assert_allclose(_artist(fig, "nees_outlier/anfekf/1").get_ydata(),
                                _pivot(steps, "anfekf", "nees")[1])  # fmt: skip
     assert any("anfekf run 1: outlier" in t for t in _legend_texts(fig))
+    # Off the top of the axis (its limits follow the averages): the figure says where.
+    marks = [t for t in fig.axes[0].texts if t.get_gid() == "nees_off_scale/anfekf/1"]
+    assert len(marks) == 1 and "anfekf run 1 off scale" in marks[0].get_text()
     assert "outlier" in fig.axes[0].get_title()
     median = _artist(fig, "nees_median/anfekf").get_ydata()
     np.testing.assert_allclose(median, np.median(_pivot(steps, "anfekf", "nees"), axis=0))
@@ -693,6 +696,20 @@ def test_html_report_opens_in_a_headless_browser_with_every_image(report_dir, tm
     assert found, "the page's load handler did not run"
     ok, total = int(found.group(1)), int(found.group(2))
     assert total == len(list(out.glob("*.png"))) and ok == total
+    # Sorting: a click on the RMSE header orders the rows by value (numbers, not text).
+    probe = tmp_path / "sorted.html"
+    click = (
+        "<script>var t = document.querySelector('table.sortable');"
+        " t.querySelectorAll('th')[4].click();"
+        " document.body.setAttribute('data-sorted', [].map.call(t.tBodies[0].rows,"
+        " function (r) { return r.cells[4].getAttribute('data-sort'); }).join(' '));</script>"
+    )
+    probe.write_text(page.read_text(encoding="utf-8").replace("</body>", click + "</body>"))
+    dom = _chromium(probe, tmp_path / "profile-sort", "--dump-dom")
+    found = re.search(rb'data-sorted="([^"]*)"', dom.stdout)
+    assert found, dom.stderr[-2000:]
+    values = [float(v) for v in found.group(1).split()]
+    assert len(values) == 3 * len(SCENARIOS) and values == sorted(values)
     shot = tmp_path / "shot.png"
     done = _chromium(page, tmp_path / "profile-shot", f"--screenshot={shot}",
                      "--window-size=1280,2400")  # fmt: skip

@@ -134,6 +134,9 @@ def data_uri(data: bytes, mime: str) -> str:
     return f"data:{mime};base64,{base64.b64encode(data).decode('ascii')}"
 
 
+_INTERVAL = re.compile(r"^(\S+) (\[[^\]]+\])$")
+
+
 def _html_table(t: TableBlock) -> list[str]:
     numeric = list(t.numeric) + [False] * (len(t.header) - len(t.numeric))
     out = ['<table class="sortable">']
@@ -154,7 +157,10 @@ def _html_table(t: TableBlock) -> list[str]:
                 else ""
             )
             cls = ' class="num"' if n else ""
-            cells.append(f"<td{cls}{key}>{inline_html(cell.text)}</td>")
+            text = inline_html(cell.text)
+            if n:  # a ratio's interval on its own line, so wide tables fit the page
+                text = _INTERVAL.sub(r'\1<span class="ci">\2</span>', text)
+            cells.append(f"<td{cls}{key}>{text}</td>")
         out.append("<tr>" + "".join(cells) + "</tr>")
     out += ["</tbody>", "</table>"]
     return out
@@ -168,11 +174,13 @@ h2 { border-bottom: 1px solid #ddd; padding-bottom: .2em; margin-top: 2em; }
 table { border-collapse: collapse; margin: 1em 0; font-size: 13px; display: block;
         overflow-x: auto; max-width: 100%; }
 caption { text-align: left; font-weight: 600; padding: .3em 0; }
-th, td { border: 1px solid #ccc; padding: .25em .5em; white-space: nowrap; }
-th { background: #f3f3f3; cursor: pointer; user-select: none; white-space: nowrap; }
+th, td { border: 1px solid #ccc; padding: .25em .5em; }
+td { white-space: nowrap; }
+th { background: #f3f3f3; cursor: pointer; user-select: none; vertical-align: bottom; }
 th[aria-sort="ascending"]::after { content: " \\25B2"; }
 th[aria-sort="descending"]::after { content: " \\25BC"; }
 td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
+td .ci { display: block; color: #666; font-size: 11px; }
 tbody tr:nth-child(even) { background: #fafafa; }
 figure { margin: 1.5em 0; }
 figure img { max-width: 100%; height: auto; border: 1px solid #eee; }

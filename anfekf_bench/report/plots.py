@@ -255,6 +255,22 @@ def _outlier_label(f: FilterSeries, run: int) -> str:
     return f"{f.name} run {run}: outlier, mean NEES {format_sig(float(f.run_mean_nees[i]))}"
 
 
+def _mark_off_scale(ax: Axes, sc: ScenarioData, top: float) -> None:
+    """Where an outlier run's NEES leaves the top of the axis, say so (with its peak)."""
+    for f in sc.filters:
+        for run, values in f.outlier_nees.items():
+            above = np.flatnonzero(np.nan_to_num(values, nan=0.0) > top)
+            if not len(above):
+                continue
+            peak = float(np.nanmax(values))
+            ax.annotate(
+                f"{f.name} run {run} off scale (peak {format_sig(peak)})",
+                (f.t[above[0]], top), xytext=(2, -2), textcoords="offset points",
+                ha="left", va="top", fontsize=7, color=filter_colour(f.name),
+                gid=f"nees_off_scale/{f.name}/{run}",
+            )  # fmt: skip
+
+
 @matplotlib.rc_context(_RC)
 def nees_figure(sc: ScenarioData) -> Figure:
     """Run-averaged NEES per filter (log scale) with the two-sided 95 % chi-square bounds, the
@@ -291,6 +307,7 @@ def nees_figure(sc: ScenarioData) -> Figure:
     values = values[np.isfinite(values) & (values > 0)]
     if values.size:
         ax.set_ylim(values.min() / 1.5, values.max() * 1.5)
+        _mark_off_scale(ax, sc, values.max() * 1.5)
     ax.set_xlim(sc.filters[0].t[0], sc.filters[0].t[-1])
     ax.set_xlabel("time [s]")
     ax.set_ylabel("NEES [-] (log)")

@@ -16,7 +16,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 from rich.text import Text
-from typer.core import TyperGroup, TyperOption
+from typer.core import TyperArgument, TyperGroup, TyperOption
 
 from .analysis.metrics import format_number, format_share
 from .config import (
@@ -117,6 +117,18 @@ def _no_flag_metavar(self, ctx):
 
 
 TyperOption.display_type_rich = _no_flag_metavar
+# ... and "<list[Path]>" for an argument that takes several paths: "<path>..." says it plainly.
+_argument_type = TyperArgument.display_type_rich
+
+
+def _plain_list_metavar(self, ctx):
+    shown = _argument_type(self, ctx)
+    if isinstance(shown, str) and shown.startswith("<list[") and shown.endswith("]>"):
+        return f"<{shown[6:-2].lower()}>..."
+    return shown
+
+
+TyperArgument.display_type_rich = _plain_list_metavar
 
 
 app = typer.Typer(

@@ -50,6 +50,7 @@ def test_short_help_and_no_bool_metavar(command):
     assert result.exit_code == 0, result.output
     assert "Usage:" in result.output
     assert "<bool>" not in result.output and "--no-" not in result.output
+    assert "list[" not in result.output  # several paths read "<path>..."
     if command in ("run", "report", "check"):
         assert "--debug" in result.output
 

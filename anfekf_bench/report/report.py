@@ -554,6 +554,12 @@ def load_summary_only(folder: Path) -> ScenarioData:
     folder = Path(folder)
     manifest = _manifest(folder)
     manifest_path = folder / MANIFEST_FILE
+    if manifest["scenario"].get("steps_table", True) is not False:
+        # The scenario writes steps.parquet: its absence is damage, not a summary-only result.
+        raise ResultsError(
+            f"{folder / STEPS_FILE}: missing, though {manifest_path} says the scenario writes it"
+            " (steps_table: true); the result is damaged: run it again with --force"
+        )
     specs = _filter_specs(manifest, manifest_path)
     summary = read_summary(folder)
     where = folder / "summary.parquet"

@@ -18,7 +18,7 @@ from rich.table import Table
 from rich.text import Text
 from typer.core import TyperArgument, TyperGroup, TyperOption
 
-from .analysis.metrics import format_number, format_share
+from .analysis.metrics import format_number, format_share, format_sig
 from .config import (
     MAX_JOBS,
     MAX_RUNS,
@@ -510,10 +510,11 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
 
 
 def format_interval(estimate: float, lo: float, hi: float, digits: int = 3) -> str:
-    """'0.496 [0.452, 0.543]', or the estimate alone when it has no interval."""
-    text = format_number(estimate, digits)
+    """'0.496 [0.452, 0.543]', '0.0536 [0.0395, 0.0670]' (significant digits, as in the report),
+    or the estimate alone when it has no interval."""
+    text = format_sig(estimate, digits)
     if math.isfinite(lo) and math.isfinite(hi):
-        text += f" [{lo:.{digits}f}, {hi:.{digits}f}]"
+        text += f" [{format_sig(lo, digits)}, {format_sig(hi, digits)}]"
     return text
 
 

@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 ANFEKF := $(VENV)/bin/anfekf
 OUT    ?= results
 
-.PHONY: setup reproduce run report test lint format bench gate clean readme
+.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps
 
 setup: $(VENV)/.installed
 
@@ -54,3 +54,12 @@ gate: setup
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache
+
+## Beyond the paper (README): the adaptive-filter zoo, the mismatch sweeps, the real robot log.
+zoo: setup
+	$(ANFEKF) run configs/zoo --out $(OUT)/zoo --force
+	$(ANFEKF) report $(OUT)/zoo --out $(OUT)/zoo/report
+
+sweeps: setup
+	$(ANFEKF) run configs/sweeps --out $(OUT)/sweeps --force
+	$(ANFEKF) report $(OUT)/sweeps --out $(OUT)/sweeps/report

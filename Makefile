@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 ANFEKF := $(VENV)/bin/anfekf
 OUT    ?= results
 
-.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps
+.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps real
 
 setup: $(VENV)/.installed
 
@@ -63,3 +63,7 @@ zoo: setup
 sweeps: setup
 	$(ANFEKF) run configs/sweeps --out $(OUT)/sweeps --force
 	$(ANFEKF) report $(OUT)/sweeps --out $(OUT)/sweeps/report
+
+real: setup
+	$(ANFEKF) run configs/real --out $(OUT)/real --force
+	$(ANFEKF) report $(OUT)/real --out $(OUT)/real/report

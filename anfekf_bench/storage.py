@@ -404,6 +404,9 @@ def read_steps(scenario_dir: Path) -> pd.DataFrame:
         )
     if len(df) == 0:
         raise ResultsError(f"{Path(scenario_dir) / STEPS_FILE}: holds no rows")
+    for column in ("scenario", "filter", "run", "step"):
+        if df[column].isna().any():
+            raise ResultsError(f"{Path(scenario_dir) / STEPS_FILE}: {column}: empty cells")
     if not isinstance(df["filter"].dtype, pd.CategoricalDtype):
         df["filter"] = pd.Categorical(df["filter"], categories=list(dict.fromkeys(df["filter"])))
     return df

@@ -589,6 +589,27 @@ _report_case("report-filter-without-rows", _drop_filter, "'ekf-oracle'", "has no
 _report_case("report-ragged-steps", _shift_steps, "different steps")
 
 
+def _text_column(sb, steps):
+    steps["R_rr"] = steps["R_rr"].astype(str)
+    return steps
+
+
+def _truth_infinite(sb, steps):
+    steps.loc[3, "x_true"] = np.inf
+    return steps
+
+
+def _filter_empty(sb, steps):
+    steps["filter"] = steps["filter"].astype(object)
+    steps.loc[2, "filter"] = None
+    return steps
+
+
+_report_case("report-column-of-text", _text_column, "R_rr", "expected numbers")
+_report_case("report-truth-not-finite", _truth_infinite, "x_true", "finite")
+_report_case("report-filter-empty-cells", _filter_empty, "filter", "empty cells")
+
+
 @case("report", "report-filter-name-markup", "not plain text")
 def _(sb):
     steps = pd.read_parquet(sb.result / STEPS_FILE)
@@ -948,6 +969,19 @@ def test_inconsistent_runs_are_counted_apart_from_diverged() -> None:
     assert record["inconsistent"] == 2 and record["diverged"] == 0 and record["runs_used"] == 4
     diverged = summarize_filter(err, err, nees, np.array([False, True, False, False]))
     assert diverged["inconsistent"] == 1, "a diverged run is counted as diverged only"
+
+
+def test_a_singular_covariance_gives_a_nees_not_a_traceback(tmp_path) -> None:
+    """p0: 0 leaves P singular before the first updates: NEES over the directions P has
+    (pseudo-inverse) there, the ordinary solve everywhere else; the run completes."""
+    from anfekf_bench.analysis.metrics import nees
+
+    P = np.stack([np.diag([1.0, 4.0, 0.0]), np.diag([1.0, 4.0, 9.0])])
+    e = np.array([[1.0, 2.0, 0.0], [1.0, 2.0, 3.0]])
+    assert nees(e, P).tolist() == [2.0, 3.0]
+    path = write_scenario(tmp_path / "p0.yaml", small_scenario(runs=1, record_every=1, p0=0))
+    result = cli("run", path, "--out", tmp_path / "out")
+    assert result.exit_code == 0, result.output
 
 
 # --- Property: nothing outside the scenario folder ever changes -------------------------------

@@ -26,8 +26,24 @@ def pose_errors(x_true: np.ndarray, x_est: np.ndarray) -> np.ndarray:
 
 def nees(e: np.ndarray, P: np.ndarray) -> np.ndarray:
     """eps_k = e^T P^-1 e (eq. 45) by a solve, for stacks e (n, 3), P (n, 3, 3)."""
-    sol = np.linalg.solve(P, e[..., None])[..., 0]
+    try:
+        sol = np.linalg.solve(P, e[..., None])[..., 0]
+    except np.linalg.LinAlgError:  # a singular P (p0 = 0 before the first updates): row by row
+        return _nees_rows(np.asarray(e, dtype=float), np.asarray(P, dtype=float))
     return np.einsum("...i,...i->...", e, sol)
+
+
+def _nees_rows(e: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """eps_k one row at a time; where P_k is singular, e^T P^+ e with the pseudo-inverse (the
+    NEES over the directions P_k claims any uncertainty in)."""
+    flat_e, flat_P = e.reshape(-1, e.shape[-1]), P.reshape(-1, *P.shape[-2:])
+    out = np.empty(len(flat_e))
+    for i, (ei, Pi) in enumerate(zip(flat_e, flat_P, strict=True)):
+        try:
+            out[i] = ei @ np.linalg.solve(Pi, ei)
+        except np.linalg.LinAlgError:
+            out[i] = ei @ np.linalg.pinv(Pi) @ ei
+    return out.reshape(e.shape[:-1])
 
 
 def nees_bounds(runs: int, dim: int = 3, confidence: float = 0.95) -> tuple[float, float]:

@@ -24,6 +24,16 @@ def _manifest_runs(manifest: dict, where: Path) -> int:
     return runs
 
 
+# Columns of steps.parquet that hold numbers; the first ones must also be finite (the truth and
+# the clock: an estimate may be NaN, in a diverged run).
+NUMBER_COLUMNS = (
+    "run", "step", "t", "x_true", "y_true", "phi_true", "x_est", "y_est", "phi_est",
+    "P_xx", "P_xy", "P_xphi", "P_yy", "P_yphi", "P_phiphi", "pos_err", "heading_err", "nees",
+    "R_rr", "R_bb", "Q_vv", "Q_gg", "diverged",
+)  # fmt: skip
+FINITE_COLUMNS = ("run", "step", "t", "x_true", "y_true", "phi_true")
+
+
 def check_saved_result(folder: Path, steps: pd.DataFrame, manifest: dict) -> None:
     """ResultsError unless `steps` (steps.parquet) is the table of the batch `manifest` describes:
     its scenario, every filter and run once, the same steps for every (filter, run), plain names.
@@ -34,6 +44,12 @@ def check_saved_result(folder: Path, steps: pd.DataFrame, manifest: dict) -> Non
     name = scenario.get("name") if isinstance(scenario, dict) else None
     if not isinstance(name, str) or scenario_name_problem(name):
         raise ResultsError(f"{manifest_path}: scenario.name: not a valid scenario name")
+    for column in NUMBER_COLUMNS:
+        if column in steps.columns and steps[column].dtype.kind not in "biuf":
+            raise ResultsError(f"{steps_path}: column {column}: expected numbers")
+    for column in FINITE_COLUMNS:
+        if column in steps.columns and not np.isfinite(steps[column].to_numpy(float)).all():
+            raise ResultsError(f"{steps_path}: column {column}: expected finite numbers")
     found = sorted(str(s) for s in pd.unique(steps["scenario"].astype(str)))
     if found != [name]:
         shown = ", ".join(repr(s[:40]) for s in found[:3])

@@ -23,11 +23,11 @@ from anfekf_bench.cli import app
 from anfekf_bench.config import load_scenario
 from anfekf_bench.experiment import RUNS_DIR, execute, make_plan
 from anfekf_bench.storage import (
+    LOCK_FILE,
     MANIFEST_FILE,
     STEPS_FILE,
     SUMMARY_JSON,
     SUMMARY_PARQUET,
-    LOCK_FILE,
     ResultsError,
     read_json,
     read_run_file,

@@ -338,6 +338,10 @@ def _stamp(runs_dir: Path) -> str | None:
         raise OutputExists(f"{path}: {exc}") from None
 
 
+def _is_temporary(name: str) -> bool:
+    return name.startswith(".") and name.endswith(".tmp")  # storage.write_atomic's names
+
+
 def _is_our_manifest(target: Path) -> bool:
     try:
         doc = read_json(target / MANIFEST_FILE)
@@ -365,7 +369,10 @@ def survey_output(plan: Plan, target: Path, force: bool) -> list[str]:
         )
     ours = sorted(e.name for e in os.scandir(target) if e.name != LOCK_FILE)
     if force:
-        if ours and not (_is_our_manifest(target) or _stamp(runs_dir) is not None):
+        # Marked as ours: a manifest with a fingerprint, or a run store (foreign_entries has
+        # refused a symlinked one). Temporaries of a write a kill cut short need no mark.
+        marked = _is_our_manifest(target) or runs_dir.is_dir()
+        if not marked and any(not _is_temporary(name) for name in ours):
             raise OutputExists(
                 f"{target}: holds no anfekf result (no manifest.json with a fingerprint, no"
                 " saved runs); --force removes only anfekf results"
@@ -439,9 +446,7 @@ def prepare_output(plan: Plan, out_dir: Path, force: bool) -> tuple[Path, dict[i
     # Results of an earlier, unfinished attempt (no manifest: not complete), and temporary files
     # of writes a kill cut short (storage.write_atomic names them .<name>.*.tmp).
     for entry in os.scandir(target):
-        stale = entry.name.endswith((".parquet", ".json")) or (
-            entry.name.startswith(".") and entry.name.endswith(".tmp")
-        )
+        stale = entry.name.endswith((".parquet", ".json")) or _is_temporary(entry.name)
         if stale and entry.is_file(follow_symlinks=False):
             os.unlink(entry.path)
     for torn in runs_dir.glob(".*.tmp"):

@@ -271,6 +271,24 @@ def _(sb):
     return sb.run(sb.scenario, "--force")
 
 
+@pytest.mark.parametrize("leftover", ["empty-run-store", "temporary-file", "lock-only"])
+@pytest.mark.parametrize("force", [False, True], ids=["plain", "force"])
+def test_what_a_killed_first_attempt_leaves_is_taken_over(sandbox, leftover, force) -> None:
+    """A first attempt killed right after creating its folder leaves only our own leftovers: a
+    rerun (with --force or not) takes the folder over instead of calling it foreign."""
+    shutil.rmtree(sandbox.result)
+    sandbox.result.mkdir()
+    (sandbox.result / ".lock").write_text("12345\n")
+    if leftover == "empty-run-store":
+        (sandbox.result / RUNS_DIR).mkdir()
+    elif leftover == "temporary-file":
+        (sandbox.result / ".steps.parquet.x1y2.tmp").write_bytes(b"half")
+    result = cli(*sandbox.run(sandbox.scenario, *(["--force"] if force else [])))
+    assert result.exit_code == 0, result.output
+    assert (sandbox.result / MANIFEST_FILE).is_file()
+    assert not list(sandbox.result.glob(".*.tmp"))
+
+
 # Validate first: a forced rerun that cannot run leaves the previous result as it was.
 @case("validate-first", "route-shorter-than-record-every", "record_every", "longer than the route")
 def _(sb):

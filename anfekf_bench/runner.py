@@ -1,7 +1,8 @@
 """Monte Carlo batches: worker calls of a few runs each, fanned out with joblib (benchopt style).
 
 `run_chunk` / `run_one` are top-level functions taking plain data and returning plain data; they
-mutate nothing shared. The truth path is computed once per batch and shipped with the tasks.
+mutate nothing shared. The truth path and the scans' landmark geometry are computed once per
+batch and shipped with the tasks.
 Run i draws from `SeedSequence(seed).spawn(runs)[i]` only (SPEC 6), so results do not depend on
 the number of workers or on the order in which runs finish. The same holds on a Dask
 cluster (`backend="dask"`): the same calls are submitted to the cluster's workers, one Dask task
@@ -29,16 +30,17 @@ from .config import Engine, Scenario, World
 from .engines.filterpy_engine import run_filter
 from .filters import FilterSpec
 from .filters.registry import build_filter, filter_context
-from .sources.simulator import RunData, Truth, simulate_run, simulate_truth
+from .sources.simulator import RunData, WorldPath, simulate_run, world_path
 
 
 def simulate(
-    scenario: Scenario, world: World, seed: np.random.SeedSequence, truth: Truth | None = None
+    scenario: Scenario, world: World, seed: np.random.SeedSequence, path: WorldPath | None = None
 ) -> RunData:
-    """One run's data, every draw from its own seed (SPEC 6); `truth`, the same in every run,
-    may be passed in so that it is computed once per world, not once per run."""
-    truth = simulate_truth(world) if truth is None else truth
-    return simulate_run(world, truth, scenario.true_noise.radians(), np.random.default_rng(seed))
+    """One run's data, every draw from its own seed (SPEC 6); `path` (the truth and the scans'
+    geometry, the same in every run) may be passed in so that it is computed once per world."""
+    path = world_path(world) if path is None else path
+    sigmas, rng = scenario.true_noise.radians(), np.random.default_rng(seed)
+    return simulate_run(world, path.truth, sigmas, rng, path.geometry)
 
 
 def run_filter_on(engine: Engine, spec: FilterSpec, scenario, world: World, data: RunData) -> dict:
@@ -67,11 +69,11 @@ def run_one(
     world: World,
     run: int,
     seed: np.random.SeedSequence,
-    truth: Truth | None = None,
+    path: WorldPath | None = None,
     engine: Engine = "filterpy",
 ) -> dict:
     """One Monte Carlo run: simulate once, feed the same data to every filter (CRN)."""
-    data = simulate(scenario, world, seed, truth)
+    data = simulate(scenario, world, seed, path)
     steps = recorded_steps(len(data.u_odo), scenario.record_every)
     x_true = data.truth.x[steps]
     filters = {
@@ -92,12 +94,12 @@ def run_chunk(
     scenario: Scenario,
     world: World,
     runs: list[tuple[int, np.random.SeedSequence]],
-    truth: Truth,
+    path: WorldPath,
     engine: Engine,
 ) -> list[dict]:
     """Several runs in one worker task (a fast engine's run takes milliseconds: one task per run
     would cost more in dispatch than in filtering)."""
-    return [run_one(scenario, world, run, seed, truth, engine) for run, seed in runs]
+    return [run_one(scenario, world, run, seed, path, engine) for run, seed in runs]
 
 
 def run_tasks(scenario: Scenario, world: World, runs: int, seed: int) -> Iterator[dict]:
@@ -138,12 +140,12 @@ def run_batch(
     tasks = [task for task in tasks if task[0] not in skip]
     if not tasks:
         return iter(())
-    truth = simulate_truth(world)
+    path = world_path(world)
     # A filterpy run takes a good part of a second: one task per run (progress and resume move
     # with every run); a fast-engine run takes milliseconds, so its tasks hold several runs.
     size = runs_per_task(len(tasks), jobs) if engine == "fast" and backend == "local" else 1
     calls = (
-        delayed(run_chunk)(scenario, world, tasks[i : i + size], truth, engine)
+        delayed(run_chunk)(scenario, world, tasks[i : i + size], path, engine)
         for i in range(0, len(tasks), size)
     )
     if backend == "dask":

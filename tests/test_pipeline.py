@@ -244,3 +244,24 @@ def test_tables_do_not_depend_on_the_order_runs_finish():
 
 def run_seeds(scenario):
     return np.random.SeedSequence(scenario.seed).spawn(scenario.runs)
+
+
+def test_scans_from_the_world_geometry_are_the_bytes_of_per_scan_observations():
+    """The scan geometry computed once per world (SPEC 11) gives the data observe() gives."""
+    from anfekf_bench.sources.simulator import observe, scan_geometry, simulate_run, world_path
+
+    scenario, world = load_scenario(Path(__file__).parents[1] / "configs" / "wrong_r.yaml")
+    path = world_path(world)
+    assert np.array_equal(path.geometry.steps, [s for s in range(8, len(path.truth.u) + 1, 8)])
+    sigmas = scenario.true_noise.radians()
+    data = simulate_run(world, path.truth, sigmas, np.random.default_rng(5), path.geometry)
+    again = simulate_run(world, path.truth, sigmas, np.random.default_rng(5))
+    rng = np.random.default_rng(5)
+    rng.standard_normal((len(path.truth.u), 2))  # the odometry draws come first
+    noise = rng.standard_normal((len(path.geometry.steps), len(world.landmarks), 2))
+    noise *= np.array(sigmas[2:])
+    for i, (scan, other) in enumerate(zip(data.scans, again.scans, strict=True)):
+        reference = observe(world, path.truth.x[scan.step], noise[i], scan.step)
+        assert np.array_equal(scan.ids, reference.ids) and np.array_equal(other.ids, scan.ids)
+        assert scan.z.tobytes() == reference.z.tobytes() == other.z.tobytes()
+    assert scan_geometry(world, path.truth).range.tobytes() == path.geometry.range.tobytes()

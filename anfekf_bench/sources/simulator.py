@@ -75,13 +75,45 @@ def simulate_truth(world: World) -> Truth:
     return Truth(x=np.array(xs), u=np.array(us).reshape(-1, 2))
 
 
-def observe(world: World, pose: np.ndarray, noise: np.ndarray, step: int) -> Scan:
-    """Scan of every landmark in range (< max_range) and in the field of view, eq. (18)."""
+@dataclass(frozen=True)
+class ScanGeometry:
+    """What the scans of every run share (the truth is the same in every run, SPEC 1): at scan i,
+    control step `steps[i]`, the true range and bearing of every landmark and the ones in view.
+
+    Computed once per world (`scan_geometry`), so a run only adds its noise."""
+
+    steps: np.ndarray  # (n,) control steps of the scans
+    range: np.ndarray  # (n, landmarks) [m]
+    bearing: np.ndarray  # (n, landmarks) [rad], wrapped
+    ids: tuple[np.ndarray, ...]  # per scan: the landmarks in range and in the field of view
+
+
+def _sight(world: World, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """True range, bearing (eq. 18) of every landmark from `pose`, and the ones seen: range
+    strictly below max_range and bearing strictly inside the field of view."""
     d = world.landmarks - pose[:2]
     rng_ = np.hypot(d[:, 0], d[:, 1])
     bearing = wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - pose[2])
     seen = (rng_ < world.max_range) & (np.abs(bearing) < world.half_fov)
-    ids = np.flatnonzero(seen)
+    return rng_, bearing, np.flatnonzero(seen)
+
+
+def scan_geometry(world: World, truth: Truth) -> ScanGeometry:
+    """Every scan's true landmark geometry along the truth path, once per world."""
+    steps = np.arange(world.sensor_every, len(truth.u) + 1, world.sensor_every)
+    sights = [_sight(world, truth.x[k]) for k in steps]
+    n, L = len(steps), len(world.landmarks)
+    return ScanGeometry(
+        steps=steps,
+        range=np.array([s[0] for s in sights]).reshape(n, L),
+        bearing=np.array([s[1] for s in sights]).reshape(n, L),
+        ids=tuple(s[2] for s in sights),
+    )
+
+
+def observe(world: World, pose: np.ndarray, noise: np.ndarray, step: int) -> Scan:
+    """Scan of every landmark in range (< max_range) and in the field of view, eq. (18)."""
+    rng_, bearing, ids = _sight(world, pose)
     z = np.column_stack([rng_[ids] + noise[ids, 0], wrap_angle(bearing[ids] + noise[ids, 1])])
     return Scan(step=step, ids=ids, z=z)
 
@@ -91,16 +123,41 @@ def simulate_run(
     truth: Truth,
     true_sigmas: tuple[float, float, float, float],
     rng: np.random.Generator,
+    geometry: ScanGeometry | None = None,
 ) -> RunData:
     """Odometry and scans of one run, every draw from `rng` (SPEC 6).
 
     Draw order is fixed: all odometry noise, then all measurement noise (one pair per landmark per
-    scan, seen or not), so a run's data depend on its seed only.
+    scan, seen or not), so a run's data depend on its seed only. `geometry` (the same for every
+    run of a world) is computed here when not given; the data are the same bytes either way.
     """
     sv, sg, sr, sb = true_sigmas
     K = len(truth.u)
     u_odo = truth.u + rng.standard_normal((K, 2)) * np.array([sv, sg])
-    scan_steps = range(world.sensor_every, K + 1, world.sensor_every)
-    noise = rng.standard_normal((len(scan_steps), len(world.landmarks), 2)) * np.array([sr, sb])
-    scans = tuple(observe(world, truth.x[k], noise[i], k) for i, k in enumerate(scan_steps))
+    geometry = scan_geometry(world, truth) if geometry is None else geometry
+    noise = rng.standard_normal((len(geometry.steps), len(world.landmarks), 2)) * np.array([sr, sb])
+    scans = tuple(
+        Scan(
+            step=int(k),
+            ids=ids,
+            z=np.column_stack([rng_[ids] + e[ids, 0], wrap_angle(bearing[ids] + e[ids, 1])]),
+        )
+        for k, ids, rng_, bearing, e in zip(
+            geometry.steps, geometry.ids, geometry.range, geometry.bearing, noise, strict=True
+        )
+    )
     return RunData(truth=truth, u_odo=u_odo, scans=scans)
+
+
+@dataclass(frozen=True)
+class WorldPath:
+    """What every run of a world shares: the truth path and its scans' landmark geometry."""
+
+    truth: Truth
+    geometry: ScanGeometry
+
+
+def world_path(world: World) -> WorldPath:
+    """The truth path and scan geometry of a world, computed once and shipped to the runs."""
+    truth = simulate_truth(world)
+    return WorldPath(truth, scan_geometry(world, truth))

@@ -105,7 +105,7 @@ def line_figure(data: SweepData, axis: str, rows: pd.DataFrame, title: str) -> F
         if axis in data.factor_axes:
             ax.set_xscale("log")
             ax.xaxis.set_minor_formatter(NullFormatter())
-        ax.set_xticks(values, [f"{v:g}" for v in values])
+        ax.set_xticks(values, [f"{v:.3g}" for v in values])
         shown = rows[column].to_numpy(float)
         shown = shown[np.isfinite(shown)]
         # A log axis only when the values span a decade: below that it shows one tick label.
@@ -153,8 +153,8 @@ def heatmap_figure(
             share = column == "nees_in_bounds"
             text = "-" if not math.isfinite(v) else (f"{v:.0%}" if share else f"{v:#.3g}")
             ax.text(j, i, text, ha="center", va="center", fontsize=7)
-        ax.set_xticks(range(len(xs)), [f"{v:g}" for v in xs], rotation=45)
-        ax.set_yticks(range(len(ys)), [f"{v:g}" for v in ys])
+        ax.set_xticks(range(len(xs)), [f"{v:.3g}" for v in xs], rotation=45)
+        ax.set_yticks(range(len(ys)), [f"{v:.3g}" for v in ys])
         ax.set_xlabel(x_axis)
         ax.set_ylabel(y_axis)
         ax.set_title(name)
@@ -205,7 +205,7 @@ def breakdown_lines(data: SweepData, within: float) -> list[str]:
         "|---|---:|---:|",
     ]
     for name, (lo, hi) in found.items():
-        shown = ("-", "-") if math.isnan(lo) else (f"{lo:g}", f"{hi:g}")
+        shown = ("-", "-") if math.isnan(lo) else (f"{lo:.3g}", f"{hi:.3g}")
         lines.append(f"| {name} | {shown[0]} | {shown[1]} |")
     return [*lines, ""]
 

@@ -42,10 +42,28 @@ FILTER_COLOURS = {
     "anfekf": "#1f77b4",  # blue
     "anfekf-q": "#2ca02c",  # green
     "ekf-oracle": "#4d4d4d",  # dark grey: the reference
+    # the zoo's configs (configs/zoo, configs/sweeps): one colour each, so none share one
+    "anfekf-rq": "#17becf",
+    "cm-scale": "#e377c2",
+    "cm-scale-q": "#f7b6d2",
+    "cm-scale-rq": "#c5b0d5",
+    "sage-husa": "#8c564b",
+    "sage-husa-w10": "#c49c94",
+    "sage-husa-rq": "#bcbd22",
+    "iae": "#ff7f0e",
+    "iae-hold": "#ffbb78",
+    "iae-q": "#dbdb8d",
+    "akhlaghi": "#9467bd",
+    "akhlaghi-slow": "#aec7e8",
+    "vb-r": "#98df8a",
+    "vbakf": "#393b79",
 }
 # Other filter names get one of these, chosen by a stable hash of the name (not Python's hash(),
 # which changes between processes), so a name keeps its colour in every figure and every report.
-FALLBACK_COLOURS = ("#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
+FALLBACK_COLOURS = (
+    "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd", "#e6550d", "#31a354", "#756bb1",
+    "#636363", "#5254a3", "#b5cf6b", "#e7ba52", "#ad494a", "#a55194", "#6baed6", "#fd8d3c",
+)  # fmt: skip
 _RC = {
     "font.size": 9,
     "axes.titlesize": 10,

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..filters import FilterDiverged, RobotEKF
 from ..sources.mrclam import LANDMARK, ODOMETRY, Events
-from .filterpy_engine import _healthy
+from .filterpy_engine import StepRecorder, _healthy
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,14 +98,8 @@ def run_filter_events(flt: RobotEKF, tl: Timeline) -> dict:
     nis_sum, n_updates, n_rejected), one row per evaluation time. A filter that stops being finite
     and positive definite is marked diverged and its remaining records stay NaN.
     """
-    n = int(tl.record.sum())
-    x = np.full((n, 3), np.nan)
-    P = np.full((n, 3, 3), np.nan)
-    R = np.full((n, 2), np.nan)
-    Qu = np.full((n, 2), np.nan)
-    P_infl = np.full(n, np.nan)
+    trace = StepRecorder(int(tl.record.sum()))
     diverged = False
-    j = 0
     t_list, dt_list, rec_list, lm_list = (
         tl.t.tolist(), tl.dt.tolist(), tl.record.tolist(), tl.lm.tolist(),
     )  # fmt: skip
@@ -118,28 +112,11 @@ def run_filter_events(flt: RobotEKF, tl: Timeline) -> dict:
                 if not _healthy(flt):
                     raise FilterDiverged(f"t = {t_list[k]:.3f} s")
             if rec_list[k]:
-                x[j] = flt.x
-                P[j] = flt.P
-                R[j] = flt.R[0, 0], flt.R[1, 1]
-                Qu[j] = flt.Qu[0, 0], flt.Qu[1, 1]
-                P_infl[j] = flt.P_inflation
-                j += 1
-        if not (np.isfinite(x).all() and np.isfinite(P).all()):
-            raise FilterDiverged("non-finite estimate after the last scan")
+                trace.record(flt)
+        trace.check_finite()
     except (FilterDiverged, np.linalg.LinAlgError):
         diverged = True
-        x[j:] = P[j:] = R[j:] = Qu[j:] = P_infl[j:] = np.nan
-    return {
-        "x": x,
-        "P": P,
-        "R_diag": R,
-        "Q_diag": Qu,
-        "P_infl": P_infl,
-        "diverged": diverged,
-        "nis_sum": flt.nis_sum,
-        "n_updates": flt.n_updates,
-        "n_rejected": flt.n_rejected,
-    }
+    return trace.result(flt, diverged)
 
 
 # --------------------------------------------------------------------------------------------

@@ -27,6 +27,51 @@ def _healthy(flt: RobotEKF) -> bool:
     return all(v > 0 for v in flt.R.diagonal().tolist() + flt.Qu.diagonal().tolist())
 
 
+class StepRecorder:
+    """What an engine's loop records of one filter at its evaluation steps, and the dict it
+    returns (x, P, R_diag, Q_diag, P_infl, diverged and the update counts), shared by the loops
+    over simulated runs and over recorded logs. Rows after a divergence stay NaN."""
+
+    def __init__(self, n: int):
+        self.x = np.full((n, 3), np.nan)
+        self.P = np.full((n, 3, 3), np.nan)
+        self.R = np.full((n, 2), np.nan)
+        self.Qu = np.full((n, 2), np.nan)
+        self.P_infl = np.full(n, np.nan)
+        self.j = 0
+
+    def record(self, flt: RobotEKF) -> None:
+        j = self.j
+        self.x[j] = flt.x
+        self.P[j] = flt.P
+        self.R[j] = flt.R[0, 0], flt.R[1, 1]
+        self.Qu[j] = flt.Qu[0, 0], flt.Qu[1, 1]
+        self.P_infl[j] = flt.P_inflation
+        self.j = j + 1
+
+    def check_finite(self) -> None:
+        """Health is checked at scans; a blow-up in the predictions after the last one shows
+        here."""
+        if not (np.isfinite(self.x).all() and np.isfinite(self.P).all()):
+            raise FilterDiverged("non-finite estimate after the last scan")
+
+    def result(self, flt: RobotEKF, diverged: bool) -> dict:
+        if diverged:
+            j = self.j
+            self.x[j:] = self.P[j:] = self.R[j:] = self.Qu[j:] = self.P_infl[j:] = np.nan
+        return {
+            "x": self.x,
+            "P": self.P,
+            "R_diag": self.R,
+            "Q_diag": self.Qu,
+            "P_infl": self.P_infl,
+            "diverged": diverged,
+            "nis_sum": flt.nis_sum,
+            "n_updates": flt.n_updates,
+            "n_rejected": flt.n_rejected,
+        }
+
+
 def run_filter(flt: RobotEKF, data: RunData, world: World, record_every: int) -> dict:
     """Run one filter over one run's data; record every `record_every`-th control step.
 
@@ -34,16 +79,10 @@ def run_filter(flt: RobotEKF, data: RunData, world: World, record_every: int) ->
     records stay NaN and the caller goes on with the next filter.
     """
     K = len(data.u_odo)
-    n = K // record_every
-    x = np.full((n, 3), np.nan)
-    P = np.full((n, 3, 3), np.nan)
-    R = np.full((n, 2), np.nan)
-    Qu = np.full((n, 2), np.nan)
-    P_infl = np.full(n, np.nan)
+    trace = StepRecorder(K // record_every)
     landmarks = world.landmarks
     every = world.sensor_every
     diverged = False
-    j = 0
     try:
         for k in range(1, K + 1):
             flt.predict(data.u_odo[k - 1])
@@ -56,26 +95,8 @@ def run_filter(flt: RobotEKF, data: RunData, world: World, record_every: int) ->
                     if not _healthy(flt):
                         raise FilterDiverged(f"step {k}")
             if k % record_every == 0:
-                x[j] = flt.x
-                P[j] = flt.P
-                R[j] = flt.R[0, 0], flt.R[1, 1]
-                Qu[j] = flt.Qu[0, 0], flt.Qu[1, 1]
-                P_infl[j] = flt.P_inflation
-                j += 1
-        # Health is checked at scans; a blow-up in the predictions after the last one shows here.
-        if not (np.isfinite(x).all() and np.isfinite(P).all()):
-            raise FilterDiverged("non-finite estimate after the last scan")
+                trace.record(flt)
+        trace.check_finite()
     except (FilterDiverged, np.linalg.LinAlgError):
         diverged = True
-        x[j:] = P[j:] = R[j:] = Qu[j:] = P_infl[j:] = np.nan
-    return {
-        "x": x,
-        "P": P,
-        "R_diag": R,
-        "Q_diag": Qu,
-        "P_infl": P_infl,
-        "diverged": diverged,
-        "nis_sum": flt.nis_sum,
-        "n_updates": flt.n_updates,
-        "n_rejected": flt.n_rejected,
-    }
+    return trace.result(flt, diverged)

@@ -519,25 +519,7 @@ def load_scenario_data(folder: Path) -> ScenarioData:
         raise ResultsError(
             f"{steps_path}: filters or runs have different numbers of steps ({exc})"
         ) from None
-    scenario = manifest["scenario"]
-    true_sigmas = _sigmas(manifest, "true_noise", manifest_path)
-    return ScenarioData(
-        name=str(scenario.get("name", folder.name)),
-        description=str(scenario.get("description", "")),
-        folder=folder,
-        runs=max(f.runs for f in filters),
-        seed=manifest.get("seed"),
-        filters=filters,
-        true_noise=true_variances(true_sigmas),
-        landmarks=_points(manifest, "landmarks", manifest_path),
-        waypoints=_points(manifest, "waypoints", manifest_path),
-        track=track,
-        true_sigmas=true_sigmas,
-        assumed_sigmas=_sigmas(manifest, "filter_noise", manifest_path),
-        comparisons=read_comparisons(folder),
-        claims=read_claims(folder),
-        per_run=read_per_run(folder),
-    )
+    return _scenario_data(folder, manifest, manifest_path, filters, track, read_per_run(folder))
 
 
 NO_STEPS_NOTE = (
@@ -604,25 +586,7 @@ def load_summary_only(folder: Path) -> ScenarioData:
         )
     if not filters:
         raise ResultsError(f"{where}: holds no filters")
-    scenario = manifest["scenario"]
-    true_sigmas = _sigmas(manifest, "true_noise", manifest_path)
-    return ScenarioData(
-        name=str(scenario.get("name", folder.name)),
-        description=str(scenario.get("description", "")),
-        folder=folder,
-        runs=max(f.runs for f in filters),
-        seed=manifest.get("seed"),
-        filters=filters,
-        true_noise=true_variances(true_sigmas),
-        landmarks=_points(manifest, "landmarks", manifest_path),
-        waypoints=_points(manifest, "waypoints", manifest_path),
-        track=None,
-        true_sigmas=true_sigmas,
-        assumed_sigmas=_sigmas(manifest, "filter_noise", manifest_path),
-        comparisons=read_comparisons(folder),
-        claims=read_claims(folder),
-        per_run=per_run,
-    )
+    return _scenario_data(folder, manifest, manifest_path, filters, None, per_run)
 
 
 def _check_unique_names(scenarios: Sequence[ScenarioData]) -> None:
@@ -1094,3 +1058,28 @@ def write_report(
         write_atomic(path, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
         result.files.append(path)
     return result
+
+
+def _scenario_data(
+    folder: Path, manifest: dict, manifest_path: Path, filters: list, track, per_run
+) -> ScenarioData:
+    """A scenario's report data from its manifest and what was read of its tables."""
+    scenario = manifest["scenario"]
+    true_sigmas = _sigmas(manifest, "true_noise", manifest_path)
+    return ScenarioData(
+        name=str(scenario.get("name", folder.name)),
+        description=str(scenario.get("description", "")),
+        folder=folder,
+        runs=max(f.runs for f in filters),
+        seed=manifest.get("seed"),
+        filters=filters,
+        true_noise=true_variances(true_sigmas),
+        landmarks=_points(manifest, "landmarks", manifest_path),
+        waypoints=_points(manifest, "waypoints", manifest_path),
+        track=track,
+        true_sigmas=true_sigmas,
+        assumed_sigmas=_sigmas(manifest, "filter_noise", manifest_path),
+        comparisons=read_comparisons(folder),
+        claims=read_claims(folder),
+        per_run=per_run,
+    )

@@ -23,7 +23,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import shutil
 import time
 from collections.abc import Callable
@@ -31,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from joblib import Parallel, delayed, parallel_config
+from joblib import Parallel, delayed
 
 from .analysis.comparisons import comparisons_frame, evaluate_claims
 from .analysis.tables import (
@@ -45,6 +44,7 @@ from .engines.events import Timeline, run_ekf_grid, run_filter_events, timeline
 from .filters.ekf import gate_threshold
 from .filters.spec import FilterContext
 from .models import Unicycle
+from .runner import local_workers
 from .sources import mrclam
 from .sources.recorded import (
     RealScenario,
@@ -168,14 +168,6 @@ def segment_inputs(rec: Recording, seg: Segment) -> SegmentInputs:
 
 
 AXES = ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing")
-
-
-def local_workers():
-    """joblib's loky workers as the simulated batches start them: each watches this process and
-    ends with it (runner._watch_parent)."""
-    from .runner import _watch_parent
-
-    return parallel_config(backend="loky", initializer=_watch_parent, initargs=(os.getpid(),))
 
 
 def _score_chunk(exps: np.ndarray, naive: np.ndarray, segs, P0, gate, T0) -> np.ndarray:

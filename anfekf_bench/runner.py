@@ -154,8 +154,7 @@ def run_batch(
         results = _run_on_dask(client, calls, scheduler, connect_timeout_s)
     else:
         n_calls = math.ceil(len(tasks) / size)
-        # Each worker process starts by watching this one (see _watch_parent).
-        with parallel_config(backend="loky", initializer=_watch_parent, initargs=(os.getpid(),)):
+        with local_workers():
             parallel = Parallel(n_jobs=min(jobs, n_calls), return_as="generator_unordered")
             results = parallel(calls)
     return _announce(results, on_result)
@@ -334,6 +333,12 @@ def connect_dask(scheduler: str | None, timeout_s: float):
 
 
 PARENT_POLL_S = 0.2
+
+
+def local_workers():
+    """joblib's loky workers for a batch: each starts by watching this process and ends with it
+    (`_watch_parent`), so a killed command leaves no worker behind."""
+    return parallel_config(backend="loky", initializer=_watch_parent, initargs=(os.getpid(),))
 
 
 def _watch_parent(parent: int) -> None:

@@ -399,9 +399,9 @@ def complete_result(target: Path, plan) -> str | None:
     return f"{manifest.get('runs', '?')} runs, seed {manifest.get('seed', '?')}"
 
 
-def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
-    """Every cell of a sweep with one progress bar over all its runs, then the sweep table."""
-    progress = Progress(
+def run_progress() -> Progress:
+    """The progress bar of `anfekf run`: one task per scenario or sweep, runs done of all."""
+    return Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
@@ -409,6 +409,11 @@ def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
         console=console,
         transient=False,
     )
+
+
+def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
+    """Every cell of a sweep with one progress bar over all its runs, then the sweep table."""
+    progress = run_progress()
     total = sum(p.runs for p in plans)
     task = progress.add_task(f"{plan.name}: {len(cells)} cells", total=total)
 
@@ -455,14 +460,7 @@ def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
 
 
 def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
-    progress = Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=console,
-        transient=False,
-    )
+    progress = run_progress()
     task = None
     saved = 0  # runs on disk in <out>/<name>/.runs, for the message if interrupted
 

@@ -235,6 +235,26 @@ class BackendConfig(_Strict):
         return self
 
 
+def check_unique_names(filters: list) -> list:
+    """The filters, or ValueError naming the repeated names (a scenario's or a recorded log's)."""
+    names = [f.name for f in filters]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise ValueError(f"filter names must be unique; repeated: {', '.join(dupes)}")
+    return filters
+
+
+def check_named_filters(items: list, names: set[str]) -> list:
+    """Claims or compare pairs, or ValueError for one that names no filter of the scenario."""
+    for i, item in enumerate(items):
+        wanted = (item.filter, item.vs) if isinstance(item, ClaimSpec) else item
+        for value in wanted:
+            if value is not None and value not in names:
+                known = ", ".join(sorted(names))
+                raise ValueError(f"entry {i}: no filter named {value!r} (filters: {known})")
+    return items
+
+
 class Scenario(_Strict):
     """One scenario file."""
 
@@ -275,14 +295,7 @@ class Scenario(_Strict):
     @field_validator("claims", "compare")
     @classmethod
     def _name_filters_of_the_scenario(cls, items: list, info: ValidationInfo) -> list:
-        names = {f.name for f in info.data.get("filters", [])}
-        for i, item in enumerate(items):
-            wanted = (item.filter, item.vs) if isinstance(item, ClaimSpec) else item
-            for value in wanted:
-                if value is not None and value not in names:
-                    known = ", ".join(sorted(names))
-                    raise ValueError(f"entry {i}: no filter named {value!r} (filters: {known})")
-        return items
+        return check_named_filters(items, {f.name for f in info.data.get("filters", [])})
 
     @field_validator("name")
     @classmethod
@@ -307,11 +320,7 @@ class Scenario(_Strict):
     @field_validator("filters")
     @classmethod
     def _unique_names(cls, filters: list) -> list:
-        names = [f.name for f in filters]
-        dupes = sorted({n for n in names if names.count(n) > 1})
-        if dupes:
-            raise ValueError(f"filter names must be unique; repeated: {', '.join(dupes)}")
-        return filters
+        return check_unique_names(filters)
 
 
 @dataclass(frozen=True)

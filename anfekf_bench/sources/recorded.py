@@ -31,7 +31,13 @@ from typing import Annotated, ClassVar, Literal, Union
 import numpy as np
 from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
 
-from ..config import ClaimSpec, ScenarioError, _format_validation_error
+from ..config import (
+    ClaimSpec,
+    ScenarioError,
+    _format_validation_error,
+    check_named_filters,
+    check_unique_names,
+)
 from ..filters.ekf import RobotEKF
 from ..filters.registry import SPECS, expand_entry_points
 from ..filters.spec import FilterContext, FilterSpec
@@ -211,10 +217,7 @@ class RealScenario(StrictModel):
     @field_validator("filters")
     @classmethod
     def _filters(cls, filters: list) -> list:
-        names = [f.name for f in filters]
-        dupes = sorted({n for n in names if names.count(n) > 1})
-        if dupes:
-            raise ValueError(f"filter names must be unique; repeated: {', '.join(dupes)}")
+        check_unique_names(filters)
         if any(f.kind == "ekf-oracle" for f in filters):
             raise ValueError("ekf-oracle needs the true noise, which a recorded log does not have")
         if sum(f.kind == "ekf-tuned" for f in filters) > 1:
@@ -228,14 +231,7 @@ class RealScenario(StrictModel):
         starts = info.data.get("starts")
         if filters is None or starts is None:
             return items
-        names = set(instance_names(filters, starts))
-        for i, item in enumerate(items):
-            wanted = (item.filter, item.vs) if isinstance(item, ClaimSpec) else item
-            for value in wanted:
-                if value is not None and value not in names:
-                    known = ", ".join(sorted(names))
-                    raise ValueError(f"entry {i}: no filter named {value!r} (filters: {known})")
-        return items
+        return check_named_filters(items, set(instance_names(filters, starts)))
 
     def instances(self) -> list[tuple[str, FilterSpec, float | None]]:
         """(instance name, spec, start multiplier or None for ekf-tuned), in scenario order."""

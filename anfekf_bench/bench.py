@@ -47,7 +47,7 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 from rich.table import Table
 
-from .analysis.tables import add_trace_metrics, recorded_steps
+from .analysis.metrics import add_trace_metrics, recorded_steps
 from .config import Scenario, World, load_scenario, parse_scenario, scenario_files
 from .engines.filterpy_engine import run_filter
 from .experiment import execute, machine_info, make_plan, package_versions

@@ -33,13 +33,8 @@ import numpy as np
 from joblib import Parallel, delayed
 
 from .analysis.comparisons import comparisons_frame, evaluate_claims
-from .analysis.tables import (
-    add_trace_metrics,
-    runs_frame,
-    steps_frame,
-    summary_records,
-    update_statistics,
-)
+from .analysis.metrics import add_trace_metrics
+from .analysis.tables import runs_frame, steps_frame, summary_records, update_statistics
 from .engines.events import Timeline, run_ekf_grid, run_filter_events, timeline
 from .filters.ekf import gate_threshold
 from .filters.spec import FilterContext

@@ -25,7 +25,7 @@ from typing import Literal
 import numpy as np
 from joblib import Parallel, delayed, parallel_config
 
-from .analysis.tables import add_trace_metrics, recorded_steps
+from .analysis.metrics import add_trace_metrics, recorded_steps
 from .config import Engine, Scenario, World
 from .engines.filterpy_engine import run_filter
 from .filters import FilterSpec

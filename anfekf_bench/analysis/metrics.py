@@ -53,6 +53,28 @@ def nees_bounds(runs: int, dim: int = 3, confidence: float = 0.95) -> tuple[floa
     return float(chi2.ppf(alpha / 2, dof) / runs), float(chi2.ppf(1 - alpha / 2, dof) / runs)
 
 
+def add_trace_metrics(trace: dict, x_true: np.ndarray) -> dict:
+    """Per-step pos_err, heading_err and NEES of a filter's trace, in bulk from its arrays."""
+    e = pose_errors(x_true, trace["x"])
+    trace["pos_err"] = np.hypot(e[:, 0], e[:, 1])
+    trace["heading_err"] = np.abs(e[:, 2])
+    trace["nees"] = _nees_where_finite(e, trace["P"])
+    return trace
+
+
+def _nees_where_finite(e: np.ndarray, P: np.ndarray) -> np.ndarray:
+    out = np.full(len(e), np.nan)
+    ok = np.all(np.isfinite(P), axis=(1, 2)) & np.all(np.isfinite(e), axis=1)
+    if ok.any():
+        out[ok] = nees(e[ok], P[ok])
+    return out
+
+
+def recorded_steps(n_controls: int, record_every: int) -> np.ndarray:
+    """The control steps a run records: every `record_every`-th, from the first such step."""
+    return np.arange(record_every, n_controls + 1, record_every)
+
+
 def nan_aware_mean(x: np.ndarray, axis=None):
     """np.mean, or, when `x` holds NaN, np.nanmean (NaN where a slice has no value).
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from .metrics import nan_aware_mean, nees, pose_errors, summarize_filter
+from .metrics import nan_aware_mean, summarize_filter
 
 STEP_COLUMNS = [
     "scenario", "filter", "run", "step", "t",
@@ -15,28 +15,6 @@ STEP_COLUMNS = [
     "R_rr", "R_bb", "Q_vv", "Q_gg", "P_infl", "diverged",
 ]  # fmt: skip
 _P_INDEX = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
-
-
-def add_trace_metrics(trace: dict, x_true: np.ndarray) -> dict:
-    """Per-step pos_err, heading_err and NEES of a filter's trace, in bulk from its arrays."""
-    e = pose_errors(x_true, trace["x"])
-    trace["pos_err"] = np.hypot(e[:, 0], e[:, 1])
-    trace["heading_err"] = np.abs(e[:, 2])
-    trace["nees"] = _nees_where_finite(e, trace["P"])
-    return trace
-
-
-def _nees_where_finite(e: np.ndarray, P: np.ndarray) -> np.ndarray:
-    out = np.full(len(e), np.nan)
-    ok = np.all(np.isfinite(P), axis=(1, 2)) & np.all(np.isfinite(e), axis=1)
-    if ok.any():
-        out[ok] = nees(e[ok], P[ok])
-    return out
-
-
-def recorded_steps(n_controls: int, record_every: int) -> np.ndarray:
-    """The control steps a run records: every `record_every`-th, from the first such step."""
-    return np.arange(record_every, n_controls + 1, record_every)
 
 
 def steps_frame(scenario_name: str, filter_names: list[str], results: list[dict]) -> pd.DataFrame:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -87,6 +88,17 @@ class ScanGeometry:
     bearing: np.ndarray  # (n, landmarks) [rad], wrapped
     ids: tuple[np.ndarray, ...]  # per scan: the landmarks in range and in the field of view
 
+    @functools.cached_property
+    def seen(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every scan's landmarks in view, flat: (scan index, landmark index) of each, and the
+        offsets `start` (scan i's are entries start[i]:start[i + 1])."""
+        counts = np.array([len(i) for i in self.ids], dtype=np.int64)
+        start = np.zeros(len(self.ids) + 1, dtype=np.int64)
+        np.cumsum(counts, out=start[1:])
+        scan_of = np.repeat(np.arange(len(self.ids)), counts)
+        ids = np.concatenate(self.ids) if self.ids else np.zeros(0, dtype=np.int64)
+        return scan_of, ids.astype(np.int64, copy=False), start
+
 
 def _sight(world: World, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """True range, bearing (eq. 18) of every landmark from `pose`, and the ones seen: range
@@ -136,15 +148,16 @@ def simulate_run(
     u_odo = truth.u + rng.standard_normal((K, 2)) * np.array([sv, sg])
     geometry = scan_geometry(world, truth) if geometry is None else geometry
     noise = rng.standard_normal((len(geometry.steps), len(world.landmarks), 2)) * np.array([sr, sb])
+    # Every seen landmark of every scan at once; scan i's measurements are rows
+    # start[i]:start[i + 1] (the same elementwise sums as one scan at a time, so the same bytes).
+    scan_of, ids, start = geometry.seen
+    z = np.empty((len(ids), 2))
+    z[:, 0] = geometry.range[scan_of, ids] + noise[scan_of, ids, 0]
+    z[:, 1] = wrap_angle(geometry.bearing[scan_of, ids] + noise[scan_of, ids, 1])
+    bounds = zip(start[:-1].tolist(), start[1:].tolist(), strict=True)
     scans = tuple(
-        Scan(
-            step=int(k),
-            ids=ids,
-            z=np.column_stack([rng_[ids] + e[ids, 0], wrap_angle(bearing[ids] + e[ids, 1])]),
-        )
-        for k, ids, rng_, bearing, e in zip(
-            geometry.steps, geometry.ids, geometry.range, geometry.bearing, noise, strict=True
-        )
+        Scan(step=k, ids=ids[a:b], z=z[a:b])
+        for k, (a, b) in zip(geometry.steps.tolist(), bounds, strict=True)
     )
     return RunData(truth=truth, u_odo=u_odo, scans=scans)
 

@@ -124,6 +124,25 @@ def test_the_run_weight_path_equals_indexing_the_runs():
         assert getattr(fast, key) == pytest.approx(getattr(plain, key), rel=1e-12)
 
 
+@pytest.mark.parametrize("cells", [1, 5_000, 1 << 30], ids=["one-per-batch", "some", "all"])
+def test_the_batch_size_does_not_change_the_interval(monkeypatch, cells):
+    """Batches bound memory only: the resamples drawn are the same, so is the interval (to the
+    rounding of a matrix product, whose BLAS kernel depends on its shape)."""
+    from anfekf_bench.analysis import statistics
+
+    a, b = _arrays()["pos_err"], _arrays(seed=5)["pos_err"]
+    ratio = paired_bootstrap(a, b, rmse_statistic, resamples=300, seed=4)
+    one = bootstrap_one(a, mean_statistic, resamples=300, seed=4)
+    monkeypatch.setattr(statistics, "_BATCH_CELLS", cells)
+    for batched, reference in (
+        (paired_bootstrap(a, b, rmse_statistic, resamples=300, seed=4), ratio),
+        (bootstrap_one(a, mean_statistic, resamples=300, seed=4), one),
+    ):
+        assert batched.method == reference.method == "BCa"
+        for key in ("estimate", "lo", "hi"):
+            assert getattr(batched, key) == pytest.approx(getattr(reference, key), rel=1e-12)
+
+
 def test_zero_in_some_resamples_gives_nan_bounds():
     b = np.zeros((20, 3))
     b[0] = 1.0  # statistic(b) > 0 on the full sample, 0 in resamples without run 0

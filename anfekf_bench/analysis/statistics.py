@@ -42,7 +42,7 @@ Verdict = Literal["holds", "fails", "inconclusive"]
 # Bootstrap distributions whose spread is below this share of their size are treated as constant:
 # identical filters, or a constant per-run ratio with a homogeneous statistic, differ by rounding.
 DEGENERATE_RTOL = 1e-12
-# Upper bound on the cells (resamples x runs x steps) of one batch of resampled arrays.
+# Upper bound on the array cells of one batch of resamples (`_cells_per_resample`).
 _BATCH_CELLS = 1 << 22
 # scipy >= 1.15 names the generator `rng`; older releases call it `random_state`.
 _RNG_KEYWORD = "rng" if "rng" in inspect.signature(stats.bootstrap).parameters else "random_state"
@@ -209,6 +209,15 @@ def _as_runs_by_steps(x: np.ndarray, name: str) -> np.ndarray:
     return x
 
 
+def _cells_per_resample(a: np.ndarray, weighted: bool) -> int:
+    """Array cells one resample of a (runs, steps) array costs: its run weights and run means
+    through `_resampled`, else a copy of the resampled runs. Sets the batch size only: the
+    resamples drawn are the same whatever the batch (the products' rounding is not: BLAS picks
+    its kernel by shape), and the batch depends on the data's shape alone."""
+    runs, steps = a.shape
+    return runs + steps if weighted else runs * steps
+
+
 def _bootstrap(
     theta: Callable[[np.ndarray], float | np.ndarray],
     estimate: float,
@@ -320,7 +329,7 @@ def paired_bootstrap(
         theta,
         estimate,
         runs,
-        2 * a.size,
+        2 * _cells_per_resample(a, fast_a is not None and fast_b is not None),
         resamples=resamples,
         confidence=confidence,
         seed=seed,
@@ -349,7 +358,7 @@ def bootstrap_one(
         fast if fast is not None else (lambda idx: statistic(a[idx])),
         estimate,
         runs,
-        a.size,
+        _cells_per_resample(a, fast is not None),
         resamples=resamples,
         confidence=confidence,
         seed=seed,

@@ -265,3 +265,79 @@ def test_scans_from_the_world_geometry_are_the_bytes_of_per_scan_observations():
         assert np.array_equal(scan.ids, reference.ids) and np.array_equal(other.ids, scan.ids)
         assert scan.z.tobytes() == reference.z.tobytes() == other.z.tobytes()
     assert scan_geometry(world, path.truth).range.tobytes() == path.geometry.range.tobytes()
+
+
+def test_steps_table_rows_are_each_filters_trace_of_each_run():
+    """Row by row against the traces it is built from (the table is built column-wise)."""
+    scenario = parse_scenario(small_scenario(runs=3))
+    world = resolve_world(scenario.world, Path("x.yaml"))
+    results = [run_one(scenario, world, i, s) for i, s in enumerate(run_seeds(scenario))]
+    names = [f.name for f in scenario.filters]
+    steps = steps_frame("s", names, [results[1], results[2], results[0]])
+    assert list(steps.columns) == STEP_COLUMNS
+    assert list(steps["filter"].cat.categories) == names and set(steps["scenario"]) == {"s"}
+    n = len(results[0]["step"])
+    for b, (name, res) in enumerate((name, res) for name in names for res in results):
+        block = steps.iloc[b * n : (b + 1) * n]
+        tr = res["filters"][name]
+        assert (block["filter"] == name).all() and (block["run"] == res["run"]).all()
+        np.testing.assert_array_equal(block["step"], res["step"])
+        np.testing.assert_array_equal(block[["x_true", "y_true", "phi_true"]], res["x_true"])
+        np.testing.assert_array_equal(block[["x_est", "y_est", "phi_est"]], tr["x"])
+        np.testing.assert_array_equal(block["P_xphi"], tr["P"][:, 0, 2])
+        np.testing.assert_array_equal(block["P_yy"], tr["P"][:, 1, 1])
+        np.testing.assert_array_equal(block["nees"], tr["nees"])
+        np.testing.assert_array_equal(block[["Q_vv", "Q_gg"]], tr["Q_diag"])
+        assert (block["diverged"] == tr["diverged"]).all()
+
+
+def test_parquet_dictionary_encodes_names_and_counters_not_measured_floats(tmp_path):
+    import pyarrow.parquet as pq
+
+    df = pd.DataFrame(
+        {
+            "filter": pd.Categorical(["ekf"] * 50),
+            "run": np.arange(50, dtype=np.int32),
+            "x": np.linspace(0.0, 1.0, 50),
+        }
+    )
+    write_parquet(tmp_path / "x.parquet", df)
+    group = pq.ParquetFile(tmp_path / "x.parquet").metadata.row_group(0)
+    encodings = {group.column(i).path_in_schema: group.column(i).encodings for i in range(3)}
+    assert any("DICT" in e for e in encodings["filter"])
+    assert any("DICT" in e for e in encodings["run"])
+    assert not any("DICT" in e for e in encodings["x"])
+    pd.testing.assert_frame_equal(read_parquet(tmp_path / "x.parquet"), df)
+
+
+def test_run_files_skip_the_disk_flush_result_files_do_not(tmp_path, monkeypatch):
+    """A run file torn by a power cut fails its checksum and is redone; results must last."""
+    import os
+
+    from anfekf_bench.storage import read_run_file, write_json, write_run_file
+
+    flushed = []
+    real_fsync = os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: flushed.append(fd) or real_fsync(fd))
+    result = {"run": 3, "x": np.arange(4.0)}
+    write_run_file(tmp_path / "run-000003.npz", result, "fp")
+    assert flushed == []
+    back = read_run_file(tmp_path / "run-000003.npz", "fp")
+    np.testing.assert_array_equal(back["x"], result["x"])
+    write_json(tmp_path / "a.json", {"a": 1})
+    write_parquet(tmp_path / "a.parquet", pd.DataFrame({"a": [1.0]}))
+    assert len(flushed) == 2
+
+
+def test_worker_processes_import_no_table_libraries():
+    """A worker imports the runner and the fast engine only: pandas and pyarrow (a quarter of
+    its start) are for the parent, which writes the tables."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, anfekf_bench.runner, anfekf_bench.engines.fast;"
+        "print(sorted(m for m in ('pandas', 'pyarrow', 'matplotlib') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

@@ -18,45 +18,50 @@ _P_INDEX = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
 
 
 def steps_frame(scenario_name: str, filter_names: list[str], results: list[dict]) -> pd.DataFrame:
-    """The long table of steps.parquet: one row per (filter, run, recorded step)."""
+    """The long table of steps.parquet: one row per (filter, run, recorded step), filters in
+    `filter_names` order, runs in run order. Built column by column (one array per column)."""
     results = sorted(results, key=lambda r: r["run"])
-    blocks = []
-    for name in filter_names:
-        for res in results:
-            tr = res["filters"][name]
-            n = len(res["step"])
-            cols = {
-                "run": np.full(n, res["run"], dtype=np.int32),
-                "step": res["step"].astype(np.int32),
-                "t": res["t"],
-                "x_true": res["x_true"][:, 0],
-                "y_true": res["x_true"][:, 1],
-                "phi_true": res["x_true"][:, 2],
-                "x_est": tr["x"][:, 0],
-                "y_est": tr["x"][:, 1],
-                "phi_est": tr["x"][:, 2],
-            }
-            for (i, j), col in zip(_P_INDEX, STEP_COLUMNS[11:17], strict=True):
-                cols[col] = tr["P"][:, i, j]
-            cols.update(
-                pos_err=tr["pos_err"],
-                heading_err=tr["heading_err"],
-                nees=tr["nees"],
-                R_rr=tr["R_diag"][:, 0],
-                R_bb=tr["R_diag"][:, 1],
-                Q_vv=tr["Q_diag"][:, 0],
-                Q_gg=tr["Q_diag"][:, 1],
-                P_infl=tr["P_infl"],
-                diverged=np.full(n, tr["diverged"]),
-            )
-            block = pd.DataFrame(cols)
-            block.insert(0, "filter", name)
-            blocks.append(block)
-    df = pd.concat(blocks, ignore_index=True)
-    df.insert(0, "scenario", scenario_name)
-    df["scenario"] = pd.Categorical(df["scenario"])
-    df["filter"] = pd.Categorical(df["filter"], categories=filter_names)
-    return df[STEP_COLUMNS]
+    lengths = [len(res["step"]) for res in results]
+
+    def per_run(get) -> np.ndarray:  # one array per run, the same for every filter
+        return np.tile(np.concatenate([get(res) for res in results]), len(filter_names))
+
+    def per_trace(get) -> np.ndarray:  # one array per (filter, run), filters outermost
+        return np.concatenate(
+            [get(res["filters"][name], len(res["step"])) for name in filter_names
+             for res in results]
+        )  # fmt: skip
+
+    total = len(filter_names) * sum(lengths)
+    cols = {
+        "scenario": pd.Categorical.from_codes(np.zeros(total, dtype=np.int8), [scenario_name]),
+        "filter": pd.Categorical.from_codes(
+            np.repeat(np.arange(len(filter_names), dtype=np.int16), sum(lengths)), filter_names
+        ),
+        "run": per_run(lambda r: np.full(len(r["step"]), r["run"], dtype=np.int32)),
+        "step": per_run(lambda r: r["step"].astype(np.int32)),
+        "t": per_run(lambda r: r["t"]),
+        "x_true": per_run(lambda r: r["x_true"][:, 0]),
+        "y_true": per_run(lambda r: r["x_true"][:, 1]),
+        "phi_true": per_run(lambda r: r["x_true"][:, 2]),
+        "x_est": per_trace(lambda tr, n: tr["x"][:, 0]),
+        "y_est": per_trace(lambda tr, n: tr["x"][:, 1]),
+        "phi_est": per_trace(lambda tr, n: tr["x"][:, 2]),
+    }
+    for (i, j), col in zip(_P_INDEX, STEP_COLUMNS[11:17], strict=True):
+        cols[col] = per_trace(lambda tr, n, i=i, j=j: tr["P"][:, i, j])
+    cols.update(
+        pos_err=per_trace(lambda tr, n: tr["pos_err"]),
+        heading_err=per_trace(lambda tr, n: tr["heading_err"]),
+        nees=per_trace(lambda tr, n: tr["nees"]),
+        R_rr=per_trace(lambda tr, n: tr["R_diag"][:, 0]),
+        R_bb=per_trace(lambda tr, n: tr["R_diag"][:, 1]),
+        Q_vv=per_trace(lambda tr, n: tr["Q_diag"][:, 0]),
+        Q_gg=per_trace(lambda tr, n: tr["Q_diag"][:, 1]),
+        P_infl=per_trace(lambda tr, n: tr["P_infl"]),
+        diverged=per_trace(lambda tr, n: np.full(n, bool(tr["diverged"]))),
+    )
+    return pd.DataFrame(cols, columns=STEP_COLUMNS)
 
 
 def filter_arrays(steps: pd.DataFrame, name: str) -> dict[str, np.ndarray]:

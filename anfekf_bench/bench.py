@@ -53,7 +53,7 @@ from .engines.filterpy_engine import run_filter
 from .experiment import execute, machine_info, make_plan, package_versions
 from .filters import ANFEKFSpec, EKFSpec, FilterContext, FilterSpec, RobotEKF, build_filter
 from .models import F_jacobian, G_jacobian, H_jacobian, f, h, residual_z
-from .runner import run_batch, simulate
+from .runner import local_workers, run_batch, simulate
 from .sources.simulator import RunData
 from .storage import STEPS_FILE, output_path_problem, write_json
 
@@ -449,18 +449,22 @@ def _warm_worker() -> int:
     return os.getpid()
 
 
-def warm_workers(jobs: int) -> None:
-    """Start joblib's reusable pool of `jobs` workers and warm the fast engine in each, so that
-    the timed batches (which reuse the pool) exclude compile and cache loading."""
+def warm_workers(jobs: int) -> set[int]:
+    """Start the pool of `jobs` workers that batches use (`runner.local_workers`: joblib keeps
+    one reusable pool per configuration, so warming any other would start a second one) and
+    load the fast engine in each, so that the timed batches exclude compile and cache loading.
+    Returns the workers' process ids."""
+    seen: set[int] = set()
     if jobs <= 1:
-        return
+        return seen
     from joblib import Parallel, delayed
 
-    seen: set[int] = set()
-    for _ in range(10):
-        seen |= set(Parallel(n_jobs=jobs)(delayed(_warm_worker)() for _ in range(2 * jobs)))
-        if len(seen) >= jobs:
-            return
+    with local_workers():
+        for _ in range(10):
+            seen |= set(Parallel(n_jobs=jobs)(delayed(_warm_worker)() for _ in range(2 * jobs)))
+            if len(seen) >= jobs:
+                break
+    return seen
 
 
 def sweep_cells(base: Scenario, cells: int, runs: int) -> list[Scenario]:

@@ -173,3 +173,26 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, make_args, message):
     err = result.stderr.strip()
     assert err.startswith("error:") and message in err and len(err.splitlines()) == 1
     assert "Traceback" not in result.output
+
+
+def _pid() -> int:
+    import os
+
+    return os.getpid()
+
+
+def test_warmed_workers_are_the_ones_a_batch_uses():
+    """Warming a different joblib pool than the batches' would leave their workers cold (the
+    first timed batch would then pay for starting and loading them)."""
+    from joblib import Parallel, delayed
+
+    from anfekf_bench.runner import local_workers
+
+    warmed = bench.warm_workers(2)
+    try:
+        assert len(warmed) == 2
+        with local_workers():
+            used = set(Parallel(n_jobs=2)(delayed(_pid)() for _ in range(8)))
+        assert used <= warmed
+    finally:
+        bench._shutdown_workers()

@@ -137,6 +137,9 @@ DEFINITIONS = {
     "fast_e2e_scenario_s": "experiment.execute wall time of the step scenario file's runs on the"
     " fast engine, 2 workers, kernels warmed in this process and the workers (compile"
     " excluded); simulation, filters, metrics and Parquet included",
+    "fast_e2e_cli_s": "median wall time of the whole command `anfekf run <step scenario> --engine"
+    " fast --jobs 2` in a fresh process: interpreter start, imports, worker start, kernels loaded"
+    " from numba's on-disk cache (compile excluded), tables printed; null at quick sizes",
     "fast_summary_max_rel_diff": "largest relative difference of a summary figure of that run from"
     " the filterpy run of the same file (the scenario probe)",
     "fast_sweep_batch_s": "wall time of a sweep-sized batch on the fast engine: cells x runs x 5"
@@ -163,12 +166,13 @@ class BenchSizes:
     e2e_jobs: int = 2  # workers of the fast end-to-end figures
     sweep_cells: int = 10  # the sweep-sized batch: cells x runs x 5 filters
     sweep_runs: int = 30
+    cli_repeats: int = 3  # `anfekf run --engine fast` of the step scenario from a fresh process
 
 
 FULL = BenchSizes()
 QUICK = BenchSizes(
     repeats=2, batch_runs=2, batch_repeats=1, scenario_runs=2, waypoints=3, fast_inner=2,
-    compile_probe=False, e2e_jobs=1, sweep_cells=2, sweep_runs=2,
+    compile_probe=False, e2e_jobs=1, sweep_cells=2, sweep_runs=2, cli_repeats=0,
 )  # fmt: skip
 
 
@@ -539,8 +543,13 @@ def fast_end_to_end(configs: Path, sizes: BenchSizes, tmp: Path, say) -> dict:
         _timed_execute(cell, base_world, tmp / "sweep", None, sizes.e2e_jobs)[0] for cell in cells
     ]
     _shutdown_workers()
+    cli_walls = []
+    if sizes.cli_repeats:
+        say(f"anfekf run {E2E_SCENARIO} --engine fast from a fresh process, {sizes.cli_repeats}x")
+        cli_walls = time_cli_runs(configs / E2E_SCENARIO, tmp / "cli", sizes.cli_repeats)
     return {
         "scenario": scenario.name,
+        "cli_wall_s": cli_walls,
         "runs": runs,
         "jobs": sizes.e2e_jobs,
         "wall_s": wall,
@@ -555,6 +564,26 @@ def fast_end_to_end(configs: Path, sizes: BenchSizes, tmp: Path, say) -> dict:
             "wall_s": sum(cell_walls),
         },
     }
+
+
+_CLI_CODE = "import sys\nfrom anfekf_bench.cli import main\nsys.argv[0] = 'anfekf'\nmain()\n"
+
+
+def time_cli_runs(path: Path, out_dir: Path, repeats: int) -> list[float]:
+    """Wall seconds of `anfekf run path --engine fast --jobs 2`, each in a fresh interpreter (the
+    kernels are in numba's on-disk cache by now: this process loaded or compiled them)."""
+    args = ["run", str(path), "--engine", "fast", "--jobs", "2", "--out", str(out_dir), "--force"]
+    walls = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        proc = subprocess.run(
+            [sys.executable, "-c", _CLI_CODE, *args], capture_output=True, text=True, check=False
+        )
+        walls.append(time.perf_counter() - t0)
+        if proc.returncode != 0:
+            tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+            raise BenchError(f"{path}: anfekf run failed in the bench subprocess: {tail}")
+    return walls
 
 
 # ---------------------------------------------------------------------------------------------
@@ -807,6 +836,7 @@ def run_bench(
         "fast_cache_load_s": compiled["cache_load_s"],
         "fast_e2e_scenario_s": e2e["wall_s"],
         "fast_e2e": e2e,
+        "fast_e2e_cli_s": statistics.median(e2e["cli_wall_s"]) if e2e["cli_wall_s"] else None,
         "fast_summary_max_rel_diff": summary_diff,
         "fast_sweep_batch_s": e2e["sweep"]["wall_s"],
         "peak_rss_mb": max(r["peak_rss_mb"] for r in scenarios.values()),
@@ -878,6 +908,7 @@ def bench_table(report: dict) -> Table:
         ("fast_compile_s", "s"),
         ("fast_cache_load_s", "s"),
         ("fast_e2e_scenario_s", "s"),
+        ("fast_e2e_cli_s", "s"),
         ("fast_summary_max_rel_diff", ""),
         ("fast_sweep_batch_s", "s"),
     ):

@@ -111,8 +111,20 @@ def test_quick_bench_writes_every_figure(tmp_path):
     assert doc["fast_engine_max_abs_diff"] < 1e-9
     assert doc["fast_summary_max_rel_diff"] < 1e-9  # summaries of both engines, same runs
     assert doc["fast_compile_s"] is None  # a fresh-interpreter compile: full sizes only
+    assert doc["fast_e2e_cli_s"] is None and doc["fast_e2e"]["cli_wall_s"] == []  # full only
     assert doc["fast_e2e"]["runs"] == 2 and doc["fast_e2e"]["sweep"]["filter_runs"] == 20
     assert "step_us anfekf_RQ: fast" in result.output and "fast_sweep_batch_s" in result.output
+
+
+def test_the_command_line_probe_runs_anfekf_run_in_a_fresh_process(tmp_path):
+    path = write_scenario(tmp_path / "tiny.yaml", small_scenario(name="tiny", runs=2))
+    walls = bench.time_cli_runs(path, tmp_path / "out", 1)
+    assert len(walls) == 1 and _finite_positive(walls[0])
+    manifest = json.loads((tmp_path / "out" / "tiny" / "manifest.json").read_text())
+    assert manifest["engine"] == "fast" and manifest["jobs"] == 2
+    (tmp_path / "bad.yaml").write_text("name: [\n")
+    with pytest.raises(bench.BenchError, match="bad.yaml: anfekf run failed"):
+        bench.time_cli_runs(tmp_path / "bad.yaml", tmp_path / "out", 1)
 
 
 def test_sweep_cells_are_fast_summary_only_scenarios_of_five_filters():

@@ -24,7 +24,9 @@ The fast engine against the filterpy engine (SPEC 11, issue 14), on the same dat
 - end to end with the fast engine (kernels warmed in this process and in the workers first, so
   compile is excluded): the step scenario's runs through `experiment.execute` on 2 workers, its
   summaries compared with those of the filterpy run of the same file; and a sweep-sized batch,
-  10 cells x 30 runs x 5 filters = 1500 filter-runs, summaries only (no steps.parquet).
+  10 cells x 30 runs x 5 filters = 1500 filter-runs, summaries only (no steps.parquet);
+- the whole command `anfekf run <step scenario> --engine fast --jobs 2` from a fresh interpreter
+  (imports and the workers' start included, the kernels in numba's cache): `fast_e2e_cli_s`.
 """
 
 from __future__ import annotations
@@ -566,6 +568,7 @@ def fast_end_to_end(configs: Path, sizes: BenchSizes, tmp: Path, say) -> dict:
     }
 
 
+CLI_TIMEOUT_S = 600.0  # a 50-run fast-engine command takes seconds; this only stops a hang
 _CLI_CODE = "import sys\nfrom anfekf_bench.cli import main\nsys.argv[0] = 'anfekf'\nmain()\n"
 
 
@@ -576,9 +579,15 @@ def time_cli_runs(path: Path, out_dir: Path, repeats: int) -> list[float]:
     walls = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        proc = subprocess.run(
-            [sys.executable, "-c", _CLI_CODE, *args], capture_output=True, text=True, check=False
-        )
+        try:
+            proc = subprocess.run(
+                [sys.executable, "-c", _CLI_CODE, *args],
+                capture_output=True, text=True, check=False, timeout=CLI_TIMEOUT_S,
+            )  # fmt: skip
+        except subprocess.TimeoutExpired:
+            raise BenchError(
+                f"{path}: anfekf run took more than {CLI_TIMEOUT_S:g} s in the bench subprocess"
+            ) from None
         walls.append(time.perf_counter() - t0)
         if proc.returncode != 0:
             tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]

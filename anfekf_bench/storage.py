@@ -157,7 +157,8 @@ def _file_mode() -> int:
 def write_atomic(path: Path, write: Callable[[Path], None], *, durable: bool = True) -> None:
     """Call `write(tmp)` on a temporary file beside `path`, fsync it (when `durable`), then
     rename onto `path`. The rename alone makes the file appear whole or not at all to any
-    process; the fsync makes it survive a power cut too."""
+    process, a killed one included; the fsync puts its bytes on disk before the rename, so a
+    power cut leaves the old file or the new one, not a renamed file with missing data."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -395,9 +396,9 @@ def _check_parquet_footer(path: Path) -> None:
     report reads steps.parquet and check reads summary.parquet; this makes both refuse a folder
     whose other file is damaged, instead of passing on half a result.
     """
-    pa, pq = _arrow()
     if not os.path.lexists(path):
         return
+    pa, pq = _arrow()
     try:
         with _open_result(path, PARQUET_LIMIT) as fh:
             pq.read_metadata(fh)

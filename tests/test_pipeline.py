@@ -267,18 +267,34 @@ def test_scans_from_the_world_geometry_are_the_bytes_of_per_scan_observations():
     assert scan_geometry(world, path.truth).range.tobytes() == path.geometry.range.tobytes()
 
 
+def _truncated(result: dict, m: int) -> dict:
+    """The run cut to its first m recorded steps (runs of a recorded log differ in length)."""
+    cut = {k: (v[:m] if k in ("step", "t", "x_true") else v) for k, v in result.items()}
+    cut["filters"] = {
+        name: {k: (v[:m] if isinstance(v, np.ndarray) else v) for k, v in tr.items()}
+        for name, tr in result["filters"].items()
+    }
+    return cut
+
+
 def test_steps_table_rows_are_each_filters_trace_of_each_run():
-    """Row by row against the traces it is built from (the table is built column-wise)."""
+    """Row by row against the traces it is built from (the table is built column-wise), with
+    runs of different lengths and one diverged trace."""
     scenario = parse_scenario(small_scenario(runs=3))
     world = resolve_world(scenario.world, Path("x.yaml"))
     results = [run_one(scenario, world, i, s) for i, s in enumerate(run_seeds(scenario))]
+    results[1] = _truncated(results[1], len(results[1]["step"]) // 3)
     names = [f.name for f in scenario.filters]
+    results[2]["filters"][names[1]]["diverged"] = True
     steps = steps_frame("s", names, [results[1], results[2], results[0]])
     assert list(steps.columns) == STEP_COLUMNS
     assert list(steps["filter"].cat.categories) == names and set(steps["scenario"]) == {"s"}
-    n = len(results[0]["step"])
-    for b, (name, res) in enumerate((name, res) for name in names for res in results):
-        block = steps.iloc[b * n : (b + 1) * n]
+    assert len(steps) == len(names) * sum(len(r["step"]) for r in results)
+    start = 0
+    for name, res in ((name, res) for name in names for res in results):
+        n = len(res["step"])
+        block = steps.iloc[start : start + n]
+        start += n
         tr = res["filters"][name]
         assert (block["filter"] == name).all() and (block["run"] == res["run"]).all()
         np.testing.assert_array_equal(block["step"], res["step"])
@@ -289,6 +305,7 @@ def test_steps_table_rows_are_each_filters_trace_of_each_run():
         np.testing.assert_array_equal(block["nees"], tr["nees"])
         np.testing.assert_array_equal(block[["Q_vv", "Q_gg"]], tr["Q_diag"])
         assert (block["diverged"] == tr["diverged"]).all()
+    assert steps["diverged"].sum() == len(results[2]["step"])
 
 
 def test_parquet_dictionary_encodes_names_and_counters_not_measured_floats(tmp_path):

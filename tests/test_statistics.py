@@ -124,7 +124,7 @@ def test_the_run_weight_path_equals_indexing_the_runs():
         assert getattr(fast, key) == pytest.approx(getattr(plain, key), rel=1e-12)
 
 
-@pytest.mark.parametrize("cells", [1, 5_000, 1 << 30], ids=["one-per-batch", "some", "all"])
+@pytest.mark.parametrize("cells", [1, 5_000], ids=["one-per-batch", "some"])
 def test_the_batch_size_does_not_change_the_interval(monkeypatch, cells):
     """Batches bound memory only: the resamples drawn are the same, so is the interval (to the
     rounding of a matrix product, whose BLAS kernel depends on its shape)."""

@@ -44,3 +44,17 @@ def write_scenario(path: Path, doc: dict) -> Path:
 @pytest.fixture
 def small_yaml(tmp_path: Path) -> Path:
     return write_scenario(tmp_path / "small.yaml", small_scenario())
+
+
+def live_group_members(pgid: int) -> list[int]:
+    """Processes of a process group that are still running (zombies are not): what a killed
+    command leaves behind."""
+    alive = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] not in ("Z", "X"):
+            alive.append(int(stat.parent.name))
+    return alive

@@ -35,7 +35,7 @@ from anfekf_bench.storage import (
     write_atomic,
 )
 
-from .conftest import small_scenario, write_scenario
+from .conftest import live_group_members, small_scenario, write_scenario
 
 COMPLETE_LOOKING = {STEPS_FILE, SUMMARY_PARQUET, SUMMARY_JSON, MANIFEST_FILE}
 
@@ -92,20 +92,6 @@ def kill_scenario(tmp_path_factory) -> tuple[Path, pd.DataFrame]:
     return path, read_steps(target)
 
 
-def _live_members(pgid: int) -> list[int]:
-    """Processes of a process group that are still running (zombies are not)."""
-    alive = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        state, group = fields[0], int(fields[2])
-        if group == pgid and state not in ("Z", "X"):
-            alive.append(int(stat.parent.name))
-    return alive
-
-
 @pytest.mark.parametrize(
     ("sig", "jobs"),
     [(signal.SIGKILL, 2), (signal.SIGINT, 1)],
@@ -134,7 +120,7 @@ def test_killed_run_leaves_nothing_complete_and_resumes(kill_scenario, tmp_path,
             os.killpg(proc.pid, signal.SIGKILL)
             proc.communicate()
     time.sleep(0.2)
-    assert _live_members(proc.pid) == [], "worker processes outlived the command"
+    assert live_group_members(proc.pid) == [], "worker processes outlived the command"
 
     saved = assert_nothing_looks_complete(target, KILL_RUNS)
     if sig == signal.SIGINT:

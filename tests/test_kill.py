@@ -31,7 +31,7 @@ from anfekf_bench.config import load_scenario
 from anfekf_bench.experiment import execute, make_plan
 from anfekf_bench.storage import MANIFEST_FILE, RUNS_DIR, STEPS_FILE, folder_lock, read_json
 
-from .conftest import small_scenario, write_scenario
+from .conftest import live_group_members, small_scenario, write_scenario
 
 pytestmark = pytest.mark.slow
 COMMAND = [sys.executable, "-c", "from anfekf_bench.cli import main; main()"]
@@ -52,23 +52,10 @@ def start(path: Path, out: Path, *flags: str) -> subprocess.Popen:
     )
 
 
-def group_members(pgid: int) -> list[int]:
-    """Live processes of a process group (zombies are not alive)."""
-    alive = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[2]) == pgid and fields[0] not in ("Z", "X"):
-            alive.append(int(stat.parent.name))
-    return alive
-
-
 def wait_until_gone(pgid: int, within: float = WORKERS_GONE_S) -> float:
     """Seconds until the group is empty; fails if it is not within `within` seconds."""
     started = time.monotonic()
-    while group_members(pgid):
+    while live_group_members(pgid):
         assert time.monotonic() - started < within, f"workers alive after {within:g} s"
         time.sleep(0.05)
     return time.monotonic() - started
@@ -87,7 +74,7 @@ def steps_of(target: Path) -> pd.DataFrame:
 
 
 def kill_group(proc: subprocess.Popen) -> None:
-    if proc.poll() is None or group_members(proc.pid):
+    if proc.poll() is None or live_group_members(proc.pid):
         try:
             os.killpg(proc.pid, signal.SIGKILL)
         except ProcessLookupError:
@@ -147,7 +134,7 @@ def test_workers_end_when_the_parent_is_killed(tmp_path) -> None:
     proc = start(path, out)
     try:
         wait_for_saved_run(proc, target)
-        members = group_members(proc.pid)
+        members = live_group_members(proc.pid)
         assert len(members) >= 3, "the command and its two workers"
         drained = threading.Event()
 

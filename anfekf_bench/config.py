@@ -616,6 +616,13 @@ def load_scenario(path: str | Path) -> tuple[Scenario, World]:
         raise ScenarioError(path, "", f"YAML {exc}; not a scenario") from None
     except RecursionError:
         raise ScenarioError(path, "", "YAML nested too deeply") from None
+    return scenario_from_data(data, path)
+
+
+def scenario_from_data(data: object, path: str | Path) -> tuple[Scenario, World]:
+    """A scenario document already read (a file's YAML, or a dict from Python) validated and
+    resolved; relative paths in it are taken relative to `path`'s folder."""
+    path = Path(path)
     if isinstance(data, dict) and "data" in data:  # a recorded log, not the simulator (SPEC 9)
         from .sources.recorded import load_recorded
 

@@ -1,0 +1,136 @@
+"""The Python API, for notebooks and scripts: load a scenario, run it, read its tables, report it.
+
+    from anfekf_bench import api
+
+    experiment = api.load("configs/wrong_r.yaml")            # or api.load({...a dict...})
+    result = api.run(experiment, out="results", runs=10, engine="fast")
+    result.summary()                                         # pandas DataFrames
+    result.comparisons()
+    api.report([result], out="results/report")
+
+It goes through the same plan, execute and report code as `anfekf run` and `anfekf report`, so a
+result written here is the same bytes as the command line's for the same scenario, seed and
+engine, and the same validation applies: bad input raises `ScenarioError` (a scenario) or
+`PlanError` (the overrides) with the command line's one-line message as its text.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+
+from .config import ScenarioError, load_scenario, scenario_from_data
+from .experiment import Plan, PlanError, execute, make_plan
+from .storage import (
+    CLAIMS_FILE,
+    COMPARISONS_FILE,
+    RUNS_FILE,
+    STEPS_FILE,
+    SUMMARY_PARQUET,
+    read_json,
+    read_manifest,
+    read_parquet,
+)
+
+__all__ = ["Experiment", "PlanError", "Result", "ScenarioError", "load", "open_result", "report",
+           "run"]  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """A validated scenario and what it runs on (its simulated world, or its recorded log)."""
+
+    scenario: object
+    world: object
+    source: Path  # the file it was read from (relative paths in it are relative to its folder)
+
+    @property
+    def name(self) -> str:
+        return self.scenario.name
+
+
+def load(source: str | Path | dict, *, base: str | Path = ".") -> Experiment:
+    """A scenario from a YAML file, or from a dict shaped like one (relative paths in a dict are
+    taken relative to `base`)."""
+    if isinstance(source, dict):
+        path = Path(base) / "<dict>"
+        return Experiment(*scenario_from_data(source, path), source=path)
+    path = Path(source)
+    return Experiment(*load_scenario(path), source=path)
+
+
+@dataclass(frozen=True)
+class Result:
+    """A finished result folder (`OUT/<name>`) and its tables."""
+
+    folder: Path
+
+    def manifest(self) -> dict:
+        """What ran: the scenario, runs, seed, engines, fingerprint, versions, timings."""
+        return read_manifest(self.folder)
+
+    def _table(self, name: str) -> pd.DataFrame:
+        path = self.folder / name
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: not written for this result")
+        return read_parquet(path)
+
+    def summary(self) -> pd.DataFrame:
+        """One row per filter: RMSE, ANEES, NEES in bounds, updates, divergence."""
+        return self._table(SUMMARY_PARQUET)
+
+    def runs(self) -> pd.DataFrame:
+        """One row per filter and run (SPEC 8's per-run metrics)."""
+        return self._table(RUNS_FILE)
+
+    def steps(self) -> pd.DataFrame:
+        """One row per filter, run and recorded step (absent with `steps_table: false`)."""
+        return self._table(STEPS_FILE)
+
+    def comparisons(self) -> pd.DataFrame:
+        """Paired RMSE and ANEES ratios with their bootstrap intervals."""
+        return self._table(COMPARISONS_FILE)
+
+    def claims(self) -> list[dict]:
+        """The scenario's declared claims and their verdicts."""
+        return read_json(self.folder / CLAIMS_FILE)
+
+
+def run(
+    experiment: Experiment | str | Path | dict,
+    *,
+    out: str | Path = "results",
+    runs: int | None = None,
+    seed: int | None = None,
+    jobs: int | None = None,
+    engine: str | None = None,
+    force: bool = False,
+    on_result: Callable[[dict], None] | None = None,
+) -> Result:
+    """Run every filter of a scenario (None: the scenario's own runs, seed, jobs, engine) and
+    write its result to `out/<name>` exactly as `anfekf run` does (resume, `force`, the lock)."""
+    if not isinstance(experiment, Experiment):
+        experiment = load(experiment)
+    plan: Plan = make_plan(experiment.scenario, experiment.world, runs, seed, jobs, engine=engine)
+    _, folder = execute(plan, Path(out), force=force, on_result=on_result)
+    return Result(Path(folder))
+
+
+def open_result(folder: str | Path) -> Result:
+    """A result written earlier (by `run` or `anfekf run`)."""
+    folder = Path(folder)
+    read_manifest(folder)  # a folder that holds no result fails here, with its reason
+    return Result(folder)
+
+
+def report(results: Iterable[Result | str | Path], out: str | Path) -> Path:
+    """Write the report of these results (figures, report.md, report.html) into `out`; returns
+    the path of report.md. Results folders or their parents, as `anfekf report` takes them."""
+    from .report import REPORT_FILE, write_report
+
+    folders = [r.folder if isinstance(r, Result) else Path(r) for r in results]
+    write_report(folders, Path(out))
+    return Path(out) / REPORT_FILE

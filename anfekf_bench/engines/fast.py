@@ -22,6 +22,7 @@ import numpy as np
 from ..config import World
 from ..filters import anfis
 from ..filters.anfekf import ANFEKFSpec
+from ..filters.bank import IMMSpec, MMAESpec, hypotheses
 from ..filters.ekf import EKFSpec, OracleSpec
 from ..filters.spec import FilterContext, FilterSpec
 from ..models import Bicycle
@@ -31,7 +32,7 @@ from . import kernels as _jit_kernels
 JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 
 # Exactly these spec classes (a subclass may build a different filter).
-SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (EKFSpec, OracleSpec, ANFEKFSpec)
+SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (EKFSpec, OracleSpec, ANFEKFSpec, MMAESpec, IMMSpec)
 
 
 def supports(spec: FilterSpec, model: object | None = None) -> bool:
@@ -140,7 +141,14 @@ def run_filter_fast(
     P = np.full((n, 3, 3), np.nan)
     R = np.full((n, 2), np.nan)
     Qu = np.full((n, 2), np.nan)
+    # Without numba the module's own kernels are already plain Python.
+    k = _pure_kernels() if (JIT and not jit) else _jit_kernels
 
+    if isinstance(spec, MMAESpec):
+        diverged, j, nis_sum, n_updates, n_rejected = _run_bank(
+            k, spec, ctx, data, every, flat, record_every, x, P, R, Qu
+        )
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, ANFEKFSpec):
         adapt_R, adapt_Q = "R" in spec.adapt, "Q" in spec.adapt
         anf = _anfis_rows(spec)
@@ -155,8 +163,6 @@ def run_filter_fast(
         lo, hi = 1.0, 1.0
         from_all, window, clip = True, 1, 1.0
     has_gate = ctx.gate is not None
-    # Without numba the module's own kernels are already plain Python.
-    k = _pure_kernels() if (JIT and not jit) else _jit_kernels
     diverged, j, nis_sum, n_updates, n_rejected = k.run_kernel(
         np.ascontiguousarray(data.u_odo, dtype=float), int(every),
         flat.start, flat.landmarks, flat.z,
@@ -168,7 +174,12 @@ def run_filter_fast(
         eta_m, eta_d, eta_w, anf,
         int(max(record_every, 0)), x, P, R, Qu,
     )  # fmt: skip
-    P_infl = np.ones(n)  # the built-in filters never inflate P-
+    return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+
+
+def _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected) -> dict:
+    """The run's dict, as filterpy_engine.run_filter returns it."""
+    P_infl = np.ones(n)  # these filters never inflate P-
     if diverged:
         x[j:] = P[j:] = R[j:] = Qu[j:] = P_infl[j:] = np.nan
     return {
@@ -182,6 +193,26 @@ def run_filter_fast(
         "n_updates": int(n_updates),
         "n_rejected": int(n_rejected),
     }
+
+
+def _run_bank(k, spec: MMAESpec, ctx: FilterContext, data, every, flat, record_every, x, P, R, Qu):
+    """filters.bank.BankEKF on `kernels.run_bank_kernel`."""
+    factors = hypotheses(spec)
+    Qu_m = np.ascontiguousarray(factors[:, :2] * np.diag(ctx.Qu))
+    R_m = np.ascontiguousarray(factors[:, 2:] * np.diag(ctx.R))
+    has_gate = ctx.gate is not None
+    censor_at = ctx.gate if (spec.adapt_from == "accepted" and has_gate) else math.inf
+    imm = isinstance(spec, IMMSpec)
+    return k.run_bank_kernel(
+        np.ascontiguousarray(data.u_odo, dtype=float), int(every),
+        flat.start, flat.landmarks, flat.z,
+        float(ctx.dt), float(ctx.model.B),
+        np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
+        Qu_m, R_m, float(ctx.gate) if has_gate else math.inf, has_gate,
+        float(censor_at), math.log(spec.weight_floor), float(spec.mixture_threshold), imm,
+        float(spec.p_stay) if imm else 1.0,
+        int(max(record_every, 0)), x, P, R, Qu,
+    )  # fmt: skip
 
 
 def _anfis_rows(spec: ANFEKFSpec) -> np.ndarray:

@@ -7,6 +7,7 @@ plain Python otherwise; `JIT` says which.
 
 What it runs (`supports`): the EKF, the oracle EKF and the ANFEKF with any of its parameters
 (adapt R, Q or RQ, adaptation and learning on or off, adapt_from, bounds, window, rates, ...),
+and the multiple-model banks `mmae` and `imm` with any of theirs (`kernels.run_bank_kernel`),
 on the bicycle motion model. Anything else (a user's own filter, the other adaptive baselines)
 is not implemented here: the caller runs it on filterpy.
 """

@@ -820,3 +820,114 @@ def run_bank_kernel(
             out_Q[j, 1] = Qw[1]
             j += 1
     return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# ---------------------------------------------------------------------------------------------
+# The fading-factor EKF (filters.fading), its rule as written there
+
+from ..filters import fading as _fading  # noqa: E402
+
+if _NJIT is not None:
+    register_jitable(_fading.fading_factor)
+
+fading_factor = _fading.fading_factor
+
+
+@maybe_njit
+def run_fading_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    adaptation, from_all, window, ceiling,
+    record_every, out_x, out_P, out_R, out_Q, out_infl,
+):  # fmt: skip
+    """filterpy_engine.run_filter with filters.fading.FadingEKF: the EKF of `run_kernel` with
+    P- inflated by the fading factor at the first landmark of a scan that feeds adaptation.
+    out_infl (n,) records lambda of the last inflation (1 before the first). Returns as
+    `run_kernel`."""
+    K = u_odo.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    nu2 = np.zeros(window)
+    n_window = 0
+    pos = 0
+    infl = 1.0
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_rows = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        x, P, Q = predict(x, P, u_odo[k - 1, 0], u_odo[k - 1, 1], T, B, Qu)
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                first_of_scan = True
+                for m in range(first, last):
+                    z0 = scan_z[m, 0]
+                    z1 = scan_z[m, 1]
+                    H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                    if adaptation:
+                        feeds = True
+                        if not from_all and has_gate:
+                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                            if not ok:
+                                return True, j, nis_sum, n_updates, n_rejected
+                            feeds = nis_a <= gate
+                        if feeds:
+                            nu2[pos] = nu[0] * nu[0] + nu[1] * nu[1]
+                            pos = (pos + 1) % window
+                            if n_window < window:
+                                n_window += 1
+                            was_first = first_of_scan
+                            first_of_scan = False
+                            if was_first and n_window == window:
+                                trace_C = 0.0
+                                for i in range(window):  # oldest first, as the class sums
+                                    trace_C += nu2[(pos + i) % window]
+                                trace_C = trace_C / window
+                                lam = fading_factor(
+                                    trace_C, R[0] + R[3], HPHt[0] + HPHt[3], ceiling
+                                )
+                                if math.isfinite(lam):
+                                    infl = lam
+                                    P = (
+                                        lam * P[0], lam * P[1], lam * P[2],
+                                        lam * P[3], lam * P[4], lam * P[5],
+                                        lam * P[6], lam * P[7], lam * P[8],
+                                    )  # fmt: skip
+                    if infl != 1.0:  # RobotEKF.update_landmark: H P- H^T follows the scaled P-
+                        H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                    ok, v = nis(HPHt, R, nu[0], nu[1])
+                    if not ok or not math.isfinite(v):
+                        return True, j, nis_sum, n_updates, n_rejected
+                    if has_gate and not v <= gate:
+                        n_rejected += 1
+                        continue
+                    nis_sum += v
+                    n_updates += 1
+                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                if not healthy(x, P, R, Qu):
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            for i in range(3):
+                out_x[j, i] = x[i]
+                if not math.isfinite(x[i]):
+                    bad_record = True
+            for i in range(9):
+                out_P[j, i // 3, i % 3] = P[i]
+                if not math.isfinite(P[i]):
+                    bad_record = True
+            out_R[j, 0] = R[0]
+            out_R[j, 1] = R[3]
+            out_Q[j, 0] = Qu[0]
+            out_Q[j, 1] = Qu[3]
+            out_infl[j] = infl
+            j += 1
+    return bad_record, j, nis_sum, n_updates, n_rejected

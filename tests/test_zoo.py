@@ -48,7 +48,7 @@ CASES = [
 def test_every_registered_adaptive_kind_is_covered():
     assert {
         "anfekf", "sage-husa", "iae", "akhlaghi", "vb-r", "vbakf", "cm-scale", "mmae", "imm",
-        "fading",
+        "fading", "swvb",
     } <= set(ADAPTIVE_KINDS)  # fmt: skip
 
 

@@ -22,6 +22,7 @@ from .fading import FadingSpec
 from .iae import IAESpec
 from .sage_husa import SageHusaSpec
 from .spec import FilterContext, FilterSpec
+from .swvb import SWVBSpec
 from .vb import VBAKFSpec, VBRSpec
 
 SPECS: tuple[type[FilterSpec], ...] = (
@@ -37,6 +38,7 @@ SPECS: tuple[type[FilterSpec], ...] = (
     MMAESpec,
     IMMSpec,
     FadingSpec,
+    SWVBSpec,
     CustomSpec,
 )
 

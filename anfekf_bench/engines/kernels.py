@@ -655,7 +655,10 @@ def run_kernel(
 
 # ---------------------------------------------------------------------------------------------
 # Multiple-model banks (filters.bank): M EKFs on the kernels above, the bank's rules as written
-# in filters/bank.py (registered with numba so that compiled code calls them)
+# in filters/bank.py (registered with numba so that compiled code calls them). numba's disk cache
+# is keyed on THIS file: after editing a rule in filters/bank.py or filters/fading.py, touch this
+# file (or delete its __pycache__/*.nbi) so that the kernels are compiled again; the equivalence
+# tests (tests/test_fast_bank.py) fail on a stale cache.
 
 from ..filters import bank as _bank  # noqa: E402
 

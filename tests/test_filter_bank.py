@@ -262,3 +262,50 @@ def test_the_weight_goes_to_the_true_hypothesis(kind):
 def test_bicycle_bank_is_used_by_the_registry():
     ref, out, flt = _run({"kind": "mmae", "qu_factors": (0.5, 1.0)}, {})
     assert isinstance(flt, BankEKF) and isinstance(flt.model, Bicycle) and len(flt.members) == 50
+
+
+@pytest.mark.parametrize("kind", ["mmae", "imm"])
+def test_one_scan_by_hand(kind):
+    """A 2-member bank (range variance x1, x10), one predict and a scan of two landmarks: the
+    weights are the normalised products of each member's Gaussian innovation densities (B.1,
+    B.2), the estimate their mixture (B.3); for the IMM then the interaction (B.4)."""
+    ctx = _ctx(Bicycle(0.1, 2.0))
+    spec = (IMMSpec if kind == "imm" else MMAESpec)(
+        name="b", kind=kind, qu_factors=(1.0,), range_factors=(1.0, 10.0), bearing_factors=(1.0,)
+    )
+    bank = spec.build(ctx)
+    lms = np.array([[6.0, 2.0], [1.0, 7.0]])
+    zs = np.array([[6.3, 0.05], [6.8, 1.15]])
+    u = np.array([1.0, 0.1])
+    members, logl = [], []
+    for f in (1.0, 10.0):
+        m = RobotEKF(**{**ctx.kwargs(), "R": ctx.R @ np.diag([f, 1.0])})
+        m.predict(u)
+        ll = 0.0
+        for z, lm in zip(zs, lms, strict=True):
+            inn = m.innovation(z, lm)
+            S = inn.HPHt + m.R
+            ll += multivariate_normal(np.zeros(2), S).logpdf(inn.nu)
+            m.update_landmark(z, lm)
+        members.append(m)
+        logl.append(ll)
+    w = np.exp(np.array(logl) - logsumexp(logl))
+    bank.predict(u)
+    bank.update_scan(zs, lms)
+    assert w.min() > 1e-4  # both in the mixture
+    x = w[0] * members[0].x + w[1] * members[1].x
+    d = [m.x - x for m in members]
+    P = sum(wi * (m.P + np.outer(di, di)) for wi, m, di in zip(w, members, d, strict=True))
+    np.testing.assert_allclose(bank.x, x, atol=1e-12)
+    np.testing.assert_allclose(bank.P, P, atol=1e-12)
+    if kind == "mmae":
+        np.testing.assert_allclose(np.exp(bank.logw), w, rtol=1e-10)
+        np.testing.assert_allclose(np.diag(bank.R), w @ np.array([[0.01, 0.001], [0.1, 0.001]]))
+    else:  # B.4: c = Pi^T w with p_stay 0.98 and the members restarted from their mixed starts
+        Pi = np.array([[0.98, 0.02], [0.02, 0.98]])
+        c = Pi.T @ w
+        np.testing.assert_allclose(np.exp(bank.logw), c, rtol=1e-10)
+        for j, mem in enumerate(bank.members):
+            mu = Pi[:, j] * w / c[j]
+            xj = mu[0] * members[0].x + mu[1] * members[1].x
+            np.testing.assert_allclose(mem.x, xj, atol=1e-12)

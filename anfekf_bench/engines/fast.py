@@ -7,8 +7,10 @@ plain Python otherwise; `JIT` says which.
 
 What it runs (`supports`): the EKF, the oracle EKF and the ANFEKF with any of its parameters
 (adapt R, Q or RQ, adaptation and learning on or off, adapt_from, bounds, window, rates, ...),
-on the bicycle motion model. Anything else (a user's own filter, the other adaptive baselines)
-is not implemented here: the caller runs it on filterpy.
+the multiple-model banks `mmae` and `imm` with any of theirs (`kernels.run_bank_kernel`) and
+the fading-factor EKF (`kernels.run_fading_kernel`), on the bicycle motion model. Anything
+else (a user's own filter, the other adaptive baselines) is not implemented here: the caller
+runs it on filterpy.
 """
 
 from __future__ import annotations
@@ -22,7 +24,9 @@ import numpy as np
 from ..config import World
 from ..filters import anfis
 from ..filters.anfekf import ANFEKFSpec
+from ..filters.bank import IMMSpec, MMAESpec, hypotheses
 from ..filters.ekf import EKFSpec, OracleSpec
+from ..filters.fading import FadingSpec
 from ..filters.spec import FilterContext, FilterSpec
 from ..models import Bicycle
 from ..sources.simulator import RunData
@@ -31,7 +35,9 @@ from . import kernels as _jit_kernels
 JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 
 # Exactly these spec classes (a subclass may build a different filter).
-SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (EKFSpec, OracleSpec, ANFEKFSpec)
+SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
+    EKFSpec, OracleSpec, ANFEKFSpec, MMAESpec, IMMSpec, FadingSpec,
+)  # fmt: skip
 
 
 def supports(spec: FilterSpec, model: object | None = None) -> bool:
@@ -140,7 +146,29 @@ def run_filter_fast(
     P = np.full((n, 3, 3), np.nan)
     R = np.full((n, 2), np.nan)
     Qu = np.full((n, 2), np.nan)
+    # Without numba the module's own kernels are already plain Python.
+    k = _pure_kernels() if (JIT and not jit) else _jit_kernels
 
+    if isinstance(spec, MMAESpec):
+        diverged, j, nis_sum, n_updates, n_rejected = _run_bank(
+            k, spec, ctx, data, every, flat, record_every, x, P, R, Qu
+        )
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+    if isinstance(spec, FadingSpec):
+        P_infl = np.full(n, np.nan)
+        has_gate = ctx.gate is not None
+        diverged, j, nis_sum, n_updates, n_rejected = k.run_fading_kernel(
+            np.ascontiguousarray(data.u_odo, dtype=float), int(every),
+            flat.start, flat.landmarks, flat.z,
+            float(ctx.dt), float(ctx.model.B),
+            np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
+            _matrix(ctx.Qu, 2), _matrix(ctx.R, 2),
+            float(ctx.gate) if has_gate else math.inf, has_gate,
+            bool(spec.adaptation), spec.adapt_from == "all", int(spec.window),
+            float(spec.bounds[1]),
+            int(max(record_every, 0)), x, P, R, Qu, P_infl,
+        )  # fmt: skip
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl)
     if isinstance(spec, ANFEKFSpec):
         adapt_R, adapt_Q = "R" in spec.adapt, "Q" in spec.adapt
         anf = _anfis_rows(spec)
@@ -155,8 +183,6 @@ def run_filter_fast(
         lo, hi = 1.0, 1.0
         from_all, window, clip = True, 1, 1.0
     has_gate = ctx.gate is not None
-    # Without numba the module's own kernels are already plain Python.
-    k = _pure_kernels() if (JIT and not jit) else _jit_kernels
     diverged, j, nis_sum, n_updates, n_rejected = k.run_kernel(
         np.ascontiguousarray(data.u_odo, dtype=float), int(every),
         flat.start, flat.landmarks, flat.z,
@@ -168,7 +194,13 @@ def run_filter_fast(
         eta_m, eta_d, eta_w, anf,
         int(max(record_every, 0)), x, P, R, Qu,
     )  # fmt: skip
-    P_infl = np.ones(n)  # the built-in filters never inflate P-
+    return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+
+
+def _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl=None) -> dict:
+    """The run's dict, as filterpy_engine.run_filter returns it."""
+    if P_infl is None:
+        P_infl = np.ones(n)  # these filters never inflate P-
     if diverged:
         x[j:] = P[j:] = R[j:] = Qu[j:] = P_infl[j:] = np.nan
     return {
@@ -182,6 +214,26 @@ def run_filter_fast(
         "n_updates": int(n_updates),
         "n_rejected": int(n_rejected),
     }
+
+
+def _run_bank(k, spec: MMAESpec, ctx: FilterContext, data, every, flat, record_every, x, P, R, Qu):
+    """filters.bank.BankEKF on `kernels.run_bank_kernel`."""
+    factors = hypotheses(spec)
+    Qu_m = np.ascontiguousarray(factors[:, :2] * np.diag(ctx.Qu))
+    R_m = np.ascontiguousarray(factors[:, 2:] * np.diag(ctx.R))
+    has_gate = ctx.gate is not None
+    censor_at = ctx.gate if (spec.adapt_from == "accepted" and has_gate) else math.inf
+    imm = isinstance(spec, IMMSpec)
+    return k.run_bank_kernel(
+        np.ascontiguousarray(data.u_odo, dtype=float), int(every),
+        flat.start, flat.landmarks, flat.z,
+        float(ctx.dt), float(ctx.model.B),
+        np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
+        Qu_m, R_m, float(ctx.gate) if has_gate else math.inf, has_gate,
+        float(censor_at), math.log(spec.weight_floor), float(spec.mixture_threshold), imm,
+        float(spec.p_stay) if imm else 1.0,
+        int(max(record_every, 0)), x, P, R, Qu,
+    )  # fmt: skip
 
 
 def _anfis_rows(spec: ANFEKFSpec) -> np.ndarray:

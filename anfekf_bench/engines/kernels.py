@@ -651,3 +651,286 @@ def run_kernel(
             j += 1
     # health is checked at scans; a blow-up after the last one shows in the records
     return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# ---------------------------------------------------------------------------------------------
+# Multiple-model banks (filters.bank): M EKFs on the kernels above, the bank's rules as written
+# in filters/bank.py (registered with numba so that compiled code calls them). numba's disk cache
+# is keyed on THIS file: after editing a rule in filters/bank.py or filters/fading.py, touch this
+# file (or delete its __pycache__/*.nbi) so that the kernels are compiled again; the equivalence
+# tests (tests/test_fast_bank.py) fail on a stale cache.
+
+from ..filters import bank as _bank  # noqa: E402
+
+if _NJIT is not None:
+    from numba.extending import register_jitable
+
+    for _rule in (
+        _bank._wrap, _bank.innovation_loglik, _bank.log_sum_exp, _bank.normalise_log_weights,
+        _bank.most_probable, _bank.mixture_weights, _bank.mix_moments, _bank.weighted_noise,
+        _bank.imm_mix,
+    ):  # fmt: skip
+        register_jitable(_rule)
+
+innovation_loglik = _bank.innovation_loglik
+normalise_log_weights = _bank.normalise_log_weights
+most_probable = _bank.most_probable
+mixture_weights = _bank.mixture_weights
+mix_moments = _bank.mix_moments
+weighted_noise = _bank.weighted_noise
+imm_mix = _bank.imm_mix
+
+
+@maybe_njit
+def run_bank_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu_m, R_m, gate, has_gate,
+    censor_at, log_floor, threshold, imm, p_stay,
+    record_every, out_x, out_P, out_R, out_Q,
+):  # fmt: skip
+    """A bank of M EKFs over one run (filterpy_engine.run_filter with filters.bank.BankEKF).
+
+    Qu_m, R_m (M, 2): the members' noise diagonals; the rest as `run_kernel`. Records the
+    mixture (x, P) and the weighted R and Qu. Returns (diverged, rows written, nis_sum,
+    n_updates, n_rejected): the counts are the most probable member's at each scan's start.
+    """
+    K = u_odo.shape[0]
+    M = Qu_m.shape[0]
+    X = np.empty((M, 3))
+    Pm = np.empty((M, 9))
+    for i in range(M):
+        for c in range(3):
+            X[i, c] = x0[c]
+        for c in range(9):
+            Pm[i, c] = P0[c]
+    logw = np.full(M, -math.log(M))
+    w = np.empty(M)
+    Rw = np.empty(2)
+    Qw = np.empty(2)
+    xm = np.empty(3)
+    Pmix = np.empty(9)
+    n_upd = np.zeros(M, np.int64)
+    n_rej = np.zeros(M, np.int64)
+    nis_m = np.zeros(M)
+    X0 = np.empty((M, 3))
+    P0m = np.empty((M, 9))
+    s_logc = np.empty(M)
+    s_mu = np.empty(M)
+    s_w = np.empty(M)
+    s_x = np.empty(3)
+    s_P = np.empty(9)
+    mixture_weights(logw, threshold, w)
+    weighted_noise(w, R_m, Rw)
+    weighted_noise(w, Qu_m, Qw)
+    mix_moments(w, X, Pm, X[most_probable(logw), 2], xm, Pmix)
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_rows = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        V = u_odo[k - 1, 0]
+        g = u_odo[k - 1, 1]
+        for i in range(M):
+            x, P, _ = predict(
+                (X[i, 0], X[i, 1], X[i, 2]),
+                (Pm[i, 0], Pm[i, 1], Pm[i, 2], Pm[i, 3], Pm[i, 4], Pm[i, 5], Pm[i, 6], Pm[i, 7],
+                 Pm[i, 8]),
+                V, g, T, B, (Qu_m[i, 0], 0.0, 0.0, Qu_m[i, 1]),
+            )  # fmt: skip
+            for c in range(3):
+                X[i, c] = x[c]
+            for c in range(9):
+                Pm[i, c] = P[c]
+        mix_moments(w, X, Pm, X[most_probable(logw), 2], xm, Pmix)
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                best = most_probable(logw)
+                before_nis = nis_m[best]
+                before_upd = n_upd[best]
+                before_rej = n_rej[best]
+                for m in range(first, last):
+                    z0 = scan_z[m, 0]
+                    z1 = scan_z[m, 1]
+                    for i in range(M):
+                        x = (X[i, 0], X[i, 1], X[i, 2])
+                        P = (
+                            Pm[i, 0], Pm[i, 1], Pm[i, 2], Pm[i, 3], Pm[i, 4], Pm[i, 5], Pm[i, 6],
+                            Pm[i, 7], Pm[i, 8],
+                        )  # fmt: skip
+                        R = (R_m[i, 0], 0.0, 0.0, R_m[i, 1])
+                        H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                        ok, v = nis(HPHt, R, nu[0], nu[1])
+                        if not ok or not math.isfinite(v):
+                            return True, j, nis_sum, n_updates, n_rejected
+                        if has_gate and not v <= gate:
+                            n_rej[i] += 1
+                        else:
+                            nis_m[i] += v
+                            n_upd[i] += 1
+                            ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                            if not ok:
+                                return True, j, nis_sum, n_updates, n_rejected
+                            for c in range(3):
+                                X[i, c] = x[c]
+                            for c in range(9):
+                                Pm[i, c] = P[c]
+                        logw[i] += innovation_loglik(
+                            v, HPHt[0] + R[0], HPHt[1] + R[1], HPHt[2] + R[2], HPHt[3] + R[3],
+                            censor_at,
+                        )  # fmt: skip
+                nis_sum += nis_m[best] - before_nis
+                n_updates += n_upd[best] - before_upd
+                n_rejected += n_rej[best] - before_rej
+                normalise_log_weights(logw, log_floor)
+                mixture_weights(logw, threshold, w)
+                weighted_noise(w, R_m, Rw)
+                weighted_noise(w, Qu_m, Qw)
+                mix_moments(w, X, Pm, X[most_probable(logw), 2], xm, Pmix)
+                if imm:
+                    imm_mix(logw, p_stay, threshold, X, Pm, X0, P0m, s_w, s_logc, s_mu, s_x, s_P)
+                    for i in range(M):
+                        for c in range(3):
+                            X[i, c] = X0[i, c]
+                        for c in range(9):
+                            Pm[i, c] = P0m[i, c]
+                    mixture_weights(logw, threshold, w)
+                    weighted_noise(w, R_m, Rw)
+                    weighted_noise(w, Qu_m, Qw)
+                if not healthy(
+                    (xm[0], xm[1], xm[2]),
+                    (Pmix[0], Pmix[1], Pmix[2], Pmix[3], Pmix[4], Pmix[5], Pmix[6], Pmix[7],
+                     Pmix[8]),
+                    (Rw[0], 0.0, 0.0, Rw[1]), (Qw[0], 0.0, 0.0, Qw[1]),
+                ):  # fmt: skip
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            for i in range(3):
+                out_x[j, i] = xm[i]
+                if not math.isfinite(xm[i]):
+                    bad_record = True
+            for i in range(9):
+                out_P[j, i // 3, i % 3] = Pmix[i]
+                if not math.isfinite(Pmix[i]):
+                    bad_record = True
+            out_R[j, 0] = Rw[0]
+            out_R[j, 1] = Rw[1]
+            out_Q[j, 0] = Qw[0]
+            out_Q[j, 1] = Qw[1]
+            j += 1
+    return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# ---------------------------------------------------------------------------------------------
+# The fading-factor EKF (filters.fading), its rule as written there
+
+from ..filters import fading as _fading  # noqa: E402
+
+if _NJIT is not None:
+    register_jitable(_fading.fading_factor)
+
+fading_factor = _fading.fading_factor
+
+
+@maybe_njit
+def run_fading_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    adaptation, from_all, window, ceiling,
+    record_every, out_x, out_P, out_R, out_Q, out_infl,
+):  # fmt: skip
+    """filterpy_engine.run_filter with filters.fading.FadingEKF: the EKF of `run_kernel` with
+    P- inflated by the fading factor at the first landmark of a scan that feeds adaptation.
+    out_infl (n,) records lambda of the last inflation (1 before the first). Returns as
+    `run_kernel`."""
+    K = u_odo.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    nu2 = np.zeros(window)
+    n_window = 0
+    pos = 0
+    infl = 1.0
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_rows = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        x, P, Q = predict(x, P, u_odo[k - 1, 0], u_odo[k - 1, 1], T, B, Qu)
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                first_of_scan = True
+                for m in range(first, last):
+                    z0 = scan_z[m, 0]
+                    z1 = scan_z[m, 1]
+                    H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                    if adaptation:
+                        feeds = True
+                        if not from_all and has_gate:
+                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                            if not ok:
+                                return True, j, nis_sum, n_updates, n_rejected
+                            feeds = nis_a <= gate
+                        if feeds:
+                            nu2[pos] = nu[0] * nu[0] + nu[1] * nu[1]
+                            pos = (pos + 1) % window
+                            if n_window < window:
+                                n_window += 1
+                            was_first = first_of_scan
+                            first_of_scan = False
+                            if was_first and n_window == window:
+                                trace_C = 0.0
+                                for i in range(window):  # oldest first, as the class sums
+                                    trace_C += nu2[(pos + i) % window]
+                                trace_C = trace_C / window
+                                lam = fading_factor(
+                                    trace_C, R[0] + R[3], HPHt[0] + HPHt[3], ceiling
+                                )
+                                if math.isfinite(lam):
+                                    infl = lam
+                                    P = (
+                                        lam * P[0], lam * P[1], lam * P[2],
+                                        lam * P[3], lam * P[4], lam * P[5],
+                                        lam * P[6], lam * P[7], lam * P[8],
+                                    )  # fmt: skip
+                    if infl != 1.0:  # RobotEKF.update_landmark: H P- H^T follows the scaled P-
+                        H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                    ok, v = nis(HPHt, R, nu[0], nu[1])
+                    if not ok or not math.isfinite(v):
+                        return True, j, nis_sum, n_updates, n_rejected
+                    if has_gate and not v <= gate:
+                        n_rejected += 1
+                        continue
+                    nis_sum += v
+                    n_updates += 1
+                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                if not healthy(x, P, R, Qu):
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            for i in range(3):
+                out_x[j, i] = x[i]
+                if not math.isfinite(x[i]):
+                    bad_record = True
+            for i in range(9):
+                out_P[j, i // 3, i % 3] = P[i]
+                if not math.isfinite(P[i]):
+                    bad_record = True
+            out_R[j, 0] = R[0]
+            out_R[j, 1] = R[3]
+            out_Q[j, 0] = Qu[0]
+            out_Q[j, 1] = Qu[3]
+            out_infl[j] = infl
+            j += 1
+    return bad_record, j, nis_sum, n_updates, n_rejected

@@ -14,12 +14,15 @@ from pydantic import Field
 from ..models import Bicycle, control_covariance, measurement_covariance
 from .akhlaghi import AkhlaghiSpec
 from .anfekf import ANFEKFSpec
+from .bank import IMMSpec, MMAESpec
 from .cm_scale import CMScaleSpec
 from .custom import CustomSpec, entry_point_kinds
 from .ekf import EKFSpec, OracleSpec, RobotEKF, gate_threshold
+from .fading import FadingSpec
 from .iae import IAESpec
 from .sage_husa import SageHusaSpec
 from .spec import FilterContext, FilterSpec
+from .swvb import SWVBSpec
 from .vb import VBAKFSpec, VBRSpec
 
 SPECS: tuple[type[FilterSpec], ...] = (
@@ -32,6 +35,10 @@ SPECS: tuple[type[FilterSpec], ...] = (
     CMScaleSpec,
     VBRSpec,
     VBAKFSpec,
+    MMAESpec,
+    IMMSpec,
+    FadingSpec,
+    SWVBSpec,
     CustomSpec,
 )
 

@@ -1,0 +1,394 @@
+"""Multiple-model banks over noise hypotheses: static MMAE and IMM (SPEC 13; research notes,
+noise-identification.md section 1; Magill 1965, Maybeck 1982, Li & Bar-Shalom 1994).
+
+One EKF per hypothesis i = (Qu_i, R_i) on a log grid of factors on the assumed noise. At every
+landmark each member computes its own innovation nu_i, S_i = H_i P_i- H_i^T + R_i and
+
+    log w_i <- log w_i + log N(nu_i; 0, S_i)                                          (B.1)
+
+and once per scan that saw a landmark the weights are normalised in log space (log-sum-exp),
+floored at `weight_floor` and normalised again (B.2). The bank's estimate is the moment-matched
+mixture over the members whose weight is at least `mixture_threshold` (renormalised; the most
+probable member always counts), heading differences wrapped about the most probable member's:
+
+    x = sum w_i x_i,   P = sum w_i [P_i + (x_i - x)(x_i - x)^T]                       (B.3)
+
+and its adapted R, Qu (what a run records) are the same weights' average of the hypotheses'.
+
+IMM (Markov switching, `p_stay` per scan, switching uniform over the other members): after a
+scan's updates, c_j = sum_i p_ij w_i, mu_i|j = p_ij w_i / c_j, and member j restarts from the
+mixture (B.3) of all members with weights mu_.|j (headings wrapped about member j's own); then
+w_j <- c_j (B.4). Mixing happens once per scan, after its updates, so that every member predicts
+from its mixed start with its own Qu (the textbook interaction / predict / update cycle).
+
+The rules are plain module-level functions on floats and float arrays (members' x as (M, 3),
+P as (M, 9) row-major), so that the filterpy-engine class below and the fast engine's compiled
+bank kernel (engines/kernels.py) call the same code. Design decisions (the gate, the counts,
+adaptation off) are in docs/DESIGN.md ("Multiple-model banks").
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from typing import Annotated, ClassVar, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from .adaptive import AdaptiveEKF
+from .ekf import Innovation, RobotEKF
+from .spec import AdaptiveSpec, FilterContext
+
+LOG_2PI = math.log(2.0 * math.pi)
+HALF_DECADE = (0.1, 10.0**-0.5, 1.0, 10.0**0.5, 10.0)
+MAX_MODELS = 5000
+
+# ---------------------------------------------------------------------------------------------
+# The rules (both engines)
+
+
+def _wrap(a):
+    """models.angles.wrap_scalar, repeated here so that numba can compile the rules."""
+    return -((-a + math.pi) % (2.0 * math.pi) - math.pi)
+
+
+def innovation_loglik(nis, S00, S01, S10, S11, censor_at):
+    """log N(nu; 0, S) of a 2-vector from its NIS nu^T S^-1 nu (B.1); NIS above `censor_at`
+    counts as `censor_at` (adapt_from accepted: a member gains nothing by rejecting). A
+    non-positive det S gives -inf."""
+    det = S00 * S11 - S01 * S10
+    if not det > 0.0:
+        return -math.inf
+    if nis > censor_at:
+        nis = censor_at
+    return -0.5 * (nis + math.log(det)) - LOG_2PI
+
+
+def log_sum_exp(logw):
+    """log sum exp(logw_i), NaN propagating; -inf for an all -inf array."""
+    top = -math.inf
+    for v in logw:
+        if v > top:
+            top = v
+    if top == -math.inf:
+        return top
+    s = 0.0
+    for v in logw:
+        s += math.exp(v - top)
+    return top + math.log(s)
+
+
+def normalise_log_weights(logw, log_floor):
+    """In place (B.2): normalise, floor each log weight at `log_floor`, normalise again (so a
+    weight can end a rounding below the floor, never lower). NaN stays NaN."""
+    c = log_sum_exp(logw)
+    for i in range(logw.shape[0]):
+        v = logw[i] - c
+        logw[i] = v if (v != v or v > log_floor) else log_floor
+    c = log_sum_exp(logw)
+    for i in range(logw.shape[0]):
+        logw[i] = logw[i] - c
+
+
+def most_probable(logw):
+    """The index of the largest log weight (the first of equals)."""
+    best = 0
+    for i in range(1, logw.shape[0]):
+        if logw[i] > logw[best]:
+            best = i
+    return best
+
+
+def mixture_weights(logw, threshold, w):
+    """Into `w`: the weights exp(logw_i), 0 below `threshold` (except the most probable
+    member's), renormalised over the rest (B.3). NaN stays NaN."""
+    best = most_probable(logw)
+    s = 0.0
+    for i in range(logw.shape[0]):
+        wi = math.exp(logw[i])
+        if wi < threshold and i != best:
+            wi = 0.0
+        w[i] = wi
+        s += wi
+    for i in range(logw.shape[0]):
+        w[i] = w[i] / s
+
+
+def mix_moments(w, X, P, ref, out_x, out_P):
+    """The moment-matched mixture (B.3) into out_x (3,) and out_P (9,): heading differences
+    wrapped about `ref`, members with zero weight skipped."""
+    m0 = 0.0
+    m1 = 0.0
+    m2 = 0.0
+    for i in range(w.shape[0]):
+        wi = w[i]
+        if wi == 0.0:
+            continue
+        m0 += wi * X[i, 0]
+        m1 += wi * X[i, 1]
+        m2 += wi * _wrap(X[i, 2] - ref)
+    h = _wrap(ref + m2)
+    out_x[0] = m0
+    out_x[1] = m1
+    out_x[2] = h
+    for k in range(9):
+        out_P[k] = 0.0
+    for i in range(w.shape[0]):
+        wi = w[i]
+        if wi == 0.0:
+            continue
+        d0 = X[i, 0] - m0
+        d1 = X[i, 1] - m1
+        d2 = _wrap(X[i, 2] - h)
+        out_P[0] += wi * (P[i, 0] + d0 * d0)
+        out_P[1] += wi * (P[i, 1] + d0 * d1)
+        out_P[2] += wi * (P[i, 2] + d0 * d2)
+        out_P[3] += wi * (P[i, 3] + d1 * d0)
+        out_P[4] += wi * (P[i, 4] + d1 * d1)
+        out_P[5] += wi * (P[i, 5] + d1 * d2)
+        out_P[6] += wi * (P[i, 6] + d2 * d0)
+        out_P[7] += wi * (P[i, 7] + d2 * d1)
+        out_P[8] += wi * (P[i, 8] + d2 * d2)
+
+
+def weighted_noise(w, N, out):
+    """Into `out` (2,): sum w_i N_i, N (M, 2) the members' (R or Qu) diagonals."""
+    out[0] = 0.0
+    out[1] = 0.0
+    for i in range(w.shape[0]):
+        if w[i] != 0.0:
+            out[0] += w[i] * N[i, 0]
+            out[1] += w[i] * N[i, 1]
+
+
+def imm_mix(logw, p_stay, threshold, X, P, X0, P0, w, logc, mu, x_tmp, P_tmp):
+    """The IMM interaction (B.4): the members' mixed starts into X0 (M, 3), P0 (M, 9), and the
+    (normalised) logw replaced by the predicted log c_j. Switching is uniform: p_jj = p_stay,
+    p_ij = (1 - p_stay) / (M - 1). As in the output mixture, the mixing weights mu_i|j below
+    `threshold` are left out of member j's start (its own never is) and the rest renormalised.
+    w, logc, mu (M,), x_tmp (3,), P_tmp (9,) are scratch."""
+    M = logw.shape[0]
+    p_off = (1.0 - p_stay) / (M - 1) if M > 1 else 0.0
+    total = 0.0
+    for i in range(M):
+        w[i] = math.exp(logw[i])
+        total += w[i]
+    for j in range(M):
+        # c_j = sum_i p_ij w_i, in O(1) per member
+        c = p_off * (total - w[j]) + p_stay * w[j]
+        s = 0.0
+        for i in range(M):
+            m = (p_stay if i == j else p_off) * w[i] / c
+            if m < threshold and i != j:
+                m = 0.0
+            mu[i] = m
+            s += m
+        for i in range(M):
+            mu[i] = mu[i] / s
+        mix_moments(mu, X, P, X[j, 2], x_tmp, P_tmp)
+        for k in range(3):
+            X0[j, k] = x_tmp[k]
+        for k in range(9):
+            P0[j, k] = P_tmp[k]
+        logc[j] = math.log(c)
+    for j in range(M):
+        logw[j] = logc[j]
+
+
+# ---------------------------------------------------------------------------------------------
+# The grid of hypotheses and the specs
+
+Factors = Annotated[
+    tuple[Annotated[float, Field(gt=0, allow_inf_nan=False)], ...],
+    Field(min_length=1, max_length=50),
+]
+
+
+def hypotheses(spec: MMAESpec) -> np.ndarray:
+    """The bank's hypotheses as factors on the assumed variances, one row (v, gamma, range,
+    bearing) per member: qu_factors (both controls together) x v_factors x gamma_factors x
+    range_factors x bearing_factors. With adaptation off, the assumed noise alone."""
+    if not spec.adaptation:
+        return np.ones((1, 4))
+    rows = [
+        (q * v, q * g, r, b)
+        for q, v, g, r, b in itertools.product(
+            spec.qu_factors, spec.v_factors, spec.gamma_factors, spec.range_factors,
+            spec.bearing_factors,
+        )
+    ]  # fmt: skip
+    return np.array(rows, dtype=float)
+
+
+class MMAESpec(AdaptiveSpec):
+    """Static multiple-model adaptive estimation over a log grid of noise factors (research
+    notes 1): one EKF per hypothesis, likelihood weights, the moment-matched mixture."""
+
+    kind: Literal["mmae"]
+    qu_factors: Factors = Field(
+        HALF_DECADE,
+        description="factors on the assumed Qu variances, both controls together (default half-"
+        "decade steps 0.1x..10x)",
+    )
+    v_factors: Factors = Field(
+        (1.0,), description="further factors on sigma_v^2 alone (crossed with the others)"
+    )
+    gamma_factors: Factors = Field(
+        (1.0,), description="further factors on sigma_gamma^2 alone (crossed with the others)"
+    )
+    range_factors: Factors = Field(
+        HALF_DECADE, description="factors on the assumed range variance (default 0.1x..10x)"
+    )
+    bearing_factors: Factors = Field(
+        HALF_DECADE, description="factors on the assumed bearing variance (default 0.1x..10x)"
+    )
+    weight_floor: Annotated[float, Field(gt=0, lt=1e-2, allow_inf_nan=False)] = Field(
+        1e-30,
+        description="floor of every member's weight, once per scan (a low floor: the research"
+        " prototype lost lock on real data with 1e-6 and not with 1e-30)",
+    )
+    mixture_threshold: Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)] = Field(
+        1e-4,
+        description="members below this weight stay in the bank but out of the mixture (the"
+        " prototype: mixing hundreds of floored members inflated P)",
+    )
+
+    def n_models(self) -> int:
+        sizes = (
+            self.qu_factors, self.v_factors, self.gamma_factors, self.range_factors,
+            self.bearing_factors,
+        )  # fmt: skip
+        return math.prod(len(f) for f in sizes)
+
+    @model_validator(mode="after")
+    def _grid_within_bounds(self) -> MMAESpec:
+        if self.n_models() > MAX_MODELS:
+            raise ValueError(f"the grid has {self.n_models()} models; at most {MAX_MODELS}")
+        lo, hi = self.bounds
+        qu = [q * f for q in self.qu_factors for f in (*self.v_factors, *self.gamma_factors)]
+        for name, values in (
+            ("qu_factors x v_factors / gamma_factors", qu),
+            ("range_factors", self.range_factors),
+            ("bearing_factors", self.bearing_factors),
+        ):
+            if not all(lo <= v <= hi for v in values):
+                raise ValueError(f"{name}: every factor must lie within bounds {lo}..{hi}")
+        return self
+
+    def build(self, ctx: FilterContext) -> BankEKF:
+        return BankEKF(**ctx.kwargs(), params=self)
+
+
+class IMMSpec(MMAESpec):
+    """Interacting multiple models over the same grid: Markov switching once per scan."""
+
+    kind: Literal["imm"]
+    p_stay: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = Field(
+        0.98,
+        description="probability that the noise stays in its hypothesis from one scan to the"
+        " next (the rest is spread evenly over the other members)",
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# The filter (filterpy engine)
+
+
+class _Member(RobotEKF):
+    """One hypothesis: a plain EKF that keeps the innovation of its last landmark."""
+
+    def before_gain(self, inn: Innovation) -> None:
+        self.inn = inn
+
+
+class BankEKF(AdaptiveEKF):
+    """A bank of `_Member` EKFs, one per hypothesis of `hypotheses(params)` (module doc).
+
+    The engines see one filter: x, P are the mixture (B.3), R, Qu the mixture weights' average
+    of the hypotheses' noise, recomputed after every predict and every scan. Each member gates
+    its own innovation with its own S_i. The bank's NIS sum and update / rejection counts are its
+    most probable member's at the start of each scan.
+    """
+
+    adapts: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
+    params: MMAESpec
+
+    def __init__(self, *args, params: MMAESpec, **kwargs):
+        super().__init__(*args, params=params, **kwargs)
+        factors = hypotheses(params)
+        self.factors = factors
+        qu0, r0 = np.diag(self.Qu0), np.diag(self.R0)
+        self.Qu_members = factors[:, :2] * qu0
+        self.R_members = factors[:, 2:] * r0
+        self.members = [
+            _Member(self.x, self.P, np.diag(qu), np.diag(r), self.model, self.dt, self.gate)
+            for qu, r in zip(self.Qu_members, self.R_members, strict=True)
+        ]
+        M = len(self.members)
+        self.logw = np.full(M, -math.log(M))
+        self.w = np.empty(M)
+        self.censor_at = (
+            self.gate if (params.adapt_from == "accepted" and self.gate is not None) else math.inf
+        )
+        self.log_floor = math.log(params.weight_floor)
+        self._weights_changed()
+        self._output()
+
+    def _weights_changed(self) -> None:
+        mixture_weights(self.logw, self.params.mixture_threshold, self.w)
+        self.active = np.flatnonzero(self.w != 0.0)
+        R, Qu = np.empty(2), np.empty(2)
+        weighted_noise(self.w, self.R_members, R)
+        weighted_noise(self.w, self.Qu_members, Qu)
+        self.R, self.Qu = np.diag(R), np.diag(Qu)
+
+    def _output(self) -> None:
+        act = self.active
+        X = np.array([self.members[i].x for i in act])
+        P = np.array([self.members[i].P.ravel() for i in act])
+        ref = self.members[most_probable(self.logw)].x[2]
+        x, Pm = np.empty(3), np.empty(9)
+        mix_moments(self.w[act], X, P, ref, x, Pm)
+        self.x, self.P = x, Pm.reshape(3, 3)
+
+    def predict(self, u=0, dt: float | None = None):
+        if dt is not None:
+            self.dt = dt
+        for m in self.members:
+            m.predict(u, dt)
+        self._output()
+
+    def update_scan(self, zs: np.ndarray, landmarks: np.ndarray) -> None:
+        best = self.members[most_probable(self.logw)]
+        before = (best.nis_sum, best.n_updates, best.n_rejected)
+        for z, landmark in zip(zs, landmarks, strict=True):
+            for i, m in enumerate(self.members):
+                m.update_landmark(z, landmark)
+                S = m.inn.S
+                self.logw[i] += innovation_loglik(
+                    m.inn.nis, S[0, 0], S[0, 1], S[1, 0], S[1, 1], self.censor_at
+                )
+        self.nis_sum += best.nis_sum - before[0]
+        self.n_updates += best.n_updates - before[1]
+        self.n_rejected += best.n_rejected - before[2]
+        normalise_log_weights(self.logw, self.log_floor)
+        self._weights_changed()
+        self._output()
+        if isinstance(self.params, IMMSpec):
+            self._interact()
+
+    def _interact(self) -> None:
+        """B.4 after the scan's output: members restart from their mixed starts."""
+        M = len(self.members)
+        X = np.array([m.x for m in self.members])
+        P = np.array([m.P.ravel() for m in self.members])
+        X0, P0 = np.empty_like(X), np.empty_like(P)
+        imm_mix(
+            self.logw, self.params.p_stay, self.params.mixture_threshold, X, P, X0, P0,
+            np.empty(M), np.empty(M), np.empty(M), np.empty(3), np.empty(9),
+        )  # fmt: skip
+        for m, x0, p0 in zip(self.members, X0, P0, strict=True):
+            m.x, m.P = x0, p0.reshape(3, 3)
+        # The recorded R, Qu and the between-scan mixture now use the predicted weights c_j.
+        self._weights_changed()

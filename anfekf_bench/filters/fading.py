@@ -1,0 +1,91 @@
+"""Strong tracking / adaptive fading-factor EKF (SPEC 13, a cheap control; Zhou & Frank 1996,
+Yang & Gao, J. Geodesy 80:177-183, 2006; research notes, noise-identification.md section 5).
+
+A window of the last N associated innovations (gated or not, pooled over landmarks) gives
+
+    C_k = (1/N) sum_j nu_j nu_j^T                                                     (F.1)
+    lambda_k = min(ceiling, max(1, tr(C_k - R) / tr(H P- H^T)))                        (F.2)
+    P- <- lambda_k P-                                                                  (F.3)
+
+once per scan that saw a landmark, at its first landmark that feeds adaptation, before the gain
+(H P- H^T of that landmark; the window includes its innovation). Until the window is full
+lambda = 1. The filter adapts neither R nor Qu: it inflates P- when the innovations are larger
+than the filter predicts (a model-mismatch control). `P_inflation` holds the scan's lambda.
+Decisions in docs/DESIGN.md ("Fading-factor EKF").
+"""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar, Literal
+
+import numpy as np
+from pydantic import Field
+
+from .adaptive import AdaptiveEKF
+from .ekf import Innovation
+from .spec import AdaptiveSpec, FilterContext
+
+
+def fading_factor(trace_C, trace_R, trace_HPHt, ceiling):
+    """lambda = min(ceiling, max(1, (tr C - tr R) / tr(H P- H^T))) (F.2); NaN propagates."""
+    lam = (trace_C - trace_R) / trace_HPHt
+    if lam != lam:
+        return lam
+    if lam < 1.0:
+        lam = 1.0
+    if lam > ceiling:
+        lam = ceiling
+    return lam
+
+
+class FadingSpec(AdaptiveSpec):
+    """Adaptive fading factor (strong tracking): P- inflated by lambda >= 1 once per scan."""
+
+    kind: Literal["fading"]
+    window: int = Field(
+        20,
+        ge=1,
+        le=10_000,
+        description="innovations in the window of C_k (Mohamed & Schwarz's N = 20, as iae)",
+    )
+
+    def build(self, ctx: FilterContext) -> FadingEKF:
+        return FadingEKF(**ctx.kwargs(), params=self)
+
+
+class FadingEKF(AdaptiveEKF):
+    """The EKF with an adaptive fading factor on P- (module doc); the ceiling of lambda is the
+    upper bound of `bounds`."""
+
+    adapts: ClassVar[frozenset[str]] = frozenset({"P"})
+    params: FadingSpec
+
+    def __init__(self, *args, params: FadingSpec, **kwargs):
+        super().__init__(*args, params=params, **kwargs)
+        self.nu2 = np.zeros(params.window)  # nu^T nu of the window's innovations, a ring
+        self.n_window = 0
+        self.pos = 0
+        self._first_of_scan = True
+
+    def begin_scan(self) -> None:
+        self._first_of_scan = True
+
+    def before_gain(self, inn: Innovation) -> None:
+        if not self.params.adaptation or not self.feeds_adaptation(inn):
+            return
+        N = self.params.window
+        self.nu2[self.pos] = inn.nu[0] * inn.nu[0] + inn.nu[1] * inn.nu[1]
+        self.pos = (self.pos + 1) % N
+        self.n_window = min(self.n_window + 1, N)
+        first, self._first_of_scan = self._first_of_scan, False
+        if not first or self.n_window < N:
+            return
+        trace_C = sum(self.nu2[(self.pos + i) % N] for i in range(N)) / N  # oldest first
+        lam = fading_factor(
+            trace_C, self.R[0, 0] + self.R[1, 1], inn.HPHt[0, 0] + inn.HPHt[1, 1], self.bounds[1]
+        )
+        if not math.isfinite(lam):
+            return  # a NaN innovation: update_landmark reports the divergence
+        self.P_inflation = lam
+        self.P = lam * self.P

@@ -63,10 +63,11 @@ class FittedNoiseSpec(FittedSpec):
 
     criterion: ClassVar[str]
     starts: list[Multiplier] = Field(
-        [0.3, 1.0, 3.0],
+        [1.0, 3.0, 10.0],
         min_length=1,
         max_length=10,
-        description="Nelder-Mead starts: multipliers of the scenario's filter_noise sigmas",
+        description="Nelder-Mead starts: multipliers of the scenario's filter_noise sigmas (too"
+        " small a start loses lock and stalls: start at or above the assumed noise)",
     )
     max_evaluations: int = Field(
         300, ge=10, le=100_000, description="objective evaluations per start at most"

@@ -299,7 +299,9 @@ class Scenario(_Strict):
         default_factory=list,
         description="extra (filter, vs) pairs to compare, besides each filter vs ekf and oracle",
     )
-    training: TrainingConfig = TrainingConfig()
+    training: TrainingConfig = Field(
+        TrainingConfig(), description="training runs of the filters fitted before the batch"
+    )
 
     @field_validator("claims", "compare")
     @classmethod

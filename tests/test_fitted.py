@@ -151,7 +151,7 @@ def test_ekf_tuned_is_no_worse_than_its_start_on_the_training_runs():
     fitted = EKFTunedSpec(name="t", kind="ekf-tuned", starts=[1.0], max_evaluations=60).fit(
         training
     )
-    assert fitted["criterion"] == "rmse"
+    assert fitted["criterion"] == "rmse" and fitted["consistency_scale"] > 0
     assert fitted["training"]["rmse_pos"] <= fitted["start"]["rmse_pos"]
     assert fitted["training"]["rmse_pos"] < 0.9 * fitted["start"]["rmse_pos"]
     # NEES is reported beside the RMSE it was tuned for

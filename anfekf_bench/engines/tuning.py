@@ -226,6 +226,29 @@ def _one_start(
     return {"theta": res.x.tolist(), "value": float(res.fun), "evaluations": evaluations}
 
 
+SCALE_RMSE_TOLERANCE = 1.005  # a consistency rescale may cost at most 0.5 % of training RMSE
+
+
+def _consistent_scale(problem: TrainingProblem, sigmas: np.ndarray, at_fit: dict):
+    """The RMSE fixes the sigmas only up to a common factor: scaling every variance by c scales
+    P by c and leaves the gains, hence the estimates, unchanged (but for the gate and P0). Pick
+    the point of that ray whose training ANEES is the state dimension, 3 (ANEES ~ 1/c: two fixed
+    point steps); keep it if the training RMSE stays within SCALE_RMSE_TOLERANCE.
+    Returns (sigmas, their evaluation, the variance factor applied)."""
+    total, best = 1.0, (sigmas, at_fit, 1.0)
+    current, at = sigmas, at_fit
+    for _ in range(3):
+        if not (math.isfinite(at["anees"]) and at["anees"] > 0):
+            break
+        c = at["anees"] / 3.0
+        current = current * math.sqrt(c)
+        total *= c
+        at = problem.evaluate(current)
+        if at["rmse_pos"] <= SCALE_RMSE_TOLERANCE * at_fit["rmse_pos"]:
+            best = (current, at, total)
+    return best
+
+
 def fit_noise(
     problem: TrainingProblem,
     criterion: str,
@@ -250,6 +273,9 @@ def fit_noise(
     best = min(range(len(found)), key=lambda i: found[i]["value"])
     sigmas = np.exp(found[best]["theta"])
     at_fit = problem.evaluate(sigmas)
+    scale = 1.0
+    if criterion == "rmse":
+        sigmas, at_fit, scale = _consistent_scale(problem, sigmas, at_fit)
     at_start = problem.evaluate(np.asarray(start_sigmas, float))
     return {
         "criterion": criterion,
@@ -257,10 +283,15 @@ def fit_noise(
         "training": at_fit,
         "start": at_start,
         "starts": [
-            {"multiplier": m, "value": f["value"], "evaluations": f["evaluations"],
-             "sigmas": np.exp(f["theta"]).tolist()}
+            {
+                "multiplier": m,
+                "value": f["value"],
+                "evaluations": f["evaluations"],
+                "sigmas": np.exp(f["theta"]).tolist(),
+            }
             for m, f in zip(starts, found, strict=True)
         ],  # fmt: skip
+        "consistency_scale": scale,
         "evaluations": int(sum(f["evaluations"] for f in found)) + 2,
         "seconds": round(time.perf_counter() - started, 3),
     }

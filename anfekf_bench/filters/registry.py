@@ -13,6 +13,7 @@ from pydantic import Field
 
 from ..models import Bicycle, control_covariance, measurement_covariance
 from .akhlaghi import AkhlaghiSpec
+from .als import ALSSpec
 from .anfekf import ANFEKFSpec
 from .cm_scale import CMScaleSpec
 from .custom import CustomSpec, entry_point_kinds
@@ -36,6 +37,7 @@ SPECS: tuple[type[FilterSpec], ...] = (
     CustomSpec,
     EKFMLSpec,
     EKFTunedSpec,
+    ALSSpec,
 )
 
 

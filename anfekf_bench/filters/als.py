@@ -22,10 +22,10 @@ and, for an innovation l before k (Phi: the closed-loop transition from after l 
 Every innovation gives the three distinct entries of its lag-0 product and the four of each of
 its products with the `lags` innovations before it: rows linear in theta, each divided by
 sqrt(S_aa S_bb) (the filter's S at the time) so that metres and radians weigh alike. The rows of
-the last `window` innovations are solved by non-negative least squares (scipy.optimize.nnls)
-every `every` scans (end of scan, a Q event); then Qu = diag(qv, qg), R = diag(rr, rb), within
-the common bounds. Which innovations feed it: `adapt_from` (all, with K = 0 for a rejected one;
-or only those the gate accepted).
+the last `window` innovations (once `warmup` of them exist) are solved by non-negative least
+squares (scipy.optimize.nnls) every `every` scans (end of scan, a Q event); then
+Qu = diag(qv, qg), R = diag(rr, rb), within the common bounds. Which innovations feed it:
+`adapt_from` (all, with K = 0 for a rejected one; or only those the gate accepted).
 
 The rule is written once as plain functions on arrays (`predict_sensitivities`,
 `update_sensitivities`, `innovation_rows`, `solve_variances`), tested on a linear model where
@@ -122,7 +122,10 @@ class ALSSpec(AdaptiveSpec):
     window: int = Field(
         300, ge=10, le=100_000, description="innovations whose rows the least squares uses"
     )
-    every: int = Field(20, ge=1, le=100_000, description="scans between re-identifications")
+    every: int = Field(5, ge=1, le=100_000, description="scans between re-identifications")
+    warmup: int = Field(
+        30, ge=1, le=100_000, description="innovations needed before the first identification"
+    )
 
     def build(self, ctx: FilterContext) -> ALSEKF:
         return ALSEKF(**ctx.kwargs(), params=self)
@@ -195,7 +198,7 @@ class ALSEKF(AdaptiveEKF):
         self.scans += 1
         if not self.params.adaptation or self.scans % self.params.every:
             return
-        if len(self.rows) < self.params.window:
+        if len(self.rows) < min(self.params.warmup, self.params.window):
             return
         A = np.vstack([a for a, _ in self.rows])
         b = np.concatenate([b for _, b in self.rows])

@@ -255,6 +255,14 @@ def check_named_filters(items: list, names: set[str]) -> list:
     return items
 
 
+class TrainingConfig(_Strict):
+    """Training runs for the filters fitted before the batch (`ekf-ml`, `ekf-tuned`: see
+    anfekf_bench.training). Their seeds come from a branch of the root seed that no evaluation
+    run draws from; unused when no filter of the scenario is fitted."""
+
+    runs: int = Field(20, ge=1, le=10_000, description="training runs simulated for fitting")
+
+
 class Scenario(_Strict):
     """One scenario file."""
 
@@ -290,6 +298,9 @@ class Scenario(_Strict):
     compare: list[tuple[str, str]] = Field(
         default_factory=list,
         description="extra (filter, vs) pairs to compare, besides each filter vs ekf and oracle",
+    )
+    training: TrainingConfig = Field(
+        TrainingConfig(), description="training runs of the filters fitted before the batch"
     )
 
     @field_validator("claims", "compare")

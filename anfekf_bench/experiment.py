@@ -69,6 +69,7 @@ from .storage import (
     write_parquet,
     write_run_file,
 )
+from .training import fit_filters
 
 __all__ = ["FolderBusy", "OutputExists", "PlanError", "RUNS_DIR", "execute", "make_plan"]
 
@@ -119,6 +120,22 @@ class Plan:
             "scenario": self.scenario.model_dump(mode="json", exclude={"jobs", "runs", "backend"}),
             "seed": self.seed,
             "engine": self.engine,
+            "landmarks": self.world.landmarks.tolist(),
+            "waypoints": self.world.waypoints.tolist(),
+            "code": code_version(),
+        }
+        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+
+    def training_fingerprint(self, spec) -> str:
+        """Hash of everything a fitted filter's fit depends on (anfekf_bench.training): its own
+        parameters, the scenario's world, noise, start, gate, recording and training settings,
+        the seed and the code; not the evaluation runs, the other filters or the engine."""
+        fields = {"world", "true_noise", "filter_noise", "p0", "gate_probability", "training",
+                  "record_every"}  # fmt: skip
+        doc = {
+            "filter": spec.model_dump(mode="json", exclude={"name"}),
+            "scenario": self.scenario.model_dump(mode="json", include=fields),
+            "seed": self.seed,
             "landmarks": self.world.landmarks.tolist(),
             "waypoints": self.world.waypoints.tolist(),
             "code": code_version(),
@@ -498,9 +515,18 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result):
         if on_result is not None:
             on_result(result)
 
+    # Filters fitted on training runs: fitted (or read from the run store's cache) here, once;
+    # the workers get the fitted values in their copy of the scenario.
+    fits = fit_filters(plan, target / RUNS_DIR)
+    if fits.records:
+        action += "; " + ", ".join(
+            f"{name} {'read from the cache' if r['cached'] else 'fitted'}"
+            f" ({r['training_runs']} training runs)"
+            for name, r in fits.records.items()
+        )
     results = dict(done)
     batch = run_batch(
-        plan.scenario,
+        fits.scenario,
         plan.world,
         runs=plan.runs,
         seed=plan.seed,
@@ -541,6 +567,7 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result):
             "control_steps": ordered[0]["control_steps"],
         },
         "resumed_runs": sorted(done),
+        "training": fits.records,
         "versions": package_versions(),
         "machine": machine_info(),
         "wall_time_s": round(time.time() - started, 3),

@@ -5,12 +5,12 @@ dtypes and meaning, divergence included), so metrics, storage and the report are
 kernels (`kernels.py`) are compiled by numba when it is installed (the `fast` extra) and run as
 plain Python otherwise; `JIT` says which.
 
-What it runs (`supports`): the EKF, the oracle EKF and the ANFEKF with any of its parameters
-(adapt R, Q or RQ, adaptation and learning on or off, adapt_from, bounds, window, rates, ...),
-the multiple-model banks `mmae` and `imm` with any of theirs (`kernels.run_bank_kernel`) and
-the fading-factor EKF (`kernels.run_fading_kernel`), on the bicycle motion model. Anything
-else (a user's own filter, the other adaptive baselines) is not implemented here: the caller
-runs it on filterpy.
+What it runs (`supports`): the EKF, the oracle EKF, ekf-ml and ekf-tuned (fitted noise), the
+ANFEKF with any of its parameters (adapt R, Q or RQ, adaptation and learning on or off,
+adapt_from, bounds, window, rates, ...), the multiple-model banks `mmae` and `imm` with any of
+theirs (`kernels.run_bank_kernel`) and the fading-factor EKF (`kernels.run_fading_kernel`), on the
+bicycle motion model. Anything else (a user's own filter, the other adaptive baselines) is not
+implemented here: the caller runs it on filterpy.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from ..filters.anfekf import ANFEKFSpec
 from ..filters.bank import IMMSpec, MMAESpec, hypotheses
 from ..filters.ekf import EKFSpec, OracleSpec
 from ..filters.fading import FadingSpec
+from ..filters.fitted import EKFMLSpec, EKFTunedSpec
 from ..filters.spec import FilterContext, FilterSpec
 from ..models import Bicycle
 from ..sources.simulator import RunData
@@ -35,8 +36,9 @@ from . import kernels as _jit_kernels
 JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 
 # Exactly these spec classes (a subclass may build a different filter).
+# ekf-ml and ekf-tuned are the plain EKF with fitted noise (filters.fitted).
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
-    EKFSpec, OracleSpec, ANFEKFSpec, MMAESpec, IMMSpec, FadingSpec,
+    EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
 )  # fmt: skip
 
 

@@ -13,12 +13,14 @@ from pydantic import Field
 
 from ..models import Bicycle, control_covariance, measurement_covariance
 from .akhlaghi import AkhlaghiSpec
+from .als import ALSSpec
 from .anfekf import ANFEKFSpec
 from .bank import IMMSpec, MMAESpec
 from .cm_scale import CMScaleSpec
 from .custom import CustomSpec, entry_point_kinds
 from .ekf import EKFSpec, OracleSpec, RobotEKF, gate_threshold
 from .fading import FadingSpec
+from .fitted import EKFMLSpec, EKFTunedSpec
 from .iae import IAESpec
 from .sage_husa import SageHusaSpec
 from .spec import FilterContext, FilterSpec
@@ -39,6 +41,9 @@ SPECS: tuple[type[FilterSpec], ...] = (
     IMMSpec,
     FadingSpec,
     SWVBSpec,
+    ALSSpec,
+    EKFMLSpec,
+    EKFTunedSpec,
     CustomSpec,
 )
 
@@ -68,9 +73,11 @@ def expand_entry_points(item: object) -> object:
 
 def filter_context(spec: FilterSpec, scenario, world) -> FilterContext:
     """What `spec`'s filter starts from in a run of `scenario` on the simulated `world`: the
-    oracle gets the true noise, every other filter the assumed one."""
+    oracle gets the true noise, a filter fitted on training runs its fitted noise
+    (filters.fitted), every other filter the assumed one."""
     noise = scenario.true_noise if spec.uses_true_noise else scenario.filter_noise
-    sv, sg, sr, sb = noise.radians()
+    fitted = spec.fitted_sigmas() if spec.fitted_on_training else None
+    sv, sg, sr, sb = noise.radians() if fitted is None else fitted
     return FilterContext(
         x0=world.x0,
         P0=np.eye(3) * scenario.p0,

@@ -47,6 +47,7 @@ class FilterSpec(StrictModel):
     name: str = Field(min_length=1)
     kind: str
     uses_true_noise: ClassVar[bool] = False  # the oracle is given the TRUE Q and R
+    fitted_on_training: ClassVar[bool] = False  # fitted before the batch (filters.fitted)
 
     def build(self, ctx: FilterContext):
         """A fresh filter for one run."""

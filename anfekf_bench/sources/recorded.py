@@ -57,7 +57,12 @@ class TunedEKFSpec(FilterSpec):
         return RobotEKF(**ctx.kwargs())
 
 
-REAL_SPECS: tuple[type[FilterSpec], ...] = (*SPECS, TunedEKFSpec)
+# A recorded log has no training runs of its own: the simulated scenarios' fitted kinds
+# (filters.fitted: ekf-ml, and their ekf-tuned) give way to this grid-searched ekf-tuned.
+REAL_SPECS: tuple[type[FilterSpec], ...] = (
+    *(s for s in SPECS if not s.fitted_on_training),
+    TunedEKFSpec,
+)
 REAL_KINDS = tuple(s.model_fields["kind"].annotation.__args__[0] for s in REAL_SPECS)
 RealFilterSpec = Annotated[Union[REAL_SPECS], Field(discriminator="kind")]  # noqa: UP007
 

@@ -1,0 +1,112 @@
+"""Filters fitted on training runs before the batch (SPEC 13): `ekf-ml` and, on simulated
+scenarios, `ekf-tuned`.
+
+A `FittedSpec` declares `fitted_on_training`: the experiment (anfekf_bench.training) simulates
+the scenario's training runs, from seeds disjoint from every evaluation run, calls `fit` once,
+caches what it returns, and hands every worker a copy of the spec carrying those values
+(`with_fit`); `filter_context` then builds the filter from them. A later learned filter reuses
+the same mechanism by subclassing `FittedSpec` with its own `fit` and `build`.
+
+Both kinds here fit the four sigmas (sigma_v, sigma_gamma, sigma_range, sigma_bearing) of a
+fixed EKF (engines.tuning): `ekf-ml` maximises the innovation log-likelihood (no truth),
+`ekf-tuned` minimises the position RMSE against the truth of the training runs.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import Field, PrivateAttr
+
+from .ekf import RobotEKF
+from .spec import FilterContext, FilterSpec
+
+Multiplier = Annotated[float, Field(gt=0, le=1e3, allow_inf_nan=False)]
+
+
+class FilterNotFitted(RuntimeError):
+    """A fitted filter was asked to run before its training (a bug, not a user error)."""
+
+
+class FittedSpec(FilterSpec):
+    """A filter kind whose parameters are fitted on the scenario's training runs."""
+
+    fitted_on_training: ClassVar[bool] = True
+    _fit: dict | None = PrivateAttr(default=None)
+
+    def fit(self, training: Any) -> dict:
+        """Fit on `training` (anfekf_bench.training.TrainingSet); a JSON-able dict that
+        `with_fit` accepts and that the manifest records (with the cost)."""
+        raise NotImplementedError
+
+    def with_fit(self, fitted: dict) -> FittedSpec:
+        """A copy of this spec that builds its filter from `fitted`."""
+        spec = self.model_copy()
+        spec._fit = dict(fitted)
+        return spec
+
+    def fitted_sigmas(self) -> tuple[float, float, float, float] | None:
+        """The fitted (sv, sg, sr, sb) in radians the filter starts from, or None: the
+        scenario's assumed noise (a kind that fits something else)."""
+        return None
+
+    @property
+    def fitted(self) -> dict:
+        if self._fit is None:
+            raise FilterNotFitted(f"filter {self.name!r} ({self.kind}) has not been fitted")
+        return self._fit
+
+
+class FittedNoiseSpec(FittedSpec):
+    """A fixed EKF whose four sigmas are fitted (`engines.tuning.fit_noise`)."""
+
+    criterion: ClassVar[str]
+    starts: list[Multiplier] = Field(
+        [1.0, 3.0, 10.0],
+        min_length=1,
+        max_length=10,
+        description="Nelder-Mead starts: multipliers of the scenario's filter_noise sigmas (too"
+        " small a start loses lock and stalls: start at or above the assumed noise)",
+    )
+    max_evaluations: int = Field(
+        300, ge=10, le=100_000, description="objective evaluations per start at most"
+    )
+
+    def fit(self, training: Any) -> dict:
+        from ..engines.tuning import SIGMA_NAMES, TrainingProblem, fit_noise
+
+        scenario = training.scenario
+        problem = TrainingProblem.of(
+            training.runs, training.world, training.P0, training.gate, scenario.record_every
+        )
+        found = fit_noise(
+            problem, self.criterion, np.array(scenario.filter_noise.radians()),
+            list(self.starts), self.max_evaluations, jobs=training.jobs,
+        )  # fmt: skip
+        found["sigmas_rad"] = dict(zip(SIGMA_NAMES, found.pop("sigmas"), strict=True))
+        return found
+
+    def fitted_sigmas(self) -> tuple[float, float, float, float]:
+        """(sv, sg, sr, sb) in radians, as `NoiseSigmas.radians` gives them."""
+        s = self.fitted["sigmas_rad"]
+        return (s["sigma_v"], s["sigma_gamma"], s["sigma_range"], s["sigma_bearing"])
+
+    def build(self, ctx: FilterContext) -> RobotEKF:
+        return RobotEKF(**ctx.kwargs())
+
+
+class EKFMLSpec(FittedNoiseSpec):
+    """The EKF with the sigmas that maximise the innovation log-likelihood of the training runs
+    (no truth): the fair "tuned without truth" reference."""
+
+    kind: Literal["ekf-ml"]
+    criterion: ClassVar[str] = "likelihood"
+
+
+class EKFTunedSpec(FittedNoiseSpec):
+    """The EKF with the sigmas that minimise the position RMSE of the training runs (truth):
+    the fair "tuned with truth" reference of a simulated scenario."""
+
+    kind: Literal["ekf-tuned"]
+    criterion: ClassVar[str] = "rmse"

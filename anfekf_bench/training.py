@@ -1,0 +1,133 @@
+"""Training runs for the filters fitted before the batch (filters.fitted: `ekf-ml`, `ekf-tuned`).
+
+1. **Seeds.** Evaluation run i draws from `SeedSequence(seed).spawn(runs)[i]`, whose spawn key is
+   (i,) with i < MAX_RUNS. Training run j draws from `training_seeds(seed, n)[j]`: the children
+   of `SeedSequence(seed, spawn_key=(TRAINING_BRANCH,))`, spawn key (TRAINING_BRANCH, j). No
+   evaluation run can have that key (a key of length 2; and TRAINING_BRANCH itself is beyond any
+   run index), so the two sets of streams are disjoint by construction, whatever `runs` is.
+2. **Fit.** The training runs are simulated in this process (the scenario's world and true
+   noise, `training.runs` of them) once per batch, and each fitted filter's `fit` is called on
+   them (the fitting code decides its engine; the built-in kinds use the fast engine's kernels).
+3. **Cache.** What a fit returns is saved as `<out>/<name>/.runs/fit-<fingerprint>.json`, keyed
+   by `Plan.training_fingerprint(spec)` (the filter's parameters, the scenario fields a fit
+   depends on, the seed, the training settings, the code version): a resumed batch reuses it
+   (no refit); --force and a completed batch remove it with the rest of the run store.
+4. **Hand out.** Every evaluation run gets a copy of the spec carrying the fitted values
+   (`FittedSpec.with_fit`): the workers never fit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .config import Scenario, World
+from .filters.ekf import gate_threshold
+from .filters.spec import FilterSpec
+from .runner import simulate
+from .sources.simulator import RunData, world_path
+from .storage import ResultsError, read_json, write_json
+
+TRAINING_BRANCH = 2**32 - 1  # spawn key of the training branch of the root seed
+FIT_FILE = "fit-{fingerprint}.json"
+FIT_FORMAT = "anfekf-bench fit v1"
+
+
+def training_seeds(seed: int, runs: int) -> list[np.random.SeedSequence]:
+    """The training runs' seeds: the training branch's children (never an evaluation run's)."""
+    return np.random.SeedSequence(seed, spawn_key=(TRAINING_BRANCH,)).spawn(runs)
+
+
+@dataclass
+class TrainingSet:
+    """What a fitted filter's `fit` gets: the scenario, its world, the simulated training runs,
+    their seeds, the filters' start covariance and gate, and the worker processes it may use."""
+
+    scenario: Scenario
+    world: World
+    runs: list[RunData]
+    seeds: list[np.random.SeedSequence]
+    jobs: int = 1
+    P0: np.ndarray = field(init=False)
+    gate: float | None = field(init=False)
+
+    def __post_init__(self):
+        self.P0 = np.eye(3) * self.scenario.p0
+        self.gate = gate_threshold(self.scenario.gate_probability)
+
+
+def simulate_training(scenario: Scenario, world: World, seed: int, jobs: int = 1) -> TrainingSet:
+    """The scenario's training runs (see the module doc)."""
+    seeds = training_seeds(seed, scenario.training.runs)
+    path = world_path(world)
+    runs = [simulate(scenario, world, s, path) for s in seeds]
+    return TrainingSet(scenario=scenario, world=world, runs=runs, seeds=seeds, jobs=jobs)
+
+
+def fitted_filters(scenario: Scenario) -> list[FilterSpec]:
+    return [f for f in scenario.filters if f.fitted_on_training]
+
+
+@dataclass
+class Fits:
+    """The scenario whose fitted filters carry their values, and what the manifest records."""
+
+    scenario: Scenario
+    records: dict  # filter name -> {kind, fingerprint, cached, training_runs, fitted}
+    fitted_now: int  # fits computed by this call (not read from the cache)
+
+
+def _read_cached(path: Path, fingerprint: str) -> dict | None:
+    try:
+        doc = read_json(path)
+    except ResultsError:
+        return None
+    if (
+        not isinstance(doc, dict)
+        or doc.get("format") != FIT_FORMAT
+        or doc.get("fingerprint") != fingerprint
+        or not isinstance(doc.get("fitted"), dict)
+    ):
+        return None
+    return doc["fitted"]
+
+
+def fit_filters(plan, cache_dir: Path | None) -> Fits:
+    """Fit every fitted filter of `plan` (an experiment.Plan) once, or read its fit from
+    `cache_dir` (None: no cache); see the module doc."""
+    scenario = plan.scenario
+    todo = fitted_filters(scenario)
+    if not todo:
+        return Fits(scenario=scenario, records={}, fitted_now=0)
+    training: TrainingSet | None = None
+    records, specs, fitted_now = {}, {}, 0
+    for spec in todo:
+        fingerprint = plan.training_fingerprint(spec)
+        path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fingerprint)
+        fitted = None if path is None else _read_cached(path, fingerprint)
+        cached = fitted is not None
+        if fitted is None:
+            if training is None:
+                training = simulate_training(scenario, plan.world, plan.seed, plan.jobs)
+            fitted = spec.fit(training)
+            fitted_now += 1
+            if path is not None:
+                doc = {"format": FIT_FORMAT, "fingerprint": fingerprint, "fitted": fitted}
+                write_json(path, doc)
+        specs[spec.name] = spec.with_fit(fitted)
+        records[spec.name] = {
+            "kind": spec.kind,
+            "fingerprint": fingerprint,
+            "cached": cached,
+            "training_runs": scenario.training.runs,
+            "training_seed_branch": [plan.seed, TRAINING_BRANCH],
+            "fitted": fitted,
+        }
+    filters = [specs.get(f.name, f) for f in scenario.filters]
+    return Fits(
+        scenario=scenario.model_copy(update={"filters": filters}),
+        records=records,
+        fitted_now=fitted_now,
+    )

@@ -12,6 +12,7 @@ import numpy as np
 from pydantic import Field
 
 from ..models import Bicycle, control_covariance, measurement_covariance
+from ..schedule import ScheduledNoise
 from .akhlaghi import AkhlaghiSpec
 from .anfekf import ANFEKFSpec
 from .cm_scale import CMScaleSpec
@@ -64,6 +65,10 @@ def filter_context(spec: FilterSpec, scenario, world) -> FilterContext:
     oracle gets the true noise, every other filter the assumed one."""
     noise = scenario.true_noise if spec.uses_true_noise else scenario.filter_noise
     sv, sg, sr, sb = noise.radians()
+    schedule = getattr(scenario, "noise_schedule", None)
+    true_noise = None
+    if spec.uses_true_noise and schedule is not None:  # SPEC 14: the true noise of every step
+        true_noise = ScheduledNoise(schedule, noise.radians(), world.T)
     return FilterContext(
         x0=world.x0,
         P0=np.eye(3) * scenario.p0,
@@ -72,6 +77,7 @@ def filter_context(spec: FilterSpec, scenario, world) -> FilterContext:
         model=Bicycle(world.T, world.B),
         dt=world.T,
         gate=gate_threshold(scenario.gate_probability),
+        true_noise=true_noise,
     )
 
 

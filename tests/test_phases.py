@@ -138,3 +138,67 @@ def test_recovery_holds_for_the_hold_time_only():
     # exactly 1.2x is inside the band; never inside: censored at the phase's length
     assert recovery_time(t, 1.2 * oracle, oracle, 0.0, 30.0) == (0.0, False)
     assert recovery_time(t, 1.3 * oracle, oracle, 0.0, 30.0) == (30.0, True)
+
+
+# ---------------------------------------------------------------------------------------------
+# A scheduled batch end to end: its tables, manifest and report
+
+
+@pytest.mark.slow
+def test_scheduled_batch_writes_phases_and_the_report(tmp_path):
+    import json
+
+    import pyarrow.parquet as pq
+
+    from anfekf_bench.config import load_scenario
+    from anfekf_bench.experiment import execute, make_plan
+    from anfekf_bench.report.report import write_report
+
+    from .conftest import small_scenario, write_scenario
+
+    doc = small_scenario(
+        name="sched",
+        runs=3, record_every=8, engine="fast",
+        filter_noise={"sigma_range": 0.1, "sigma_bearing_deg": 1.0},
+        filters=[
+            {"name": "ekf", "kind": "ekf"},
+            {"name": "anfekf", "kind": "anfekf", "adapt": "R"},
+            {"name": "sage-husa", "kind": "sage-husa", "adapt": "R"},
+            {"name": "ekf-oracle", "kind": "ekf-oracle"},
+        ],
+        noise_schedule={
+            "changes": [{"channels": ["R"], "factor": 25, "start_s": 6, "end_s": 12}],
+            "blackouts": [{"start_s": 15, "end_s": 17}],
+        },
+    )  # fmt: skip
+    path = write_scenario(tmp_path / "sched.yaml", doc)
+    records, target = execute(make_plan(*load_scenario(path), None, None, 1), tmp_path / "out")
+    phases = pd.read_parquet(target / "phases.parquet")
+    assert list(phases["t_start"].unique()) == [0.0, 6.0, 12.0, 15.0, 17.0]
+    assert len(phases) == 4 * 5
+    units = json.loads(pq.read_metadata(target / "phases.parquet").metadata[b"anfekf.units"])
+    assert units["recovery_s"] == "s" and units["rmse_pos"] == "m"
+    assert all("track_R_rr" in r for r in records)
+    oracle = next(r for r in records if r["filter"] == "ekf-oracle")
+    assert oracle["track_R_rr"] == pytest.approx(0.0, abs=1e-12)
+    manifest = json.loads((target / "manifest.json").read_text())
+    assert manifest["engines"] == {
+        "ekf": "fast", "anfekf": "fast", "sage-husa": "filterpy", "ekf-oracle": "filterpy",
+    }  # fmt: skip
+    report = write_report([tmp_path / "out"], tmp_path / "report", html=False)
+    names = {p.name for p in report.files}
+    assert {"sched_changes.png", "sched_variances.png"} <= names
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert "**Per phase**" in text and "recovery [s]" in text
+
+
+def test_constant_noise_batch_has_no_phases(tmp_path):
+    from anfekf_bench.config import load_scenario
+    from anfekf_bench.experiment import execute, make_plan
+
+    from .conftest import small_scenario, write_scenario
+
+    path = write_scenario(tmp_path / "plain.yaml", small_scenario(runs=2, record_every=8))
+    records, target = execute(make_plan(*load_scenario(path), None, None, 1), tmp_path / "out")
+    assert not (target / "phases.parquet").exists()
+    assert not any(k.startswith("track_") for r in records for k in r)

@@ -50,13 +50,19 @@ def _window_ok(start: float, end: float | None, what: str) -> None:
 class NoiseChange(StrictModel):
     """A variance factor on some channels, as a step or a ramp (see the module docstring)."""
 
-    channels: list[Channel] = Field(min_length=1, max_length=6)
+    channels: list[Channel] = Field(
+        min_length=1,
+        max_length=6,
+        description="range, bearing, speed, steering; R (range and bearing), Qu (both controls)",
+    )
     factor: Factor = Field(description="variance factor (4: the standard deviation doubles)")
-    start_s: Seconds
+    start_s: Seconds = Field(description="when the change starts [s]")
     end_s: Seconds | None = Field(
         None, description="step: back to 1 here (null: never); ramp: the factor is reached here"
     )
-    shape: Literal["step", "ramp"] = "step"
+    shape: Literal["step", "ramp"] = Field(
+        "step", description="step: the factor on [start_s, end_s); ramp: linear from 1 to it"
+    )
 
     @model_validator(mode="after")
     def _valid_window(self) -> NoiseChange:
@@ -81,7 +87,9 @@ class NoiseChange(StrictModel):
 class Outliers(StrictModel):
     """Measurement outliers: a contaminated Gaussian or Student-t noise (module docstring)."""
 
-    model: Literal["contaminated", "student_t"]
+    model: Literal["contaminated", "student_t"] = Field(
+        description="contaminated Gaussian (probability, variance_factor) or Student-t (dof)"
+    )
     probability: Annotated[float, Field(gt=0, le=1)] | None = Field(
         None, description="contaminated: share of landmark measurements that are outliers"
     )
@@ -91,9 +99,11 @@ class Outliers(StrictModel):
     dof: Annotated[float, Field(gt=2, le=1e6, allow_inf_nan=False)] | None = Field(
         None, description="student_t: degrees of freedom (> 2, so that the variance exists)"
     )
-    channels: list[Literal["range", "bearing", "R"]] = Field(["R"], min_length=1, max_length=3)
-    start_s: Seconds = 0.0
-    end_s: Seconds | None = None
+    channels: list[Literal["range", "bearing", "R"]] = Field(
+        ["R"], min_length=1, max_length=3, description="the measurement components hit"
+    )
+    start_s: Seconds = Field(0.0, description="outliers from this time [s]")
+    end_s: Seconds | None = Field(None, description="until this time [s] (null: the run's end)")
 
     @model_validator(mode="after")
     def _parameters_of_the_model(self) -> Outliers:
@@ -129,8 +139,8 @@ class Outliers(StrictModel):
 class Blackout(StrictModel):
     """No landmark measurement at all on [start_s, end_s)."""
 
-    start_s: Seconds
-    end_s: Seconds
+    start_s: Seconds = Field(description="no measurement from this time [s]")
+    end_s: Seconds = Field(description="until this time [s] (exclusive)")
 
     @model_validator(mode="after")
     def _valid_window(self) -> Blackout:
@@ -141,9 +151,15 @@ class Blackout(StrictModel):
 class NoiseSchedule(StrictModel):
     """The scenario's `noise_schedule`: changes, outliers and blackouts of the TRUE noise."""
 
-    changes: list[NoiseChange] = Field(default_factory=list, max_length=MAX_ITEMS)
-    outliers: Outliers | None = None
-    blackouts: list[Blackout] = Field(default_factory=list, max_length=MAX_ITEMS)
+    changes: list[NoiseChange] = Field(
+        default_factory=list,
+        max_length=MAX_ITEMS,
+        description="variance factors of R / Qu channels over time (steps and ramps; multiply)",
+    )
+    outliers: Outliers | None = Field(None, description="measurement outliers")
+    blackouts: list[Blackout] = Field(
+        default_factory=list, max_length=MAX_ITEMS, description="intervals without any landmark"
+    )
 
     @model_validator(mode="after")
     def _not_empty(self) -> NoiseSchedule:

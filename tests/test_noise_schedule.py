@@ -350,3 +350,14 @@ def test_every_shipped_changing_config_loads():
         assert scenario.noise_schedule is not None
         kinds = {f.kind for f in scenario.filters}
         assert {"ekf", "ekf-oracle", "anfekf", "cm-scale", "sage-husa", "vb-r", "vbakf"} <= kinds
+
+
+def test_a_sweep_can_vary_the_schedule():
+    from anfekf_bench.sweeps import expand
+
+    doc = small_scenario(
+        noise_schedule={"changes": [{"channels": ["R"], "factor": 4, "start_s": 5}]},
+        sweep={"axes": [{"field": "noise_schedule.changes.0.factor", "values": [2, 8, 32]}]},
+    )
+    cells = expand(parse_scenario(doc), Path("sweep.yaml"))
+    assert [c.scenario.noise_schedule.changes[0].factor for c in cells] == [2, 8, 32]

@@ -4,6 +4,7 @@ recomputed by hand on a made-up trace, and the tables a scheduled batch writes."
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pandas as pd
@@ -202,3 +203,17 @@ def test_constant_noise_batch_has_no_phases(tmp_path):
     records, target = execute(make_plan(*load_scenario(path), None, None, 1), tmp_path / "out")
     assert not (target / "phases.parquet").exists()
     assert not any(k.startswith("track_") for r in records for k in r)
+
+
+def test_a_phase_without_recorded_steps_has_no_metrics():
+    """Changes 0.1 s apart, recorded every 0.2 s: the phase between them holds no step."""
+    schedule = NoiseSchedule.model_validate(
+        {"changes": [{"channels": ["R"], "factor": 4, "start_s": 5.01, "end_s": 5.11}]}
+    )
+    steps, _ = made_up_steps()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        table = phases_frame(steps, schedule, SIGMAS, "oracle")
+    empty = table[table["t_start"] == 5.01]
+    assert len(empty) == 2 and empty["rmse_pos"].isna().all() and empty["runs"].isna().all()
+    assert table[table["t_start"] == 5.11]["rmse_pos"].notna().all()

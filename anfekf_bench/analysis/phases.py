@@ -121,6 +121,10 @@ def phases_frame(
             both = both & ~arrays[oracle]["diverged"]
         for p, ((start, end), m) in enumerate(zip(bounds, masks, strict=True)):
             row = {"scenario": scenario, "filter": name, "phase": p, "t_start": start, "t_end": end}
+            if not m.any():  # changes closer than the recording interval: nothing recorded
+                row.update(dict.fromkeys(PHASE_COLUMNS[5:], float("nan")), recovery_censored=False)
+                rows.append(row)
+                continue
             row.update(summarize_filter(a["pos_err"][:, m], a["heading_err"][:, m],
                                         a["nees"][:, m], a["diverged"]))  # fmt: skip
             recovery, censored = float("nan"), False

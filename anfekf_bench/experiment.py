@@ -582,7 +582,8 @@ def result_tables(plan: Plan, ordered: list[dict]) -> ResultTables:
     if schedule is not None:  # SPEC 14: per-phase metrics, recovery and tracking errors
         sigmas = plan.scenario.true_noise.radians()
         oracles = [f.name for f in plan.scenario.filters if f.kind == "ekf-oracle"]
-        phases = phases_frame(steps, schedule, sigmas, oracles[0] if oracles else None)
+        oracle = oracles[0] if oracles else None
+        phases = phases_frame(steps, schedule, sigmas, oracle, seed=plan.seed)
         tracking = summary_tracking(steps, schedule, sigmas)
         for record in summary:
             record.update(tracking[record["filter"]])

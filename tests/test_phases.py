@@ -101,6 +101,15 @@ def test_phases_table_recomputed_by_hand():
         assert row["track_R_bb"] == pytest.approx(math.log(4.0) if phase == 1 else 0.0)
         assert row["track_Q_vv"] == pytest.approx(math.log(2.0), abs=1e-12)
     f = table[table["filter"] == "f"].set_index("phase")
+    for phase in range(3):  # over the runs both kept (0 and 1), the phase's RMSE ratio
+        at = np.flatnonzero(PHASE_OF == phase)
+        curve = {name: [math.sqrt(sum(raw[name, r]["pos"][i] ** 2 for r in (0, 1)) / 2)
+                        for i in at] for name in ("f", "oracle")}  # fmt: skip
+        expected = sum(curve["f"]) / sum(curve["oracle"])
+        row = f.loc[phase]
+        assert row["rmse_vs_oracle"] == pytest.approx(expected, rel=1e-12)
+        assert row["rmse_vs_oracle_lo"] <= row["rmse_vs_oracle"] <= row["rmse_vs_oracle_hi"]
+    assert table[table["filter"] == "oracle"]["rmse_vs_oracle"].isna().all()
     assert math.isnan(f.loc[0, "recovery_s"])  # no change before the first phase
     assert f.loc[1, "recovery_s"] == pytest.approx(6.2 - 4.0)
     assert not f.loc[1, "recovery_censored"]

@@ -138,7 +138,8 @@ def variances_figure(sc: ScenarioData, schedule: NoiseSchedule) -> Figure | None
 
 
 PHASES_CAPTION = (
-    "Per phase (between change points): position RMSE [m], ANEES and share of steps with NEES in"
+    "Per phase (between change points): position RMSE [m], its ratio to the oracle's over the"
+    " phase (paired over runs, 95 % bootstrap interval), ANEES and share of steps with NEES in"
     " the 95 % bounds; *recovery*: seconds after the phase's change until the filter's position"
     f" RMSE is within {RECOVERY_TOLERANCE:g}x the oracle's for {RECOVERY_HOLD_S:g} s (or to the"
     " phase's end), '>' when it never is (censored at the phase's length); *track R* / *track Q*:"
@@ -149,8 +150,8 @@ PHASES_CAPTION = (
 
 def phases_table(phases: pd.DataFrame) -> TableBlock:
     """The per-phase table of report.md, from phases.parquet."""
-    header = ["filter", "phase [s]", "RMSE pos", "ANEES", "in bounds", "recovery [s]",
-              "track R", "track Q"]  # fmt: skip
+    header = ["filter", "phase [s]", "RMSE pos", "RMSE / oracle", "ANEES", "in bounds",
+              "recovery [s]", "track R", "track Q"]  # fmt: skip
     rows = []
     for _, r in phases.iterrows():
         if not math.isfinite(r["recovery_s"]):
@@ -159,14 +160,21 @@ def phases_table(phases: pd.DataFrame) -> TableBlock:
             recovery = (">" if r["recovery_censored"] else "") + format_sig(r["recovery_s"])
         track_r = float(np.mean([r["track_R_rr"], r["track_R_bb"]]))
         track_q = float(np.mean([r["track_Q_vv"], r["track_Q_gg"]]))
+        ratio = float(r.get("rmse_vs_oracle", math.nan))
+        if math.isfinite(ratio):
+            lo, hi = float(r["rmse_vs_oracle_lo"]), float(r["rmse_vs_oracle_hi"])
+            ratio_text = f"{format_sig(ratio)} [{format_sig(lo)}, {format_sig(hi)}]"
+        else:
+            ratio_text = "-"
         rows.append([
             str(r["filter"]),
             f"{r['t_start']:g}-{r['t_end']:.4g}",
             Cell(format_sig(r["rmse_pos"]), r["rmse_pos"]),
+            Cell(ratio_text, ratio),
             Cell(format_sig(r["anees"]), r["anees"]),
             Cell(format_share(r["nees_in_bounds"]), r["nees_in_bounds"]),
             Cell(recovery, r["recovery_s"]),
             Cell(format_sig(track_r, 2), track_r),
             Cell(format_sig(track_q, 2), track_q),
         ])  # fmt: skip
-    return TableBlock(header, rows, numeric=[False, False, *[True] * 6], caption=PHASES_CAPTION)
+    return TableBlock(header, rows, numeric=[False, False, *[True] * 7], caption=PHASES_CAPTION)

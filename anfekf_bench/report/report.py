@@ -958,6 +958,8 @@ def build_document(
             continue
         for kind in ("rmse", "nees", "noise", "map"):
             block = figures[sc.slug].get(kind)
+            if block is None and kind == "noise" and sc.schedule is not None:
+                continue  # drawn against the true schedule below ("variances")
             if block is None:
                 doc.add(Paragraph(f"*{CAPTIONS[kind].split(' (')[0]}: no filter of this scenario"
                                   " adapts R or Q.*"))  # fmt: skip
@@ -1043,7 +1045,8 @@ def write_report(
                             label + caption(sc, "rmse"))  # fmt: skip
         made["nees"] = save(plots.nees_figure(sc), figure_name(sc.slug, "nees", fmt),
                             label + caption(sc, "nees"))  # fmt: skip
-        if sc.adapted_columns:
+        # With a schedule the true noise is not one line: the variances figure draws it instead.
+        if sc.adapted_columns and sc.schedule is None:
             made["noise"] = save(plots.noise_figure(sc), figure_name(sc.slug, "noise", fmt),
                                  label + caption(sc, "noise"))  # fmt: skip
         made["map"] = save(plots.map_figure(sc), figure_name(sc.slug, "map", fmt),

@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 ANFEKF := $(VENV)/bin/anfekf
 OUT    ?= results
 
-.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps real
+.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps real changing
 
 setup: $(VENV)/.installed
 
@@ -63,6 +63,10 @@ zoo: setup
 sweeps: setup
 	$(ANFEKF) run configs/sweeps --out $(OUT)/sweeps --force
 	$(ANFEKF) report $(OUT)/sweeps --out $(OUT)/sweeps/report
+
+changing: setup
+	$(ANFEKF) run configs/changing --out $(OUT)/changing --force
+	$(ANFEKF) report $(OUT)/changing --out $(OUT)/changing/report
 
 real: setup
 	$(ANFEKF) run configs/real --out $(OUT)/real --force

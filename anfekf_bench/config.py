@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import re
+import typing
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -26,6 +27,7 @@ from pydantic import (
 
 from .filters.ekf import EKFSpec
 from .filters.registry import KINDS, SPEC_BY_KIND, AnyFilterSpec, expand_entry_points
+from .schedule import NoiseSchedule
 from .schema import NonNegativeFloat, PositiveFloat, StrictModel
 from .storage import FileProblem, read_regular_bytes, scenario_name_problem
 
@@ -302,6 +304,11 @@ class Scenario(_Strict):
     training: TrainingConfig = Field(
         TrainingConfig(), description="training runs of the filters fitted before the batch"
     )
+    noise_schedule: NoiseSchedule | None = Field(
+        None,
+        description="true noise that changes over time: R/Qu steps and ramps, outliers,"
+        " blackouts (SPEC 14); absent: constant true noise",
+    )
 
     @field_validator("claims", "compare")
     @classmethod
@@ -501,9 +508,16 @@ def _allowed_keys(parent_loc: tuple) -> list[str]:
         field = model.model_fields.get(part)
         if field is None:
             return []
-        ann = field.annotation
-        model = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
+        model = _model_of(field.annotation)
     return sorted(model.model_fields) if model is not None else []
+
+
+def _model_of(ann) -> type[BaseModel] | None:
+    """The one pydantic model an annotation holds (Model, Model | None, list[Model]), or None."""
+    if isinstance(ann, type) and issubclass(ann, BaseModel):
+        return ann
+    models = [m for m in map(_model_of, typing.get_args(ann)) if m is not None]
+    return models[0] if len(models) == 1 else None
 
 
 def parse_scenario(data: object, path: str | Path = "<scenario>") -> Scenario:

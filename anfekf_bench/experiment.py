@@ -31,6 +31,7 @@ import pandas as pd
 from pydantic import ValidationError
 
 from .analysis.comparisons import comparison_pairs, comparisons_frame, evaluate_claims
+from .analysis.phases import phases_frame, summary_tracking
 from .analysis.tables import (
     column_units,
     parquet_frame,
@@ -47,6 +48,7 @@ from .storage import (
     COMPARISONS_FILE,
     LOCK_FILE,
     MANIFEST_FILE,
+    PHASES_FILE,
     RUN_FILE_PATTERN,
     RUNS_DIR,
     RUNS_FILE,
@@ -559,7 +561,9 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result):
         "jobs": plan.jobs,
         "backend": plan.backend.model_dump(mode="json"),
         "engine": plan.engine,
-        "engines": {f.name: engine_of(plan.engine, f) for f in plan.scenario.filters},
+        "engines": {
+            f.name: engine_of(plan.engine, f, plan.scenario) for f in plan.scenario.filters
+        },
         "fingerprint": fingerprint,
         "world": {
             "landmarks": plan.world.landmarks.tolist(),
@@ -586,6 +590,7 @@ class ResultTables:
     summary: list[dict]
     comparisons: pd.DataFrame
     claims: list[dict]
+    phases: pd.DataFrame | None = None  # a scenario with a noise schedule (SPEC 14)
 
 
 def result_tables(plan: Plan, ordered: list[dict]) -> ResultTables:
@@ -599,12 +604,23 @@ def result_tables(plan: Plan, ordered: list[dict]) -> ResultTables:
     pairs = comparison_pairs(
         ((f.name, f.kind) for f in plan.scenario.filters), plan.scenario.compare
     )
+    summary = summary_records(steps, update_statistics(ordered, names))
+    schedule, phases = plan.scenario.noise_schedule, None
+    if schedule is not None:  # SPEC 14: per-phase metrics, recovery and tracking errors
+        sigmas = plan.scenario.true_noise.radians()
+        oracles = [f.name for f in plan.scenario.filters if f.kind == "ekf-oracle"]
+        oracle = oracles[0] if oracles else None
+        phases = phases_frame(steps, schedule, sigmas, oracle, seed=plan.seed)
+        tracking = summary_tracking(steps, schedule, sigmas)
+        for record in summary:
+            record.update(tracking[record["filter"]])
     return ResultTables(
         steps=steps,
         runs=runs_frame(plan.name, names, ordered),
-        summary=summary_records(steps, update_statistics(ordered, names)),
+        summary=summary,
         comparisons=comparisons_frame(steps, pairs, seed=plan.seed),
         claims=evaluate_claims(steps, plan.scenario.claims, seed=plan.seed),
+        phases=phases,
     )
 
 
@@ -629,3 +645,5 @@ def write_result_tables(
     write_json(target / SUMMARY_JSON, tables.summary)
     parquet(COMPARISONS_FILE, tables.comparisons)
     write_json(target / CLAIMS_FILE, tables.claims)
+    if tables.phases is not None:
+        parquet(PHASES_FILE, tables.phases)

@@ -40,7 +40,7 @@ def simulate(
     geometry, the same in every run) may be passed in so that it is computed once per world."""
     path = world_path(world) if path is None else path
     sigmas, rng = scenario.true_noise.radians(), np.random.default_rng(seed)
-    return simulate_run(world, path.truth, sigmas, rng, path.geometry)
+    return simulate_run(world, path.truth, sigmas, rng, path.geometry, scenario.noise_schedule)
 
 
 def run_filter_on(engine: Engine, spec: FilterSpec, scenario, world: World, data: RunData) -> dict:
@@ -49,18 +49,26 @@ def run_filter_on(engine: Engine, spec: FilterSpec, scenario, world: World, data
     if engine == "fast":
         from .engines import fast  # numba (when installed) is imported only for this engine
 
-        if fast.supports(spec):
+        if fast.supports(spec) and not follows_schedule(spec, scenario):
             ctx = filter_context(spec, scenario, world)
             return fast.run_filter_fast(spec, ctx, data, world, scenario.record_every)
     return run_filter(build_filter(spec, scenario, world), data, world, scenario.record_every)
 
 
-def engine_of(engine: Engine, spec: FilterSpec) -> Engine:
+def follows_schedule(spec: FilterSpec, scenario) -> bool:
+    """Whether `spec` is told the true noise of every step (the oracle of a scenario with a
+    noise schedule, SPEC 14): the fast engine's kernel takes constant noise, so it runs on
+    filterpy (the manifest's `engines` says so)."""
+    return spec.uses_true_noise and getattr(scenario, "noise_schedule", None) is not None
+
+
+def engine_of(engine: Engine, spec: FilterSpec, scenario=None) -> Engine:
     """The engine that actually runs `spec` when `engine` is asked for (for the manifest)."""
     if engine == "fast":
         from .engines import fast
 
-        return "fast" if fast.supports(spec) else "filterpy"
+        runs_fast = fast.supports(spec) and not follows_schedule(spec, scenario)
+        return "fast" if runs_fast else "filterpy"
     return "filterpy"
 
 

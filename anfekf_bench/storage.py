@@ -43,6 +43,7 @@ MANIFEST_FILE = "manifest.json"
 RUNS_FILE = "runs.parquet"  # one row per (filter, run): SPEC 8's per-run metrics
 COMPARISONS_FILE = "comparisons.parquet"  # paired ratios with intervals (analysis/comparisons)
 CLAIMS_FILE = "claims.json"  # the scenario's claims and their verdicts
+PHASES_FILE = "phases.parquet"  # per-phase metrics of a noise schedule (analysis/phases)
 RUNS_DIR = ".runs"  # finished runs of an unfinished batch (experiment.py)
 RUN_FILE_PATTERN = "run-*.npz"  # a finished run in RUNS_DIR (write_run_file)
 LOCK_FILE = ".lock"  # held (flock) by the batch writing a scenario folder

@@ -178,6 +178,10 @@ COLUMN_UNITS: dict[str, str] = {
     **dict.fromkeys(("nees", "mean_nees", "max_nees", "anees", "nees_lo", "nees_hi"), "1"),
     **dict.fromkeys(("anis", "estimate", "lo", "hi", "p_value", "P_infl"), "1"),
     **dict.fromkeys(("nees_in_bounds", "gate_rejected"), "share (0..1)"),
+    # phases.parquet (analysis/phases): phase bounds, recovery time, |ln| variance ratios
+    **dict.fromkeys(("t_start", "t_end", "recovery_s"), "s"),
+    **dict.fromkeys(("track_R_rr", "track_R_bb", "track_Q_vv", "track_Q_gg"), "1 (|ln ratio|)"),
+    **dict.fromkeys(("rmse_vs_oracle", "rmse_vs_oracle_lo", "rmse_vs_oracle_hi"), "1"),
 }  # fmt: skip
 # Columns that name things: plain strings in every result file, so that steps, runs, summary and
 # comparisons join on them in any tool (a pandas categorical is written as a dictionary type,

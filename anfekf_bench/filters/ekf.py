@@ -196,11 +196,32 @@ class EKFSpec(FilterSpec):
         return RobotEKF(**ctx.kwargs())
 
 
+class ScheduledOracle(RobotEKF):
+    """The oracle of a scenario whose true noise changes (SPEC 14): at every control step k it
+    takes that step's true Qu and R (`schedule.ScheduledNoise`, t = k dt) before its predict, so
+    the scan of step k is fused with the R in force at k. Otherwise the plain EKF."""
+
+    def __init__(self, *, true_noise, **kwargs):
+        super().__init__(**kwargs)
+        self.true_noise = true_noise
+        self.k = 0  # control steps predicted so far
+
+    def predict(self, u=0, dt: float | None = None):
+        self.k += 1
+        v = self.true_noise.variances(self.k)
+        self.Qu = np.diag(v[:2])
+        self.R = np.diag(v[2:])
+        super().predict(u, dt)
+
+
 class OracleSpec(FilterSpec):
-    """The EKF given the TRUE noise: the best fixed-noise EKF, a reference."""
+    """The EKF given the TRUE noise: the best fixed-noise EKF, a reference; with a noise
+    schedule, the true noise of every step (`ScheduledOracle`)."""
 
     kind: Literal["ekf-oracle"]
     uses_true_noise: ClassVar[bool] = True
 
     def build(self, ctx: FilterContext) -> RobotEKF:
+        if ctx.true_noise is not None:
+            return ScheduledOracle(true_noise=ctx.true_noise, **ctx.kwargs())
         return RobotEKF(**ctx.kwargs())

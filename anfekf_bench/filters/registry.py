@@ -12,6 +12,7 @@ import numpy as np
 from pydantic import Field
 
 from ..models import Bicycle, control_covariance, measurement_covariance
+from ..schedule import ScheduledNoise
 from .akhlaghi import AkhlaghiSpec
 from .als import ALSSpec
 from .anfekf import ANFEKFSpec
@@ -78,6 +79,10 @@ def filter_context(spec: FilterSpec, scenario, world) -> FilterContext:
     noise = scenario.true_noise if spec.uses_true_noise else scenario.filter_noise
     fitted = spec.fitted_sigmas() if spec.fitted_on_training else None
     sv, sg, sr, sb = noise.radians() if fitted is None else fitted
+    schedule = getattr(scenario, "noise_schedule", None)
+    true_noise = None
+    if spec.uses_true_noise and schedule is not None:  # SPEC 14: the true noise of every step
+        true_noise = ScheduledNoise(schedule, noise.radians(), world.T)
     return FilterContext(
         x0=world.x0,
         P0=np.eye(3) * scenario.p0,
@@ -86,6 +91,7 @@ def filter_context(spec: FilterSpec, scenario, world) -> FilterContext:
         model=Bicycle(world.T, world.B),
         dt=world.T,
         gate=gate_threshold(scenario.gate_probability),
+        true_noise=true_noise,
     )
 
 

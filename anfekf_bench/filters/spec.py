@@ -33,6 +33,9 @@ class FilterContext:
     model: MotionModel
     dt: float
     gate: float | None
+    # The oracle of a scenario with a noise schedule: the true noise at every step
+    # (schedule.ScheduledNoise); None everywhere else.
+    true_noise: object | None = None
 
     def kwargs(self) -> dict:
         return dict(

@@ -39,6 +39,7 @@ from ..analysis.statistics import Interval, interval_too_wide, too_few_runs
 from ..analysis.tables import filter_arrays
 from ..config import NoiseSigmas
 from ..models import control_covariance, measurement_covariance
+from ..schedule import NoiseSchedule
 from ..storage import (
     CLAIMS_FILE,
     COMPARISONS_FILE,
@@ -54,7 +55,7 @@ from ..storage import (
     scenario_dirs,
     write_atomic,
 )
-from . import plots, real
+from . import changing, plots, real
 from .document import (
     Cell,
     Document,
@@ -191,6 +192,8 @@ class ScenarioData:
     comparisons: dict[tuple[str, str, str], Ratio] = field(default_factory=dict)
     claims: list[dict] = field(default_factory=list)  # claims.json
     per_run: pd.DataFrame | None = None  # runs.parquet, when the results have it
+    schedule: NoiseSchedule | None = None  # the true noise's schedule (SPEC 14), if any
+    phases: pd.DataFrame | None = None  # phases.parquet, when the results have it
 
     @property
     def slug(self) -> str:
@@ -947,16 +950,24 @@ def build_document(
         per_run = per_run_table(sc)
         if per_run is not None:
             doc.add(Paragraph("**Per run** (runs.parquet; diverged runs left out):"), per_run)
+        if sc.phases is not None:  # the true noise changes (SPEC 14)
+            doc.add(Paragraph("**Per phase** (phases.parquet; diverged runs left out):"),
+                    changing.phases_table(sc.phases))  # fmt: skip
         if not sc.has_steps:
             doc.add(Paragraph(NO_STEPS_NOTE))
             continue
         for kind in ("rmse", "nees", "noise", "map"):
             block = figures[sc.slug].get(kind)
+            if block is None and kind == "noise" and sc.schedule is not None:
+                continue  # drawn against the true schedule below ("variances")
             if block is None:
                 doc.add(Paragraph(f"*{CAPTIONS[kind].split(' (')[0]}: no filter of this scenario"
                                   " adapts R or Q.*"))  # fmt: skip
             else:
                 doc.add(block)
+        for kind in ("changes", "variances"):  # a scenario with a noise schedule
+            if kind in figures[sc.slug]:
+                doc.add(figures[sc.slug][kind])
     return doc
 
 
@@ -1034,11 +1045,25 @@ def write_report(
                             label + caption(sc, "rmse"))  # fmt: skip
         made["nees"] = save(plots.nees_figure(sc), figure_name(sc.slug, "nees", fmt),
                             label + caption(sc, "nees"))  # fmt: skip
-        if sc.adapted_columns:
+        # With a schedule the true noise is not one line: the variances figure draws it instead.
+        if sc.adapted_columns and sc.schedule is None:
             made["noise"] = save(plots.noise_figure(sc), figure_name(sc.slug, "noise", fmt),
                                  label + caption(sc, "noise"))  # fmt: skip
         made["map"] = save(plots.map_figure(sc), figure_name(sc.slug, "map", fmt),
                            label + caption(sc, "map"))  # fmt: skip
+        if sc.schedule is not None:  # the true noise changes (SPEC 14)
+            made["changes"] = save(
+                changing.changes_figure(sc, sc.schedule), figure_name(sc.slug, "changes", fmt),
+                label + "Position RMSE over time and its ratio to the oracle's, with the noise"
+                " changes marked (dotted; blackouts shaded)",
+            )
+            fig = changing.variances_figure(sc, sc.schedule)
+            if fig is not None:
+                made["variances"] = save(
+                    fig, figure_name(sc.slug, "variances", fmt),
+                    label + "Variances of every filter that adapts them (mean over runs) against"
+                    " the true schedule (dashed)",
+                )
     overview = save(
         plots.overview_figure(rows),
         figure_name("", "overview", fmt),
@@ -1082,4 +1107,6 @@ def _scenario_data(
         comparisons=read_comparisons(folder),
         claims=read_claims(folder),
         per_run=per_run,
+        schedule=changing.read_schedule(manifest, manifest_path),
+        phases=changing.read_phases(folder),
     )

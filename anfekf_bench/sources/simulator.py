@@ -10,6 +10,7 @@ import numpy as np
 
 from ..config import World
 from ..models import wrap_angle, wrap_scalar
+from ..schedule import CHANNELS, NoiseSchedule
 
 
 class RouteNotCompleted(RuntimeError):
@@ -136,18 +137,32 @@ def simulate_run(
     true_sigmas: tuple[float, float, float, float],
     rng: np.random.Generator,
     geometry: ScanGeometry | None = None,
+    schedule: NoiseSchedule | None = None,
 ) -> RunData:
     """Odometry and scans of one run, every draw from `rng` (SPEC 6).
 
     Draw order is fixed: all odometry noise, then all measurement noise (one pair per landmark per
     scan, seen or not), so a run's data depend on its seed only. `geometry` (the same for every
     run of a world) is computed here when not given; the data are the same bytes either way.
+
+    A `schedule` (SPEC 14) scales the same standard-normal draws by the standard deviation in
+    force at each step (t = k dt), then draws the outliers' variables after all of them (one
+    uniform per landmark per scan, or one chi-square per component), and empties the scans in
+    a blackout; without one, the draws and the data are those of a constant-noise run.
     """
     sv, sg, sr, sb = true_sigmas
     K = len(truth.u)
-    u_odo = truth.u + rng.standard_normal((K, 2)) * np.array([sv, sg])
     geometry = scan_geometry(world, truth) if geometry is None else geometry
-    noise = rng.standard_normal((len(geometry.steps), len(world.landmarks), 2)) * np.array([sr, sb])
+    if schedule is None:
+        u_odo = truth.u + rng.standard_normal((K, 2)) * np.array([sv, sg])
+        noise = rng.standard_normal((len(geometry.steps), len(world.landmarks), 2)) * np.array(
+            [sr, sb]
+        )
+        blackout = None
+    else:
+        u_odo, noise, blackout = _scheduled_noise(
+            world, truth, true_sigmas, rng, geometry, schedule
+        )
     # Every seen landmark of every scan at once; scan i's measurements are rows
     # start[i]:start[i + 1] (the same elementwise sums as one scan at a time, so the same bytes).
     scan_of, ids, start = geometry.seen
@@ -159,7 +174,46 @@ def simulate_run(
         Scan(step=k, ids=ids[a:b], z=z[a:b])
         for k, (a, b) in zip(geometry.steps.tolist(), bounds, strict=True)
     )
+    if blackout is not None and blackout.any():
+        scans = tuple(
+            Scan(step=s.step, ids=s.ids[:0], z=s.z[:0]) if dark else s
+            for s, dark in zip(scans, blackout.tolist(), strict=True)
+        )
     return RunData(truth=truth, u_odo=u_odo, scans=scans)
+
+
+def _scheduled_noise(
+    world: World,
+    truth: Truth,
+    true_sigmas: tuple[float, float, float, float],
+    rng: np.random.Generator,
+    geometry: ScanGeometry,
+    schedule: NoiseSchedule,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Odometry, the measurement noise of every landmark of every scan, and which scans are
+    blacked out, under `schedule` (see `simulate_run` for the draw order)."""
+    K = len(truth.u)
+    base = np.asarray(true_sigmas, dtype=float)
+    t_odo = np.arange(1, K + 1) * world.T  # u_odo[k - 1] drives step k
+    sigma_odo = base[:2] * np.sqrt(schedule.variance_factors(t_odo)[:, :2])
+    u_odo = truth.u + rng.standard_normal((K, 2)) * sigma_odo
+    t_scan = geometry.steps * world.T
+    sigma_z = base[2:] * np.sqrt(schedule.variance_factors(t_scan)[:, 2:])
+    noise = rng.standard_normal((len(geometry.steps), len(world.landmarks), 2)) * sigma_z[:, None]
+    out = schedule.outliers
+    if out is not None:
+        channels = sorted(CHANNELS.index(c) - 2 for c in out.affected())
+        active = out.active(t_scan)
+        if out.model == "contaminated":
+            hit = rng.random(noise.shape[:2]) < out.probability
+            hit &= active[:, None]
+            for c in channels:
+                noise[hit, c] *= math.sqrt(out.variance_factor)
+        else:
+            w = rng.chisquare(out.dof, noise.shape)
+            for c in channels:
+                noise[active, :, c] *= np.sqrt(out.dof / w[active, :, c])
+    return u_odo, noise, schedule.blacked_out(t_scan)
 
 
 @dataclass(frozen=True)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -260,6 +261,11 @@ def summary_table(title: str, records: list[dict]) -> Table:
     return table
 
 
+def plural(n: int, noun: str) -> str:
+    """'1 scenario', '2 scenarios'."""
+    return f"{n} {noun}" + ("" if n == 1 else "s")
+
+
 def _check_out_dir(out: Path) -> None:
     problem = output_path_problem(out, folder=True)
     if problem:
@@ -268,7 +274,9 @@ def _check_out_dir(out: Path) -> None:
 
 @app.command()
 def run(
-    scenario: Annotated[Path, typer.Argument(help="Scenario YAML file, or a folder of them.")],
+    scenario: Annotated[
+        Path, typer.Argument(metavar="SCENARIO", help="Scenario YAML file, or a folder of them.")
+    ],
     runs: Annotated[
         Optional[int], typer.Option(help="Monte Carlo runs, >= 1 (overrides file).")
     ] = None,
@@ -604,7 +612,7 @@ def report(
     figures = sum(1 for p in done.files if p.suffix not in (".md", ".html"))
     pages = [str(p) for p in done.files if p.name in (REPORT_FILE, HTML_FILE)]
     console.print(
-        f"report of {len(done.scenarios)} scenarios ({figures} figures) written to"
+        f"report of {plural(len(done.scenarios), 'scenario')} ({figures} figures) written to"
         f" {' and '.join(pages)}",
         markup=False,
         highlight=False,
@@ -672,6 +680,81 @@ def bench(
         found = run_bench(configs, out, QUICK if quick else FULL, say=console.print)
     table_console().print(bench_table(found))
     console.print(f"bench figures written to {out}", highlight=False)
+
+
+@app.command()
+def kinds() -> None:
+    """List every filter kind: what it adapts, which engines run it, its parameters and defaults."""
+    from .engines import fast  # noqa: F401  (registers the fast engine's `supports`)
+    from .filters.registry import KINDS, capabilities
+
+    for kind in KINDS:
+        info = capabilities(kind)
+        adapts = _noise_names(info.adapts)
+        if info.default_adapts is None:
+            adapts = "decided by the class (the report reads the recorded R/Qu)"
+        elif info.adapts and info.default_adapts != info.adapts:
+            adapts += f" (by default: {_noise_names(info.default_adapts)})"
+        console.print(f"{kind}: {info.doc}", markup=False, highlight=False, soft_wrap=True)
+        console.print(
+            f"  adapts: {adapts}; engines: {', '.join(info.engines)}",
+            markup=False, highlight=False, soft_wrap=True,
+        )  # fmt: skip
+        for name, default, description in info.params:
+            line = f"  {name} = {default}" + (f": {description}" if description else "")
+            console.print(one_line(line), markup=False, highlight=False, soft_wrap=True)
+
+
+def _noise_names(letters: frozenset[str]) -> str:
+    names = {"R": "R (measurement noise)", "Q": "Qu (control noise)", "P": "P (covariance)"}
+    return ", ".join(names[a] for a in "RQP" if a in letters) or "nothing (fixed noise)"
+
+
+STARTER_SCENARIO = """\
+# A starter scenario for `anfekf run` (written by `anfekf init`). Every key below is optional
+# except `name`; `anfekf kinds` lists the filter kinds with their parameters and defaults.
+name: {name}                  # results go to OUT/<name>/
+description: The EKF against the ANFEKF when the filters assume a wrong measurement noise R
+seed: 1                       # root seed: the same seed gives the same bytes
+runs: 20                      # Monte Carlo runs (the paper's scenarios use 50)
+record_every: 8               # steps.parquet keeps every 8th control step (one per sensor scan)
+# engine: fast                # the compiled engine (numba) for the kinds it runs; filterpy: all
+# The noise the simulator draws (true_noise) and the noise the filters assume (filter_noise):
+# standard deviations; angles in degrees.
+true_noise:   {{sigma_v: 0.3, sigma_gamma_deg: 3.0, sigma_range: 0.1, sigma_bearing_deg: 1.0}}
+filter_noise: {{sigma_v: 0.3, sigma_gamma_deg: 3.0, sigma_range: 2.0, sigma_bearing_deg: 0.1}}
+# world: {{landmarks: builtin, waypoints: builtin}}   # or CSV files of x,y rows
+filters:
+  - {{name: ekf, kind: ekf}}                     # fixed noise: the assumed one
+  - {{name: anfekf, kind: anfekf, adapt: R}}     # adapts R (Q: the control noise; RQ: both)
+  - {{name: sage-husa, kind: sage-husa}}         # a baseline that adapts R
+  - {{name: ekf-oracle, kind: ekf-oracle}}       # the reference: given the TRUE noise
+# Claims the run checks (and `anfekf check` gates), decided on the paired 95 % interval:
+claims:
+  - {{filter: anfekf, vs: ekf, metric: rmse_pos, at_most: 0.8}}
+"""
+
+
+@app.command()
+def init(
+    path: Annotated[
+        Path, typer.Argument(help="Where to write the starter scenario.", metavar="PATH")
+    ] = Path("scenario.yaml"),
+) -> None:
+    """Write a commented starter scenario that `anfekf run` accepts (never overwrites a file)."""
+    from .storage import write_atomic
+
+    if path.exists() or path.is_symlink():
+        fail(f"{path}: already exists; choose another PATH (init never overwrites a file)")
+    if not path.parent.is_dir():
+        fail(f"{path.parent}: no such folder")
+    name = re.sub(r"[^A-Za-z0-9_-]", "_", path.stem) or "scenario"
+    try:
+        write_atomic(path, lambda tmp: tmp.write_text(STARTER_SCENARIO.format(name=name)))
+    except OSError as exc:
+        fail(f"{path}: cannot write the starter scenario: {exc}")
+    console.print(f"starter scenario written to {path}; run it with: anfekf run {path}",
+                  markup=False, highlight=False, soft_wrap=True)  # fmt: skip
 
 
 def main() -> None:  # pragma: no cover - console entry point

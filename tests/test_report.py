@@ -12,7 +12,6 @@ import math
 import re
 import shutil
 import subprocess
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -376,25 +375,31 @@ def test_diverged_runs_are_left_out_of_curves_bounds_and_table(results, tmp_path
 
 def test_a_filter_has_one_colour_in_every_figure(results):
     sc = load_scenario_data(results / "tiny_r")
-    figs = [plots.rmse_figure(sc), plots.nees_figure(sc), plots.map_figure(sc)]
-    for name in ("ekf", "anfekf", "ekf-oracle"):
-        colours = {
-            _artist(fig, gid).get_color()
-            for fig, gid in zip(
-                figs, [f"rmse_pos/{name}", f"nees/{name}", f"map_est/{name}"], strict=True
-            )
-        }
-        assert colours == {plots.filter_colour(name)}
-    assert len({plots.filter_colour(n) for n in plots.FILTER_COLOURS}) == len(plots.FILTER_COLOURS)
+    with plots.palette([f.name for f in sc.filters]):
+        figs = [plots.rmse_figure(sc), plots.nees_figure(sc), plots.map_figure(sc)]
+        for name in ("ekf", "anfekf", "ekf-oracle"):
+            colours = {
+                _artist(fig, gid).get_color()
+                for fig, gid in zip(
+                    figs, [f"rmse_pos/{name}", f"nees/{name}", f"map_est/{name}"], strict=True
+                )
+            }
+            assert colours == {plots.filter_colour(name)}
 
 
-def test_unknown_filter_names_get_a_stable_fallback_colour():
-    # crc32 of the name, not Python's per-process hash(): the same in every run of the report.
-    expected = plots.FALLBACK_COLOURS[zlib.crc32(b"my-filter") % len(plots.FALLBACK_COLOURS)]
-    assert plots.filter_colour("my-filter") == expected
-    others = {plots.filter_colour(f"variant-{i}") for i in range(30)}
-    assert len(others) > 1 and others <= set(plots.FALLBACK_COLOURS)
-    assert not others & set(plots.FILTER_COLOURS.values())
+def test_colours_go_by_order_within_a_report_and_thirty_filters_are_told_apart():
+    names = [f"zoo-{i}" for i in range(30)]  # names that hashed onto one colour collided
+    with plots.palette(names):
+        pairs = [(plots.filter_colour(n), str(plots.filter_linestyle(n))) for n in names]
+        markers = [(plots.filter_colour(n), plots.filter_marker(n)) for n in names]
+        assert plots.filter_colour("zoo-0") == plots.PALETTE[0]
+        assert plots.filter_colour("ekf-oracle") == plots.ORACLE_COLOUR  # the reference: grey
+    assert len(set(pairs)) == len(set(markers)) == 30
+    assert plots.ORACLE_COLOUR not in plots.PALETTE
+    with plots.palette(["b", "a"]):  # order, not the name, picks the colour
+        assert plots.filter_colour("a") == plots.PALETTE[1]
+    with plots.palette(["a", "b"]):
+        assert plots.filter_colour("a") == plots.PALETTE[0]
 
 
 # --------------------------------------------------------------------------- finding results

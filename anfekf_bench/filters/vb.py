@@ -131,6 +131,7 @@ class VBRSpec(AdaptiveSpec):
     channel (research notes section 4)."""
 
     kind: Literal["vb-r"]
+    adapts_noise: ClassVar[frozenset[str]] = frozenset({"R"})
     rho: float = Field(
         RHO, gt=0, le=1, allow_inf_nan=False,
         description="forgetting factor of (alpha, beta), applied once per scan; 1: stationary R;"
@@ -277,6 +278,7 @@ class VBAKFSpec(AdaptiveSpec):
     covariance P- and on R (research notes section 5)."""
 
     kind: Literal["vbakf"]
+    adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "P"})
     tau: PositiveFloat = Field(
         3.0, description="confidence in the nominal P- (T = tau P-); the paper's range 2..6"
     )

@@ -38,6 +38,7 @@ from ..analysis.metrics import (
 from ..analysis.statistics import Interval, interval_too_wide, too_few_runs
 from ..analysis.tables import filter_arrays
 from ..config import NoiseSigmas
+from ..filters.registry import adapted_noise
 from ..models import control_covariance, measurement_covariance
 from ..storage import (
     CLAIMS_FILE,
@@ -88,7 +89,8 @@ NOISE_COLUMNS: dict[str, tuple[str, str, float]] = {
     "Q_vv": ("Q speed variance", "(m/s)²", 1.0),
     "Q_gg": ("Q steering variance", "deg²", _DEG2),
 }
-_ADAPTED = {"R": ("R_rr", "R_bb"), "Q": ("Q_vv", "Q_gg"), "RQ": ("R_rr", "R_bb", "Q_vv", "Q_gg")}
+# What each adapted noise (registry.adapted_noise: "R", "Q"; "P" has no column) shows as.
+_ADAPTED = {"R": ("R_rr", "R_bb"), "Q": ("Q_vv", "Q_gg")}
 _NEEDED_COLUMNS = {
     "t", "x_true", "y_true", "x_est", "y_est", "P_xx", "P_xy", "P_yy", "heading_err", "diverged",
     *NOISE_COLUMNS,
@@ -126,7 +128,7 @@ class FilterSeries:
 
     name: str
     kind: str  # ekf, ekf-oracle, anfekf, ...
-    adapts: str | None  # "R", "Q" or "RQ" for an adapting ANFEKF, else None
+    adapts: frozenset[str]  # noise it adapts: "R", "Q" (Qu), "P" (registry.adapted_noise)
     runs: int
     runs_used: int
     t: np.ndarray  # [s]
@@ -200,7 +202,7 @@ class ScenarioData:
     @property
     def adapted_columns(self) -> list[str]:
         """The R/Q diagonal columns some filter adapts, in NOISE_COLUMNS order."""
-        wanted = {c for f in self.filters if f.adapts for c in _ADAPTED[f.adapts]}
+        wanted = {c for f in self.filters for a in f.adapts for c in _ADAPTED.get(a, ())}
         return [c for c in NOISE_COLUMNS if c in wanted]
 
     def reference(self) -> FilterSeries | None:
@@ -333,10 +335,26 @@ def _filter_specs(manifest: dict, path: Path) -> dict[str, dict]:
     return {str(s["name"]): s for s in specs}
 
 
-def _adapts(spec: dict) -> str | None:
-    if spec.get("kind") != "anfekf" or spec.get("adaptation", True) is False:
-        return None
-    return spec.get("adapt", "R") if spec.get("adapt", "R") in _ADAPTED else None
+def _adapts(spec: dict, noise: dict[str, np.ndarray] | None = None) -> frozenset[str]:
+    """What a filter adapts: as the registry says for its kind and parameters; for a filter the
+    spec cannot tell about (a custom class, a kind this version does not know), the noise whose
+    recorded R/Qu columns vary (`noise`: column -> (runs, steps) values)."""
+    declared = adapted_noise(spec)
+    if declared is not None:
+        return frozenset(declared)
+    return frozenset(a for a, cols in _ADAPTED.items() if any(_varies(noise, c) for c in cols))
+
+
+def _varies(noise: dict[str, np.ndarray] | None, col: str) -> bool:
+    values = None if noise is None else noise.get(col)
+    if values is None or np.size(values) == 0:
+        return False
+    finite = np.asarray(values, dtype=float)
+    finite = finite[np.isfinite(finite)]
+    # a relative change well above rounding: a fixed filter stores one value for every step
+    return finite.size > 1 and float(finite.max() - finite.min()) > 1e-9 * float(
+        np.abs(finite).max()
+    )
 
 
 def _percentiles(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -392,7 +410,7 @@ def filter_series(steps: pd.DataFrame, name: str, spec: dict) -> FilterSeries:
     return FilterSeries(
         name=name,
         kind=str(spec.get("kind", "?")),
-        adapts=_adapts(spec),
+        adapts=_adapts(spec, noise),
         runs=len(ok),
         runs_used=n,
         t=np.asarray(a["t"], dtype=float),
@@ -1024,6 +1042,25 @@ def write_report(
             mime = "image/svg+xml" if fmt is ImageFormat.svg else "image/png"
         return FigureBlock(name, text, image, mime, link_only=fmt is ImageFormat.pdf)
 
+    # Colours by the filters' order in this report: the same filter, the same colour throughout.
+    with plots.palette([f.name for sc in scenarios for f in sc.filters]):
+        figures, overview = _draw_figures(scenarios, rows, save, fmt)
+    doc = build_document(scenarios, rows, figures, overview, out_dir)
+    outputs = {REPORT_FILE: to_markdown(doc)}
+    if real_data:
+        link = real.REAL_REPORT_FILE
+        outputs[REPORT_FILE] += f"\nReal-data results: [{link}]({link})\n"
+    if html:
+        outputs[HTML_FILE] = to_html(doc)
+    for name, text in outputs.items():
+        path = out_dir / name
+        write_atomic(path, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
+        result.files.append(path)
+    return result
+
+
+def _draw_figures(scenarios, rows, save, fmt) -> tuple[dict[str, dict[str, FigureBlock]], object]:
+    """Each scenario's figures and the overview, saved with `save`."""
     figures: dict[str, dict[str, FigureBlock]] = {}
     for sc in scenarios:
         made = figures[sc.slug] = {}
@@ -1046,18 +1083,7 @@ def write_report(
         " (log scale, 95 % paired bootstrap intervals as error bars) and its share of steps with"
         " NEES in the 95 % bounds",
     )
-    doc = build_document(scenarios, rows, figures, overview, out_dir)
-    outputs = {REPORT_FILE: to_markdown(doc)}
-    if real_data:
-        link = real.REAL_REPORT_FILE
-        outputs[REPORT_FILE] += f"\nReal-data results: [{link}]({link})\n"
-    if html:
-        outputs[HTML_FILE] = to_html(doc)
-    for name, text in outputs.items():
-        path = out_dir / name
-        write_atomic(path, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
-        result.files.append(path)
-    return result
+    return figures, overview
 
 
 def _scenario_data(

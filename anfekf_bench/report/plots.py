@@ -402,6 +402,9 @@ def noise_figure(sc: ScenarioData) -> Figure:
         for j, col in enumerate(columns):
             ax = axes[g * per_group + j // ncols, j % ncols]
             what, unit, _ = NOISE_COLUMNS[col]
+            if not any(col in _adapted(f.adapts) for f in group):
+                ax.set_visible(False)  # a family's row shows only what it adapts
+                continue
             for f in group:
                 if col not in _adapted(f.adapts):
                     continue
@@ -422,9 +425,11 @@ def noise_figure(sc: ScenarioData) -> Figure:
                 ax.plot(ekf.t, ekf.noise[col].line, lw=1.0, ls=(0, (1, 2)), color="#7f7f7f",
                         label=f"assumed ({ekf.name}, fixed)",
                         gid=f"noise_fixed/{col}/{ekf.name}")  # fmt: skip
-                ax.annotate(format_sig(assumed), (1, assumed), xycoords=("axes fraction", "data"),
-                            xytext=(-2, 2), textcoords="offset points", ha="right",
-                            va="bottom", fontsize=6.5, color="#7f7f7f")  # fmt: skip
+                if not math.isclose(assumed, sc.true_noise[col], rel_tol=0.05):  # else one label
+                    ax.annotate(format_sig(assumed), (1, assumed),
+                                xycoords=("axes fraction", "data"), xytext=(-2, 2),
+                                textcoords="offset points", ha="right", va="bottom",
+                                fontsize=6.5, color="#7f7f7f")  # fmt: skip
             true = sc.true_noise[col]
             ax.axhline(true, color="black", lw=1.0, ls="--", label="true value",
                        gid=f"noise_true/{col}")  # fmt: skip

@@ -130,6 +130,22 @@ def _plain_list_metavar(self, ctx):
 
 
 TyperArgument.display_type_rich = _plain_list_metavar
+# ... and "{SCENARIO}" for a required argument in the usage line (typer >= 0.2x): the usual
+# convention is a bare SCENARIO (required) and [RESULTS_DIR] (optional).
+_usage_name = getattr(TyperArgument, "_usage_display_name", None)
+
+
+def _plain_usage_name(self):
+    shown = _usage_name(self)
+    more = "..." if shown.endswith("...") else ""
+    core = shown.removesuffix("...")
+    if core.startswith("{") and core.endswith("}"):
+        core = core[1:-1]
+    return core + more
+
+
+if _usage_name is not None:
+    TyperArgument._usage_display_name = _plain_usage_name
 
 
 app = typer.Typer(

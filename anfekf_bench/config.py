@@ -465,9 +465,9 @@ def _format_validation_error(exc: ValidationError) -> tuple[str, str]:
         msg = "unknown key"
         parent = err["loc"][:-1]
         allowed = _allowed_keys(parent)
-        msg += _did_you_mean(str(err["loc"][-1]), allowed)
         if allowed:
             msg += f" (allowed: {', '.join(allowed)})"
+        msg += _did_you_mean(str(err["loc"][-1]), allowed)
     elif "input" in err and err["type"] not in ("missing",):
         shown = repr(err["input"])
         if len(shown) > 60:
@@ -483,7 +483,7 @@ def _format_validation_error(exc: ValidationError) -> tuple[str, str]:
 
 def _did_you_mean(word: str, choices) -> str:
     """' (did you mean 'x'?)' for the closest of `choices` to a mistyped `word`, else ''."""
-    close = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.6)
+    close = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.75)
     return f" (did you mean {close[0]!r}?)" if close else ""
 
 

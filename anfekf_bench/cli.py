@@ -604,7 +604,7 @@ def report(
     """Draw figures and tables of saved results: report.md and report.html (never re-runs)."""
     # Imported here so that `anfekf run` does not pay for matplotlib.
     from .report import HTML_FILE, REPORT_FILE, ImageFormat, rich_table, write_report
-    from .report.sweep import find_sweeps, has_scenario_results, write_sweeps_report
+    from .report.sweep import find_sweeps
     from .storage import ResultsError
 
     formats = [f.value for f in ImageFormat]
@@ -616,19 +616,19 @@ def report(
     folders = results or [Path("results")]
     with one_line_errors(debug, (ResultsError,), os_error=f"{out}: cannot write the report"):
         sweep_folders = find_sweeps(folders)
-        written = write_sweeps_report(sweep_folders, out, image_format) if sweep_folders else None
-        if written is not None:
-            console.print(f"sweep report written to {written}", markup=False, highlight=False)
-        if sweep_folders and not has_scenario_results(folders):
-            return
-        done = write_report(folders, out, ImageFormat(image_format), dpi=dpi)
-    table_console().print(rich_table(done.rows))
+        # One report of everything: scenarios, real data and sweeps (which also get sweeps.md).
+        done = write_report(folders, out, ImageFormat(image_format), dpi=dpi, sweeps=sweep_folders)
+    if done.rows:
+        table_console().print(rich_table(done.rows))
     for warning in done.warnings:
         console.print(f"warning: {warning}", markup=False, highlight=False, soft_wrap=True)
     figures = sum(1 for p in done.files if p.suffix not in (".md", ".html"))
     pages = [str(p) for p in done.files if p.name in (REPORT_FILE, HTML_FILE)]
+    parts = [plural(len(done.scenarios), "scenario")]
+    if sweep_folders:
+        parts.append(plural(len(sweep_folders), "sweep"))
     console.print(
-        f"report of {plural(len(done.scenarios), 'scenario')} ({figures} figures) written to"
+        f"report of {' and '.join(parts)} ({plural(figures, 'figure')}) written to"
         f" {' and '.join(pages)}",
         markup=False,
         highlight=False,

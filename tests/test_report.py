@@ -103,13 +103,23 @@ def _legend_texts(fig) -> list[str]:
 
 def test_report_holds_every_figure_and_the_markdown(report_dir):
     out, stdout = report_dir
-    expected = [f"{s}_{k}.png" for s in SCENARIOS for k in FIGURE_KINDS] + ["overview.png"]
+    expected = [f"{s}_{k}.png" for s in SCENARIOS for k in FIGURE_KINDS]
+    expected += ["overview.png", "leaderboard.png"]
     for name in expected:
         data = (out / name).read_bytes()
         assert data.startswith(PNG_MAGIC) and len(data) > 10_000, name
     md = (out / "report.md").read_text(encoding="utf-8")
     embedded = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
     assert sorted(embedded) == sorted(expected)
+    # every figure written is in the report, counted against the files, and the count printed
+    written = sorted(p.name for p in out.iterdir() if p.suffix == ".png")
+    assert written == sorted(expected)
+    assert f"({len(written)} figures)" in stdout
+    page = (out / "report.html").read_text(encoding="utf-8")
+    assert page.count("<img ") == len(written)
+    assert all(f'href="{name}"' in page for name in written)
+    assert "<strong>Contents</strong>" in page and 'href="#leaderboard"' in page
+    assert "[Leaderboard](#leaderboard)" in md and '<a id="leaderboard"></a>' in md
     for name in SCENARIOS:
         assert f"| {name} | anfekf | {RUNS}/{RUNS} |" in md
     assert "tiny_q" in stdout and "anfekf" in stdout and "report.md" in stdout
@@ -132,7 +142,7 @@ def test_other_formats_are_valid_files(results, tmp_path, fmt, header):
     assert result.exit_code == 0, result.output
     files = sorted(out.glob(f"*.{fmt}"))
     assert [f.name for f in files] == sorted(
-        [f"tiny_r_{k}.{fmt}" for k in FIGURE_KINDS] + [f"overview.{fmt}"]
+        [f"tiny_r_{k}.{fmt}" for k in FIGURE_KINDS] + [f"overview.{fmt}", f"leaderboard.{fmt}"]
     )
     for f in files:
         head = f.read_bytes()[:2000]
@@ -743,6 +753,6 @@ def test_a_result_without_steps_is_reported_from_its_tables(tmp_path):
     row = next(line for line in md.splitlines() if line.startswith("| nosteps | anfekf |"))
     assert f"| {format_sig(saved.loc['anfekf'].rmse_pos)} |" in row
     assert "no steps.parquet" in md and "| anfekf rmse_pos <= 1000 x ekf |" in md
-    assert sorted(p.name for p in out.glob("*.png")) == ["overview.png"]
+    assert sorted(p.name for p in out.glob("*.png")) == ["leaderboard.png", "overview.png"]
     checked = runner.invoke(app, ["check", str(tmp_path / "results")])
     assert checked.exit_code == 0, checked.output

@@ -643,11 +643,11 @@ def overview_figure(rows: Sequence[SummaryRow]) -> Figure:
         plain_log_axis(ax)
         ax.set_ylabel(f"{what} / {oracle}'s (log)")
         ax.margins(y=0.12)
-    ax_rmse.set_title("accuracy: position RMSE / oracle's (lower is better)")
-    ax_anees.set_title("ANEES / oracle's (oracle's ANEES is about 3)")
-    ax_cons.set_ylabel("steps with run-averaged NEES in 95 % bounds [%]")
+    ax_rmse.set_title("accuracy: position RMSE / oracle's\n(lower is better)", fontsize=9)
+    ax_anees.set_title("ANEES / oracle's\n(oracle's ANEES is about 3)", fontsize=9)
+    ax_cons.set_ylabel("steps with run-averaged NEES in bounds [%]")
     ax_cons.set_ylim(0, 108)
-    ax_cons.set_title("steps with NEES in 95 % bounds (higher is better)")
+    ax_cons.set_title("steps with NEES in 95 % bounds\n(higher is better)", fontsize=9)
     handles, labels = [], []
     for ax in (ax_rmse, ax_anees, ax_cons):
         for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
@@ -673,3 +673,124 @@ def _percentiles() -> tuple[float, float]:
     from .report import BAND_PERCENTILES
 
     return BAND_PERCENTILES
+
+
+# ---------------------------------------------------------------------------------------------
+# RMSE over the oracle's as a colour: one fixed scale for every heatmap of every report (the
+# leaderboard, the sweeps), so a ratio of 1 has one colour wherever it appears. Log scale centred
+# on 1 (white); better than the reference in blue (rare: the oracle is the best fixed EKF), worse
+# in reds up to 30 x (beyond: the darkest red).
+RATIO_TICKS = (1.0, 1.5, 2.0, 3.0, 5.0, 10.0, 30.0)
+RATIO_MIN, RATIO_MAX = 1 / 1.5, 30.0
+RATIO_CMAP = "RdBu_r"
+# NEES in the 95 % bounds on at least this share of steps: the cell is marked consistent.
+CONSISTENT_SHARE = 0.85
+
+
+def ratio_norm():
+    """The colour norm of a ratio's log10: white at 1, fixed ends (never from the data)."""
+    from matplotlib.colors import TwoSlopeNorm
+
+    return TwoSlopeNorm(vmin=math.log10(RATIO_MIN), vcenter=0.0, vmax=math.log10(RATIO_MAX))
+
+
+NO_RATIO_COLOUR = (0.85, 0.85, 0.85, 1.0)  # light grey: no value (all runs diverged, no oracle)
+
+
+def ratio_cmap():
+    """The colour map of the ratio scale, light grey where there is no value."""
+    from matplotlib import colormaps
+
+    return colormaps[RATIO_CMAP].with_extremes(bad=NO_RATIO_COLOUR)
+
+
+def ratio_colour(ratio: float) -> tuple[float, float, float, float]:
+    """The RGBA colour of `ratio` on the ratio scale (NaN: light grey)."""
+    if not (math.isfinite(ratio) and ratio > 0):
+        return NO_RATIO_COLOUR
+    value = min(max(math.log10(ratio), math.log10(RATIO_MIN)), math.log10(RATIO_MAX))
+    return tuple(float(c) for c in ratio_cmap()(ratio_norm()(value)))
+
+
+def ratio_colourbar(fig: Figure, mappable, ax, label: str) -> None:
+    """A colour bar for a log10-ratio image, ticked at RATIO_TICKS in plain numbers."""
+    bar = fig.colorbar(mappable, ax=ax, shrink=0.9, pad=0.02)
+    bar.set_ticks([math.log10(t) for t in (RATIO_MIN, *RATIO_TICKS)])
+    bar.set_ticklabels([plain_number(t) for t in (RATIO_MIN, *RATIO_TICKS)])
+    bar.set_label(label)
+
+
+def _text_colour(rgba) -> str:
+    r, g, b = rgba[:3]
+    return "black" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "white"
+
+
+@matplotlib.rc_context(_RC)
+def leaderboard_figure(rows: Sequence[SummaryRow]) -> Figure:
+    """Filters x scenarios: each cell the filter's position RMSE over the oracle's in that
+    scenario (colour on the fixed ratio scale, the value written in), with a frame where the 95 %
+    interval of the ratio includes 1 and a dot where NEES is in bounds on >= 85 % of steps.
+    Filters are sorted by their median ratio over the scenarios, best first."""
+    scenarios = list(dict.fromkeys(r.scenario for r in rows))
+    cells: dict[tuple[str, str], SummaryRow] = {(r.filter, r.scenario): r for r in rows}
+    oracle = next((r.oracle_name for r in rows if r.kind == "ekf-oracle"), "ekf-oracle")
+
+    def ratio_of(r: SummaryRow | None) -> float:
+        if r is None:
+            return math.nan
+        if r.filter == r.oracle_name:
+            return 1.0
+        return r.rmse_vs_oracle.estimate if r.rmse_vs_oracle is not None else r.vs_oracle
+
+    names = list(dict.fromkeys(r.filter for r in rows))
+    values = np.array([[ratio_of(cells.get((n, s))) for s in scenarios] for n in names])
+    with np.errstate(all="ignore"):
+        key = np.array([np.nanmedian(v) if np.isfinite(v).any() else np.inf for v in values])
+    order = np.argsort(key, kind="stable")
+    names = [names[i] for i in order]
+    values = values[order]
+    n, m = len(names), len(scenarios)
+    fig = Figure(figsize=(max(6.5, 3.6 + 1.15 * m), max(4.8, 2.4 + 0.3 * n)), layout="constrained")
+    ax = fig.subplots()
+    with np.errstate(all="ignore"):
+        logs = np.log10(np.where(values > 0, values, np.nan))
+    shown = np.clip(logs, math.log10(RATIO_MIN), math.log10(RATIO_MAX))
+    image = ax.imshow(np.ma.masked_invalid(shown), cmap=ratio_cmap(), norm=ratio_norm(),
+                      aspect="auto", interpolation="nearest", gid="leaderboard")  # fmt: skip
+    for i, name in enumerate(names):
+        for j, scen in enumerate(scenarios):
+            row = cells.get((name, scen))
+            value = values[i, j]
+            if row is None:
+                continue
+            colour = ratio_colour(value)
+            consistent = math.isfinite(row.nees_in_bounds) and (
+                row.nees_in_bounds >= CONSISTENT_SHARE
+            )
+            text = ("ref." if name == row.oracle_name else format_sig(value)) + (
+                " •" if consistent else ""
+            )
+            ax.text(j, i, text, ha="center", va="center", fontsize=7,
+                    color=_text_colour(colour), gid=f"leaderboard_value/{scen}/{name}")  # fmt: skip
+            ratio = row.rmse_vs_oracle
+            if ratio is not None and ratio.has_interval and ratio.lo <= 1.0 <= ratio.hi:
+                frame = Rectangle((j - 0.46, i - 0.44), 0.92, 0.88, fill=False, lw=1.2,
+                                  edgecolor="black")  # fmt: skip
+                frame.set_gid(f"leaderboard_ci1/{scen}/{name}")
+                ax.add_patch(frame)
+    ax.set_xticks(np.arange(m), scenarios, rotation=30, ha="left", fontsize=8)
+    ax.xaxis.tick_top()
+    ax.set_yticks(np.arange(n), names, fontsize=8)
+    for label, name in zip(ax.get_yticklabels(), names, strict=True):
+        label.set_color("black" if name != oracle else ORACLE_COLOUR)
+    ax.grid(False)
+    ax.set_xlim(-0.5, m - 0.5)
+    ax.set_ylim(n - 0.5, -0.5)
+    ratio_colourbar(fig, image, ax, f"position RMSE / {oracle}'s (log)")
+    fig.suptitle(f"Leaderboard: position RMSE over {oracle}'s\n{n} filters x {m} scenarios")
+    ax.set_xlabel(
+        "sorted by the median over scenarios, best first\nframe: the 95 % interval includes 1"
+        f"\n•: NEES in bounds on >= {CONSISTENT_SHARE:.0%} of steps",
+        fontsize=7,
+    )
+    return fig

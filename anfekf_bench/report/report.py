@@ -56,8 +56,10 @@ from ..storage import (
     write_atomic,
 )
 from . import plots, real
+from . import sweep as sweep_report
 from .document import (
     Cell,
+    Contents,
     Document,
     FigureBlock,
     Heading,
@@ -755,6 +757,41 @@ def summary_table(rows: Sequence[SummaryRow]) -> TableBlock:
     return TableBlock(TABLE_HEADER, [table_row(r) for r in rows], _NUMERIC)
 
 
+def leaderboard_table(rows: Sequence[SummaryRow]) -> TableBlock:
+    """Filters x scenarios: position RMSE over the oracle's with its interval (sortable in the
+    HTML by any scenario or by the median), a dot where NEES is in bounds on >= 85 % of steps."""
+    scenarios = list(dict.fromkeys(r.scenario for r in rows))
+    cells = {(r.filter, r.scenario): r for r in rows}
+    body = []
+    for name in dict.fromkeys(r.filter for r in rows):
+        line: list[Cell] = [Cell(name)]
+        values = []
+        for scen in scenarios:
+            r = cells.get((name, scen))
+            if r is None:
+                line.append(Cell("-"))
+                continue
+            reference = r.filter == r.oracle_name
+            value = (
+                1.0
+                if reference
+                else (r.rmse_vs_oracle.estimate if r.rmse_vs_oracle is not None else r.vs_oracle)
+            )
+            values.append(value)
+            mark = " •" if r.nees_in_bounds >= plots.CONSISTENT_SHARE else ""
+            text = format_ratio(r.rmse_vs_oracle, reference=reference)
+            line.append(Cell(text + mark, value))
+        finite = [v for v in values if math.isfinite(v)]
+        median = float(np.median(finite)) if finite else math.nan
+        line.append(Cell(format_sig(median), median))
+        body.append(line)
+    body.sort(key=lambda line: (not math.isfinite(line[-1].sort), line[-1].sort))
+    header = ("filter", *scenarios, "median")
+    return TableBlock(header, body, (False, *[True] * (len(scenarios) + 1)),
+                      caption="Position RMSE / oracle's [95 % interval]; •: NEES in bounds on"
+                      " >= 85 % of steps; click a header to sort")  # fmt: skip
+
+
 def noise_table(sc: ScenarioData) -> TableBlock:
     """The true noise against what the filters assume (the oracle EKF is given the truth)."""
     rows = []
@@ -938,16 +975,25 @@ def build_document(
     scenarios: Sequence[ScenarioData],
     rows: Sequence[SummaryRow],
     figures: dict[str, dict[str, FigureBlock]],
-    overview: FigureBlock,
+    overview: FigureBlock | None,
     out_dir: Path,
+    *,
+    leaderboard: FigureBlock | None = None,
 ) -> Document:
     """The report's content, once, for report.md and report.html."""
     doc = Document("anfekf-bench report")
-    doc.add(Paragraph(INTRO), Heading("Summary"))
+    doc.add(Paragraph(INTRO), Contents())
+    if not scenarios:
+        return doc
+    doc.add(Heading("Summary", anchor="summary"))
     for sc in scenarios:
         for text in scenario_warnings(sc):
             doc.add(Warning(text))
-    doc.add(summary_table(rows), overview)
+    doc.add(summary_table(rows))
+    if leaderboard is not None:
+        doc.add(Heading("Leaderboard", level=3, anchor="leaderboard"), leaderboard,
+                leaderboard_table(rows))  # fmt: skip
+    doc.add(overview)
     for sc in scenarios:
         doc.add(Heading(sc.name, anchor=f"scenario-{sc.slug}"))
         if sc.description:
@@ -999,16 +1045,26 @@ def write_report(
     *,
     dpi: int = plots.DPI,
     html: bool = True,
+    sweeps: Sequence[Path] = (),
 ) -> ReportResult:
-    """Read every scenario under `results_dirs`, write its figures, report.md and report.html
-    to `out_dir`.
+    """Read every result under `results_dirs` (scenarios, real data) and the `sweeps` folders,
+    write their figures, and one report.md and report.html to `out_dir` covering all of them,
+    with a table of contents (the sweeps also get sweeps.md, real data real-data.md).
 
     Everything is read (and checked) before anything is written, so bad input leaves no partial
     report behind.
     """
     out_dir = Path(out_dir)
     fmt = ImageFormat(fmt)
-    folders, recorded = real.split_folders(find_scenarios(results_dirs, out_dir))
+    sweeps = [Path(f) for f in sweeps]
+    for folder in sweeps:
+        sweep_report.read_sweep(folder)  # checked before anything is written
+    found = (
+        find_scenarios(results_dirs, out_dir)
+        if not sweeps or sweep_report.has_scenario_results(list(results_dirs))
+        else []
+    )
+    folders, recorded = real.split_folders(found)
     real_data = [real.load_real(f) for f in recorded]  # real-data results: report/real.py
     scenarios = [
         load_scenario_data(f) if os.path.lexists(f / STEPS_FILE) else load_summary_only(f)
@@ -1019,13 +1075,14 @@ def write_report(
     result = ReportResult(out_dir=out_dir, scenarios=scenarios, rows=rows)
     result.warnings = [w for sc in scenarios for w in scenario_warnings(sc)]
     out_dir.mkdir(parents=True, exist_ok=True)
+    real_files: list[Path] = []
     if real_data:
-        real_files, real_text = real.write_real_report(real_data, out_dir, fmt.value, dpi)
+        real_files, _ = real.write_real_report(real_data, out_dir, fmt.value, dpi)
         result.files += real_files
-        if not scenarios:  # only real data: report.md is its section
-            write_atomic(out_dir / REPORT_FILE, lambda tmp: tmp.write_text(real_text, "utf-8"))
-            result.files.append(out_dir / REPORT_FILE)
-            return result
+    sweep_files: list[tuple[str, list[Path]]] = []
+    if sweeps:
+        sweeps_md, sweep_files = sweep_report.write_sweeps(sweeps, out_dir, fmt.value)
+        result.files += [f for _, files in sweep_files for f in files] + [sweeps_md]
 
     def save(fig, name: str, text: str) -> FigureBlock:
         path = out_dir / name
@@ -1043,13 +1100,28 @@ def write_report(
         return FigureBlock(name, text, image, mime, link_only=fmt is ImageFormat.pdf)
 
     # Colours by the filters' order in this report: the same filter, the same colour throughout.
-    with plots.palette([f.name for sc in scenarios for f in sc.filters]):
-        figures, overview = _draw_figures(scenarios, rows, save, fmt)
-    doc = build_document(scenarios, rows, figures, overview, out_dir)
-    outputs = {REPORT_FILE: to_markdown(doc)}
-    if real_data:
+    figures: dict[str, dict[str, FigureBlock]] = {}
+    overview = leaderboard = None
+    if scenarios:
+        with plots.palette([f.name for sc in scenarios for f in sc.filters]):
+            figures, overview = _draw_figures(scenarios, rows, save, fmt)
+            if any(r.kind == "ekf-oracle" for r in rows):
+                name = figure_name("", "leaderboard", fmt)
+                leaderboard = save(plots.leaderboard_figure(rows), name, LEADERBOARD_CAPTION)
+    doc = build_document(scenarios, rows, figures, overview, out_dir, leaderboard=leaderboard)
+    if real_files:
+        doc.add(Heading("Real data", anchor="real-data"))
         link = real.REAL_REPORT_FILE
-        outputs[REPORT_FILE] += f"\nReal-data results: [{link}]({link})\n"
+        doc.add(Paragraph(f"Tables and every number: [{link}]({link})."))
+        doc.add(*_file_blocks(real_files, fmt, html))
+    if sweep_files:
+        doc.add(Heading("Sweeps", anchor="sweeps"))
+        link = sweep_report.SWEEPS_REPORT
+        doc.add(Paragraph(f"Break-down ranges and every cell's numbers: [{link}]({link})."))
+        for name, files in sweep_files:
+            doc.add(Heading(f"Sweep {name}", level=3, anchor=f"sweep-{_slug(name)}"))
+            doc.add(*_file_blocks(files, fmt, html))
+    outputs = {REPORT_FILE: to_markdown(doc)}
     if html:
         outputs[HTML_FILE] = to_html(doc)
     for name, text in outputs.items():
@@ -1057,6 +1129,33 @@ def write_report(
         write_atomic(path, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
         result.files.append(path)
     return result
+
+
+LEADERBOARD_CAPTION = (
+    "Leaderboard: each filter's position RMSE over the oracle EKF's in each scenario, on one"
+    " log colour scale centred on 1 (white); frame: the 95 % paired interval includes 1;"
+    " dot: NEES in the 95 % bounds on at least 85 % of steps; filters sorted best first"
+)
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", text) or "x"
+
+
+def _file_blocks(files: Sequence[Path], fmt: ImageFormat, html: bool) -> list[FigureBlock]:
+    """Figures another part of the report wrote (sweeps, real data), embedded as they are: PNG
+    and SVG in the HTML, a PDF as a link."""
+    blocks = []
+    for path in files:
+        if path.suffix not in (".png", ".svg", ".pdf"):
+            continue
+        caption = path.stem.replace("_", " ")
+        embed = html and fmt is not ImageFormat.pdf
+        image = path.read_bytes() if embed else b""
+        mime = "image/svg+xml" if fmt is ImageFormat.svg else "image/png"
+        blocks.append(FigureBlock(path.name, caption, image, mime,
+                                  link_only=fmt is ImageFormat.pdf))  # fmt: skip
+    return blocks
 
 
 def _draw_figures(scenarios, rows, save, fmt) -> tuple[dict[str, dict[str, FigureBlock]], object]:

@@ -17,11 +17,10 @@ from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-from ..storage import MANIFEST_FILE, ResultsError, read_json, read_parquet
+from ..storage import MANIFEST_FILE, SWEEP_KIND, ResultsError, read_json, read_parquet
 from .plots import filter_colour, save_figure
 
 SWEEP_FILE = "sweep.parquet"
-SWEEP_KIND = "anfekf-bench sweep"
 # (column, its interval's columns or None, title, log scale, the value marking "as good as" the
 # reference, or None)
 PANELS = (
@@ -69,6 +68,13 @@ def read_sweep(folder: Path) -> SweepData:
         name, runs = str(doc["name"]), int(doc["runs"])
     except (KeyError, TypeError, ValueError):
         raise ResultsError(f"{folder / MANIFEST_FILE}: not a sweep manifest") from None
+    # The table's axis columns have plain names (dots as underscores); older tables, dotted.
+    axes = [a if a in table.columns else a.replace(".", "_") for a in axes]
+    factor_axes = {a if a in table.columns else a.replace(".", "_") for a in factor_axes}
+    if "filter" in table.columns and not isinstance(table["filter"].dtype, pd.CategoricalDtype):
+        table["filter"] = pd.Categorical(
+            table["filter"], categories=list(dict.fromkeys(table["filter"]))
+        )
     missing = [a for a in axes if a not in table.columns]
     if missing:
         raise ResultsError(f"{folder / SWEEP_FILE}: missing the axis columns {', '.join(missing)}")

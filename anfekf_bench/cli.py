@@ -14,7 +14,15 @@ from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    ProgressColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
 from rich.table import Table
 from rich.text import Text
 from typer.core import TyperArgument, TyperGroup, TyperOption
@@ -356,6 +364,8 @@ def run(
             )
             for p in scenario_files(scenario)
         ]
+    if any(p.engine == "fast" for p in plans):
+        warn_fast_without_numba()
     names = [p.name for p in plans]
     if len(set(names)) != len(names):
         fail(f"{scenario}: two scenario files share a name; names must be unique")
@@ -409,6 +419,19 @@ def run(
             _run_plan(plan, out, force, debug)
 
 
+def warn_fast_without_numba() -> None:
+    """Say once when `fast` will run as plain Python (numba missing): it works, but slowly."""
+    from .runner import fast_compiled
+
+    if fast_compiled("fast") is False:
+        err_console.print(
+            "warning: --engine fast without numba: its kernels run as plain Python (several"
+            " times slower than compiled); install numba with `pip install -e '.[fast]'`"
+            " (`make setup` does). The manifest records it (fast_compiled: false).",
+            markup=False, highlight=False, soft_wrap=True,
+        )  # fmt: skip
+
+
 def complete_result(target: Path, plan) -> str | None:
     """What a complete result in `target` holds ('the same runs and seed', 'runs 20, seed 7'),
     or None when the folder holds no complete result (no manifest.json)."""
@@ -423,16 +446,52 @@ def complete_result(target: Path, plan) -> str | None:
     return f"{manifest.get('runs', '?')} runs, seed {manifest.get('seed', '?')}"
 
 
+class RunRateColumn(ProgressColumn):
+    """Runs per second (per minute when slower), from rich's moving estimate."""
+
+    def render(self, task) -> Text:
+        speed = task.finished_speed or task.speed
+        if not speed:
+            return Text("", style="progress.data.speed")
+        shown = f"{speed:.2g} runs/s" if speed >= 1 else f"{speed * 60:.2g} runs/min"
+        return Text(shown, style="progress.data.speed")
+
+
 def run_progress() -> Progress:
-    """The progress bar of `anfekf run`: one task per scenario or sweep, runs done of all."""
+    """The progress bar of `anfekf run`: one task per scenario or sweep, runs done of all, the
+    rate, the time so far and the time left (ETA)."""
     return Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
+        RunRateColumn(),
         TimeElapsedColumn(),
+        TextColumn("eta"),
+        TimeRemainingColumn(),
         console=console,
         transient=False,
     )
+
+
+def sweep_summary_table(name: str, table, runs: int) -> Table:
+    """The end of a sweep: per filter, its position RMSE over the oracle's across the cells
+    (best, median, worst cell) and the cells within 1.5 x, with divergences."""
+    out = Table(title=f"sweep {name}: {plural(table['cell'].nunique(), 'cell')} x {runs} runs",
+                title_justify="left")  # fmt: skip
+    for col in ("filter", "RMSE / oracle best", "median", "worst", "cells <= 1.5x", "diverged"):
+        out.add_column(col, justify="left" if col == "filter" else "right")
+    for name_, rows in table.groupby("filter", observed=True, sort=False):
+        ratio = rows["rmse_pos_vs_oracle"].astype(float)
+        ok = int((ratio <= 1.5).sum())
+        out.add_row(
+            Text(one_line(str(name_))),
+            format_number(ratio.min(), 3),
+            format_number(ratio.median(), 3),
+            format_number(ratio.max(), 3),
+            f"{ok}/{len(rows)}",
+            str(int(rows["diverged"].fillna(0).sum())),
+        )
+    return out
 
 
 def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
@@ -441,12 +500,15 @@ def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
     total = sum(p.runs for p in plans)
     task = progress.add_task(f"{plan.name}: {len(cells)} cells", total=total)
 
+    reused = 0
+
     def on_cell(cell, what: str) -> None:
+        # One line that changes, not two printed lines per cell; the table comes at the end.
+        nonlocal reused
         shown = ", ".join(f"{k} = {v:g}" for k, v in cell.coords.items())
-        progress.console.print(
-            one_line(f"{plan.name} {cell.name} ({shown}): {what}"), markup=False, highlight=False
-        )
+        progress.update(task, description=one_line(f"{plan.name} {cell.name} ({shown})"))
         if what.startswith("complete"):
+            reused += 1
             progress.advance(task, plans[cell.index].runs)
 
     def on_start(_action: str, done: int, _total: int) -> None:
@@ -467,6 +529,7 @@ def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
                 plan.name, plan.scenario.sweep.axes, cells, plans, out, force=force,
                 on_cell=on_cell, on_start=on_start, on_result=lambda _: progress.advance(task),
             )  # fmt: skip
+            progress.update(task, description=f"{plan.name}: {plural(len(cells), 'cell')}")
     except KeyboardInterrupt:
         if debug:
             raise
@@ -475,9 +538,11 @@ def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
             f" {Path(out) / plan.name}: run the same command again to resume",
             code=130,
         )
+    table_console().print(sweep_summary_table(plan.name, table, plans[0].runs))
+    again = f" ({reused} complete already: reused)" if reused else ""
     console.print(
-        f"sweep {plan.name}: {len(cells)} cells x {plans[0].runs} runs written to {target}"
-        f" (sweep.parquet; `anfekf report {out}` draws it)",
+        f"sweep {plan.name}: {plural(len(cells), 'cell')} x {plans[0].runs} runs{again} written"
+        f" to {target} (sweep.parquet; `anfekf report {out}` draws it)",
         markup=False,
         highlight=False,
     )

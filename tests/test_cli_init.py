@@ -92,3 +92,39 @@ def test_the_yaml_is_plain_yaml(tmp_path):
     doc = yaml.safe_load(path.read_text())
     assert isinstance(doc, dict) and isinstance(doc["filters"], list)
     assert Path(path).stat().st_size < 4000
+
+
+def test_fast_without_numba_says_so_once_and_the_manifest_records_it(tmp_path, monkeypatch):
+    from anfekf_bench.engines import fast
+    from anfekf_bench.storage import read_manifest
+
+    monkeypatch.setattr(fast, "JIT", False)  # as if numba were not installed
+    docs = [small_scenario(name=n, runs=1, record_every=8, engine="fast") for n in ("a", "b")]
+    folder = tmp_path / "scenarios"
+    folder.mkdir()
+    for doc in docs:
+        write_scenario(folder / f"{doc['name']}.yaml", doc)
+    result = runner.invoke(app, ["run", str(folder), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    assert result.output.count("without numba") == 1  # two scenarios, one warning
+    assert read_manifest(tmp_path / "out" / "a")["fast_compiled"] is False
+    monkeypatch.setattr(fast, "JIT", True)
+    again = runner.invoke(app, ["run", str(folder / "a.yaml"), "--out", str(tmp_path / "o2")])
+    assert "without numba" not in again.output
+    assert read_manifest(tmp_path / "o2" / "a")["fast_compiled"] is True
+
+
+def test_a_sweep_ends_with_one_summary_table_not_lines_per_cell(tmp_path):
+    doc = small_scenario(name="sw", runs=2, jobs=1, record_every=8)
+    doc["sweep"] = {"axes": [{"scale": "R", "values": [0.5, 2.0]}]}
+    path = write_scenario(tmp_path / "sw.yaml", doc)
+    result = runner.invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    assert "running" not in result.output and "cell-000" not in result.output
+    table = result.output.split("sweep sw: 2 cells x 2 runs")[1]
+    assert "RMSE / oracle" in table and "cells <= 1.5x" in table
+    for name in ("ekf", "anfekf", "ekf-oracle"):
+        assert name in table
+    assert "eta" in result.output  # the progress line: rate, elapsed, time left
+    again = runner.invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    assert again.exit_code == 0 and "(2 complete already: reused)" in again.output

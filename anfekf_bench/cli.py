@@ -767,28 +767,18 @@ def bench(
 def kinds() -> None:
     """List every filter kind: what it adapts, which engines run it, its parameters and defaults."""
     from .engines import fast  # noqa: F401  (registers the fast engine's `supports`)
-    from .filters.registry import KINDS, capabilities
+    from .filters.registry import KINDS, adapts_line, capabilities
 
     for kind in KINDS:
         info = capabilities(kind)
-        adapts = _noise_names(info.adapts)
-        if info.default_adapts is None:
-            adapts = "decided by the class (the report reads the recorded R/Qu)"
-        elif info.adapts and info.default_adapts != info.adapts:
-            adapts += f" (by default: {_noise_names(info.default_adapts)})"
         console.print(f"{kind}: {info.doc}", markup=False, highlight=False, soft_wrap=True)
         console.print(
-            f"  adapts: {adapts}; engines: {', '.join(info.engines)}",
+            f"  adapts: {adapts_line(info)}; engines: {', '.join(info.engines)}",
             markup=False, highlight=False, soft_wrap=True,
         )  # fmt: skip
         for name, default, description in info.params:
             line = f"  {name} = {default}" + (f": {description}" if description else "")
             console.print(one_line(line), markup=False, highlight=False, soft_wrap=True)
-
-
-def _noise_names(letters: frozenset[str]) -> str:
-    names = {"R": "R (measurement noise)", "Q": "Qu (control noise)", "P": "P (covariance)"}
-    return ", ".join(names[a] for a in "RQP" if a in letters) or "nothing (fixed noise)"
 
 
 STARTER_SCENARIO = """\

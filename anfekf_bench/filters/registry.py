@@ -91,6 +91,26 @@ def adapted_noise(spec: FilterSpec | Mapping[str, Any]) -> frozenset[str] | None
         return type(spec).adapts_noise
 
 
+NOISE_NAMES = {"R": "R (measurement noise)", "Q": "Qu (control noise)", "P": "P (covariance)"}
+
+
+def noise_names(letters: frozenset[str] | None) -> str:
+    """'R (measurement noise), Qu (control noise)' for {"R", "Q"}; 'nothing' for none."""
+    if letters is None:
+        return "what its class adapts (the report reads the recorded R/Qu)"
+    return ", ".join(NOISE_NAMES[a] for a in "RQP" if a in letters) or "nothing (fixed noise)"
+
+
+def adapts_line(info: KindInfo) -> str:
+    """What a kind adapts, as `anfekf kinds` and the README say it."""
+    if info.default_adapts is None:
+        return noise_names(None)
+    text = noise_names(info.adapts)
+    if info.adapts and info.default_adapts != info.adapts:
+        text += f" (by default: {noise_names(info.default_adapts)})"
+    return text
+
+
 @dataclass(frozen=True)
 class KindInfo:
     """One filter kind as `anfekf kinds` and the docs show it."""

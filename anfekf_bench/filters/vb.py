@@ -128,7 +128,7 @@ def vb_r_predict(alpha: np.ndarray, beta: np.ndarray, rho: float) -> tuple[np.nd
 
 class VBRSpec(AdaptiveSpec):
     """Sarkka & Nummenmaa (2009) variational-Bayes adaptive EKF: diagonal R, inverse-gamma per
-    channel (research notes section 4)."""
+    channel."""
 
     kind: Literal["vb-r"]
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R"})
@@ -275,7 +275,7 @@ def vbakf_predict(u: float, U: np.ndarray, rho: float, m: int = 2) -> tuple[floa
 
 class VBAKFSpec(AdaptiveSpec):
     """Huang, Zhang, Wu, Li, Chambers (2018) VBAKF: inverse-Wishart priors on the predicted
-    covariance P- and on R (research notes section 5)."""
+    covariance P- and on R."""
 
     kind: Literal["vbakf"]
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "P"})

@@ -549,8 +549,11 @@ def map_figure(sc: ScenarioData) -> Figure:
     ax_zoom.set_ylim(centre[1] - half, centre[1] + half)
     ax_map.add_patch(Rectangle(tuple(centre - half), 2 * half, 2 * half, fill=False,
                                edgecolor="black", lw=0.8, linestyle=":"))  # fmt: skip
-    ax_map.legend(loc="best", ncols=2)
-    ax_zoom.legend(handles=ax_zoom.get_lines()[-1:], loc="upper left")
+    # Below the panels: inside, a legend covers part of the map (and a landmark).
+    handles, labels = ax_map.get_legend_handles_labels()
+    zoom_handles, zoom_labels = ax_zoom.get_legend_handles_labels()
+    fig.legend([*handles, zoom_handles[-1]], [*labels, zoom_labels[-1]],
+               loc="outside lower center", ncols=min(len(labels) + 1, 4))  # fmt: skip
     ax_map.set_title(f"run {tr.run}: {ELLIPSE_SIGMA:g}-sigma position ellipses every "
                      f"{_spacing(tr):.0f} s (true size; dotted box: zoom)", fontsize=9)  # fmt: skip
     ax_zoom.set_title(f"zoom at t = {tr.t[k]:.1f} s: estimates (dots) and their "

@@ -114,6 +114,7 @@ def test_fast_without_numba_says_so_once_and_the_manifest_records_it(tmp_path, m
     assert read_manifest(tmp_path / "o2" / "a")["fast_compiled"] is True
 
 
+@pytest.mark.slow
 def test_a_sweep_ends_with_one_summary_table_not_lines_per_cell(tmp_path):
     doc = small_scenario(name="sw", runs=2, jobs=1, record_every=8)
     doc["sweep"] = {"axes": [{"scale": "R", "values": [0.5, 2.0]}]}

@@ -76,13 +76,17 @@ def assert_readable(fig) -> None:
             assert overlap_w <= 0.5 or overlap_h <= 0.5, f"{a!r} overlaps {b!r}"
 
 
-@pytest.mark.parametrize(("filters", "scenarios"), [(30, 6), (18, 2), (3, 1)])
+@pytest.mark.parametrize(
+    ("filters", "scenarios"), [pytest.param(30, 6, marks=pytest.mark.slow), (18, 2), (3, 1)]
+)
 def test_the_leaderboard_has_no_overlapping_labels(filters, scenarios):
     fig = plots.leaderboard_figure(many_rows(filters, scenarios))
     assert_readable(fig)
 
 
-@pytest.mark.parametrize(("filters", "scenarios"), [(30, 6), (18, 2), (3, 1)])
+@pytest.mark.parametrize(
+    ("filters", "scenarios"), [pytest.param(30, 6, marks=pytest.mark.slow), (18, 2), (3, 1)]
+)
 def test_the_overview_has_no_overlapping_labels(filters, scenarios):
     rows = many_rows(filters, scenarios)
     with plots.palette([r.filter for r in rows]):

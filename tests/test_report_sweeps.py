@@ -19,6 +19,7 @@ from anfekf_bench.sweeps import cell_plans, expand, run_sweep
 from .conftest import small_scenario, write_scenario
 
 runner = CliRunner()
+pytestmark = pytest.mark.slow  # a sweep of 4 cells end to end
 
 
 @pytest.fixture(scope="module")

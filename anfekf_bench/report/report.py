@@ -1080,8 +1080,9 @@ def write_report(
         real_files, _ = real.write_real_report(real_data, out_dir, fmt.value, dpi)
         result.files += real_files
     sweep_files: list[tuple[str, list[Path]]] = []
-    if sweeps:
-        sweeps_md, sweep_files = sweep_report.write_sweeps(sweeps, out_dir, fmt.value)
+    if sweeps:  # in the scenarios' colours where a filter name is the same
+        with plots.palette([f.name for sc in scenarios for f in sc.filters]):
+            sweeps_md, sweep_files = sweep_report.write_sweeps(sweeps, out_dir, fmt.value)
         result.files += [f for _, files in sweep_files for f in files] + [sweeps_md]
 
     def save(fig, name: str, text: str) -> FigureBlock:

@@ -70,7 +70,24 @@ SLOW_TESTS: dict[str, set[str]] = {
         "test_results_do_not_depend_on_worker_count",
     },
     "test_interrupt": {"test_killed_run_leaves_nothing_complete_and_resumes"},
-    "test_confinement": {"test_nothing_outside_the_scenario_folder_ever_changes"},
+    "test_confinement": {
+        "test_nothing_outside_the_scenario_folder_ever_changes",
+        "test_planted_run_files_are_refused_never_executed",
+    },
+    "test_report": {
+        "test_other_formats_are_valid_files",
+        "test_the_html_report_is_written_again_byte_for_byte",
+        "test_dpi_sets_the_figure_resolution",
+    },
+    "test_cli_ux": {
+        "test_shell_completion_completes_commands_and_options",
+        "test_other_commands_piped_into_head_stop_quietly",
+    },
+    "test_sweeps": {
+        "test_the_sweep_report_draws_lines_or_heatmaps",
+        "test_an_interrupted_sweep_resumes_to_the_same_table",
+    },
+    "test_statistics": {"test_coverage_with_a_known_truth"},
     "test_hardening": {"test_diverged_run_is_counted_and_kept_out_of_the_means"},
     "test_real_data": {"test_a_users_log_runs_end_to_end"},
     "test_fast_engine": {"test_paper_scenario", "test_runs_without_numba"},

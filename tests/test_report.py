@@ -120,6 +120,10 @@ def test_report_holds_every_figure_and_the_markdown(report_dir):
     assert all(f'href="{name}"' in page for name in written)
     assert "<strong>Contents</strong>" in page and 'href="#leaderboard"' in page
     assert "[Leaderboard](#leaderboard)" in md and '<a id="leaderboard"></a>' in md
+    # the leaderboard's table: filters x scenarios, sortable by any scenario and the median
+    board = page.split('id="leaderboard"')[1].split("</table>")[0]
+    assert '<table class="sortable">' in board and ">median</th>" in board
+    assert all(f">{name}</th>" in board for name in SCENARIOS)
     for name in SCENARIOS:
         assert f"| {name} | anfekf | {RUNS}/{RUNS} |" in md
     assert "tiny_q" in stdout and "anfekf" in stdout and "report.md" in stdout

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -13,7 +14,15 @@ from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    ProgressColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
 from rich.table import Table
 from rich.text import Text
 from typer.core import TyperArgument, TyperGroup, TyperOption
@@ -129,6 +138,22 @@ def _plain_list_metavar(self, ctx):
 
 
 TyperArgument.display_type_rich = _plain_list_metavar
+# ... and "{SCENARIO}" for a required argument in the usage line (typer >= 0.2x): the usual
+# convention is a bare SCENARIO (required) and [RESULTS_DIR] (optional).
+_usage_name = getattr(TyperArgument, "_usage_display_name", None)
+
+
+def _plain_usage_name(self):
+    shown = _usage_name(self)
+    more = "..." if shown.endswith("...") else ""
+    core = shown.removesuffix("...")
+    if core.startswith("{") and core.endswith("}"):
+        core = core[1:-1]
+    return core + more
+
+
+if _usage_name is not None:
+    TyperArgument._usage_display_name = _plain_usage_name
 
 
 app = typer.Typer(
@@ -260,6 +285,11 @@ def summary_table(title: str, records: list[dict]) -> Table:
     return table
 
 
+def plural(n: int, noun: str) -> str:
+    """'1 scenario', '2 scenarios'."""
+    return f"{n} {noun}" + ("" if n == 1 else "s")
+
+
 def _check_out_dir(out: Path) -> None:
     problem = output_path_problem(out, folder=True)
     if problem:
@@ -268,7 +298,9 @@ def _check_out_dir(out: Path) -> None:
 
 @app.command()
 def run(
-    scenario: Annotated[Path, typer.Argument(help="Scenario YAML file, or a folder of them.")],
+    scenario: Annotated[
+        Path, typer.Argument(metavar="SCENARIO", help="Scenario YAML file, or a folder of them.")
+    ],
     runs: Annotated[
         Optional[int], typer.Option(help="Monte Carlo runs, >= 1 (overrides file).")
     ] = None,
@@ -332,6 +364,8 @@ def run(
             )
             for p in scenario_files(scenario)
         ]
+    if any(p.engine == "fast" for p in plans):
+        warn_fast_without_numba()
     names = [p.name for p in plans]
     if len(set(names)) != len(names):
         fail(f"{scenario}: two scenario files share a name; names must be unique")
@@ -385,6 +419,19 @@ def run(
             _run_plan(plan, out, force, debug)
 
 
+def warn_fast_without_numba() -> None:
+    """Say once when `fast` will run as plain Python (numba missing): it works, but slowly."""
+    from .runner import fast_compiled
+
+    if fast_compiled("fast") is False:
+        err_console.print(
+            "warning: --engine fast without numba: its kernels run as plain Python (several"
+            " times slower than compiled); install numba with `pip install -e '.[fast]'`"
+            " (`make setup` does). The manifest records it (fast_compiled: false).",
+            markup=False, highlight=False, soft_wrap=True,
+        )  # fmt: skip
+
+
 def complete_result(target: Path, plan) -> str | None:
     """What a complete result in `target` holds ('the same runs and seed', 'runs 20, seed 7'),
     or None when the folder holds no complete result (no manifest.json)."""
@@ -399,16 +446,52 @@ def complete_result(target: Path, plan) -> str | None:
     return f"{manifest.get('runs', '?')} runs, seed {manifest.get('seed', '?')}"
 
 
+class RunRateColumn(ProgressColumn):
+    """Runs per second (per minute when slower), from rich's moving estimate."""
+
+    def render(self, task) -> Text:
+        speed = task.finished_speed or task.speed
+        if not speed:
+            return Text("", style="progress.data.speed")
+        shown = f"{speed:.2g} runs/s" if speed >= 1 else f"{speed * 60:.2g} runs/min"
+        return Text(shown, style="progress.data.speed")
+
+
 def run_progress() -> Progress:
-    """The progress bar of `anfekf run`: one task per scenario or sweep, runs done of all."""
+    """The progress bar of `anfekf run`: one task per scenario or sweep, runs done of all, the
+    rate, the time so far and the time left (ETA)."""
     return Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
+        RunRateColumn(),
         TimeElapsedColumn(),
+        TextColumn("eta"),
+        TimeRemainingColumn(),
         console=console,
         transient=False,
     )
+
+
+def sweep_summary_table(name: str, table, runs: int) -> Table:
+    """The end of a sweep: per filter, its position RMSE over the oracle's across the cells
+    (best, median, worst cell) and the cells within 1.5 x, with divergences."""
+    out = Table(title=f"sweep {name}: {plural(table['cell'].nunique(), 'cell')} x {runs} runs",
+                title_justify="left")  # fmt: skip
+    for col in ("filter", "RMSE / oracle best", "median", "worst", "cells <= 1.5x", "diverged"):
+        out.add_column(col, justify="left" if col == "filter" else "right")
+    for name_, rows in table.groupby("filter", observed=True, sort=False):
+        ratio = rows["rmse_pos_vs_oracle"].astype(float)
+        ok = int((ratio <= 1.5).sum())
+        out.add_row(
+            Text(one_line(str(name_))),
+            format_number(ratio.min(), 3),
+            format_number(ratio.median(), 3),
+            format_number(ratio.max(), 3),
+            f"{ok}/{len(rows)}",
+            str(int(rows["diverged"].fillna(0).sum())),
+        )
+    return out
 
 
 def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
@@ -417,12 +500,15 @@ def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
     total = sum(p.runs for p in plans)
     task = progress.add_task(f"{plan.name}: {len(cells)} cells", total=total)
 
+    reused = 0
+
     def on_cell(cell, what: str) -> None:
+        # One line that changes, not two printed lines per cell; the table comes at the end.
+        nonlocal reused
         shown = ", ".join(f"{k} = {v:g}" for k, v in cell.coords.items())
-        progress.console.print(
-            one_line(f"{plan.name} {cell.name} ({shown}): {what}"), markup=False, highlight=False
-        )
+        progress.update(task, description=one_line(f"{plan.name} {cell.name} ({shown})"))
         if what.startswith("complete"):
+            reused += 1
             progress.advance(task, plans[cell.index].runs)
 
     def on_start(_action: str, done: int, _total: int) -> None:
@@ -443,6 +529,7 @@ def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
                 plan.name, plan.scenario.sweep.axes, cells, plans, out, force=force,
                 on_cell=on_cell, on_start=on_start, on_result=lambda _: progress.advance(task),
             )  # fmt: skip
+            progress.update(task, description=f"{plan.name}: {plural(len(cells), 'cell')}")
     except KeyboardInterrupt:
         if debug:
             raise
@@ -451,9 +538,11 @@ def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
             f" {Path(out) / plan.name}: run the same command again to resume",
             code=130,
         )
+    table_console().print(sweep_summary_table(plan.name, table, plans[0].runs))
+    again = f" ({reused} complete already: reused)" if reused else ""
     console.print(
-        f"sweep {plan.name}: {len(cells)} cells x {plans[0].runs} runs written to {target}"
-        f" (sweep.parquet; `anfekf report {out}` draws it)",
+        f"sweep {plan.name}: {plural(len(cells), 'cell')} x {plans[0].runs} runs{again} written"
+        f" to {target} (sweep.parquet; `anfekf report {out}` draws it)",
         markup=False,
         highlight=False,
     )
@@ -580,7 +669,7 @@ def report(
     """Draw figures and tables of saved results: report.md and report.html (never re-runs)."""
     # Imported here so that `anfekf run` does not pay for matplotlib.
     from .report import HTML_FILE, REPORT_FILE, ImageFormat, rich_table, write_report
-    from .report.sweep import find_sweeps, has_scenario_results, write_sweeps_report
+    from .report.sweep import find_sweeps
     from .storage import ResultsError
 
     formats = [f.value for f in ImageFormat]
@@ -592,19 +681,19 @@ def report(
     folders = results or [Path("results")]
     with one_line_errors(debug, (ResultsError,), os_error=f"{out}: cannot write the report"):
         sweep_folders = find_sweeps(folders)
-        written = write_sweeps_report(sweep_folders, out, image_format) if sweep_folders else None
-        if written is not None:
-            console.print(f"sweep report written to {written}", markup=False, highlight=False)
-        if sweep_folders and not has_scenario_results(folders):
-            return
-        done = write_report(folders, out, ImageFormat(image_format), dpi=dpi)
-    table_console().print(rich_table(done.rows))
+        # One report of everything: scenarios, real data and sweeps (which also get sweeps.md).
+        done = write_report(folders, out, ImageFormat(image_format), dpi=dpi, sweeps=sweep_folders)
+    if done.rows:
+        table_console().print(rich_table(done.rows))
     for warning in done.warnings:
         console.print(f"warning: {warning}", markup=False, highlight=False, soft_wrap=True)
     figures = sum(1 for p in done.files if p.suffix not in (".md", ".html"))
     pages = [str(p) for p in done.files if p.name in (REPORT_FILE, HTML_FILE)]
+    parts = [plural(len(done.scenarios), "scenario")] if done.scenarios or not sweep_folders else []
+    if sweep_folders:
+        parts.append(plural(len(sweep_folders), "sweep"))
     console.print(
-        f"report of {len(done.scenarios)} scenarios ({figures} figures) written to"
+        f"report of {' and '.join(parts)} ({plural(figures, 'figure')}) written to"
         f" {' and '.join(pages)}",
         markup=False,
         highlight=False,
@@ -672,6 +761,71 @@ def bench(
         found = run_bench(configs, out, QUICK if quick else FULL, say=console.print)
     table_console().print(bench_table(found))
     console.print(f"bench figures written to {out}", highlight=False)
+
+
+@app.command()
+def kinds() -> None:
+    """List every filter kind: what it adapts, which engines run it, its parameters and defaults."""
+    from .engines import fast  # noqa: F401  (registers the fast engine's `supports`)
+    from .filters.registry import KINDS, adapts_line, capabilities
+
+    for kind in KINDS:
+        info = capabilities(kind)
+        console.print(f"{kind}: {info.doc}", markup=False, highlight=False, soft_wrap=True)
+        console.print(
+            f"  adapts: {adapts_line(info)}; engines: {', '.join(info.engines)}",
+            markup=False, highlight=False, soft_wrap=True,
+        )  # fmt: skip
+        for name, default, description in info.params:
+            line = f"  {name} = {default}" + (f": {description}" if description else "")
+            console.print(one_line(line), markup=False, highlight=False, soft_wrap=True)
+
+
+STARTER_SCENARIO = """\
+# A starter scenario for `anfekf run` (written by `anfekf init`). Every key below is optional
+# except `name`; `anfekf kinds` lists the filter kinds with their parameters and defaults.
+name: {name}                  # results go to OUT/<name>/
+description: The EKF against the ANFEKF when the filters assume a wrong measurement noise R
+seed: 1                       # root seed: the same seed gives the same bytes
+runs: 20                      # Monte Carlo runs (the paper's scenarios use 50)
+record_every: 8               # steps.parquet keeps every 8th control step (one per sensor scan)
+# engine: fast                # the compiled engine (numba) for the kinds it runs; filterpy: all
+# The noise the simulator draws (true_noise) and the noise the filters assume (filter_noise):
+# standard deviations; angles in degrees.
+true_noise:   {{sigma_v: 0.3, sigma_gamma_deg: 3.0, sigma_range: 0.1, sigma_bearing_deg: 1.0}}
+filter_noise: {{sigma_v: 0.3, sigma_gamma_deg: 3.0, sigma_range: 2.0, sigma_bearing_deg: 0.1}}
+# world: {{landmarks: builtin, waypoints: builtin}}   # or CSV files of x,y rows
+filters:
+  - {{name: ekf, kind: ekf}}                     # fixed noise: the assumed one
+  - {{name: anfekf, kind: anfekf, adapt: R}}     # adapts R (Q: the control noise; RQ: both)
+  - {{name: sage-husa, kind: sage-husa}}         # a baseline that adapts R
+  - {{name: ekf-oracle, kind: ekf-oracle}}       # the reference: given the TRUE noise
+# Claims the run checks (and `anfekf check` gates), decided on the paired 95 % interval:
+claims:
+  - {{filter: anfekf, vs: ekf, metric: rmse_pos, at_most: 0.8}}
+"""
+
+
+@app.command()
+def init(
+    path: Annotated[
+        Path, typer.Argument(help="Where to write the starter scenario.", metavar="PATH")
+    ] = Path("scenario.yaml"),
+) -> None:
+    """Write a commented starter scenario that `anfekf run` accepts (never overwrites a file)."""
+    from .storage import write_atomic
+
+    if path.exists() or path.is_symlink():
+        fail(f"{path}: already exists; choose another PATH (init never overwrites a file)")
+    if not path.parent.is_dir():
+        fail(f"{path.parent}: no such folder")
+    name = re.sub(r"[^A-Za-z0-9_-]", "_", path.stem) or "scenario"
+    try:
+        write_atomic(path, lambda tmp: tmp.write_text(STARTER_SCENARIO.format(name=name)))
+    except OSError as exc:
+        fail(f"{path}: cannot write the starter scenario: {exc}")
+    console.print(f"starter scenario written to {path}; run it with: anfekf run {path}",
+                  markup=False, highlight=False, soft_wrap=True)  # fmt: skip
 
 
 def main() -> None:  # pragma: no cover - console entry point

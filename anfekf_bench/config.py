@@ -6,6 +6,7 @@ radians once (`World`, `NoiseSigmas.radians`), so the rest of the code works in 
 
 from __future__ import annotations
 
+import difflib
 import math
 import re
 import typing
@@ -484,15 +485,24 @@ def _format_validation_error(exc: ValidationError) -> tuple[str, str]:
         allowed = _allowed_keys(parent)
         if allowed:
             msg += f" (allowed: {', '.join(allowed)})"
+        msg += _did_you_mean(str(err["loc"][-1]), allowed)
     elif "input" in err and err["type"] not in ("missing",):
         shown = repr(err["input"])
         if len(shown) > 60:
             shown = shown[:57] + "..."
         msg += f" (got {shown})"
+    if err["type"] == "union_tag_invalid":
+        msg += _did_you_mean(str(err.get("ctx", {}).get("tag", "")), KINDS)
     extra = len({".".join(_shown_loc(e)) for e in errors} - {field})
     if extra:
         msg += f" [+{extra} more error{'s' if extra > 1 else ''}]"
     return field, msg
+
+
+def _did_you_mean(word: str, choices) -> str:
+    """' (did you mean 'x'?)' for the closest of `choices` to a mistyped `word`, else ''."""
+    close = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.75)
+    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 def _allowed_keys(parent_loc: tuple) -> list[str]:

@@ -24,7 +24,7 @@ from pydantic import BaseModel
 from pydantic_core import PydanticUndefined
 
 from .config import Scenario
-from .filters.registry import SPEC_BY_KIND
+from .filters.registry import SPEC_BY_KIND, adapts_line, capabilities
 from .filters.spec import AdaptiveParams
 
 # Meanings of fields whose model gives no description ("Model.field").
@@ -238,7 +238,11 @@ def filter_kinds_markdown() -> str:
     for kind, spec in SPEC_BY_KIND.items():
         adaptive = issubclass(spec, AdaptiveParams)
         own = field_rows(spec, skip=("name", "kind", *(common if adaptive else ())))
-        out += ["", f"**`{kind}`**: {_doc(spec)}" + (" Adaptive." if adaptive else ""), ""]
+        info = capabilities(kind)  # the registry: what it adapts, its doc
+        adapts = (
+            f" Adapts {adapts_line(info)}." if info.adapts or info.default_adapts is None else ""
+        )
+        out += ["", f"**`{kind}`**: {info.doc}{adapts}", ""]
         if own:
             rows = [(f"`{k}`", t, _code(d), m) for k, t, d, m, *_ in own]
             out += _table(("parameter", "type", "default", "meaning"), rows)

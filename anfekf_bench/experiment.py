@@ -41,7 +41,7 @@ from .analysis.tables import (
     update_statistics,
 )
 from .config import BackendConfig, Engine, Scenario, World
-from .runner import connect_dask, engine_of, run_batch
+from .runner import connect_dask, engine_of, fast_compiled, run_batch
 from .sources.simulator import RouteNotCompleted, simulate_truth
 from .storage import (
     CLAIMS_FILE,
@@ -564,6 +564,7 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result):
         "engines": {
             f.name: engine_of(plan.engine, f, plan.scenario) for f in plan.scenario.filters
         },
+        "fast_compiled": fast_compiled(plan.engine),  # false: numba missing, plain Python
         "fingerprint": fingerprint,
         "world": {
             "landmarks": plan.world.landmarks.tolist(),

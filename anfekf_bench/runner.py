@@ -72,6 +72,16 @@ def engine_of(engine: Engine, spec: FilterSpec, scenario=None) -> Engine:
     return "filterpy"
 
 
+def fast_compiled(engine: Engine) -> bool | None:
+    """For the manifest: whether the fast engine's kernels are numba-compiled (False: plain
+    Python, much slower: numba is missing); None when the fast engine is not asked for."""
+    if engine != "fast":
+        return None
+    from .engines import fast
+
+    return bool(fast.JIT)
+
+
 def run_one(
     scenario: Scenario,
     world: World,

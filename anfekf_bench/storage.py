@@ -47,6 +47,8 @@ PHASES_FILE = "phases.parquet"  # per-phase metrics of a noise schedule (analysi
 RUNS_DIR = ".runs"  # finished runs of an unfinished batch (experiment.py)
 RUN_FILE_PATTERN = "run-*.npz"  # a finished run in RUNS_DIR (write_run_file)
 LOCK_FILE = ".lock"  # held (flock) by the batch writing a scenario folder
+SWEEP_KIND = "anfekf-bench sweep"  # a sweep folder's manifest.json says `kind: SWEEP_KIND`
+SWEEP_CELLS_DIR = "cells"  # a sweep's cells: <sweep>/cells/<cell>/, each a scenario result
 
 # Names a scenario may not take: its folder is a direct child of --out, beside these.
 RESERVED_NAMES = frozenset(

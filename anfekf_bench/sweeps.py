@@ -15,6 +15,7 @@ reused on a rerun). The sweep folder holds
 from __future__ import annotations
 
 import copy
+import hashlib
 import itertools
 import math
 import time
@@ -28,7 +29,11 @@ from .config import Scenario, ScenarioError, SweepAxis, World, parse_scenario, r
 from .experiment import Plan, execute, make_plan, package_versions
 from .storage import (
     COMPARISONS_FILE,
+    LOCK_FILE,
     MANIFEST_FILE,
+    SWEEP_CELLS_DIR,
+    SWEEP_KIND,
+    folder_lock,
     read_json,
     read_parquet,
     write_json,
@@ -36,12 +41,24 @@ from .storage import (
 )
 
 SWEEP_FILE = "sweep.parquet"
-CELLS_DIR = "cells"
-SWEEP_KIND = "anfekf-bench sweep"
+CELLS_DIR = SWEEP_CELLS_DIR
 # The per-cell summary metrics kept in the sweep table.
 SUMMARY_METRICS = ("runs", "runs_used", "diverged", "rmse_pos", "rmse_heading", "anees",
                    "nees_in_bounds", "anis", "gate_rejected")  # fmt: skip
 RATIO_METRICS = ("rmse_pos", "anees")
+
+
+def column_of(label: str) -> str:
+    """An axis's column in sweep.parquet: its label with plain characters only (a field path's
+    dots become underscores: filter_noise.sigma_range -> filter_noise_sigma_range), so SQL and
+    pandas need no quoting."""
+    return label.replace(".", "_")
+
+
+def sweep_fingerprint(plans: list[Plan]) -> str:
+    """One fingerprint for the whole grid: the cells' own, in order."""
+    digest = hashlib.sha256("\n".join(p.fingerprint() for p in plans).encode())
+    return digest.hexdigest()[:16]
 
 
 class SweepError(Exception):
@@ -161,18 +178,23 @@ def run_sweep(
     target = Path(out_dir) / name
     cells_dir = target / CELLS_DIR
     reused = []
-    for cell, plan in zip(cells, plans, strict=True):
-        folder = cells_dir / cell.name
-        if not force and cell_complete(folder, plan):
-            reused.append(cell.name)
+    # The sweep's own lock serialises every writer of its cells, so a finished cell's lock file
+    # can go (no other command can be waiting on it): no .lock is left in a finished cell.
+    with folder_lock(target):
+        for cell, plan in zip(cells, plans, strict=True):
+            folder = cells_dir / cell.name
+            if not force and cell_complete(folder, plan):
+                reused.append(cell.name)
+                (folder / LOCK_FILE).unlink(missing_ok=True)  # left by an earlier version
+                if on_cell is not None:
+                    on_cell(cell, "complete already: reused")
+                continue
             if on_cell is not None:
-                on_cell(cell, "complete already: reused")
-            continue
-        if on_cell is not None:
-            on_cell(cell, "running")
-        execute(plan, cells_dir, force=force, on_start=on_start, on_result=on_result)
+                on_cell(cell, "running")
+            execute(plan, cells_dir, force=force, on_start=on_start, on_result=on_result)
+            (folder / LOCK_FILE).unlink(missing_ok=True)
     table = sweep_table(axes, cells, cells_dir)
-    write_parquet(target / SWEEP_FILE, table)
+    write_sweep_table(target / SWEEP_FILE, name, table, plans)
     write_json(
         target / MANIFEST_FILE,
         {
@@ -191,6 +213,22 @@ def run_sweep(
     return table, target
 
 
+def write_sweep_table(path: Path, name: str, table: pd.DataFrame, plans: list[Plan]) -> None:
+    """sweep.parquet as every result file is written: a scenario column (the sweep's name),
+    filter and scenario as plain strings, and the key-value metadata (scenario, seed,
+    fingerprint, units, the package version and git commit)."""
+    from .analysis.tables import column_units, parquet_frame
+
+    df = parquet_frame(table.assign(scenario=name)[["scenario", *table.columns]])
+    metadata = {
+        "scenario": name,
+        "seed": str(plans[0].seed),
+        "fingerprint": sweep_fingerprint(plans),
+        "units": column_units(df),
+    }
+    write_parquet(path, df, metadata)
+
+
 def sweep_table(axes: list[SweepAxis], cells: list[Cell], cells_dir: Path) -> pd.DataFrame:
     """One row per (cell, filter): swept values, summary metrics, ratios to the references."""
     rows = []
@@ -204,7 +242,8 @@ def sweep_table(axes: list[SweepAxis], cells: list[Cell], cells_dir: Path) -> pd
             "oracle": next((n for n, k in kinds.items() if k == "ekf-oracle"), None),
         }
         for rec in summary.to_dict("records"):
-            row = {"cell": cell.name, **cell.coords, "filter": rec["filter"],
+            coords = {column_of(k): v for k, v in cell.coords.items()}
+            row = {"cell": cell.name, **coords, "filter": rec["filter"],
                    "kind": kinds.get(rec["filter"], "")}  # fmt: skip
             row.update({m: rec.get(m, math.nan) for m in SUMMARY_METRICS})
             for ref_label, ref in refs.items():
@@ -229,6 +268,6 @@ def sweep_table(axes: list[SweepAxis], cells: list[Cell], cells_dir: Path) -> pd
     table["filter"] = pd.Categorical(
         table["filter"], categories=list(dict.fromkeys(table["filter"]))
     )
-    return table.sort_values([a.label for a in axes] + ["filter"], kind="stable").reset_index(
-        drop=True
-    )
+    return table.sort_values(
+        [column_of(a.label) for a in axes] + ["filter"], kind="stable"
+    ).reset_index(drop=True)

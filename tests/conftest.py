@@ -58,3 +58,52 @@ def live_group_members(pgid: int) -> list[int]:
         if int(fields[2]) == pgid and fields[0] not in ("Z", "X"):
             alive.append(int(stat.parent.name))
     return alive
+
+
+# The fast tier, `pytest -m "not slow"`: these end-to-end tests (each several seconds on the
+# 2-core machine: whole scenarios, worker pools, killed processes, a Dask cluster) are marked
+# slow here, by module and test function (every parameter), besides those marked in their own
+# files. `make test` runs everything. Measured with `pytest --durations` (README, Testing).
+SLOW_TESTS: dict[str, set[str]] = {
+    "test_pipeline": {
+        "test_ekf_consistency_acceptance",
+        "test_results_do_not_depend_on_worker_count",
+    },
+    "test_interrupt": {"test_killed_run_leaves_nothing_complete_and_resumes"},
+    "test_confinement": {
+        "test_nothing_outside_the_scenario_folder_ever_changes",
+        "test_planted_run_files_are_refused_never_executed",
+    },
+    "test_report": {
+        "test_other_formats_are_valid_files",
+        "test_the_html_report_is_written_again_byte_for_byte",
+        "test_dpi_sets_the_figure_resolution",
+    },
+    "test_cli_ux": {
+        "test_shell_completion_completes_commands_and_options",
+        "test_other_commands_piped_into_head_stop_quietly",
+    },
+    "test_sweeps": {
+        "test_the_sweep_report_draws_lines_or_heatmaps",
+        "test_an_interrupted_sweep_resumes_to_the_same_table",
+    },
+    "test_statistics": {"test_coverage_with_a_known_truth"},
+    "test_hardening": {"test_diverged_run_is_counted_and_kept_out_of_the_means"},
+    "test_real_data": {"test_a_users_log_runs_end_to_end"},
+    "test_fast_engine": {"test_paper_scenario", "test_runs_without_numba"},
+    "test_dask": {"test_dask_run_equals_local_run", "test_cluster_lost_mid_batch_is_reported"},
+    "test_mrclam": {"test_conversion_reproduces_the_shipped_tables"},
+    "test_custom_filter": {"test_the_worked_example_runs_through_the_extension_point"},
+    "test_bench": {
+        "test_the_command_line_probe_runs_anfekf_run_in_a_fresh_process",
+        "test_quick_bench_writes_every_figure",
+        "test_warmed_workers_are_the_ones_a_batch_uses",
+    },
+}
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    for item in items:
+        module = item.module.__name__.rsplit(".", 1)[-1] if item.module else ""
+        if item.originalname in SLOW_TESTS.get(module, ()):
+            item.add_marker(pytest.mark.slow)

@@ -412,6 +412,19 @@ def test_a_users_log_runs_end_to_end(tmp_path):
     assert "| ekf-tuned | tuned |" in text
     for kind in ("track", "errors", "noise", "ratios"):
         assert (tmp_path / "report" / f"my-robot_{kind}.png").is_file()
+    # ... and the one report.html embeds them, report.md links real-data.md
+    page = (tmp_path / "report" / "report.html").read_text()
+    assert all(f'href="my-robot_{k}.png"' in page for k in ("track", "errors", "noise", "ratios"))
+    assert page.count("<img ") == 4
+    assert "[real-data.md](real-data.md)" in (tmp_path / "report" / "report.md").read_text()
+    # the noise figure: every adaptive instance from x1 (the registry says anfekf adapts R),
+    # none for the fixed EKFs
+    from anfekf_bench.report import real
+
+    rd = real.load_real(folder)
+    gids = {ln.get_gid() for ax in real.noise_figure(rd).axes for ln in ax.get_lines()}
+    assert {"R_rr/anfekf x1", "R_bb/anfekf x1"} <= gids
+    assert not any(g and g.endswith(("/ekf x1", "/ekf x4", "/ekf-tuned")) for g in gids)
     # Same command again: the result is complete.
     again = runner.invoke(app, ["run", str(path), "--out", str(out)])
     assert again.exit_code == 2 and "holds a complete result already" in again.output

@@ -12,7 +12,6 @@ import math
 import re
 import shutil
 import subprocess
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -104,13 +103,27 @@ def _legend_texts(fig) -> list[str]:
 
 def test_report_holds_every_figure_and_the_markdown(report_dir):
     out, stdout = report_dir
-    expected = [f"{s}_{k}.png" for s in SCENARIOS for k in FIGURE_KINDS] + ["overview.png"]
+    expected = [f"{s}_{k}.png" for s in SCENARIOS for k in FIGURE_KINDS]
+    expected += ["overview.png", "leaderboard.png"]
     for name in expected:
         data = (out / name).read_bytes()
         assert data.startswith(PNG_MAGIC) and len(data) > 10_000, name
     md = (out / "report.md").read_text(encoding="utf-8")
     embedded = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
     assert sorted(embedded) == sorted(expected)
+    # every figure written is in the report, counted against the files, and the count printed
+    written = sorted(p.name for p in out.iterdir() if p.suffix == ".png")
+    assert written == sorted(expected)
+    assert f"({len(written)} figures)" in stdout
+    page = (out / "report.html").read_text(encoding="utf-8")
+    assert page.count("<img ") == len(written)
+    assert all(f'href="{name}"' in page for name in written)
+    assert "<strong>Contents</strong>" in page and 'href="#leaderboard"' in page
+    assert "[Leaderboard](#leaderboard)" in md and '<a id="leaderboard"></a>' in md
+    # the leaderboard's table: filters x scenarios, sortable by any scenario and the median
+    board = page.split('id="leaderboard"')[1].split("</table>")[0]
+    assert '<table class="sortable">' in board and ">median</th>" in board
+    assert all(f">{name}</th>" in board for name in SCENARIOS)
     for name in SCENARIOS:
         assert f"| {name} | anfekf | {RUNS}/{RUNS} |" in md
     assert "tiny_q" in stdout and "anfekf" in stdout and "report.md" in stdout
@@ -133,7 +146,7 @@ def test_other_formats_are_valid_files(results, tmp_path, fmt, header):
     assert result.exit_code == 0, result.output
     files = sorted(out.glob(f"*.{fmt}"))
     assert [f.name for f in files] == sorted(
-        [f"tiny_r_{k}.{fmt}" for k in FIGURE_KINDS] + [f"overview.{fmt}"]
+        [f"tiny_r_{k}.{fmt}" for k in FIGURE_KINDS] + [f"overview.{fmt}", f"leaderboard.{fmt}"]
     )
     for f in files:
         head = f.read_bytes()[:2000]
@@ -376,25 +389,31 @@ def test_diverged_runs_are_left_out_of_curves_bounds_and_table(results, tmp_path
 
 def test_a_filter_has_one_colour_in_every_figure(results):
     sc = load_scenario_data(results / "tiny_r")
-    figs = [plots.rmse_figure(sc), plots.nees_figure(sc), plots.map_figure(sc)]
-    for name in ("ekf", "anfekf", "ekf-oracle"):
-        colours = {
-            _artist(fig, gid).get_color()
-            for fig, gid in zip(
-                figs, [f"rmse_pos/{name}", f"nees/{name}", f"map_est/{name}"], strict=True
-            )
-        }
-        assert colours == {plots.filter_colour(name)}
-    assert len({plots.filter_colour(n) for n in plots.FILTER_COLOURS}) == len(plots.FILTER_COLOURS)
+    with plots.palette([f.name for f in sc.filters]):
+        figs = [plots.rmse_figure(sc), plots.nees_figure(sc), plots.map_figure(sc)]
+        for name in ("ekf", "anfekf", "ekf-oracle"):
+            colours = {
+                _artist(fig, gid).get_color()
+                for fig, gid in zip(
+                    figs, [f"rmse_pos/{name}", f"nees/{name}", f"map_est/{name}"], strict=True
+                )
+            }
+            assert colours == {plots.filter_colour(name)}
 
 
-def test_unknown_filter_names_get_a_stable_fallback_colour():
-    # crc32 of the name, not Python's per-process hash(): the same in every run of the report.
-    expected = plots.FALLBACK_COLOURS[zlib.crc32(b"my-filter") % len(plots.FALLBACK_COLOURS)]
-    assert plots.filter_colour("my-filter") == expected
-    others = {plots.filter_colour(f"variant-{i}") for i in range(30)}
-    assert len(others) > 1 and others <= set(plots.FALLBACK_COLOURS)
-    assert not others & set(plots.FILTER_COLOURS.values())
+def test_colours_go_by_order_within_a_report_and_thirty_filters_are_told_apart():
+    names = [f"zoo-{i}" for i in range(30)]  # names that hashed onto one colour collided
+    with plots.palette(names):
+        pairs = [(plots.filter_colour(n), str(plots.filter_linestyle(n))) for n in names]
+        markers = [(plots.filter_colour(n), plots.filter_marker(n)) for n in names]
+        assert plots.filter_colour("zoo-0") == plots.PALETTE[0]
+        assert plots.filter_colour("ekf-oracle") == plots.ORACLE_COLOUR  # the reference: grey
+    assert len(set(pairs)) == len(set(markers)) == 30
+    assert plots.ORACLE_COLOUR not in plots.PALETTE
+    with plots.palette(["b", "a"]):  # order, not the name, picks the colour
+        assert plots.filter_colour("a") == plots.PALETTE[1]
+    with plots.palette(["a", "b"]):
+        assert plots.filter_colour("a") == plots.PALETTE[0]
 
 
 # --------------------------------------------------------------------------- finding results
@@ -738,6 +757,6 @@ def test_a_result_without_steps_is_reported_from_its_tables(tmp_path):
     row = next(line for line in md.splitlines() if line.startswith("| nosteps | anfekf |"))
     assert f"| {format_sig(saved.loc['anfekf'].rmse_pos)} |" in row
     assert "no steps.parquet" in md and "| anfekf rmse_pos <= 1000 x ekf |" in md
-    assert sorted(p.name for p in out.glob("*.png")) == ["overview.png"]
+    assert sorted(p.name for p in out.glob("*.png")) == ["leaderboard.png", "overview.png"]
     checked = runner.invoke(app, ["check", str(tmp_path / "results")])
     assert checked.exit_code == 0, checked.output

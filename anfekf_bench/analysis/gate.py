@@ -19,6 +19,7 @@ Verdicts, per row (every verdict but "ok" fails the gate; see RULES, also writte
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Iterable
@@ -33,6 +34,8 @@ from ..storage import (
     CLAIMS_FILE,
     MANIFEST_FILE,
     SUMMARY_PARQUET,
+    SWEEP_CELLS_DIR,
+    SWEEP_KIND,
     ResultsError,
     read_json,
     read_manifest,
@@ -276,15 +279,61 @@ def read_scenario(folder: Path, metrics: Iterable[str]) -> ScenarioSummary:
 
 
 def read_results(results_dir: Path, metrics: Iterable[str]) -> dict[str, ScenarioSummary]:
-    """Every complete scenario under `results_dir`, by scenario name."""
+    """Every complete scenario under `results_dir`, by scenario name; a sweep's cells count as
+    scenarios named `<sweep>/<cell>` (`results_dir` may be a sweep folder or hold some)."""
     metrics = list(metrics)
     out: dict[str, ScenarioSummary] = {}
-    for folder in scenario_dirs(results_dir):
+    sweeps = sweep_folders(results_dir)
+    folders = scenario_dirs(results_dir) if not sweeps or _holds_results(results_dir) else []
+    for folder in folders:
         scenario = read_scenario(folder, metrics)
         if scenario.name in out:
             raise ResultsError(f"{folder}: scenario {scenario.name!r} appears in two folders")
         out[scenario.name] = scenario
+    for sweep in sweeps:
+        for folder in scenario_dirs(sweep / SWEEP_CELLS_DIR):
+            cell = read_scenario(folder, metrics)
+            name = f"{sweep.name}/{cell.name}"
+            if name in out:
+                raise ResultsError(f"{folder}: scenario {name!r} appears in two folders")
+            out[name] = dataclasses.replace(cell, name=name)
     return out
+
+
+def _is_sweep(folder: Path) -> bool:
+    manifest = Path(folder) / MANIFEST_FILE
+    if not manifest.is_file() or not (Path(folder) / SWEEP_CELLS_DIR).is_dir():
+        return False
+    try:
+        return read_json(manifest).get("kind") == SWEEP_KIND
+    except (ResultsError, AttributeError):
+        return False
+
+
+def sweep_folders(results_dir: Path) -> list[Path]:
+    """The sweep folders `results_dir` is or holds (`anfekf run` of a scenario with a sweep)."""
+    results_dir = Path(results_dir)
+    if _is_sweep(results_dir):
+        return [results_dir]
+    if not results_dir.is_dir():
+        return []
+    return sorted(p for p in results_dir.iterdir() if p.is_dir() and _is_sweep(p))
+
+
+def _holds_results(results_dir: Path) -> bool:
+    """Whether `results_dir` is or holds an ordinary scenario result (besides its sweeps)."""
+
+    def is_result(p: Path) -> bool:
+        return (p / MANIFEST_FILE).is_file() and (
+            (p / SUMMARY_PARQUET).is_file() or (p / "steps.parquet").is_file()
+        )
+
+    results_dir = Path(results_dir)
+    if _is_sweep(results_dir):
+        return False
+    return is_result(results_dir) or any(
+        is_result(p) for p in results_dir.iterdir() if p.is_dir() and not _is_sweep(p)
+    )
 
 
 # ---------------------------------------------------------------------------------------------

@@ -28,6 +28,7 @@ from ..filters.bank import IMMSpec, MMAESpec, hypotheses
 from ..filters.ekf import EKFSpec, OracleSpec
 from ..filters.fading import FadingSpec
 from ..filters.fitted import EKFMLSpec, EKFTunedSpec
+from ..filters.registry import register_engine
 from ..filters.spec import FilterContext, FilterSpec
 from ..models import Bicycle
 from ..sources.simulator import RunData
@@ -46,6 +47,9 @@ def supports(spec: FilterSpec, model: object | None = None) -> bool:
     """Whether the fast engine implements this filter (else run it on filterpy); with `model`,
     also whether it implements that motion model (the bicycle only)."""
     return type(spec) in SUPPORTED_SPECS and (model is None or isinstance(model, Bicycle))
+
+
+register_engine("fast", supports)  # what `anfekf kinds` and the registry's capabilities report
 
 
 # ---------------------------------------------------------------------------------------------

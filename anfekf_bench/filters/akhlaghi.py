@@ -17,7 +17,7 @@ have made.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
@@ -68,6 +68,7 @@ class AkhlaghiSpec(AdaptiveSpec):
     """Akhlaghi et al. 2017: residual-based R, innovation-based Q, one forgetting factor."""
 
     kind: Literal["akhlaghi"]
+    adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     adapt: Literal["R", "Q", "RQ"] = Field(
         "RQ",
         description="R: residual-based R (eq. 11); Q: innovation-based Qu (eq. 15); RQ: both,"

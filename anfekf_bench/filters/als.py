@@ -35,7 +35,7 @@ the answer is known; `ALSEKF` calls them from the EKF's hooks.
 from __future__ import annotations
 
 from collections import deque
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
@@ -115,6 +115,7 @@ class ALSSpec(AdaptiveSpec):
     """Online LTV autocovariance least squares on Qu and R (module doc)."""
 
     kind: Literal["als"]
+    adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     adapt: Literal["RQ", "R", "Q"] = Field(
         "RQ", description="which variances the identified values replace (all four are fitted)"
     )

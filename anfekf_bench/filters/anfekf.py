@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
@@ -71,6 +71,7 @@ class ANFEKFSpec(AdaptiveSpec):
     """The adaptive neuro-fuzzy EKF (SPEC section 4). Defaults are shared by every scenario."""
 
     kind: Literal["anfekf"]
+    adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     adapt: Literal["R", "Q", "RQ"] = Field(
         "R", description="R: two ANFIS on R (paper 5.1); Q: one on Qu (5.2); RQ: both at once"
     )

@@ -226,6 +226,7 @@ class MMAESpec(AdaptiveSpec):
     notes 1): one EKF per hypothesis, likelihood weights, the moment-matched mixture."""
 
     kind: Literal["mmae"]
+    adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     qu_factors: Factors = Field(
         HALF_DECADE,
         description="factors on the assumed Qu variances, both controls together (default half-"
@@ -278,6 +279,15 @@ class MMAESpec(AdaptiveSpec):
 
     def build(self, ctx: FilterContext) -> BankEKF:
         return BankEKF(**ctx.kwargs(), params=self)
+
+    def adapted(self) -> frozenset[str] | None:
+        # A bank adapts what its grid varies: an R-only bank (every Qu factor list [1]) keeps Qu.
+        if self.adaptation is False:
+            return frozenset()
+        varies_q = any(len(set(f)) > 1 for f in (self.qu_factors, self.v_factors,
+                                                 self.gamma_factors))  # fmt: skip
+        varies_r = any(len(set(f)) > 1 for f in (self.range_factors, self.bearing_factors))
+        return frozenset({"Q"} if varies_q else ()) | frozenset({"R"} if varies_r else ())
 
 
 class IMMSpec(MMAESpec):

@@ -18,7 +18,7 @@ noise straight on): the default, set once for every scenario (docs/DESIGN.md).
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
@@ -37,6 +37,7 @@ class CMScaleSpec(AdaptiveSpec):
     """Covariance-matching scaling: the ANFEKF's window and mismatch with a proportional rule."""
 
     kind: Literal["cm-scale"]
+    adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     adapt: Literal["R", "Q", "RQ"] = Field(
         "R", description="R: scale each R_ii; Q: scale Qu by the mean mismatch; RQ: both at once"
     )

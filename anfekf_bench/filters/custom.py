@@ -61,6 +61,9 @@ class CustomSpec(FilterSpec):
 
     model_config = {**FilterSpec.model_config, "populate_by_name": True}
 
+    def adapted(self) -> frozenset[str] | None:
+        return None  # the user's class decides as it runs: the report reads the recorded R/Qu
+
     @field_validator("class_path")
     @classmethod
     def _looks_like_a_class_path(cls, value: str) -> str:

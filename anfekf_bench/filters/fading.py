@@ -43,6 +43,7 @@ class FadingSpec(AdaptiveSpec):
     """Adaptive fading factor (strong tracking): P- inflated by lambda >= 1 once per scan."""
 
     kind: Literal["fading"]
+    adapts_noise: ClassVar[frozenset[str]] = frozenset({"P"})
     window: int = Field(
         20,
         ge=1,

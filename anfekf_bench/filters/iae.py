@@ -33,7 +33,7 @@ docs/DESIGN.md says why, and what each costs.
 from __future__ import annotations
 
 from collections import deque
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
@@ -64,6 +64,7 @@ class IAESpec(AdaptiveSpec):
     """Innovation-based adaptive estimation (Mohamed & Schwarz 1999): R or Q from a window."""
 
     kind: Literal["iae"]
+    adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     adapt: Literal["R", "Q"] = Field(
         "R", description="R: R_hat = C - H P- H^T (diagonal); Q: Q_hat from K C K^T, mapped to Qu"
     )

@@ -6,7 +6,9 @@ tagged union of all of them (discriminated by `kind`), so a new family needs no 
 
 from __future__ import annotations
 
-from typing import Annotated, Union
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Annotated, Any, Union
 
 import numpy as np
 from pydantic import Field
@@ -56,6 +58,110 @@ def kind_of(spec_class: type[FilterSpec]) -> str:
 
 SPEC_BY_KIND: dict[str, type[FilterSpec]] = {kind_of(s): s for s in SPECS}
 KINDS: tuple[str, ...] = tuple(SPEC_BY_KIND)
+
+# ---------------------------------------------------------------------------------------------
+# Capabilities: what each kind adapts, which engines run it, its doc. Every consumer (the report,
+# `anfekf kinds`, the docs) reads them here; a family declares them on its spec class (see
+# `FilterSpec`), so a new kind needs no edit in this file beyond its entry in SPECS.
+
+# Engines other than the reference register `supports(spec) -> bool` here when imported
+# (engines/fast.py does), so this module never imports an engine: no import circle.
+_ENGINE_SUPPORTS: dict[str, Callable[[FilterSpec], bool]] = {}
+REFERENCE_ENGINE = "filterpy"  # runs every kind
+
+
+def register_engine(name: str, supports: Callable[[FilterSpec], bool]) -> None:
+    """Record that engine `name` runs the specs for which `supports(spec)` is true."""
+    _ENGINE_SUPPORTS[name] = supports
+
+
+def engines_for(spec: FilterSpec) -> tuple[str, ...]:
+    """The engines that run `spec` (of those imported so far): the reference engine first."""
+    extra = [name for name, supports in _ENGINE_SUPPORTS.items() if supports(spec)]
+    return (REFERENCE_ENGINE, *extra)
+
+
+def spec_from_record(record: Mapping[str, Any]) -> FilterSpec | None:
+    """A spec rebuilt from its stored form (a manifest's `scenario.filters` entry) without
+    validating it: nothing is imported or checked (a custom class may be absent where a report
+    is made). None for a kind this registry does not know."""
+    cls = SPEC_BY_KIND.get(str(record.get("kind")))
+    if cls is None:
+        return None
+    return cls.model_construct(**{k: v for k, v in record.items() if k in cls.model_fields})
+
+
+def adapted_noise(spec: FilterSpec | Mapping[str, Any]) -> frozenset[str] | None:
+    """What a filter adapts ("R", "Q" for the control noise Qu, "P"), from its spec or its
+    stored record; None when the spec cannot tell (a custom filter, an unknown kind)."""
+    if isinstance(spec, Mapping):
+        spec = spec_from_record(spec)
+        if spec is None:
+            return None
+    try:
+        return spec.adapted()
+    except (AttributeError, TypeError):  # a stored record missing a field the rule reads
+        return type(spec).adapts_noise
+
+
+NOISE_NAMES = {"R": "R (measurement noise)", "Q": "Qu (control noise)", "P": "P (covariance)"}
+
+
+def noise_names(letters: frozenset[str] | None) -> str:
+    """'R (measurement noise), Qu (control noise)' for {"R", "Q"}; 'nothing' for none."""
+    if letters is None:
+        return "what its class adapts (the report reads the recorded R/Qu)"
+    return ", ".join(NOISE_NAMES[a] for a in "RQP" if a in letters) or "nothing (fixed noise)"
+
+
+def adapts_line(info: KindInfo) -> str:
+    """What a kind adapts, as `anfekf kinds` and the README say it."""
+    if info.default_adapts is None:
+        return noise_names(None)
+    text = noise_names(info.adapts)
+    if info.adapts and info.default_adapts != info.adapts:
+        text += f" (by default: {noise_names(info.default_adapts)})"
+    return text
+
+
+@dataclass(frozen=True)
+class KindInfo:
+    """One filter kind as `anfekf kinds` and the docs show it."""
+
+    kind: str
+    doc: str  # the spec class docstring's first line
+    adapts: frozenset[str]  # what the family can adapt
+    default_adapts: frozenset[str] | None  # what an instance with the defaults adapts
+    params: tuple[tuple[str, str, str], ...]  # (name, default, description); `name` left out
+    engines: tuple[str, ...]  # engines that run an instance with the defaults
+
+
+def _default_of(field) -> str:
+    if field.is_required():
+        return "required"
+    value = field.get_default(call_default_factory=True)
+    return repr(value) if isinstance(value, str) else str(value)
+
+
+def capabilities(kind: str) -> KindInfo:
+    """What kind `kind` is: doc, parameters with defaults, what it adapts, which engines."""
+    cls = SPEC_BY_KIND[kind]
+    doc = " ".join((cls.__doc__ or "").strip().split("\n\n")[0].split())
+    params = tuple(
+        (field.alias or name, _default_of(field), field.description or "")
+        for name, field in cls.model_fields.items()
+        if name not in ("name", "kind")
+    )
+    probe = cls.model_construct(name=kind, kind=kind)
+    return KindInfo(
+        kind=kind,
+        doc=doc,
+        adapts=cls.adapts_noise,
+        default_adapts=adapted_noise(probe),
+        params=params,
+        engines=engines_for(probe),
+    )
+
 
 AnyFilterSpec = Annotated[Union[SPECS], Field(discriminator="kind")]  # noqa: UP007
 

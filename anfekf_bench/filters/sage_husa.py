@@ -28,7 +28,7 @@ docs/DESIGN.md ("Sage-Husa").
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
@@ -72,13 +72,14 @@ def q_sample(
 
 
 class SageHusaSpec(AdaptiveSpec):
-    """Fading-memory Sage-Husa (research notes 1.2): R per channel before the gain, Qu optional."""
+    """Fading-memory Sage-Husa (Sage & Husa 1969): R per channel before the gain, Qu optional."""
 
     kind: Literal["sage-husa"]
+    adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     b: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = Field(
         0.97,
         description="fading factor b: d_k = (1 - b) / (1 - b^(k+1)) -> 1 - b, a memory of"
-        " about 1 / (1 - b) scans (notes' sweep: 0.95, 0.98, 0.99)",
+        " about 1 / (1 - b) scans (usual: 0.95-0.99)",
     )
     adapt: Literal["R", "RQ"] = Field(
         "R",

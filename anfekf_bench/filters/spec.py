@@ -45,16 +45,33 @@ class FilterContext:
 
 
 class FilterSpec(StrictModel):
-    """A filter of a scenario: a unique `name` and a `kind` that selects the family."""
+    """A filter of a scenario: a unique `name` and a `kind` that selects the family.
+
+    A family's capabilities, read by every consumer through `registry.capabilities` (the
+    report's noise figures, `anfekf kinds`, the docs), are declared here on its spec class:
+    - the class docstring's first line: the kind's one-line description;
+    - `adapts_noise`: what the family can adapt: "R" (measurement noise), "Q" (control noise
+      Qu), "P" (the covariance); empty for a fixed-noise filter;
+    - `adapted()`: what one instance adapts (override it when a parameter decides, as the
+      adaptive families' `adapt` and `adaptation` do: `AdaptiveSpec` does that already);
+    - which engines run it: the reference engine (filterpy) runs every kind; a faster engine
+      registers its own `supports(spec)` with the registry (`registry.register_engine`).
+    """
 
     name: str = Field(min_length=1)
     kind: str
     uses_true_noise: ClassVar[bool] = False  # the oracle is given the TRUE Q and R
     fitted_on_training: ClassVar[bool] = False  # fitted before the batch (filters.fitted)
+    adapts_noise: ClassVar[frozenset[str]] = frozenset()  # any of "R", "Q", "P" (see above)
 
     def build(self, ctx: FilterContext):
         """A fresh filter for one run."""
         raise NotImplementedError
+
+    def adapted(self) -> frozenset[str] | None:
+        """What this filter adapts ("R", "Q", "P"), or None when the spec cannot tell (a user's
+        class: the report then looks at whether its recorded R/Qu vary)."""
+        return self.adapts_noise
 
 
 class FilterParams(StrictModel):
@@ -88,3 +105,13 @@ class AdaptiveParams(FilterParams):
 
 class AdaptiveSpec(FilterSpec, AdaptiveParams):
     """A built-in adaptive filter's spec: a name and kind plus the common adaptive rules."""
+
+    adapts_noise: ClassVar[frozenset[str]] = frozenset({"R"})
+
+    def adapted(self) -> frozenset[str] | None:
+        # `adaptation: false` freezes every variance; an `adapt` field ("R", "Q", "RQ") picks
+        # among what the family can adapt.
+        if self.adaptation is False:
+            return frozenset()
+        chosen = getattr(self, "adapt", None)
+        return self.adapts_noise if not isinstance(chosen, str) else frozenset(chosen)

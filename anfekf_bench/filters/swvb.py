@@ -73,6 +73,7 @@ class SWVBSpec(AdaptiveSpec):
     simplification: see the module doc)."""
 
     kind: Literal["swvb"]
+    adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     rho: float = Field(
         RHO, gt=0, le=1, allow_inf_nan=False,
         description="forgetting factor of every (a, b), applied once per scan; memory about"

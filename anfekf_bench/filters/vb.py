@@ -128,9 +128,10 @@ def vb_r_predict(alpha: np.ndarray, beta: np.ndarray, rho: float) -> tuple[np.nd
 
 class VBRSpec(AdaptiveSpec):
     """Sarkka & Nummenmaa (2009) variational-Bayes adaptive EKF: diagonal R, inverse-gamma per
-    channel (research notes section 4)."""
+    channel."""
 
     kind: Literal["vb-r"]
+    adapts_noise: ClassVar[frozenset[str]] = frozenset({"R"})
     rho: float = Field(
         RHO, gt=0, le=1, allow_inf_nan=False,
         description="forgetting factor of (alpha, beta), applied once per scan; 1: stationary R;"
@@ -274,9 +275,10 @@ def vbakf_predict(u: float, U: np.ndarray, rho: float, m: int = 2) -> tuple[floa
 
 class VBAKFSpec(AdaptiveSpec):
     """Huang, Zhang, Wu, Li, Chambers (2018) VBAKF: inverse-Wishart priors on the predicted
-    covariance P- and on R (research notes section 5)."""
+    covariance P- and on R."""
 
     kind: Literal["vbakf"]
+    adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "P"})
     tau: PositiveFloat = Field(
         3.0, description="confidence in the nominal P- (T = tau P-); the paper's range 2..6"
     )

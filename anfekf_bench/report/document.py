@@ -59,7 +59,29 @@ class FigureBlock:
     link_only: bool = False  # markdown links the file instead of embedding it (PDF)
 
 
-Block = Heading | Paragraph | Warning | TableBlock | FigureBlock
+@dataclass(frozen=True)
+class Contents:
+    """The table of contents: a link to every heading of `level` (and one level below) that
+    follows; both writers fill it in from the document's headings."""
+
+    level: int = 2
+
+
+Block = Heading | Paragraph | Warning | TableBlock | FigureBlock | Contents
+
+
+def anchor_of(h: Heading) -> str:
+    """The id a heading gets in report.html and (as an <a id>) in report.md."""
+    return h.anchor or _slug(h.text)
+
+
+def _contents(doc: Document, c: Contents) -> list[tuple[int, str, str]]:
+    """(depth, text, anchor) of the headings the contents list."""
+    return [
+        (b.level - c.level, b.text, anchor_of(b))
+        for b in doc.blocks
+        if isinstance(b, Heading) and c.level <= b.level <= c.level + 1
+    ]
 
 
 @dataclass
@@ -94,7 +116,17 @@ def to_markdown(doc: Document) -> str:
     out = [f"# {doc.title}", ""]
     for b in doc.blocks:
         if isinstance(b, Heading):
+            # an explicit anchor: the contents' links work in report.md as in report.html
+            out += [f'<a id="{anchor_of(b)}"></a>', ""] if b.level in (2, 3) else []
             out += ["#" * b.level + " " + b.text, ""]
+        elif isinstance(b, Contents):
+            entries = _contents(doc, b)
+            if not entries:
+                continue
+            out += ["**Contents**", ""]
+            for depth, text, anchor in entries:
+                out.append("  " * depth + f"- [{_md_cell(text)}](#{anchor})")
+            out.append("")
         elif isinstance(b, Paragraph):
             out += [b.text, ""]
         elif isinstance(b, Warning):
@@ -188,6 +220,7 @@ figcaption { color: #555; font-size: 13px; }
 .warning { background: #fff4d6; border-left: 4px solid #e0a100; padding: .5em .8em; margin: 1em 0; }
 .broken { outline: 3px solid #c00; }
 code { background: #f3f3f3; padding: 0 .2em; }
+nav.contents ul { margin: .3em 0; } nav.contents li.sub { margin-left: 1.5em; }
 """
 
 # Click a header to sort by it (again: the other way). Numbers sort by data-sort; a cell without
@@ -244,6 +277,15 @@ def to_html(doc: Document) -> str:
             out.append(f'<h{b.level} id="{html.escape(anchor)}">{inline_html(b.text)}</h{b.level}>')
         elif isinstance(b, Paragraph):
             out.append(f"<p>{inline_html(b.text)}</p>")
+        elif isinstance(b, Contents):
+            entries = _contents(doc, b)
+            if entries:
+                out.append('<nav class="contents"><strong>Contents</strong><ul>')
+                for depth, text, anchor in entries:
+                    cls = ' class="sub"' if depth else ""
+                    href = html.escape("#" + anchor, quote=True)
+                    out.append(f'<li{cls}><a href="{href}">{html.escape(text)}</a></li>')
+                out.append("</ul></nav>")
         elif isinstance(b, Warning):
             text = inline_html(b.text)
             out.append(f'<div class="warning"><strong>Warning:</strong> {text}</div>')
@@ -252,6 +294,9 @@ def to_html(doc: Document) -> str:
         elif isinstance(b, FigureBlock):
             alt = html.escape(b.caption, quote=True)
             link = f' <a href="{html.escape(b.file, quote=True)}">{html.escape(b.file)}</a>'
+            if not b.image:  # a PDF drawn elsewhere (sweeps, real data): a browser shows a link
+                out.append(f"<p>{inline_html(b.caption)}:{link}</p>")
+                continue
             out += [
                 "<figure>",
                 f'<img src="{data_uri(b.image, b.mime)}" alt="{alt}">',

@@ -8,8 +8,8 @@ One colour per filter in every figure (`filter_colour`).
 from __future__ import annotations
 
 import math
-import zlib
 from collections.abc import Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
 
@@ -37,33 +37,36 @@ if TYPE_CHECKING:  # report.py imports this module; these names are for annotati
 
 DPI = 110
 ELLIPSE_SIGMA = 3.0
-FILTER_COLOURS = {
-    "ekf": "#d62728",  # red
-    "anfekf": "#1f77b4",  # blue
-    "anfekf-q": "#2ca02c",  # green
-    "ekf-oracle": "#4d4d4d",  # dark grey: the reference
-    # the zoo's configs (configs/zoo, configs/sweeps): one colour each, so none share one
-    "anfekf-rq": "#17becf",
-    "cm-scale": "#e377c2",
-    "cm-scale-q": "#f7b6d2",
-    "cm-scale-rq": "#c5b0d5",
-    "sage-husa": "#8c564b",
-    "sage-husa-w10": "#c49c94",
-    "sage-husa-rq": "#bcbd22",
-    "iae": "#ff7f0e",
-    "iae-hold": "#ffbb78",
-    "iae-q": "#dbdb8d",
-    "akhlaghi": "#9467bd",
-    "akhlaghi-slow": "#aec7e8",
-    "vb-r": "#98df8a",
-    "vbakf": "#393b79",
-}
-# Other filter names get one of these, chosen by a stable hash of the name (not Python's hash(),
-# which changes between processes), so a name keeps its colour in every figure and every report.
-FALLBACK_COLOURS = (
-    "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd", "#e6550d", "#31a354", "#756bb1",
-    "#636363", "#5254a3", "#b5cf6b", "#e7ba52", "#ad494a", "#a55194", "#6baed6", "#fd8d3c",
+# Filters get colours by their order within a report (`palette`), not from their names: names
+# hashed onto colours collide, and a zoo of 30 filters needs every pairing told apart. A
+# qualitative palette (matplotlib's tab10 without its grey) cycles through the colours first,
+# then again with the next line style: 9 colours x 4 styles = 36 distinct (colour, style) pairs.
+PALETTE = (
+    "#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#bcbd22",
+    "#17becf",
 )  # fmt: skip
+LINE_STYLES = ("-", (0, (5, 1.5)), (0, (3, 1, 1, 1)), (0, (1, 1)))
+ORACLE_COLOUR = "#4d4d4d"  # dark grey, dashed: the reference, in every figure
+_ORDER: dict[str, int] = {}  # filter name -> its place in the report being drawn
+
+
+@contextmanager
+def palette(names: Sequence[str]):
+    """Within this block, filter `names` (in this order, duplicates ignored) take the palette's
+    entries one after another; a name outside the list is appended as it is first drawn."""
+    global _ORDER
+    saved = _ORDER
+    _ORDER = {n: i for i, n in enumerate(dict.fromkeys(names))}
+    try:
+        yield
+    finally:
+        _ORDER = saved
+
+
+def _place(name: str) -> int:
+    return _ORDER.setdefault(name, len(_ORDER))
+
+
 _RC = {
     "font.size": 9,
     "axes.titlesize": 10,
@@ -76,15 +79,37 @@ _METADATA = {"png": {}, "svg": {"Date": None}, "pdf": {"CreationDate": None}}
 
 
 def filter_colour(name: str) -> str:
-    """The colour of filter `name`, the same in every figure."""
-    if name in FILTER_COLOURS:
-        return FILTER_COLOURS[name]
-    return FALLBACK_COLOURS[zlib.crc32(name.encode()) % len(FALLBACK_COLOURS)]
+    """The colour of filter `name`, the same in every figure of a report (see `palette`)."""
+    if name == "ekf-oracle":
+        return ORACLE_COLOUR
+    return PALETTE[_place(name) % len(PALETTE)]
+
+
+def filter_linestyle(name: str):
+    """The line style beside the colour: the palette's second round of colours is dashed, ..."""
+    return LINE_STYLES[(_place(name) // len(PALETTE)) % len(LINE_STYLES)]
+
+
+MARKERS = ("o", "s", "^", "D")
+
+
+def filter_marker(name: str) -> str:
+    """The point marker beside the colour (overview, leaderboard), in step with the line style."""
+    if name == "ekf-oracle":
+        return "o"
+    return MARKERS[(_place(name) // len(PALETTE)) % len(MARKERS)]
+
+
+# Value labels beside points and bars only while a scenario's group is this small; beyond, the
+# labels would overlap (the numbers are in the tables and the leaderboard).
+MAX_LABELLED_GROUP = 5
 
 
 def _style(f: FilterSeries) -> dict:
-    # The oracle is a reference, not a contender: dashed, in every figure.
-    return {"color": filter_colour(f.name), "linestyle": "--" if f.kind == "ekf-oracle" else "-"}
+    # The oracle is a reference, not a contender: grey and dashed, in every figure.
+    if f.kind == "ekf-oracle":
+        return {"color": ORACLE_COLOUR, "linestyle": "--"}
+    return {"color": filter_colour(f.name), "linestyle": filter_linestyle(f.name)}
 
 
 def save_figure(fig: Figure, path: Path | BinaryIO, fmt: str = "png", dpi: int = DPI) -> None:
@@ -341,69 +366,110 @@ def nees_figure(sc: ScenarioData) -> Figure:
     return fig
 
 
+# Up to this many adaptive filters share one row of noise panels; more are drawn as small
+# multiples, one row per family (kind), so ten filters' bands do not hide one another.
+NOISE_FILTERS_PER_ROW = 4
+
+
+def noise_groups(sc: ScenarioData) -> list[list[FilterSeries]]:
+    """The adaptive filters of `sc` in the rows of the noise figure: one row when they are few,
+    else one row per family (kind), in order of appearance."""
+    adaptive = [f for f in sc.filters if _adapted(f.adapts)]
+    if len(adaptive) <= NOISE_FILTERS_PER_ROW:
+        return [adaptive] if adaptive else []
+    kinds = dict.fromkeys(f.kind for f in adaptive)
+    return [[f for f in adaptive if f.kind == k] for k in kinds]
+
+
 @matplotlib.rc_context(_RC)
 def noise_figure(sc: ScenarioData) -> Figure:
-    """The adapted R/Q diagonal over time (mean and median over runs, spread, outlier runs)
-    against the true and the assumed value."""
+    """The adapted R/Q diagonal over time of every filter that adapts it (the registry says
+    which, or its recorded values vary): the median over runs with the spread over runs and
+    the mean, against the true and the assumed value."""
     from .report import NOISE_COLUMNS
 
     columns = sc.adapted_columns
-    ncols = 2
-    nrows = math.ceil(len(columns) / ncols)
-    fig = Figure(figsize=(9, 3.6 * nrows + 0.8), layout="constrained")
-    axes = np.atleast_1d(fig.subplots(nrows, ncols, sharex=True, squeeze=False)).ravel()
+    groups = noise_groups(sc)
+    ncols = len(columns) if len(groups) > 1 else min(len(columns), 2)
+    per_group = math.ceil(len(columns) / ncols)
+    nrows = per_group * len(groups)
+    height = (3.4 if len(groups) == 1 else 2.5) * nrows + 1.4
+    fig = Figure(figsize=(max(9.0, 3.2 * ncols), height), layout="constrained")
+    axes = fig.subplots(nrows, ncols, sharex=True, squeeze=False)
     lo, hi = _percentiles()
     ekf = next((f for f in sc.filters if f.kind == "ekf"), None)
-    for ax, col in zip(axes, columns, strict=False):
-        what, unit, _ = NOISE_COLUMNS[col]
-        for f in sc.filters:
-            if f.adapts and col in _adapted(f.adapts):
-                _band(ax, f.t, f.noise[col], f, f"noise/{col}", f"{f.name}: mean over runs")
-                ax.plot(f.t, f.noise[col].median, lw=1.0, ls="--", color=filter_colour(f.name),
-                        label=f"{f.name}: median", gid=f"noise_median/{col}/{f.name}")  # fmt: skip
+    for g, group in enumerate(groups):
+        for j, col in enumerate(columns):
+            ax = axes[g * per_group + j // ncols, j % ncols]
+            what, unit, _ = NOISE_COLUMNS[col]
+            if not any(col in _adapted(f.adapts) for f in group):
+                ax.set_visible(False)  # a family's row shows only what it adapts
+                continue
+            for f in group:
+                if col not in _adapted(f.adapts):
+                    continue
+                style = _style(f)
+                band = f.noise[col]
+                ax.fill_between(f.t, band.lo, band.hi, color=style["color"], alpha=0.12, lw=0,
+                                gid=f"noise/{col}_band/{f.name}")  # fmt: skip
+                ax.plot(f.t, band.median, lw=1.4, label=f.name,
+                        gid=f"noise_median/{col}/{f.name}", **style)  # fmt: skip
+                ax.plot(f.t, band.line, lw=0.7, alpha=0.8, color=style["color"], ls=":",
+                        gid=f"noise/{col}/{f.name}")  # fmt: skip
                 for run, values in f.outlier_noise.get(col, {}).items():
-                    ax.plot(f.t, values, lw=0.5, alpha=0.45, color=filter_colour(f.name),
+                    ax.plot(f.t, values, lw=0.5, alpha=0.45, color=style["color"],
                             label=f"{f.name} run {run} (outlier)",
                             gid=f"noise_outlier/{col}/{f.name}/{run}")  # fmt: skip
-        if ekf is not None:
-            ax.plot(
-                ekf.t,
-                ekf.noise[col].line,
-                lw=1.2,
-                ls=":",
-                color=filter_colour(ekf.name),
-                label=f"assumed ({ekf.name}, fixed): {format_sig(float(ekf.noise[col].line[0]))}",
-                gid=f"noise_fixed/{col}/{ekf.name}",
-            )
-        true = sc.true_noise[col]
-        ax.axhline(
-            true,
-            color="black",
-            lw=1.0,
-            ls="--",
-            label=f"true: {format_sig(true)} {unit}",
-            gid=f"noise_true/{col}",
-        )
-        plain_log_axis(ax)
-        ax.set_title(f"{what} {col}", fontsize=9)
-        ax.set_ylabel(f"{col} [{unit}] (log)")
-        ax.legend(loc="best", fontsize=7)
-    for ax in axes[len(columns) :]:
+            if ekf is not None:
+                assumed = float(ekf.noise[col].line[0])
+                ax.plot(ekf.t, ekf.noise[col].line, lw=1.0, ls=(0, (1, 2)), color="#7f7f7f",
+                        label=f"assumed ({ekf.name}, fixed)",
+                        gid=f"noise_fixed/{col}/{ekf.name}")  # fmt: skip
+                if not math.isclose(assumed, sc.true_noise[col], rel_tol=0.05):  # else one label
+                    ax.annotate(format_sig(assumed), (1, assumed),
+                                xycoords=("axes fraction", "data"), xytext=(-2, 2),
+                                textcoords="offset points", ha="right", va="bottom",
+                                fontsize=6.5, color="#7f7f7f")  # fmt: skip
+            true = sc.true_noise[col]
+            ax.axhline(true, color="black", lw=1.0, ls="--", label="true value",
+                       gid=f"noise_true/{col}")  # fmt: skip
+            ax.annotate(format_sig(true), (0, true), xycoords=("axes fraction", "data"),
+                        xytext=(2, 2), textcoords="offset points", ha="left", va="bottom",
+                        fontsize=6.5)  # fmt: skip
+            plain_log_axis(ax)
+            family = f" ({group[0].kind})" if len(groups) > 1 else ""
+            ax.set_title(f"{what} {col}{family}", fontsize=8)
+            ax.set_ylabel(f"{col} [{unit}]", fontsize=8)
+    for ax in axes.ravel()[len(groups) * per_group * ncols :]:
         ax.set_visible(False)
-    for ax in axes[max(len(columns) - ncols, 0) : len(columns)]:
+    for g in range(len(groups)):  # unused cells of a group's last row
+        for j in range(len(columns), per_group * ncols):
+            axes[g * per_group + j // ncols, j % ncols].set_visible(False)
+    for ax in axes[-1]:
         ax.set_xlabel("time [s]")
+    handles, labels = [], []
+    for ax in axes.ravel():
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    # Outside the data: with ten filters a legend inside would cover the lines.
+    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 5),
+               fontsize=7)  # fmt: skip
     fig.suptitle(
-        f"{sc.name}: adapted noise covariance over {_runs_text(sc)}\nsolid: mean, dashed: median,"
-        f" band: {lo:g}-{hi:g} % of runs, thin: outlier runs; ekf-oracle uses the true value",
+        f"{sc.name}: adapted noise covariance over {_runs_text(sc)} (log scale)\nsolid: median"
+        f" over runs, band: {lo:g}-{hi:g} % of runs, dotted: mean, thin: outlier runs;"
+        " ekf-oracle uses the true value",
         fontsize=9,
     )
     return fig
 
 
-def _adapted(adapts: str) -> tuple[str, ...]:
+def _adapted(adapts: frozenset[str]) -> tuple[str, ...]:
+    """The noise columns a filter that adapts `adapts` ("R", "Q", "P") changes."""
     from .report import _ADAPTED
 
-    return _ADAPTED[adapts]
+    return tuple(c for a in sorted(adapts) for c in _ADAPTED.get(a, ()))
 
 
 def ellipse(centre: np.ndarray, cov: np.ndarray, sigma: float = ELLIPSE_SIGMA, **kw) -> Ellipse:
@@ -483,8 +549,11 @@ def map_figure(sc: ScenarioData) -> Figure:
     ax_zoom.set_ylim(centre[1] - half, centre[1] + half)
     ax_map.add_patch(Rectangle(tuple(centre - half), 2 * half, 2 * half, fill=False,
                                edgecolor="black", lw=0.8, linestyle=":"))  # fmt: skip
-    ax_map.legend(loc="best", ncols=2)
-    ax_zoom.legend(handles=ax_zoom.get_lines()[-1:], loc="upper left")
+    # Below the panels: inside, a legend covers part of the map (and a landmark).
+    handles, labels = ax_map.get_legend_handles_labels()
+    zoom_handles, zoom_labels = ax_zoom.get_legend_handles_labels()
+    fig.legend([*handles, zoom_handles[-1]], [*labels, zoom_labels[-1]],
+               loc="outside lower center", ncols=min(len(labels) + 1, 4))  # fmt: skip
     ax_map.set_title(f"run {tr.run}: {ELLIPSE_SIGMA:g}-sigma position ellipses every "
                      f"{_spacing(tr):.0f} s (true size; dotted box: zoom)", fontsize=9)  # fmt: skip
     ax_zoom.set_title(f"zoom at t = {tr.t[k]:.1f} s: estimates (dots) and their "
@@ -516,7 +585,8 @@ def _ratio_points(ax: Axes, groups: dict, width: float, key: str, get, labelled:
             else:
                 err = None
             bars = ax.errorbar(
-                [x], [ratio.estimate], yerr=err, fmt="o", ms=5, color=colour, ecolor=colour,
+                [x], [ratio.estimate], yerr=err, fmt=filter_marker(row.filter), ms=5,
+                color=colour, ecolor=colour,
                 elinewidth=1.4, capsize=3,
                 label=None if row.filter in labelled else row.filter,
             )  # fmt: skip
@@ -524,6 +594,8 @@ def _ratio_points(ax: Axes, groups: dict, width: float, key: str, get, labelled:
             if err is not None:
                 bars.lines[2][0].set_gid(f"overview_{key}_ci/{scen}/{row.filter}")
             labelled.add(row.filter)
+            if len(group) > MAX_LABELLED_GROUP:
+                continue
             ax.annotate(format_sig(ratio.estimate), (x, ratio.hi if ratio.has_interval else
                         ratio.estimate), xytext=(0, 3), textcoords="offset points",
                         ha="center", va="bottom", fontsize=6.5)  # fmt: skip
@@ -558,7 +630,9 @@ def overview_figure(rows: Sequence[SummaryRow]) -> Figure:
                 gid=f"overview_nees_in_bounds/{scen}/{row.filter}",
             )
             labelled.add(row.filter)
-            ax_cons.bar_label(bars, labels=[format_sig(value)], fontsize=6, padding=2, rotation=90)
+            if len(group) <= MAX_LABELLED_GROUP:
+                ax_cons.bar_label(bars, labels=[format_sig(value)], fontsize=6, padding=2,
+                                  rotation=90)  # fmt: skip
     ticks = [_tick(s, groups[s]) for s in scenarios]
     for ax in (ax_rmse, ax_anees, ax_cons):
         ax.set_xticks(np.arange(len(scenarios)), ticks)
@@ -572,11 +646,11 @@ def overview_figure(rows: Sequence[SummaryRow]) -> Figure:
         plain_log_axis(ax)
         ax.set_ylabel(f"{what} / {oracle}'s (log)")
         ax.margins(y=0.12)
-    ax_rmse.set_title("accuracy: position RMSE / oracle's (lower is better)")
-    ax_anees.set_title("ANEES / oracle's (oracle's ANEES is about 3)")
-    ax_cons.set_ylabel("steps with run-averaged NEES in 95 % bounds [%]")
+    ax_rmse.set_title("accuracy: position RMSE / oracle's\n(lower is better)", fontsize=9)
+    ax_anees.set_title("ANEES / oracle's\n(oracle's ANEES is about 3)", fontsize=9)
+    ax_cons.set_ylabel("steps with run-averaged NEES in bounds [%]")
     ax_cons.set_ylim(0, 108)
-    ax_cons.set_title("steps with NEES in 95 % bounds (higher is better)")
+    ax_cons.set_title("steps with NEES in 95 % bounds\n(higher is better)", fontsize=9)
     handles, labels = [], []
     for ax in (ax_rmse, ax_anees, ax_cons):
         for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
@@ -602,3 +676,124 @@ def _percentiles() -> tuple[float, float]:
     from .report import BAND_PERCENTILES
 
     return BAND_PERCENTILES
+
+
+# ---------------------------------------------------------------------------------------------
+# RMSE over the oracle's as a colour: one fixed scale for every heatmap of every report (the
+# leaderboard, the sweeps), so a ratio of 1 has one colour wherever it appears. Log scale centred
+# on 1 (white); better than the reference in blue (rare: the oracle is the best fixed EKF), worse
+# in reds up to 30 x (beyond: the darkest red).
+RATIO_TICKS = (1.0, 1.5, 2.0, 3.0, 5.0, 10.0, 30.0)
+RATIO_MIN, RATIO_MAX = 1 / 1.5, 30.0
+RATIO_CMAP = "RdBu_r"
+# NEES in the 95 % bounds on at least this share of steps: the cell is marked consistent.
+CONSISTENT_SHARE = 0.85
+
+
+def ratio_norm():
+    """The colour norm of a ratio's log10: white at 1, fixed ends (never from the data)."""
+    from matplotlib.colors import TwoSlopeNorm
+
+    return TwoSlopeNorm(vmin=math.log10(RATIO_MIN), vcenter=0.0, vmax=math.log10(RATIO_MAX))
+
+
+NO_RATIO_COLOUR = (0.85, 0.85, 0.85, 1.0)  # light grey: no value (all runs diverged, no oracle)
+
+
+def ratio_cmap():
+    """The colour map of the ratio scale, light grey where there is no value."""
+    from matplotlib import colormaps
+
+    return colormaps[RATIO_CMAP].with_extremes(bad=NO_RATIO_COLOUR)
+
+
+def ratio_colour(ratio: float) -> tuple[float, float, float, float]:
+    """The RGBA colour of `ratio` on the ratio scale (NaN: light grey)."""
+    if not (math.isfinite(ratio) and ratio > 0):
+        return NO_RATIO_COLOUR
+    value = min(max(math.log10(ratio), math.log10(RATIO_MIN)), math.log10(RATIO_MAX))
+    return tuple(float(c) for c in ratio_cmap()(ratio_norm()(value)))
+
+
+def ratio_colourbar(fig: Figure, mappable, ax, label: str) -> None:
+    """A colour bar for a log10-ratio image, ticked at RATIO_TICKS in plain numbers."""
+    bar = fig.colorbar(mappable, ax=ax, shrink=0.9, pad=0.02)
+    bar.set_ticks([math.log10(t) for t in (RATIO_MIN, *RATIO_TICKS)])
+    bar.set_ticklabels([plain_number(t) for t in (RATIO_MIN, *RATIO_TICKS)])
+    bar.set_label(label)
+
+
+def _text_colour(rgba) -> str:
+    r, g, b = rgba[:3]
+    return "black" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "white"
+
+
+@matplotlib.rc_context(_RC)
+def leaderboard_figure(rows: Sequence[SummaryRow]) -> Figure:
+    """Filters x scenarios: each cell the filter's position RMSE over the oracle's in that
+    scenario (colour on the fixed ratio scale, the value written in), with a frame where the 95 %
+    interval of the ratio includes 1 and a dot where NEES is in bounds on >= 85 % of steps.
+    Filters are sorted by their median ratio over the scenarios, best first."""
+    scenarios = list(dict.fromkeys(r.scenario for r in rows))
+    cells: dict[tuple[str, str], SummaryRow] = {(r.filter, r.scenario): r for r in rows}
+    oracle = next((r.oracle_name for r in rows if r.kind == "ekf-oracle"), "ekf-oracle")
+
+    def ratio_of(r: SummaryRow | None) -> float:
+        if r is None:
+            return math.nan
+        if r.filter == r.oracle_name:
+            return 1.0
+        return r.rmse_vs_oracle.estimate if r.rmse_vs_oracle is not None else r.vs_oracle
+
+    names = list(dict.fromkeys(r.filter for r in rows))
+    values = np.array([[ratio_of(cells.get((n, s))) for s in scenarios] for n in names])
+    with np.errstate(all="ignore"):
+        key = np.array([np.nanmedian(v) if np.isfinite(v).any() else np.inf for v in values])
+    order = np.argsort(key, kind="stable")
+    names = [names[i] for i in order]
+    values = values[order]
+    n, m = len(names), len(scenarios)
+    fig = Figure(figsize=(max(6.5, 3.6 + 1.15 * m), max(4.8, 2.4 + 0.3 * n)), layout="constrained")
+    ax = fig.subplots()
+    with np.errstate(all="ignore"):
+        logs = np.log10(np.where(values > 0, values, np.nan))
+    shown = np.clip(logs, math.log10(RATIO_MIN), math.log10(RATIO_MAX))
+    image = ax.imshow(np.ma.masked_invalid(shown), cmap=ratio_cmap(), norm=ratio_norm(),
+                      aspect="auto", interpolation="nearest", gid="leaderboard")  # fmt: skip
+    for i, name in enumerate(names):
+        for j, scen in enumerate(scenarios):
+            row = cells.get((name, scen))
+            value = values[i, j]
+            if row is None:
+                continue
+            colour = ratio_colour(value)
+            consistent = math.isfinite(row.nees_in_bounds) and (
+                row.nees_in_bounds >= CONSISTENT_SHARE
+            )
+            text = ("ref." if name == row.oracle_name else format_sig(value)) + (
+                " •" if consistent else ""
+            )
+            ax.text(j, i, text, ha="center", va="center", fontsize=7,
+                    color=_text_colour(colour), gid=f"leaderboard_value/{scen}/{name}")  # fmt: skip
+            ratio = row.rmse_vs_oracle
+            if ratio is not None and ratio.has_interval and ratio.lo <= 1.0 <= ratio.hi:
+                frame = Rectangle((j - 0.46, i - 0.44), 0.92, 0.88, fill=False, lw=1.2,
+                                  edgecolor="black")  # fmt: skip
+                frame.set_gid(f"leaderboard_ci1/{scen}/{name}")
+                ax.add_patch(frame)
+    ax.set_xticks(np.arange(m), scenarios, rotation=30, ha="left", fontsize=8)
+    ax.xaxis.tick_top()
+    ax.set_yticks(np.arange(n), names, fontsize=8)
+    for label, name in zip(ax.get_yticklabels(), names, strict=True):
+        label.set_color("black" if name != oracle else ORACLE_COLOUR)
+    ax.grid(False)
+    ax.set_xlim(-0.5, m - 0.5)
+    ax.set_ylim(n - 0.5, -0.5)
+    ratio_colourbar(fig, image, ax, f"position RMSE / {oracle}'s (log)")
+    fig.suptitle(f"Leaderboard: position RMSE over {oracle}'s\n{n} filters x {m} scenarios")
+    ax.set_xlabel(
+        "sorted by the median over scenarios, best first\nframe: the 95 % interval includes 1"
+        f"\n•: NEES in bounds on >= {CONSISTENT_SHARE:.0%} of steps",
+        fontsize=7,
+    )
+    return fig

@@ -26,6 +26,7 @@ import numpy as np
 import pandas as pd
 
 from ..analysis.metrics import format_number, format_share
+from ..filters.registry import adapted_noise
 from ..storage import (
     COMPARISONS_FILE,
     SUMMARY_JSON,
@@ -36,6 +37,7 @@ from ..storage import (
     read_steps,
     write_atomic,
 )
+from .plots import LINE_STYLES, PALETTE, plain_log_axis
 
 REAL_REPORT_FILE = "real-data.md"
 LOST_LOCK_M = 1.0
@@ -129,11 +131,30 @@ def shown_filters(rd: RealData) -> list[str]:
     if plain:
         x1 = [f for f in plain if f["start"] == 1.0]
         out.append((x1 or plain)[0]["name"])
-    adaptive = [f["name"] for f in rd.instances() if f["kind"] not in ("ekf", "ekf-tuned")]
+    adaptive = [f["name"] for f in rd.instances() if adapts(rd, f)]
     if adaptive:
         best = min(adaptive, key=lambda n: _nan_last(_value(rd.record(n)["rmse_pos"])))
         out.append(best)
     return out
+
+
+def adapts(rd: RealData, instance: dict) -> frozenset[str]:
+    """What a filter instance adapts: as the registry says for its spec (the scenario's entry
+    it was made from), or for a kind the spec cannot tell about, the noise whose recorded R/Qu
+    vary."""
+    specs = {s.get("name"): s for s in rd.manifest["scenario"].get("filters", [])}
+    declared = adapted_noise(specs.get(instance["base"], {"kind": instance["kind"]}))
+    if declared is not None:
+        return frozenset(declared)
+    one = rd.steps[rd.steps["filter"] == instance["name"]]
+    found = set()
+    for letter, cols in (("R", ("R_rr", "R_bb")), ("Q", ("Q_vv", "Q_gg"))):
+        for col in cols:
+            values = one[col].to_numpy(float) if col in one else np.zeros(0)
+            values = values[np.isfinite(values)]
+            if values.size > 1 and values.max() - values.min() > 1e-9 * np.abs(values).max():
+                found.add(letter)
+    return frozenset(found)
 
 
 def _nan_last(x: float) -> float:
@@ -192,7 +213,7 @@ def track_figure(rd: RealData):
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_title(f"{rd.name}: held-out segments against Vicon")
-    ax.legend(loc="best")
+    fig.legend(*ax.get_legend_handles_labels(), loc="outside right upper")  # off the map
     return fig
 
 
@@ -239,24 +260,33 @@ def noise_figure(rd: RealData):
     naive = rd.manifest["scenario"]["naive"]
     starts = {f["start"] for f in rd.instances() if f["start"] is not None}
     start = 1.0 if 1.0 in starts else (min(starts) if starts else None)
-    adaptive = [f["name"] for f in rd.instances()
-                if f["kind"] not in ("ekf", "ekf-tuned") and f["start"] == start]  # fmt: skip
-    colours = _palette(len(adaptive))
+    adaptive = {f["name"]: adapts(rd, f) for f in rd.instances()
+                if f["start"] == start and adapts(rd, f)}  # fmt: skip
     for ax, (col, label, key) in zip(axes.ravel(), NOISE, strict=True):
-        for name, colour in zip(adaptive, colours, strict=True):
+        for i, (name, what) in enumerate(adaptive.items()):
+            if col[0] not in what:  # R_rr, R_bb: "R"; Q_vv, Q_gg: "Q"
+                continue
             sub = _broken(_one(rd, name), ["t_abs", col])
-            ax.plot(
-                sub[:, 0], np.sqrt(sub[:, 1]), lw=0.6, color=colour, gid=f"{col}/{name}", label=name
-            )
+            # colour and line style by order: thirteen filters stay apart
+            colour = PALETTE[i % len(PALETTE)]
+            style = LINE_STYLES[(i // len(PALETTE)) % len(LINE_STYLES)]
+            ax.plot(sub[:, 0], np.sqrt(sub[:, 1]), lw=0.9, color=colour, ls=style,
+                    gid=f"{col}/{name}", label=name)  # fmt: skip
         if key in tuned:
             ax.axhline(tuned[key], color="k", ls="--", lw=1, gid=f"{col}/tuned", label="ekf-tuned")
         if start is not None:
             ax.axhline(naive[key] * start, color="0.5", ls=":", lw=1, label=f"naive x{start:g}")
         _mark_segments(ax, rd)
-        ax.set_yscale("log")
+        plain_log_axis(ax)
         ax.set_ylabel(label)
         ax.set_xlabel("log time [s]")
-    axes[0, 0].legend(loc="best", fontsize=6, ncol=2)
+    handles, labels = [], []
+    for ax in axes.ravel():
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 5), fontsize=7)
     fig.suptitle(f"{rd.name}: adapted R and Q (start x{start:g}) against the tuned values")
     return fig
 
@@ -313,7 +343,7 @@ def ratio_figure(rd: RealData):
             y -= 1
         y -= 0.5
     ax.axvline(1.0, color="k", lw=1)
-    ax.set_xscale("log")
+    plain_log_axis(ax, "x")
     ax.set_yticks(ticks, labels, fontsize=7)
     ax.set_xlabel("held-out position RMSE / ekf-tuned's (95 % paired bootstrap interval)")
     ax.set_title(f"{rd.name}: every filter from every naive start")

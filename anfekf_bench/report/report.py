@@ -38,6 +38,7 @@ from ..analysis.metrics import (
 from ..analysis.statistics import Interval, interval_too_wide, too_few_runs
 from ..analysis.tables import filter_arrays
 from ..config import NoiseSigmas
+from ..filters.registry import adapted_noise
 from ..models import control_covariance, measurement_covariance
 from ..schedule import NoiseSchedule
 from ..storage import (
@@ -56,8 +57,10 @@ from ..storage import (
     write_atomic,
 )
 from . import changing, plots, real
+from . import sweep as sweep_report
 from .document import (
     Cell,
+    Contents,
     Document,
     FigureBlock,
     Heading,
@@ -89,7 +92,8 @@ NOISE_COLUMNS: dict[str, tuple[str, str, float]] = {
     "Q_vv": ("Q speed variance", "(m/s)²", 1.0),
     "Q_gg": ("Q steering variance", "deg²", _DEG2),
 }
-_ADAPTED = {"R": ("R_rr", "R_bb"), "Q": ("Q_vv", "Q_gg"), "RQ": ("R_rr", "R_bb", "Q_vv", "Q_gg")}
+# What each adapted noise (registry.adapted_noise: "R", "Q"; "P" has no column) shows as.
+_ADAPTED = {"R": ("R_rr", "R_bb"), "Q": ("Q_vv", "Q_gg")}
 _NEEDED_COLUMNS = {
     "t", "x_true", "y_true", "x_est", "y_est", "P_xx", "P_xy", "P_yy", "heading_err", "diverged",
     *NOISE_COLUMNS,
@@ -127,7 +131,7 @@ class FilterSeries:
 
     name: str
     kind: str  # ekf, ekf-oracle, anfekf, ...
-    adapts: str | None  # "R", "Q" or "RQ" for an adapting ANFEKF, else None
+    adapts: frozenset[str]  # noise it adapts: "R", "Q" (Qu), "P" (registry.adapted_noise)
     runs: int
     runs_used: int
     t: np.ndarray  # [s]
@@ -203,7 +207,7 @@ class ScenarioData:
     @property
     def adapted_columns(self) -> list[str]:
         """The R/Q diagonal columns some filter adapts, in NOISE_COLUMNS order."""
-        wanted = {c for f in self.filters if f.adapts for c in _ADAPTED[f.adapts]}
+        wanted = {c for f in self.filters for a in f.adapts for c in _ADAPTED.get(a, ())}
         return [c for c in NOISE_COLUMNS if c in wanted]
 
     def reference(self) -> FilterSeries | None:
@@ -336,10 +340,26 @@ def _filter_specs(manifest: dict, path: Path) -> dict[str, dict]:
     return {str(s["name"]): s for s in specs}
 
 
-def _adapts(spec: dict) -> str | None:
-    if spec.get("kind") != "anfekf" or spec.get("adaptation", True) is False:
-        return None
-    return spec.get("adapt", "R") if spec.get("adapt", "R") in _ADAPTED else None
+def _adapts(spec: dict, noise: dict[str, np.ndarray] | None = None) -> frozenset[str]:
+    """What a filter adapts: as the registry says for its kind and parameters; for a filter the
+    spec cannot tell about (a custom class, a kind this version does not know), the noise whose
+    recorded R/Qu columns vary (`noise`: column -> (runs, steps) values)."""
+    declared = adapted_noise(spec)
+    if declared is not None:
+        return frozenset(declared)
+    return frozenset(a for a, cols in _ADAPTED.items() if any(_varies(noise, c) for c in cols))
+
+
+def _varies(noise: dict[str, np.ndarray] | None, col: str) -> bool:
+    values = None if noise is None else noise.get(col)
+    if values is None or np.size(values) == 0:
+        return False
+    finite = np.asarray(values, dtype=float)
+    finite = finite[np.isfinite(finite)]
+    # a relative change well above rounding: a fixed filter stores one value for every step
+    return finite.size > 1 and float(finite.max() - finite.min()) > 1e-9 * float(
+        np.abs(finite).max()
+    )
 
 
 def _percentiles(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -395,7 +415,7 @@ def filter_series(steps: pd.DataFrame, name: str, spec: dict) -> FilterSeries:
     return FilterSeries(
         name=name,
         kind=str(spec.get("kind", "?")),
-        adapts=_adapts(spec),
+        adapts=_adapts(spec, noise),
         runs=len(ok),
         runs_used=n,
         t=np.asarray(a["t"], dtype=float),
@@ -740,6 +760,41 @@ def summary_table(rows: Sequence[SummaryRow]) -> TableBlock:
     return TableBlock(TABLE_HEADER, [table_row(r) for r in rows], _NUMERIC)
 
 
+def leaderboard_table(rows: Sequence[SummaryRow]) -> TableBlock:
+    """Filters x scenarios: position RMSE over the oracle's with its interval (sortable in the
+    HTML by any scenario or by the median), a dot where NEES is in bounds on >= 85 % of steps."""
+    scenarios = list(dict.fromkeys(r.scenario for r in rows))
+    cells = {(r.filter, r.scenario): r for r in rows}
+    body = []
+    for name in dict.fromkeys(r.filter for r in rows):
+        line: list[Cell] = [Cell(name)]
+        values = []
+        for scen in scenarios:
+            r = cells.get((name, scen))
+            if r is None:
+                line.append(Cell("-"))
+                continue
+            reference = r.filter == r.oracle_name
+            value = (
+                1.0
+                if reference
+                else (r.rmse_vs_oracle.estimate if r.rmse_vs_oracle is not None else r.vs_oracle)
+            )
+            values.append(value)
+            mark = " •" if r.nees_in_bounds >= plots.CONSISTENT_SHARE else ""
+            text = format_ratio(r.rmse_vs_oracle, reference=reference)
+            line.append(Cell(text + mark, value))
+        finite = [v for v in values if math.isfinite(v)]
+        median = float(np.median(finite)) if finite else math.nan
+        line.append(Cell(format_sig(median), median))
+        body.append(line)
+    body.sort(key=lambda line: (not math.isfinite(line[-1].sort), line[-1].sort))
+    header = ("filter", *scenarios, "median")
+    return TableBlock(header, body, (False, *[True] * (len(scenarios) + 1)),
+                      caption="Position RMSE / oracle's [95 % interval]; •: NEES in bounds on"
+                      " >= 85 % of steps; click a header to sort")  # fmt: skip
+
+
 def noise_table(sc: ScenarioData) -> TableBlock:
     """The true noise against what the filters assume (the oracle EKF is given the truth)."""
     rows = []
@@ -923,16 +978,25 @@ def build_document(
     scenarios: Sequence[ScenarioData],
     rows: Sequence[SummaryRow],
     figures: dict[str, dict[str, FigureBlock]],
-    overview: FigureBlock,
+    overview: FigureBlock | None,
     out_dir: Path,
+    *,
+    leaderboard: FigureBlock | None = None,
 ) -> Document:
     """The report's content, once, for report.md and report.html."""
     doc = Document("anfekf-bench report")
-    doc.add(Paragraph(INTRO), Heading("Summary"))
+    doc.add(Paragraph(INTRO), Contents())
+    if not scenarios:
+        return doc
+    doc.add(Heading("Summary", anchor="summary"))
     for sc in scenarios:
         for text in scenario_warnings(sc):
             doc.add(Warning(text))
-    doc.add(summary_table(rows), overview)
+    doc.add(summary_table(rows))
+    if leaderboard is not None:
+        doc.add(Heading("Leaderboard", level=3, anchor="leaderboard"), leaderboard,
+                leaderboard_table(rows))  # fmt: skip
+    doc.add(overview)
     for sc in scenarios:
         doc.add(Heading(sc.name, anchor=f"scenario-{sc.slug}"))
         if sc.description:
@@ -992,16 +1056,26 @@ def write_report(
     *,
     dpi: int = plots.DPI,
     html: bool = True,
+    sweeps: Sequence[Path] = (),
 ) -> ReportResult:
-    """Read every scenario under `results_dirs`, write its figures, report.md and report.html
-    to `out_dir`.
+    """Read every result under `results_dirs` (scenarios, real data) and the `sweeps` folders,
+    write their figures, and one report.md and report.html to `out_dir` covering all of them,
+    with a table of contents (the sweeps also get sweeps.md, real data real-data.md).
 
     Everything is read (and checked) before anything is written, so bad input leaves no partial
     report behind.
     """
     out_dir = Path(out_dir)
     fmt = ImageFormat(fmt)
-    folders, recorded = real.split_folders(find_scenarios(results_dirs, out_dir))
+    sweeps = [Path(f) for f in sweeps]
+    for folder in sweeps:
+        sweep_report.read_sweep(folder)  # checked before anything is written
+    found = (
+        find_scenarios(results_dirs, out_dir)
+        if not sweeps or sweep_report.has_scenario_results(list(results_dirs))
+        else []
+    )
+    folders, recorded = real.split_folders(found)
     real_data = [real.load_real(f) for f in recorded]  # real-data results: report/real.py
     scenarios = [
         load_scenario_data(f) if os.path.lexists(f / STEPS_FILE) else load_summary_only(f)
@@ -1012,13 +1086,15 @@ def write_report(
     result = ReportResult(out_dir=out_dir, scenarios=scenarios, rows=rows)
     result.warnings = [w for sc in scenarios for w in scenario_warnings(sc)]
     out_dir.mkdir(parents=True, exist_ok=True)
+    real_files: list[Path] = []
     if real_data:
-        real_files, real_text = real.write_real_report(real_data, out_dir, fmt.value, dpi)
+        real_files, _ = real.write_real_report(real_data, out_dir, fmt.value, dpi)
         result.files += real_files
-        if not scenarios:  # only real data: report.md is its section
-            write_atomic(out_dir / REPORT_FILE, lambda tmp: tmp.write_text(real_text, "utf-8"))
-            result.files.append(out_dir / REPORT_FILE)
-            return result
+    sweep_files: list[tuple[str, list[Path]]] = []
+    if sweeps:  # in the scenarios' colours where a filter name is the same
+        with plots.palette([f.name for sc in scenarios for f in sc.filters]):
+            sweeps_md, sweep_files = sweep_report.write_sweeps(sweeps, out_dir, fmt.value)
+        result.files += [f for _, files in sweep_files for f in files] + [sweeps_md]
 
     def save(fig, name: str, text: str) -> FigureBlock:
         path = out_dir / name
@@ -1035,6 +1111,67 @@ def write_report(
             mime = "image/svg+xml" if fmt is ImageFormat.svg else "image/png"
         return FigureBlock(name, text, image, mime, link_only=fmt is ImageFormat.pdf)
 
+    # Colours by the filters' order in this report: the same filter, the same colour throughout.
+    figures: dict[str, dict[str, FigureBlock]] = {}
+    overview = leaderboard = None
+    if scenarios:
+        with plots.palette([f.name for sc in scenarios for f in sc.filters]):
+            figures, overview = _draw_figures(scenarios, rows, save, fmt)
+            if any(r.kind == "ekf-oracle" for r in rows):
+                name = figure_name("", "leaderboard", fmt)
+                leaderboard = save(plots.leaderboard_figure(rows), name, LEADERBOARD_CAPTION)
+    doc = build_document(scenarios, rows, figures, overview, out_dir, leaderboard=leaderboard)
+    if real_files:
+        doc.add(Heading("Real data", anchor="real-data"))
+        link = real.REAL_REPORT_FILE
+        doc.add(Paragraph(f"Tables and every number: [{link}]({link})."))
+        doc.add(*_file_blocks(real_files, fmt, html))
+    if sweep_files:
+        doc.add(Heading("Sweeps", anchor="sweeps"))
+        link = sweep_report.SWEEPS_REPORT
+        doc.add(Paragraph(f"Break-down ranges and every cell's numbers: [{link}]({link})."))
+        for name, files in sweep_files:
+            doc.add(Heading(f"Sweep {name}", level=3, anchor=f"sweep-{_slug(name)}"))
+            doc.add(*_file_blocks(files, fmt, html))
+    outputs = {REPORT_FILE: to_markdown(doc)}
+    if html:
+        outputs[HTML_FILE] = to_html(doc)
+    for name, text in outputs.items():
+        path = out_dir / name
+        write_atomic(path, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
+        result.files.append(path)
+    return result
+
+
+LEADERBOARD_CAPTION = (
+    "Leaderboard: each filter's position RMSE over the oracle EKF's in each scenario, on one"
+    " log colour scale centred on 1 (white); frame: the 95 % paired interval includes 1;"
+    " dot: NEES in the 95 % bounds on at least 85 % of steps; filters sorted best first"
+)
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", text) or "x"
+
+
+def _file_blocks(files: Sequence[Path], fmt: ImageFormat, html: bool) -> list[FigureBlock]:
+    """Figures another part of the report wrote (sweeps, real data), embedded as they are: PNG
+    and SVG in the HTML, a PDF as a link."""
+    blocks = []
+    for path in files:
+        if path.suffix not in (".png", ".svg", ".pdf"):
+            continue
+        caption = path.stem.replace("_", " ")
+        embed = html and fmt is not ImageFormat.pdf
+        image = path.read_bytes() if embed else b""
+        mime = "image/svg+xml" if fmt is ImageFormat.svg else "image/png"
+        blocks.append(FigureBlock(path.name, caption, image, mime,
+                                  link_only=fmt is ImageFormat.pdf))  # fmt: skip
+    return blocks
+
+
+def _draw_figures(scenarios, rows, save, fmt) -> tuple[dict[str, dict[str, FigureBlock]], object]:
+    """Each scenario's figures and the overview, saved with `save`."""
     figures: dict[str, dict[str, FigureBlock]] = {}
     for sc in scenarios:
         made = figures[sc.slug] = {}
@@ -1053,14 +1190,16 @@ def write_report(
                            label + caption(sc, "map"))  # fmt: skip
         if sc.schedule is not None:  # the true noise changes (SPEC 14)
             made["changes"] = save(
-                changing.changes_figure(sc, sc.schedule), figure_name(sc.slug, "changes", fmt),
+                changing.changes_figure(sc, sc.schedule),
+                figure_name(sc.slug, "changes", fmt),
                 label + "Position RMSE over time and its ratio to the oracle's, with the noise"
                 " changes marked (dotted; blackouts shaded)",
             )
             fig = changing.variances_figure(sc, sc.schedule)
             if fig is not None:
                 made["variances"] = save(
-                    fig, figure_name(sc.slug, "variances", fmt),
+                    fig,
+                    figure_name(sc.slug, "variances", fmt),
                     label + "Variances of every filter that adapts them (mean over runs) against"
                     " the true schedule (dashed)",
                 )
@@ -1071,18 +1210,7 @@ def write_report(
         " (log scale, 95 % paired bootstrap intervals as error bars) and its share of steps with"
         " NEES in the 95 % bounds",
     )
-    doc = build_document(scenarios, rows, figures, overview, out_dir)
-    outputs = {REPORT_FILE: to_markdown(doc)}
-    if real_data:
-        link = real.REAL_REPORT_FILE
-        outputs[REPORT_FILE] += f"\nReal-data results: [{link}]({link})\n"
-    if html:
-        outputs[HTML_FILE] = to_html(doc)
-    for name, text in outputs.items():
-        path = out_dir / name
-        write_atomic(path, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
-        result.files.append(path)
-    return result
+    return figures, overview
 
 
 def _scenario_data(

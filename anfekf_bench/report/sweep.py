@@ -13,15 +13,14 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from matplotlib.colors import LogNorm, TwoSlopeNorm
+from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-from ..storage import MANIFEST_FILE, ResultsError, read_json, read_parquet
+from ..storage import MANIFEST_FILE, SWEEP_KIND, ResultsError, read_json, read_parquet
 from .plots import filter_colour, save_figure
 
 SWEEP_FILE = "sweep.parquet"
-SWEEP_KIND = "anfekf-bench sweep"
 # (column, its interval's columns or None, title, log scale, the value marking "as good as" the
 # reference, or None)
 PANELS = (
@@ -69,6 +68,13 @@ def read_sweep(folder: Path) -> SweepData:
         name, runs = str(doc["name"]), int(doc["runs"])
     except (KeyError, TypeError, ValueError):
         raise ResultsError(f"{folder / MANIFEST_FILE}: not a sweep manifest") from None
+    # The table's axis columns have plain names (dots as underscores); older tables, dotted.
+    axes = [a if a in table.columns else a.replace(".", "_") for a in axes]
+    factor_axes = {a if a in table.columns else a.replace(".", "_") for a in factor_axes}
+    if "filter" in table.columns and not isinstance(table["filter"].dtype, pd.CategoricalDtype):
+        table["filter"] = pd.Categorical(
+            table["filter"], categories=list(dict.fromkeys(table["filter"]))
+        )
     missing = [a for a in axes if a not in table.columns]
     if missing:
         raise ResultsError(f"{folder / SWEEP_FILE}: missing the axis columns {', '.join(missing)}")
@@ -122,33 +128,43 @@ def line_figure(data: SweepData, axis: str, rows: pd.DataFrame, title: str) -> F
 def heatmap_figure(
     data: SweepData, x_axis: str, y_axis: str, rows: pd.DataFrame, column: str, label: str
 ) -> Figure:
-    """One heatmap per filter of `column` over two axes, every cell annotated."""
+    """One heatmap per filter of `column` over two axes, every cell annotated. Ratios to the
+    oracle use the report's one ratio scale (log, white at 1, ticks 1, 1.5, 2, 3, 5, 10, 30), and
+    the oracle's own panel (1 everywhere) is left out; the cells show point estimates (the
+    intervals are in sweep.parquet and sweeps.md's line figures)."""
+    from .plots import RATIO_MAX, RATIO_MIN, ratio_cmap, ratio_colourbar, ratio_norm
+
+    ratio = column.endswith("_vs_oracle")
     names = [str(n) for n in rows["filter"].cat.categories if (rows["filter"] == n).any()]
-    cols = min(3, len(names))
-    nrows = math.ceil(len(names) / cols)
-    fig = Figure(figsize=(4.2 * cols, 3.6 * nrows), layout="constrained")
+    if ratio:  # the reference against itself: a constant panel of 1.00 says nothing
+        names = [n for n in names if not np.allclose(rows.loc[rows["filter"] == n, column], 1.0)]
+    cols = max(1, min(3, len(names)))
+    nrows = max(1, math.ceil(len(names) / cols))
+    fig = Figure(figsize=(4.2 * cols + 0.8, 3.6 * nrows + 0.6), layout="constrained")
     axes = np.atleast_1d(fig.subplots(nrows, cols)).ravel()
     xs = sorted(rows[x_axis].unique())
     ys = sorted(rows[y_axis].unique())
     values = rows[column].to_numpy(float)
     finite = values[np.isfinite(values) & (values > 0)]
-    ratio = column.endswith("_vs_oracle")
-    if ratio and finite.size:
-        top = max(float(finite.max()), 1.0001)
-        norm = TwoSlopeNorm(vcenter=1.0, vmin=min(float(finite.min()), 0.9999), vmax=top)
+    if ratio:
+        norm, cmap = ratio_norm(), ratio_cmap()
     elif column.startswith("rmse") and finite.size:
-        norm = LogNorm(vmin=float(finite.min()), vmax=float(finite.max()))
+        norm, cmap = LogNorm(vmin=float(finite.min()), vmax=float(finite.max())), "RdYlGn_r"
     else:
-        norm = None
+        norm, cmap = None, "RdYlGn"
     image = None
     for ax, name in zip(axes, names, strict=False):
         sub = rows[rows["filter"] == name].pivot_table(index=y_axis, columns=x_axis, values=column)
         grid = sub.reindex(index=ys, columns=xs).to_numpy(float)
-        lower_is_better = ratio or column.startswith("rmse")
-        image = ax.imshow(
-            grid, origin="lower", cmap="RdYlGn_r" if lower_is_better else "RdYlGn", norm=norm,
-            aspect="auto", gid=f"{column}/{name}",
-        )  # fmt: skip
+        shown = grid
+        if ratio:  # coloured by log10 of the ratio, clipped to the scale's ends
+            with np.errstate(all="ignore"):
+                shown = np.log10(np.where(grid > 0, grid, np.nan))
+            shown = np.ma.masked_invalid(
+                np.clip(shown, math.log10(RATIO_MIN), math.log10(RATIO_MAX))
+            )
+        image = ax.imshow(shown, origin="lower", cmap=cmap, norm=norm, aspect="auto",
+                          gid=f"{column}/{name}")  # fmt: skip
         for (i, j), v in np.ndenumerate(grid):
             share = column == "nees_in_bounds"
             text = "-" if not math.isfinite(v) else (f"{v:.0%}" if share else f"{v:#.3g}")
@@ -160,9 +176,12 @@ def heatmap_figure(
         ax.set_title(name)
     for ax in axes[len(names) :]:
         ax.set_visible(False)
-    if image is not None:
+    if image is not None and ratio:
+        ratio_colourbar(fig, image, axes[: len(names)].tolist(), "ratio (log)")
+    elif image is not None:
         fig.colorbar(image, ax=axes[: len(names)].tolist(), shrink=0.8)
-    fig.suptitle(f"{data.name}: {label}")
+    # the heatmaps show point estimates: no promise of intervals in their title
+    fig.suptitle(f"{data.name}: {label.replace(' (95 % paired interval)', '')}")
     return fig
 
 
@@ -278,16 +297,26 @@ def has_scenario_results(folders: list[Path]) -> bool:
     return False
 
 
-def write_sweeps_report(folders: list[Path], out: Path, fmt: str = "png") -> Path:
-    """Every sweep's figures and its section into `out`/sweeps.md; returns that file."""
+def write_sweeps(
+    folders: list[Path], out: Path, fmt: str = "png"
+) -> tuple[Path, list[tuple[str, list[Path]]]]:
+    """Every sweep's figures and its section into `out`/sweeps.md; returns that file and each
+    sweep's name with its figure files (report.md and report.html show them too)."""
     from ..storage import write_atomic
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     sections = ["# Sweeps", ""]
+    written = []
     for folder in folders:
-        _, text = write_sweep_report(folder, out, fmt)
+        files, text = write_sweep_report(folder, out, fmt)
+        written.append((read_sweep(folder).name, files))
         sections += [text, ""]
     path = out / SWEEPS_REPORT
     write_atomic(path, lambda tmp: tmp.write_text("\n".join(sections), encoding="utf-8"))
-    return path
+    return path, written
+
+
+def write_sweeps_report(folders: list[Path], out: Path, fmt: str = "png") -> Path:
+    """Every sweep's figures and its section into `out`/sweeps.md; returns that file."""
+    return write_sweeps(folders, out, fmt)[0]

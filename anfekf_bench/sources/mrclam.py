@@ -601,7 +601,8 @@ def regenerate_drive_copies(
         src = shared / f"utias-mrclam-dataset{d}"
         expected = provenance_sha256(data / f"mrclam-dataset{d}" / "PROVENANCE.md")
         for r in range(1, 6):
-            found = convert_mrclam_to_parquet(src, dst / f"mrclam-dataset{d}" / f"robot{r}", robot=r)
+            target = dst / f"mrclam-dataset{d}" / f"robot{r}"
+            found = convert_mrclam_to_parquet(src, target, robot=r)
             for file, sha in found.items():
                 if expected.get(file) != sha:
                     raise LogError(src / file, "", "SHA-256 differs from PROVENANCE.md")

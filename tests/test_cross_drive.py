@@ -222,3 +222,67 @@ def test_segment_protocol_on_any_builtin_drive(tmp_path):
     path.write_text(yaml.safe_dump(doc))
     sc, rec = load_scenario(path)
     assert rec.log.name == "mrclam-dataset6-robot2" and len(rec.test_segments) == 5
+
+
+# ------------------------------------------------------------------ the report over drives
+
+
+def synthetic_drives_result(tmp_path) -> object:
+    """A RealData of protocol drives with hand-made errors: 'a x1' has exactly half ekf-tuned's
+    error on every drive, 'b x1' twice, and loses lock (2 m) on drive 2."""
+    import pandas as pd
+
+    from anfekf_bench.report.real import RealData
+
+    ids = ["d6-r1", "d7-r1", "d9-r3"]
+    rows = []
+    rng = np.random.default_rng(1)
+    for run, _ in enumerate(ids):
+        base = 0.1 + 0.05 * run + 0.01 * rng.random(20)
+        for name, scale in (("ekf-tuned", 1.0), ("a x1", 0.5), ("b x1", 2.0)):
+            err = base * scale
+            if name == "b x1" and run == 2:
+                err = np.r_[err[:-1], 2.0]
+            for k, e in enumerate(err):
+                rows.append({"filter": name, "run": run, "step": k + 1, "t": 0.12 * k,
+                             "pos_err": e})  # fmt: skip
+    steps = pd.DataFrame(rows)
+    manifest = {
+        "protocol": "drives", "seed": 0, "runs": 3,
+        "filters": [{"name": "ekf-tuned", "base": "ekf-tuned", "kind": "ekf-tuned", "start": None},
+                    {"name": "a x1", "base": "a", "kind": "ekf", "start": 1.0},
+                    {"name": "b x1", "base": "b", "kind": "sage-husa", "start": 1.0}],
+        "data": {"drives": [{"drive": d} for d in ids]},
+        "scenario": {"name": "syn"},
+    }  # fmt: skip
+    summary = [{"filter": n, "rmse_pos": float(steps[steps["filter"] == n]["pos_err"].mean())}
+               for n in ("ekf-tuned", "a x1", "b x1")]  # fmt: skip
+    return RealData("syn", "", tmp_path, manifest, steps, summary, pd.DataFrame())
+
+
+def test_drive_ratios_are_paired_over_drives(tmp_path):
+    from anfekf_bench.report.real import drive_lost_lock, drive_ratio_rows, drive_rmse
+
+    rd = synthetic_drives_result(tmp_path)
+    rm = drive_rmse(rd)
+    assert list(rm.columns) == ["d6-r1", "d7-r1", "d9-r3"]
+    assert np.allclose(rm.loc["a x1"] / rm.loc["ekf-tuned"], 0.5)
+    lost = drive_lost_lock(rd)
+    assert lost.loc["b x1"].tolist() == [False, False, True] and not lost.loc["a x1"].any()
+    rows = {r["filter"]: r for r in drive_ratio_rows(rd, resamples=999)}
+    assert rows["a x1"]["ratio"] == pytest.approx(0.5)
+    assert rows["a x1"]["better"] == 3 and rows["a x1"]["lost_lock"] == 0
+    assert math.isnan(rows["a x1"]["lo"])  # every drive the same ratio: no spread to resample
+    b = rows["b x1"]
+    assert b["ratio"] > 2.0 and b["lo"] <= b["ratio"] <= b["hi"] and b["lost_lock"] == 1
+    assert rows["ekf-tuned"]["ratio"] == 1.0
+
+
+def test_drives_report_figures_draw(tmp_path):
+    from anfekf_bench.report.real import drives_errors_figure, drives_heatmap_figure
+
+    rd = synthetic_drives_result(tmp_path)
+    fig = drives_heatmap_figure(rd)
+    assert fig.axes[0].images[0].get_array().shape == (2, 3)
+    fig = drives_errors_figure(rd)
+    assert any(line.get_gid() == "pos/d9-r3/ekf-tuned" for line in fig.axes[2].lines)

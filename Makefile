@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 ANFEKF := $(VENV)/bin/anfekf
 OUT    ?= results
 
-.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps real
+.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps real drives
 
 setup: $(VENV)/.installed
 
@@ -67,3 +67,7 @@ sweeps: setup
 real: setup
 	$(ANFEKF) run configs/real --out $(OUT)/real --force
 	$(ANFEKF) report $(OUT)/real --out $(OUT)/real/report
+
+drives: setup
+	$(ANFEKF) run configs/drives --out $(OUT)/drives --force
+	$(ANFEKF) report $(OUT)/drives --out $(OUT)/drives/report

@@ -320,3 +320,38 @@ def test_drives_report_figures_draw(tmp_path):
     assert fig.axes[0].images[0].get_array().shape == (2, 3)
     fig = drives_errors_figure(rd)
     assert any(line.get_gid() == "pos/d9-r3/ekf-tuned" for line in fig.axes[2].lines)
+
+
+@pytest.mark.slow
+def test_two_drives_end_to_end_with_report(tmp_path):
+    """protocol drives through `anfekf run` and `anfekf report`: one run per drive, ekf-tuned of
+    each drive tuned on the other dataset's drive, the kernel's RMSE equal to the filterpy run's."""
+    from typer.testing import CliRunner
+
+    from anfekf_bench.cli import app
+    from anfekf_bench.report.real import drive_rmse, load_real
+
+    doc = drives_doc(
+        data={"kind": "mrclam", "path": "builtin", "drives": ["d6-r1", "d7-r1"]},
+        eval_period_s=0.12,
+        tuning={"sigma_v": [-1, 0], "sigma_w": [0, 1], "sigma_range": [-1, 0],
+                "sigma_bearing": [-2, -1], "refine": False},
+    )  # fmt: skip
+    path = tmp_path / "two.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    runner = CliRunner()
+    res = runner.invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    assert res.exit_code == 0, res.output
+    folder = tmp_path / "out" / "drives"
+    manifest = json.loads((folder / "manifest.json").read_text())
+    assert manifest["protocol"] == "drives" and manifest["runs"] == 2
+    per_drive = {d["drive"]: d for d in manifest["tuning"]["per_drive"]}
+    assert per_drive["d6-r1"]["tuned_on"] == ["d7-r1"]
+    assert per_drive["d7-r1"]["tuned_on"] == ["d6-r1"]
+    rm = drive_rmse(load_real(folder))
+    for d in ("d6-r1", "d7-r1"):
+        assert rm.loc["ekf-tuned", d] == pytest.approx(per_drive[d]["cross_rmse_pos"], rel=1e-6)
+    res = runner.invoke(app, ["report", str(folder), "--out", str(tmp_path / "rep")])
+    assert res.exit_code == 0, res.output
+    text = (tmp_path / "rep" / "real-data.md").read_text()
+    assert "cross / in-dataset" in text and "drives_heatmap.png" in text

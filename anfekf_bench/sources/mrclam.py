@@ -12,6 +12,8 @@ All of it is held in a `RobotLog` (frozen, read-only numpy arrays, times in seco
 
 - `load_builtin()`: UTIAS MRCLAM Dataset 9, Robot 3, shipped in the package as Parquet
   (`anfekf_bench/data/mrclam-dataset9-robot3/`, made once by `convert_mrclam_to_parquet`);
+- `load_drive(drive)`: any of the eleven built-in drives (`DRIVES`: MRCLAM Datasets 6 and 7,
+  Robots 1-5, in `anfekf_bench/data/mrclam-dataset<d>/robot<r>/`, and Dataset 9 Robot 3);
 - `read_mrclam(folder)`: the original MRCLAM `.dat` files;
 - `read_user_log(folder)`: a user's own log, four CSV or Parquet files in the documented schema.
 

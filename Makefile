@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 ANFEKF := $(VENV)/bin/anfekf
 OUT    ?= results
 
-.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps real changing
+.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps real changing drives
 
 setup: $(VENV)/.installed
 
@@ -71,3 +71,7 @@ changing: setup
 real: setup
 	$(ANFEKF) run configs/real --out $(OUT)/real --force
 	$(ANFEKF) report $(OUT)/real --out $(OUT)/real/report
+
+drives: setup
+	$(ANFEKF) run configs/drives --out $(OUT)/drives --force
+	$(ANFEKF) report $(OUT)/drives --out $(OUT)/drives/report

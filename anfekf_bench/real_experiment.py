@@ -26,7 +26,7 @@ import math
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +42,7 @@ from .models import Unicycle
 from .runner import local_workers
 from .sources import mrclam
 from .sources.recorded import (
+    DriveSet,
     RealScenario,
     Recording,
     Segment,
@@ -128,6 +129,11 @@ def check_real_plan(plan: RealPlan) -> int:
     problem = scenario_name_problem(plan.name)
     if problem:
         raise PlanError(f"name: {problem}")
+    if isinstance(plan.world, DriveSet):
+        return sum(
+            int(np.sum((d.log.odo_t > d.segment.t0) & (d.log.odo_t <= d.segment.end)))
+            for d in plan.world.drives
+        )
     return sum(
         int(np.sum((plan.world.log.odo_t > s.t0) & (plan.world.log.odo_t <= s.end)))
         for s in plan.world.test_segments
@@ -149,8 +155,46 @@ class SegmentInputs:
     scored: np.ndarray  # (n,) bool
 
 
-def segment_inputs(rec: Recording, seg: Segment) -> SegmentInputs:
-    tl = timeline(mrclam.events(rec.log, seg.t0, seg.end))
+def thin_records(tl: Timeline, period_s: float | None) -> Timeline:
+    """The timeline with its evaluation times thinned: a record stamp is kept when it lies at
+    least `period_s` after the last kept one (the first is kept). The filter still sees every
+    command and every landmark; stamps that are then neither an evaluation time nor a landmark
+    time nor a change of command are merged into the next stamp (65 Hz odometry, 8 Hz scores)."""
+    if period_s is None:
+        return tl
+    idx = np.flatnonzero(tl.record)
+    keep = np.zeros(len(idx), bool)
+    last = -math.inf
+    for i, t in enumerate(tl.t[idx].tolist()):
+        if t - last >= period_s:
+            keep[i] = True
+            last = t
+    record = np.zeros(len(tl.t), bool)
+    record[idx[keep]] = True
+    # A stamp with no landmark and no evaluation whose command is held on over the next interval
+    # only splits one predict in two: merged into the next stamp (midpoint Euler over the joined
+    # interval; the rate-consistent Q is the same; 65 Hz odometry repeats its command ~4 times).
+    n = len(tl.t)
+    empty = tl.lm[:-1] == tl.lm[1:]
+    same_next = np.r_[np.all(tl.u[1:] == tl.u[:-1], axis=1), False]
+    kept = np.flatnonzero(~(empty & ~record & same_next))
+    if len(kept) == n:
+        return replace(tl, record=record)
+    t = tl.t[kept]
+    return replace(
+        tl,
+        t=t,
+        dt=np.diff(np.r_[tl.t_start, t]),
+        u=np.ascontiguousarray(tl.u[kept]),
+        lm=np.r_[tl.lm[kept], tl.lm[-1]],
+        record=record[kept],
+    )
+
+
+def segment_inputs(rec, seg: Segment, eval_period_s: float | None = None) -> SegmentInputs:
+    """A segment's timeline, evaluation times and ground truth (NaN where not scorable). `rec`
+    is a `Recording` or a `Drive` (what has `log` and `scorable`)."""
+    tl = thin_records(timeline(mrclam.events(rec.log, seg.t0, seg.end)), eval_period_s)
     t = tl.record_t
     truth = np.column_stack(mrclam.interpolate_truth(rec.log, t)).reshape(-1, 3)
     scored = rec.scorable(t) & np.all(np.isfinite(truth), axis=1)
@@ -266,6 +310,178 @@ def tuned_covariances(tuned: dict) -> tuple[np.ndarray, np.ndarray]:
     sv, sw = tuned["sigma_v"], tuned["sigma_w_rad"]
     sr, sb = tuned["sigma_range"], tuned["sigma_bearing_rad"]
     return np.diag([sv * sv, sw * sw]), np.diag([sr * sr, sb * sb])
+
+
+# --------------------------------------------------------------------------------------------
+# 1b. Tuning across drives (protocol drives, SPEC 15): the same grid and refinement as `tune`,
+# on whole drives, by branch and bound on the compiled kernel (engines.grid)
+
+
+def _bnb_chunk(exps: np.ndarray, naive, inputs, P0, gate, T0, bound: float) -> np.ndarray:
+    """(G, 5): sq_sum, max_err, n_updates, n_rejected, finished of each setting over all
+    `inputs`, stopping a setting once its sum passes the best complete sum seen (or `bound`)."""
+    from .engines.grid import score_setting
+
+    out = np.zeros((len(exps), 5))
+    best = bound
+    for g, e in enumerate(exps):
+        sig = naive * np.exp2(e)
+        total, worst, upd, rej, finished = 0.0, 0.0, 0, 0, True
+        for s in inputs:
+            sq, mx, nu, nr, fin = score_setting(
+                s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth[:, :2], s.scored,
+                best - total,
+            )  # fmt: skip
+            total, worst, upd, rej = total + sq, max(worst, mx), upd + nu, rej + nr
+            if not fin or not math.isfinite(total):
+                finished = finished and math.isfinite(total) and fin
+                break
+        out[g] = (total, worst, upd, rej, float(finished))
+        if finished and total < best:
+            best = total
+    return out
+
+
+def _bnb(exps: np.ndarray, naive, inputs, P0, gate, T0, jobs: int, bound: float) -> np.ndarray:
+    """`_bnb_chunk` with the settings dealt round-robin to `jobs` processes."""
+    parts = max(1, min(jobs, len(exps)))
+    if parts == 1:
+        return _bnb_chunk(exps, naive, inputs, P0, gate, T0, bound)
+    with local_workers():
+        found = Parallel(n_jobs=parts)(
+            delayed(_bnb_chunk)(exps[i::parts], naive, inputs, P0, gate, T0, bound)
+            for i in range(parts)
+        )
+    out = np.zeros((len(exps), 5))
+    for i, f in enumerate(found):
+        out[i::parts] = f
+    return out
+
+
+def _bnb_best(scores: np.ndarray) -> int:
+    """The setting with the smallest complete sum (every setting is scored at the same times)."""
+    crit = np.where(scores[:, 4] > 0, scores[:, 0], np.inf)
+    crit = np.where(np.isfinite(crit), crit, np.inf)
+    return int(np.argmin(crit))
+
+
+def tune_on_drives(
+    scenario: RealScenario, inputs: list[SegmentInputs], jobs: int = 1, seeds=()
+) -> dict:
+    """`tune`'s grid search (coarse grid, then 3^4 around the best with steps 2^(1/2) and
+    2^(1/4)) on whole drives. The criterion, the pooled position RMSE over every scored time of
+    `inputs`, has the same denominator for every setting, so the smallest sum of squares wins
+    and a setting stops once its partial sum passes the best complete one (branch and bound:
+    the same winner as scoring every setting in full). `seeds` (log2 multipliers) are scored
+    first, to start with a tight bound; the coarse grid then runs nearest the seeds first."""
+    started = time.perf_counter()
+    naive = scenario.naive.sigmas()
+    P0 = p0(scenario)
+    gate = gate_threshold(scenario.gate_probability)
+    T0 = scenario.odometry_period_s
+    count = int(sum(int(s.scored.sum()) for s in inputs))
+    coarse = np.stack(np.meshgrid(*scenario.tuning.axes(), indexing="ij"), -1).reshape(-1, 4)
+    seeds = np.array(seeds, dtype=float).reshape(-1, 4)
+    anchor = seeds[0] if len(seeds) else coarse.mean(axis=0)
+    coarse = coarse[np.argsort(np.abs(coarse - anchor).sum(axis=1), kind="stable")]
+    bound = math.inf
+    all_exps, all_scores, stages = [], [], []
+    if len(seeds):
+        sc = _bnb_chunk(seeds, naive, inputs, P0, gate, T0, bound)
+        all_exps.append(seeds)
+        all_scores.append(sc)
+        bound = float(sc[_bnb_best(sc), 0]) if np.any(sc[:, 4] > 0) else bound
+    sc = _bnb(coarse, naive, inputs, P0, gate, T0, jobs, bound)
+    all_exps.append(coarse)
+    all_scores.append(sc)
+    stopped = float(np.mean(sc[:, 4] == 0))
+    stages.append({"stage": "coarse (step 2^1)", "settings": len(coarse), "stopped_early": stopped})
+    if scenario.tuning.refine:
+        offsets = np.stack(np.meshgrid(*[[-1.0, 0.0, 1.0]] * 4, indexing="ij"), -1).reshape(-1, 4)
+        for step, label in ((0.5, "2^(1/2)"), (0.25, "2^(1/4)")):
+            exps, scores = np.vstack(all_exps), np.vstack(all_scores)
+            i = _bnb_best(scores)
+            sc = _bnb(exps[i] + step * offsets, naive, inputs, P0, gate, T0, jobs,
+                      float(scores[i, 0]))  # fmt: skip
+            all_exps.append(exps[i] + step * offsets)
+            all_scores.append(sc)
+            stages.append({"stage": f"refine (step {label})", "settings": len(offsets),
+                           "stopped_early": float(np.mean(sc[:, 4] == 0))})  # fmt: skip
+    exps, scores = np.vstack(all_exps), np.vstack(all_scores)
+    i = _bnb_best(scores)
+    sig = naive * np.exp2(exps[i])
+    seen = scores[i, 2] + scores[i, 3]
+    return {
+        "criterion": "pooled position RMSE over the scored evaluation times of the training"
+        " drives, whole [m]",
+        "sigma_v": float(sig[0]),
+        "sigma_w_rad": float(sig[1]),
+        "sigma_range": float(sig[2]),
+        "sigma_bearing_rad": float(sig[3]),
+        "log2_multipliers": {a: float(e) for a, e in zip(AXES, exps[i], strict=True)},
+        "train_rmse_pos": float(math.sqrt(scores[i, 0] / count)) if count else math.nan,
+        "train_max_pos_err": float(scores[i, 1]),
+        "train_gate_rejected": float(scores[i, 3] / seen) if seen else math.nan,
+        "settings": int(len(exps)),
+        "search": "branch and bound (engines.grid): a setting stops once its sum of squared"
+        " errors passes the best complete one; the winner is the full grid's",
+        "stages": stages,
+        "seconds": round(time.perf_counter() - started, 3),
+    }
+
+
+def drive_rmse(scenario: RealScenario, inputs: SegmentInputs, tuned: dict) -> float:
+    """The position RMSE of the plain EKF with `tuned` noise on one drive (engines.grid)."""
+    from .engines.grid import score_setting
+
+    sig = [tuned[k] for k in ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")]
+    sq, *_ = score_setting(
+        inputs.timeline, inputs.segment.pose, p0(scenario), sig,
+        gate_threshold(scenario.gate_probability), scenario.odometry_period_s,
+        inputs.truth[:, :2], inputs.scored,
+    )  # fmt: skip
+    n = int(inputs.scored.sum())
+    return float(math.sqrt(sq / n)) if n else math.nan
+
+
+def tune_drives(scenario: RealScenario, inputs: dict[str, SegmentInputs], world: DriveSet,
+                jobs: int = 1) -> tuple[dict[str, dict], dict]:  # fmt: skip
+    """ekf-tuned's noise for every drive (tuned on the drives of `scenario.tuning_sources` of
+    its dataset, never its own), and the manifest's account: each tuning, and per drive the
+    RMSE of the cross-dataset values against values tuned on its own dataset's drives (which
+    include the drive itself: in-sample, the most tuning can give on that map)."""
+    by_dataset: dict[int, list[str]] = {}
+    for d in world.drives:
+        by_dataset.setdefault(d.dataset, []).append(d.id)
+    keys = {tuple(scenario.tuning_sources(ds)) for ds in by_dataset}
+    keys |= {(ds,) for ds in by_dataset}
+    tunings: dict[tuple, dict] = {}
+    for key in sorted(keys, key=lambda k: (len(k), k)):  # single datasets first: they seed
+        drives = [d for ds in key for d in by_dataset[ds]]
+        seeds = [list(tunings[(ds,)]["log2_multipliers"].values()) for ds in key
+                 if (ds,) in tunings]  # fmt: skip
+        tunings[key] = tune_on_drives(scenario, [inputs[d] for d in drives], jobs, seeds)
+        tunings[key]["train_drives"] = drives
+    tuned_for, per_drive = {}, []
+    for d in world.drives:
+        cross = tunings[tuple(scenario.tuning_sources(d.dataset))]
+        tuned_for[d.id] = cross
+        per_drive.append(
+            {
+                "drive": d.id,
+                "dataset": d.dataset,
+                "tuned_on": cross["train_drives"],
+                "cross_rmse_pos": drive_rmse(scenario, inputs[d.id], cross),
+                "in_dataset_rmse_pos": drive_rmse(scenario, inputs[d.id], tunings[(d.dataset,)]),
+            }
+        )
+    doc = {
+        "protocol": "drives",
+        "tunings": {"+".join(map(str, k)): v for k, v in tunings.items()},
+        "per_drive": per_drive,
+        "seconds": round(sum(t["seconds"] for t in tunings.values()), 3),
+    }
+    return tuned_for, doc
 
 
 # --------------------------------------------------------------------------------------------
@@ -413,6 +629,11 @@ def execute_real(
         fingerprint = plan.fingerprint()
         rec, scenario = plan.world, plan.scenario
         tuned = None
+        if isinstance(rec, DriveSet):
+            return_value = _execute_drives(plan, target, done, action, fingerprint, on_start,
+                                           on_result, started)  # fmt: skip
+            shutil.rmtree(target / RUNS_DIR, ignore_errors=True)
+            return return_value
         if scenario.reference() is not None:
             tuned = tune(scenario, rec, plan.jobs)
             action += (
@@ -476,4 +697,75 @@ def execute_real(
         }
         write_json(target / MANIFEST_FILE, manifest)
         shutil.rmtree(target / RUNS_DIR, ignore_errors=True)
+    return tables.summary, target
+
+
+def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result, started):
+    """`execute_real`'s body for protocol drives: tune per test dataset, run every drive whole."""
+    from .experiment import machine_info as _machine
+    from .experiment import package_versions, save_run, write_result_tables
+
+    world, scenario = plan.world, plan.scenario
+    inputs = {d.id: segment_inputs(d, d.segment, scenario.eval_period_s) for d in world.drives}
+    tuned_for, tuning = {}, None
+    if scenario.reference() is not None:
+        tuned_for, tuning = tune_drives(scenario, inputs, world, plan.jobs)
+        action += f"; ekf-tuned tuned per dataset on the others' drives ({tuning['seconds']:.1f} s)"
+    n_steps = max(len(i.t) for i in inputs.values())
+    if on_start is not None:
+        on_start(action, len(done), plan.runs)
+    run_started = time.perf_counter()
+    todo = [d for d in world.drives if d.segment.index not in done]
+    results = dict(done)
+    if todo:
+        calls = (
+            delayed(_run_one)(scenario, inputs[d.id], tuned_for.get(d.id), n_steps) for d in todo
+        )
+        with local_workers():
+            chunks = Parallel(n_jobs=min(plan.jobs, len(todo)), return_as="generator_unordered")(
+                calls
+            )
+        for chunk in chunks:
+            for result in chunk:
+                save_run(target, result, fingerprint)
+                results[result["run"]] = result
+                if on_result is not None:
+                    on_result(result)
+    run_seconds = time.perf_counter() - run_started
+    ordered = [results[i] for i in range(plan.runs)]
+    tables = real_result_tables(plan, ordered)
+    write_result_tables(target, tables, steps_table=scenario.steps_table)
+    manifest = {
+        "scenario": scenario.model_dump(mode="json"),
+        "kind": "recorded",
+        "protocol": "drives",
+        "runs": plan.runs,
+        "seed": plan.seed,
+        "jobs": plan.jobs,
+        "backend": {"kind": "local"},
+        "engine": "filterpy",
+        "engines": {name: "filterpy" for name in plan.filter_names()},
+        "fingerprint": fingerprint,
+        "filters": [
+            {"name": n, "base": spec.name, "kind": spec.kind, "start": m}
+            for n, spec, m in scenario.instances()
+        ],
+        "world": {
+            "landmarks": world.landmarks.tolist(),
+            "waypoints": [],
+            "control_steps": n_steps,
+        },  # fmt: skip
+        "data": world.summary(),
+        "tuning": tuning,
+        "alignment": "run r is drive r of data.drives, whole from its ground-truth start; step k"
+        " is its k-th evaluation time (odometry stamps at least eval_period_s apart); t is"
+        " seconds since the cold start; shorter drives are padded with NaN",
+        "resumed_runs": sorted(done),
+        "versions": package_versions(),
+        "machine": _machine(),
+        "tuning_seconds": tuning["seconds"] if tuning else 0.0,
+        "run_seconds": round(run_seconds, 3),
+        "wall_time_s": round(time.time() - started, 3),
+    }
+    write_json(target / MANIFEST_FILE, manifest)
     return tables.summary, target

@@ -49,6 +49,7 @@ def test_counts_after_cleaning(log):
         "groundtruth": 125_925,
         "dropped_robot": 1_053,
         "dropped_unknown": 0,
+        "dropped_odometry": 0,
     }
     assert c["measurements"] + c["dropped_robot"] + c["dropped_unknown"] == 6_167
     assert log.landmark_id.tolist() == list(range(6, 21))

@@ -12,6 +12,8 @@ All of it is held in a `RobotLog` (frozen, read-only numpy arrays, times in seco
 
 - `load_builtin()`: UTIAS MRCLAM Dataset 9, Robot 3, shipped in the package as Parquet
   (`anfekf_bench/data/mrclam-dataset9-robot3/`, made once by `convert_mrclam_to_parquet`);
+- `load_drive(drive)`: any of the eleven built-in drives (`DRIVES`: MRCLAM Datasets 6 and 7,
+  Robots 1-5, in `anfekf_bench/data/mrclam-dataset<d>/robot<r>/`, and Dataset 9 Robot 3);
 - `read_mrclam(folder)`: the original MRCLAM `.dat` files;
 - `read_user_log(folder)`: a user's own log, four CSV or Parquet files in the documented schema.
 
@@ -146,6 +148,7 @@ class RobotLog:
     truth_phi: np.ndarray
     dropped_robot: int = 0
     dropped_unknown: int = 0
+    dropped_odometry: int = 0  # odometry rows replaced by a later row at the same stamp
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -228,6 +231,7 @@ class RobotLog:
             "groundtruth": len(self.truth_t),
             "dropped_robot": self.dropped_robot,
             "dropped_unknown": self.dropped_unknown,
+            "dropped_odometry": self.dropped_odometry,
         }
 
 
@@ -397,6 +401,10 @@ def _log_from_mrclam_tables(
     """Clean the MRCLAM tables into a RobotLog (the one place where cleaning happens)."""
     odo, meas = tables["odometry"], tables["measurements"]
     lm, truth = tables["landmarks"], tables["groundtruth"]
+    # Datasets 6 and 7 log a few odometry rows twice at one stamp (sometimes with another
+    # command): under the zero-order hold only the last command at a stamp is ever in force.
+    repeated = np.r_[odo["t_ms"].to_numpy()[1:] == odo["t_ms"].to_numpy()[:-1], False]
+    odo = odo[~repeated]
     _strictly_increasing(paths["odometry"], odo["t_ms"].to_numpy(), "time")
     _strictly_increasing(paths["groundtruth"], truth["t_ms"].to_numpy(), "time")
     lm = lm.sort_values("subject", kind="stable")
@@ -432,6 +440,7 @@ def _log_from_mrclam_tables(
         truth_phi=wrap_angle(truth["phi"].to_numpy()),
         dropped_robot=int(is_robot.sum()),
         dropped_unknown=int((~is_robot & ~is_landmark).sum()),
+        dropped_odometry=int(repeated.sum()),
     )
 
 
@@ -457,8 +466,12 @@ def read_mrclam(
     return _log_from_mrclam_tables(tables, folder.name, paths)
 
 
-def convert_mrclam_to_parquet(src_folder: str | Path, dst_folder: str | Path) -> dict[str, str]:
+def convert_mrclam_to_parquet(
+    src_folder: str | Path, dst_folder: str | Path, *, robot: int | None = None
+) -> dict[str, str]:
     """Write the four MRCLAM tables of `src_folder` as zstd Parquet files into `dst_folder`.
+
+    With `robot=k` the source is a whole original dataset and Robot<k>_*.dat are read.
 
     `odometry.parquet` (t_ms, v, w), `measurements.parquet` (t_ms, barcode, subject, range,
     bearing: ALL rows, robots and unknown barcodes kept, `subject` = -1 for an unknown barcode),
@@ -469,7 +482,7 @@ def convert_mrclam_to_parquet(src_folder: str | Path, dst_folder: str | Path) ->
     which is applied. Returns {original file name: sha256} of the files read.
     """
     src, dst = Path(src_folder), Path(dst_folder)
-    tables = _mrclam_tables(src)
+    tables = _mrclam_tables(src, robot=robot)
     dst.mkdir(parents=True, exist_ok=True)
     for name, df in tables.items():
         table = pa.Table.from_pandas(df, schema=PARQUET_SCHEMAS[name], preserve_index=False)
@@ -482,8 +495,8 @@ def convert_mrclam_to_parquet(src_folder: str | Path, dst_folder: str | Path) ->
             column_encoding={"t_ms": "DELTA_BINARY_PACKED"} if "t_ms" in df else None,
             write_statistics=False,
         )
-    names = ("Barcodes", "Odometry", "Measurement", "Groundtruth", "Landmark_Groundtruth")
-    return {f"{n}.dat": _sha256(src / f"{n}.dat") for n in names}
+    paths = _mrclam_paths(src, robot=robot)
+    return {paths[key].name: _sha256(paths[key]) for key in paths}
 
 
 def builtin_folder() -> Path:
@@ -512,6 +525,91 @@ def load_builtin() -> RobotLog:
     folder = builtin_folder()
     paths = {name: folder / f"{name}.parquet" for name in PARQUET_SCHEMAS}
     return _log_from_mrclam_tables(read_parquet_tables(folder), BUILTIN_NAME, paths)
+
+
+# --------------------------------------------------------------------------------------------
+# The eleven built-in drives: MRCLAM Datasets 6 and 7 (Robots 1-5) and Dataset 9 Robot 3
+
+
+def _drive_ids() -> dict[str, tuple[int, int]]:
+    ids = {f"d{d}-r{r}": (d, r) for d in (6, 7) for r in range(1, 6)}
+    ids["d9-r3"] = (9, 3)
+    return ids
+
+
+DRIVES: dict[str, tuple[int, int]] = _drive_ids()  # drive id -> (dataset, robot)
+DRIVE_DATASETS = (6, 7)  # shipped as data/mrclam-dataset<d>/robot<r>/ (Dataset 9: BUILTIN_NAME)
+
+
+def drive_folder(drive: str) -> Path:
+    """The Parquet copy of a built-in drive ('d6-r1' .. 'd7-r5', 'd9-r3') in the package."""
+    dataset, robot = _drive(drive)
+    if dataset == 9:
+        return builtin_folder()
+    return Path(str(resources.files("anfekf_bench") / "data" / f"mrclam-dataset{dataset}")) / (
+        f"robot{robot}"
+    )
+
+
+def _drive(drive: str) -> tuple[int, int]:
+    if drive not in DRIVES:
+        raise ValueError(f"unknown drive {drive!r} (built-in: {', '.join(DRIVES)})")
+    return DRIVES[drive]
+
+
+def drive_dataset(drive: str) -> int:
+    """The MRCLAM dataset a built-in drive belongs to (its landmark map): 6, 7 or 9."""
+    return _drive(drive)[0]
+
+
+def load_drive(drive: str) -> RobotLog:
+    """A built-in drive from its Parquet copy, cleaned as `read_mrclam` cleans the originals.
+
+    Each dataset has its own map (`Landmark_Groundtruth.dat` of that dataset): never mixed.
+    """
+    dataset, robot = _drive(drive)
+    if dataset == 9:
+        return load_builtin()
+    folder = drive_folder(drive)
+    paths = {name: folder / f"{name}.parquet" for name in PARQUET_SCHEMAS}
+    name = f"mrclam-dataset{dataset}-robot{robot}"
+    return _log_from_mrclam_tables(read_parquet_tables(folder), name, paths)
+
+
+def provenance_sha256(provenance: str | Path) -> dict[str, str]:
+    """{original file name: SHA-256} from the table of a copy's PROVENANCE.md."""
+    out = {}
+    for line in Path(provenance).read_text(encoding="utf-8").splitlines():
+        cells = [c.strip().strip("`") for c in line.strip().strip("|").split("|")]
+        if len(cells) >= 3 and cells[0].endswith(".dat") and len(cells[2]) == 64:
+            out[cells[0]] = cells[2]
+    return out
+
+
+def regenerate_drive_copies(
+    shared: str | Path, dst: str | Path | None = None, datasets=DRIVE_DATASETS
+) -> dict[str, dict[str, str]]:
+    """Convert the original Datasets 6 and 7 (`shared`/utias-mrclam-dataset<d>/) into Parquet.
+
+    Writes `dst`/mrclam-dataset<d>/robot<r>/ (default `dst`: the package's data folder) and
+    checks the SHA-256 of every original read against the copy's PROVENANCE.md: a LogError if
+    one differs (the copies are of those exact files). Returns {drive: {file: sha256}}.
+    """
+    shared = Path(shared)
+    data = Path(str(resources.files("anfekf_bench") / "data"))
+    dst = data if dst is None else Path(dst)
+    out = {}
+    for d in datasets:
+        src = shared / f"utias-mrclam-dataset{d}"
+        expected = provenance_sha256(data / f"mrclam-dataset{d}" / "PROVENANCE.md")
+        for r in range(1, 6):
+            target = dst / f"mrclam-dataset{d}" / f"robot{r}"
+            found = convert_mrclam_to_parquet(src, target, robot=r)
+            for file, sha in found.items():
+                if expected.get(file) != sha:
+                    raise LogError(src / file, "", "SHA-256 differs from PROVENANCE.md")
+            out[f"d{d}-r{r}"] = found
+    return out
 
 
 # --------------------------------------------------------------------------------------------

@@ -82,6 +82,14 @@ class DataConfig(StrictModel):
     robot: Annotated[int, Field(ge=1, le=5)] | None = Field(
         None, description="mrclam folder of the whole dataset: read Robot<k>_*.dat"
     )
+    drive: str | None = Field(
+        None, description="path builtin: which built-in drive (d6-r1 .. d7-r5, d9-r3; default"
+        " d9-r3)",
+    )  # fmt: skip
+    drives: list[str] | None = Field(
+        None, min_length=2, description="path builtin, protocol drives: the built-in drives,"
+        " each one run scored whole (d6-r1 .. d7-r5, d9-r3)",
+    )  # fmt: skip
 
     @model_validator(mode="after")
     def _builtin_is_mrclam(self) -> DataConfig:
@@ -89,6 +97,15 @@ class DataConfig(StrictModel):
             raise ValueError("path 'builtin' is the MRCLAM copy: use kind mrclam, or a folder")
         if self.robot is not None and (self.kind != "mrclam" or self.path == BUILTIN):
             raise ValueError("robot selects Robot<k>_*.dat in an MRCLAM folder only")
+        if (self.drive is not None or self.drives is not None) and self.path != BUILTIN:
+            raise ValueError("drive and drives name built-in drives: use path builtin")
+        if self.drive is not None and self.drives is not None:
+            raise ValueError("give drive (one log) or drives (the cross-drive protocol), not both")
+        for d in [self.drive] if self.drive is not None else self.drives or []:
+            if d not in mrclam.DRIVES:
+                raise ValueError(f"unknown drive {d!r} (built-in: {', '.join(mrclam.DRIVES)})")
+        if self.drives is not None and len(set(self.drives)) != len(self.drives):
+            raise ValueError("a drive is listed twice")
         return self
 
 
@@ -203,6 +220,48 @@ class RealScenario(StrictModel):
     compare: list[tuple[str, str]] = Field(
         default_factory=list, description="extra (filter, vs) pairs, besides each vs ekf-tuned"
     )
+    protocol: Literal["segments", "drives"] = Field(
+        "segments", description="segments: one log split into training and held-out segments;"
+        " drives: every drive of data.drives is one run, scored whole from its ground-truth"
+        " start, ekf-tuned tuned on the drives of other datasets (tune_on)",
+    )  # fmt: skip
+    tune_on: dict[int, list[int]] | None = Field(
+        None, description="protocol drives: dataset -> the datasets whose drives tune its"
+        " ekf-tuned (default: every other dataset of data.drives)",
+    )  # fmt: skip
+    eval_period_s: PositiveFloat | None = Field(
+        None, description="score at odometry stamps at least this far apart (null: every"
+        " stamp); the filters still run on every event",
+    )  # fmt: skip
+
+    @model_validator(mode="after")
+    def _drives_protocol(self) -> RealScenario:
+        drives = self.data.drives
+        if self.protocol == "segments":
+            if drives is not None or self.tune_on is not None:
+                raise ValueError("data.drives and tune_on belong to protocol drives")
+            return self
+        if drives is None:
+            raise ValueError("protocol drives needs data.drives (the built-in drives to run)")
+        datasets = {mrclam.drive_dataset(d) for d in drives}
+        for ds, sources in (self.tune_on or {}).items():
+            if ds not in datasets or not set(sources) <= datasets or not sources:
+                raise ValueError(
+                    f"tune_on: {ds}: datasets must be among data.drives'"
+                    f" ({', '.join(map(str, sorted(datasets)))})"
+                )
+            if ds in sources:
+                raise ValueError(f"tune_on: {ds}: a dataset is never tuned on its own drives")
+        if self.reference() is not None and any(not self.tuning_sources(ds) for ds in datasets):
+            raise ValueError("protocol drives: ekf-tuned needs drives of another dataset")
+        return self
+
+    def tuning_sources(self, dataset: int) -> list[int]:
+        """protocol drives: the datasets whose drives tune `dataset`'s ekf-tuned."""
+        if self.tune_on is not None and dataset in self.tune_on:
+            return sorted(self.tune_on[dataset])
+        datasets = {mrclam.drive_dataset(d) for d in self.data.drives or []}
+        return sorted(datasets - {dataset})
 
     @field_validator("starts")
     @classmethod
@@ -400,6 +459,8 @@ def log_digest(log: mrclam.RobotLog) -> str:
 
 def read_log(cfg: DataConfig, scenario_path: Path) -> tuple[mrclam.RobotLog, str]:
     """The log a scenario names, and a description of where it came from."""
+    if cfg.path == BUILTIN and cfg.drive is not None:
+        return mrclam.load_drive(cfg.drive), f"built-in drive {cfg.drive}"
     if cfg.path == BUILTIN:
         return mrclam.load_builtin(), f"built-in {mrclam.BUILTIN_NAME}"
     folder = Path(cfg.path)
@@ -478,11 +539,91 @@ def resolve_recording(scenario: RealScenario, scenario_path: Path) -> Recording:
     )
 
 
-def load_recorded(data: dict, path: str | Path) -> tuple[RealScenario, Recording]:
+def load_recorded(data: dict, path: str | Path) -> tuple[RealScenario, Recording | DriveSet]:
     """`config.load_scenario` for a document with a `data:` key."""
     path = Path(path)
     scenario = parse_real_scenario(data, path)
+    if scenario.protocol == "drives":
+        return scenario, resolve_drives(scenario)
     return scenario, resolve_recording(scenario, path)
+
+
+# --------------------------------------------------------------------------------------------
+# The cross-drive protocol (SPEC 15): every drive one run, scored whole
+
+
+@dataclass(frozen=True, eq=False)
+class Drive:
+    """One built-in drive as one run: cold-started from ground truth at its first scorable time,
+    scored over its whole ground-truth span (never after its last ground-truth stamp: Dataset 6
+    Robot 1's Vicon ends 128 s before its odometry). `log` and `scorable` stand where a
+    `Recording` has them, so `real_experiment.segment_inputs` reads either."""
+
+    id: str
+    dataset: int
+    log: mrclam.RobotLog
+    exclusions: mrclam.Exclusions
+    segment: Segment
+
+    def scorable(self, t) -> np.ndarray:
+        return self.exclusions.scorable(t)
+
+
+@dataclass(frozen=True, eq=False)
+class DriveSet:
+    """A cross-drive scenario's drives, resolved (the runs, in `data.drives` order)."""
+
+    drives: list[Drive]
+    misfit: mrclam.MisfitRule | None
+    digest: str
+
+    @property
+    def test_segments(self) -> list[Segment]:
+        return [d.segment for d in self.drives]
+
+    @property
+    def landmarks(self) -> np.ndarray:
+        """The first drive's map (each dataset has its own: see `maps`)."""
+        lg = self.drives[0].log
+        return np.column_stack([lg.landmark_x, lg.landmark_y])
+
+    @property
+    def waypoints(self) -> np.ndarray:
+        return np.zeros((0, 2))
+
+    def summary(self) -> dict:
+        """What the manifest says about the data: per drive, its log, span, counts, gaps and
+        its dataset's map."""
+        out = {"protocol": "drives", "digest": self.digest, "drives": []}
+        for d in self.drives:
+            ex, lg = d.exclusions, d.log
+            out["drives"].append(
+                {
+                    "drive": d.id, "dataset": d.dataset, "log": lg.name, "run": d.segment.index,
+                    "t_origin": lg.t_origin, "span": [lg.t_start, lg.t_end],
+                    "odometry_end": float(lg.odo_t[-1]) if len(lg.odo_t) else None,
+                    "counts": lg.counts(), "gaps": ex.gaps.tolist(),
+                    "misfits": ex.misfits.tolist(), "segment": d.segment.as_dict(),
+                    "landmarks": {"id": lg.landmark_id.tolist(), "x": lg.landmark_x.tolist(),
+                                  "y": lg.landmark_y.tolist()},
+                }
+            )  # fmt: skip
+        return out
+
+
+def resolve_drives(scenario: RealScenario) -> DriveSet:
+    """Load every drive of `data.drives` and make it one run, whole, from its ground truth."""
+    misfit = mrclam.MisfitRule() if scenario.misfit_detection else None
+    drives = []
+    digest = hashlib.sha256()
+    for index, drive in enumerate(scenario.data.drives or []):
+        log = mrclam.load_drive(drive)
+        ex = mrclam.exclusions(log, scenario.max_gap_s, misfit)
+        t0, pose = mrclam.cold_start(log, log.t_start, ex.max_gap_s, misfit)
+        seg = Segment(index, log.t_start, log.t_end, t0, pose, ex.scorable_seconds())
+        drives.append(Drive(drive, mrclam.drive_dataset(drive), log, ex, seg))
+        digest.update(f"{drive}:{log_digest(log)};".encode())
+    return DriveSet(drives=drives, misfit=misfit, digest=digest.hexdigest()[:16])
 
 
 def naive_covariances(scenario: RealScenario, m: float) -> tuple[np.ndarray, np.ndarray]:

@@ -153,6 +153,13 @@ class SweepAxis(_Strict):
             raise ValueError("an axis needs exactly one of values or factors")
         if len(set(self.points())) != len(self.points()):
             raise ValueError("an axis lists a value twice")
+        if not all(math.isfinite(v) for v in self.points()):
+            raise ValueError("an axis value must be a finite number")
+        least = min(self.points())
+        if self.scale is not None and least <= 0:
+            raise ValueError(
+                f"scale factors multiply variances, so each must be > 0 (got {least:g})"
+            )
         return self
 
     @property

@@ -4,7 +4,8 @@ A scenario's folder holds steps.parquet, summary.parquet, summary.json and, writ
 manifest.json. A folder without manifest.json is not a complete result.
 
 Also here: the layout's own names (`RESERVED_NAMES`: a scenario may not be called like them), the
-lock a batch holds on its folder (`folder_lock`), what `--force` may remove (`foreign_entries`),
+lock a batch holds on its folder (`folder_lock`), what a folder of ours may hold (`foreign_entries`,
+`is_result_manifest`), how a finished batch replaces the previous result (`install_result`),
 the run store's file format (`write_run_file` / `read_run_file`: npz without pickle, keyed to the
 fingerprint), and `open_regular`, through which every file a user names is read (a FIFO, device or
 folder is refused instead of hanging the command).
@@ -20,7 +21,6 @@ import json
 import math
 import os
 import re
-import shutil
 import stat
 import tempfile
 import zipfile
@@ -46,6 +46,9 @@ CLAIMS_FILE = "claims.json"  # the scenario's claims and their verdicts
 RUNS_DIR = ".runs"  # finished runs of an unfinished batch (experiment.py)
 RUN_FILE_PATTERN = "run-*.npz"  # a finished run in RUNS_DIR (write_run_file)
 LOCK_FILE = ".lock"  # held (flock) by the batch writing a scenario folder
+STAGING_DIR = "result"  # in RUNS_DIR: a finished batch's files before they replace the old ones
+RESULT_FORMAT = "anfekf-bench result v1"  # manifest.json's "format": what marks a folder as ours
+RESULT_FILES = (STEPS_FILE, RUNS_FILE, SUMMARY_PARQUET, SUMMARY_JSON, COMPARISONS_FILE, CLAIMS_FILE)
 
 # Names a scenario may not take: its folder is a direct child of --out, beside these.
 RESERVED_NAMES = frozenset(
@@ -390,6 +393,41 @@ def read_manifest(folder: Path) -> dict:
     return doc
 
 
+def is_result_manifest(doc: object) -> bool:
+    """A manifest this tool wrote for a result: its format (or, written before the format key,
+    this package's version) and a fingerprint. Ownership is decided by this, never by names."""
+    if not isinstance(doc, dict) or not isinstance(doc.get("fingerprint"), str):
+        return False
+    if "format" in doc:
+        return doc["format"] == RESULT_FORMAT
+    versions = doc.get("versions")
+    return isinstance(versions, dict) and isinstance(versions.get("anfekf-bench"), str)
+
+
+def install_result(target: Path, staging: Path) -> None:
+    """Replace the result in `target` by the complete one in `staging` (manifest written last).
+
+    Until this is called the old result stays whole, whatever fails during a batch. The old
+    manifest goes first, so a kill during these few renames leaves a folder that reads as
+    incomplete (never a mix under an old manifest); the run store is still there, and the same
+    command resumes from it (every run saved) and writes the result again.
+    """
+    target, staging = Path(target), Path(staging)
+    new = {p.name for p in staging.iterdir()}
+    if MANIFEST_FILE not in new:
+        raise ResultsError(f"{staging}: incomplete staged result (no {MANIFEST_FILE})")
+    manifest = target / MANIFEST_FILE
+    if manifest.is_file() and not manifest.is_symlink():
+        os.unlink(manifest)
+    for name in RESULT_FILES:
+        old = target / name
+        if name not in new and old.is_file() and not old.is_symlink():
+            os.unlink(old)  # e.g. steps.parquet of a batch that recorded steps, this one does not
+    for name in sorted(new - {MANIFEST_FILE}):
+        os.replace(staging / name, target / name)
+    os.replace(staging / MANIFEST_FILE, manifest)
+
+
 def _check_parquet_footer(path: Path) -> None:
     """A cheap look at a Parquet file's footer (which a truncated file lacks), if it exists.
 
@@ -505,22 +543,6 @@ def foreign_entries(folder: Path) -> list[str]:
     store, symlinks, special files, files of other kinds. --force removes nothing if any."""
     with os.scandir(folder) as entries:
         return sorted(e.name for e in entries if not _is_ours(folder, e))
-
-
-def clear_folder(folder: Path) -> list[str]:
-    """Remove this tool's entries of `folder` (all but the lock); the names removed.
-    Call only when `foreign_entries(folder)` is empty and the lock is held."""
-    removed = []
-    with os.scandir(folder) as entries:
-        for entry in sorted(entries, key=lambda e: e.name):
-            if entry.name == LOCK_FILE or not _is_ours(folder, entry):
-                continue
-            if entry.name == RUNS_DIR:
-                shutil.rmtree(entry.path)  # removes symlinks inside, never follows them
-            else:
-                os.unlink(entry.path)
-            removed.append(entry.name)
-    return removed
 
 
 # ---------------------------------------------------------------------------------------------

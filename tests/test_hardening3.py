@@ -1,0 +1,343 @@
+"""Hardening 3 (issue 21): a failing rerun never costs the old result; custom filters and sweeps
+are contained like any bad input.
+
+Reuses the sandbox of test_confinement (a previous complete result in OUT/small, sentinels beside
+and above it, a sibling result). A forced rerun that fails at any point after validation leaves
+every entry of the sandbox as it was, the previous result included; only the run store it
+resumes from (OUT/small/.runs) and the lock's holder pid may differ.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from anfekf_bench.config import load_scenario
+from anfekf_bench.experiment import execute, make_plan
+from anfekf_bench.storage import (
+    LOCK_FILE,
+    MANIFEST_FILE,
+    RESULT_FORMAT,
+    RUNS_DIR,
+    STEPS_FILE,
+    is_result_manifest,
+    read_json,
+)
+
+from . import test_confinement as confinement
+from .conftest import live_group_members, small_scenario, write_scenario
+from .test_confinement import SMALL, Sandbox, assert_one_line_error, cli, snapshot
+
+previous = confinement.previous  # the fixtures: a previous result, and the sandbox around it
+sandbox = confinement.sandbox
+
+
+ANFEKF = [sys.executable, "-c", "from anfekf_bench.cli import main; main()"]
+
+
+def outside_the_store(found: dict[str, tuple]) -> dict[str, tuple]:
+    """A snapshot without the run store a failed batch leaves to resume from, and the lock
+    (whose content is its last holder's pid)."""
+    return {
+        rel: v
+        for rel, v in found.items()
+        if not rel.startswith(f"out/small/{RUNS_DIR}") and rel != f"out/small/{LOCK_FILE}"
+    }
+
+
+# --- Custom filters that misbehave ---------------------------------------------------------------
+
+EVIL = '''
+import sys
+import numpy as np
+from anfekf_bench.filters import RobotEKF
+
+
+class Weird(BaseException):
+    pass
+
+
+class RaisesInPredict(RobotEKF):
+    def predict(self, u=0, dt=None):
+        raise ValueError("no prediction today")
+
+
+class ExitsZeroInUpdate(RobotEKF):
+    def update_scan(self, zs, landmarks):
+        raise SystemExit(0)
+
+
+class RaisesBaseException(RobotEKF):
+    def update_scan(self, zs, landmarks):
+        raise Weird("odd")
+
+
+class ExitsInInit(RobotEKF):
+    def __init__(self, *args, **kwargs):
+        sys.exit(0)
+
+
+class WrongShape(RobotEKF):
+    def predict(self, u=0, dt=None):
+        super().predict(u, dt)
+        self.x = [1.0, 2.0]
+
+
+class WritesItsInputs(RobotEKF):
+    """Scribbles over the scans and odometry it is given, then behaves as the EKF."""
+
+    def predict(self, u=0, dt=None):
+        if isinstance(u, np.ndarray) and u.flags.writeable:
+            u_seen = u.copy()
+            u[...] = 50.0
+            u = u_seen
+        super().predict(u, dt)
+
+    def update_scan(self, zs, landmarks):
+        seen = zs.copy()
+        zs[...] = 1e3
+        super().update_scan(seen, landmarks)
+'''
+
+
+@pytest.fixture
+def evil(tmp_path, monkeypatch) -> str:
+    folder = tmp_path / "evilpkg"
+    folder.mkdir()
+    (folder / "evil_filters.py").write_text(EVIL)
+    (folder / "exits_at_import.py").write_text("import sys\nsys.exit(3)\n")
+    (folder / "interrupts_at_import.py").write_text("raise SystemExit(0)\n")
+    monkeypatch.syspath_prepend(str(folder))
+    yield "evil_filters"
+    for name in ("evil_filters", "exits_at_import", "interrupts_at_import"):
+        sys.modules.pop(name, None)
+
+
+def _custom(sb: Sandbox, cls: str) -> Path:
+    doc = small_scenario(**SMALL)
+    doc["filters"] = [
+        {"name": "ekf", "kind": "ekf"},
+        {"name": "mine", "kind": "custom", "class": cls},
+    ]
+    doc["seed"] = 99  # another batch than the previous result's
+    return write_scenario(sb.root / "custom.yaml", doc)
+
+
+@pytest.mark.parametrize(
+    ("cls", "fragments"),
+    [
+        ("evil_filters:RaisesInPredict", ("'mine'", "predict/update", "ValueError")),
+        ("evil_filters:ExitsZeroInUpdate", ("'mine'", "predict/update", "SystemExit")),
+        ("evil_filters:RaisesBaseException", ("'mine'", "predict/update", "Weird")),
+        ("evil_filters:WrongShape", ("'mine'", "predict/update")),
+        ("evil_filters:ExitsInInit", ("filters.1", "'mine'", "__init__", "SystemExit")),
+        ("exits_at_import:F", ("cannot import module 'exits_at_import'", "SystemExit")),
+        ("interrupts_at_import:F", ("cannot import module", "SystemExit")),
+    ],
+    ids=[
+        "run-raises",
+        "run-exit-0",
+        "run-base-exception",
+        "run-wrong-shape",
+        "init-exits",
+        "import-sys-exit-3",
+        "import-exit-0",
+    ],  # fmt: skip
+)
+def test_a_failing_custom_filter_under_force_keeps_the_previous_result(
+    sandbox: Sandbox, evil, cls: str, fragments: tuple[str, ...]
+) -> None:
+    scenario = _custom(sandbox, cls)
+    before = snapshot(sandbox.root)
+    result = cli(*sandbox.run(scenario, "--force"))
+    assert_one_line_error(result, *fragments)
+    assert outside_the_store(snapshot(sandbox.root)) == outside_the_store(before)
+    assert is_result_manifest(read_json(sandbox.result / MANIFEST_FILE))
+
+
+def test_a_custom_filter_cannot_change_what_other_filters_see(evil, tmp_path) -> None:
+    """It writes into its scans and odometry: the EKF beside it must not notice."""
+    doc = small_scenario(runs=2, record_every=8)
+    doc["filters"] = [{"name": "ekf", "kind": "ekf"}]
+    alone = write_scenario(tmp_path / "alone.yaml", doc)
+    doc["filters"] = [
+        {"name": "mine", "kind": "custom", "class": "evil_filters:WritesItsInputs"},
+        {"name": "ekf", "kind": "ekf"},
+    ]
+    together = write_scenario(tmp_path / "together.yaml", doc)
+    _, a = execute(make_plan(*load_scenario(alone), None, None, 1), tmp_path / "a")
+    _, b = execute(make_plan(*load_scenario(together), None, None, 1), tmp_path / "b")
+    steps_a = pd.read_parquet(a / STEPS_FILE)
+    steps_b = pd.read_parquet(b / STEPS_FILE)
+    ekf_b = steps_b[steps_b["filter"] == "ekf"].reset_index(drop=True)
+    np.testing.assert_array_equal(ekf_b["pos_err"], steps_a["pos_err"])
+    mine = steps_b[steps_b["filter"] == "mine"].reset_index(drop=True)
+    np.testing.assert_array_equal(mine["pos_err"], steps_a["pos_err"])  # it saw its own copy
+
+
+# --- Forced reruns: the old result stays whole until the new one is complete ----------------------
+
+
+def test_a_forced_rerun_replaces_the_result_only_when_complete(sandbox: Sandbox) -> None:
+    old = read_json(sandbox.result / MANIFEST_FILE)
+    other = write_scenario(sandbox.root / "s9.yaml", small_scenario(**SMALL, seed=9))
+    result = cli(*sandbox.run(other, "--force"))
+    assert result.exit_code == 0, result.output
+    new = read_json(sandbox.result / MANIFEST_FILE)
+    assert new["seed"] == 9 and new["fingerprint"] != old["fingerprint"]
+    assert new["format"] == RESULT_FORMAT
+    assert not (sandbox.result / RUNS_DIR).exists()
+    assert sorted(p.name for p in sandbox.result.iterdir()) == sorted(
+        [
+            LOCK_FILE,
+            MANIFEST_FILE,
+            STEPS_FILE,
+            "runs.parquet",
+            "summary.parquet",
+            "summary.json",
+            "comparisons.parquet",
+            "claims.json",
+        ]  # fmt: skip
+    )
+
+
+def test_a_forced_rerun_interrupted_mid_batch_keeps_the_previous_result(sandbox: Sandbox):
+    """Ctrl-C after the first new run: old result whole; the same command resumes."""
+
+    class CtrlC(KeyboardInterrupt):
+        pass
+
+    def interrupt(_result: dict) -> None:
+        raise CtrlC
+
+    other = write_scenario(sandbox.root / "s9.yaml", small_scenario(**SMALL, seed=9))
+    before = snapshot(sandbox.root)
+    plan = make_plan(*load_scenario(other), None, None, 1)
+    with pytest.raises(CtrlC):
+        execute(plan, sandbox.out, force=True, on_result=interrupt)
+    assert outside_the_store(snapshot(sandbox.root)) == outside_the_store(before)
+    assert len(list((sandbox.result / RUNS_DIR).glob("run-*.npz"))) == 1
+    again = cli(*sandbox.run(other, "--force"))
+    assert again.exit_code == 0, again.output
+    assert "resuming: 1 of 2 runs" in again.stdout
+    assert read_json(sandbox.result / MANIFEST_FILE)["seed"] == 9
+
+
+def test_kill_9_during_a_forced_rerun_keeps_the_previous_result(sandbox: Sandbox) -> None:
+    slow = write_scenario(
+        sandbox.root / "slow.yaml", small_scenario(runs=200, record_every=8, seed=9, jobs=1)
+    )
+    before = snapshot(sandbox.root)
+    proc = subprocess.Popen(
+        [*ANFEKF, "run", str(slow), "--out", str(sandbox.out), "--force"],  # fmt: skip
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not list((sandbox.result / RUNS_DIR).glob("run-*.npz")):
+            assert proc.poll() is None, "the batch ended before it was killed"
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    deadline = time.monotonic() + 10
+    while live_group_members(proc.pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert outside_the_store(snapshot(sandbox.root)) == outside_the_store(before)
+    assert read_json(sandbox.result / MANIFEST_FILE)["seed"] == 7
+
+
+# --- Ownership: a folder is ours only when its manifest says so ----------------------------------
+
+
+def test_a_plain_run_into_a_folder_of_user_files_deletes_nothing(sandbox: Sandbox) -> None:
+    mine = sandbox.out / "small"
+    for entry in mine.iterdir():
+        entry.unlink() if entry.is_file() else None
+    (mine / "data.json").write_text('{"mine": true}')
+    pd.DataFrame({"a": [1.0]}).to_parquet(mine / "measurements.parquet")
+    before = snapshot(sandbox.root)
+    assert_one_line_error(cli(*sandbox.run(sandbox.scenario)), "holds no anfekf result")
+    assert snapshot(sandbox.root) == before
+
+
+def test_a_manifest_of_another_tool_with_a_fingerprint_is_not_ours(sandbox: Sandbox) -> None:
+    (sandbox.result / MANIFEST_FILE).write_text('{"fingerprint": "abc", "name": "not ours"}')
+    before = snapshot(sandbox.root)
+    assert_one_line_error(cli(*sandbox.run(sandbox.scenario, "--force")), "holds no anfekf")
+    assert snapshot(sandbox.root) == before
+
+
+# --- Sweeps -----------------------------------------------------------------------------------
+
+
+def _sweep(sb: Sandbox, name: str = "sw", axes: list | None = None) -> Path:
+    doc = small_scenario(runs=2, record_every=8, name=name)
+    doc["filters"] = [{"name": "ekf", "kind": "ekf"}]
+    doc["sweep"] = {"axes": axes or [{"scale": "R", "values": [1.0, 4.0]}]}
+    return write_scenario(sb.root / f"{name}.yaml", doc)
+
+
+@pytest.mark.parametrize(
+    ("how", "fragments"),
+    [
+        ("folder-symlink", ("symbolic link",)),
+        ("cells-symlink", ("cells", "symbolic link")),
+        ("foreign-manifest", ("not a sweep manifest",)),
+        ("ordinary-result", ("ordinary result",)),
+        ("foreign-entry", ("did not write", "notes.txt")),
+        ("axis-negative", ("sweep.axes.0", "> 0")),
+        ("later-cell-route", ("sweep cell 1", "record_every")),
+    ],
+)
+def test_a_sweep_into_what_is_not_its_own_folder_refuses(
+    sandbox: Sandbox, how: str, fragments: tuple[str, ...]
+) -> None:
+    scenario = _sweep(sandbox)
+    target = sandbox.out / "sw"
+    elsewhere = sandbox.root / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "keep.txt").write_text("keep")
+    if how == "folder-symlink":
+        target.symlink_to(elsewhere)
+    elif how == "cells-symlink":
+        target.mkdir()
+        (target / "cells").symlink_to(elsewhere)
+    elif how == "foreign-manifest":
+        target.mkdir()
+        (target / MANIFEST_FILE).write_text('{"kind": "a web app"}')
+    elif how == "ordinary-result":
+        scenario = _sweep(sandbox, name="small")
+    elif how == "foreign-entry":
+        target.mkdir()
+        (target / "notes.txt").write_text("mine")
+    elif how == "axis-negative":
+        scenario = _sweep(sandbox, axes=[{"scale": "R", "values": [-1.0, 1.0]}])
+    elif how == "later-cell-route":
+        scenario = _sweep(sandbox, axes=[{"field": "record_every", "values": [8, 100000]}])
+    before = snapshot(sandbox.root)
+    for flags in ((), ("--force",)):
+        assert_one_line_error(cli(*sandbox.run(scenario, *flags)), *fragments)
+        assert snapshot(sandbox.root) == before
+
+
+def test_sweep_manifest_is_recognised_and_rerun_reuses_cells(sandbox: Sandbox) -> None:
+    scenario = _sweep(sandbox)
+    first = cli(*sandbox.run(scenario))
+    assert first.exit_code == 0, first.output
+    again = cli(*sandbox.run(scenario))
+    assert again.exit_code == 0, again.output
+    assert "complete already: reused" in again.stdout
+    forced = cli(*sandbox.run(scenario, "--force"))
+    assert forced.exit_code == 0, forced.output

@@ -393,6 +393,35 @@ def read_manifest(folder: Path) -> dict:
     return doc
 
 
+BATCH_FILES = (STEPS_FILE, RUNS_FILE, SUMMARY_PARQUET, COMPARISONS_FILE)
+
+
+def check_one_batch(folder: Path, manifest: dict) -> None:
+    """ResultsError unless every Parquet result file of `folder` says, in its metadata, that it
+    belongs to the batch its manifest describes (the same seed and fingerprint): a file copied
+    in from another batch is refused, not averaged. Files of results written before the
+    manifest had a format are checked only where their metadata holds the keys."""
+    folder = Path(folder)
+    seed = manifest.get("seed")
+    seed = None if seed is None else str(seed)
+    wanted = {"fingerprint": manifest.get("fingerprint"), "seed": seed}
+    strict = manifest.get("format") == RESULT_FORMAT
+    for name in BATCH_FILES:
+        path = folder / name
+        if not os.path.lexists(path):
+            continue
+        found = parquet_provenance(path)
+        for key, want in wanted.items():
+            got = found.get(key)
+            if got is None and not strict:
+                continue
+            if got != want:
+                raise ResultsError(
+                    f"{path}: {key} {str(got)[:20]!r} in its metadata, but {folder / MANIFEST_FILE}"
+                    f" says {str(want)[:20]!r}; the files come from different batches"
+                )
+
+
 def is_result_manifest(doc: object) -> bool:
     """A manifest this tool wrote for a result: its format (or, written before the format key,
     this package's version) and a fingerprint. Ownership is decided by this, never by names."""

@@ -28,12 +28,15 @@ import pandas as pd
 from ..analysis.metrics import format_number, format_share
 from ..storage import (
     COMPARISONS_FILE,
+    MANIFEST_FILE,
     SUMMARY_JSON,
     ResultsError,
+    check_one_batch,
     read_json,
     read_manifest,
     read_parquet,
     read_steps,
+    scenario_name_problem,
     write_atomic,
 )
 
@@ -98,6 +101,13 @@ def load_real(folder: Path) -> RealData:
     for key in ("filters", "data", "scenario"):
         if key not in manifest:
             raise ResultsError(f"{folder}: manifest.json has no {key!r}: not a real-data result")
+    if not isinstance(manifest["scenario"], dict):
+        raise ResultsError(f"{folder / MANIFEST_FILE}: scenario: expected an object")
+    name = manifest["scenario"].get("name", folder.name)
+    problem = scenario_name_problem(name) if isinstance(name, str) else "expected a name"
+    if problem:  # the figures are named after it: never a path out of the report folder
+        raise ResultsError(f"{folder / MANIFEST_FILE}: scenario.name: {problem}")
+    check_one_batch(folder, manifest)
     summary = read_json(folder / SUMMARY_JSON)
     if not isinstance(summary, list):
         raise ResultsError(f"{folder / SUMMARY_JSON}: expected a list of records")

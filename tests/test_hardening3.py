@@ -341,3 +341,127 @@ def test_sweep_manifest_is_recognised_and_rerun_reuses_cells(sandbox: Sandbox) -
     assert "complete already: reused" in again.stdout
     forced = cli(*sandbox.run(scenario, "--force"))
     assert forced.exit_code == 0, forced.output
+
+
+# --- check decides the claims again; report and check take one batch's files only -------------
+
+CLAIM = {"filter": "anfekf", "vs": "ekf", "metric": "rmse_pos", "at_most": 5.0}
+
+
+@pytest.fixture(scope="module")
+def claimed(tmp_path_factory) -> Path:
+    """A complete result whose scenario declares one claim (it holds: at most 5 x the EKF)."""
+    root = tmp_path_factory.mktemp("claimed")
+    path = write_scenario(root / "c.yaml", small_scenario(**SMALL, claims=[CLAIM]))
+    _, target = execute(make_plan(*load_scenario(path), None, None, 1), root / "out")
+    return target
+
+
+def _copy(folder: Path, tmp_path: Path) -> Path:
+    import shutil
+
+    shutil.copytree(folder, tmp_path / "res" / folder.name)
+    return tmp_path / "res" / folder.name
+
+
+def test_check_recomputes_the_claims_and_agrees_with_a_fresh_run(claimed, tmp_path) -> None:
+    result = cli("check", _copy(claimed, tmp_path).parent)
+    assert result.exit_code == 0, result.output
+    assert "1 claims hold" in result.output
+
+
+def _edit_comparisons(folder: Path, edit) -> None:
+    from anfekf_bench.storage import parquet_provenance, write_parquet
+
+    path = folder / "comparisons.parquet"
+    write_parquet(path, edit(pd.read_parquet(path)), parquet_provenance(path))
+
+
+def _without_the_claims_pair(table: pd.DataFrame) -> pd.DataFrame:
+    pair = (table["filter"] == "anfekf") & (table["vs"] == "ekf") & (table["metric"] == "rmse_pos")
+    return table[~pair]
+
+
+def _far_above(table: pd.DataFrame) -> pd.DataFrame:
+    table[["estimate", "lo", "hi"]] = [9.0, 8.0, 10.0]
+    return table
+
+
+@pytest.mark.parametrize(
+    ("how", "verdict"),
+    [
+        ("deleted", "holds"),  # decided again from comparisons.parquet
+        ("deleted-and-no-comparison", "missing"),
+        ("emptied-and-no-comparison", "missing"),
+        ("holds-beside-a-failing-interval", "fails"),
+    ],
+)
+def test_check_never_trusts_claims_json(claimed, tmp_path, how: str, verdict: str) -> None:
+    import json
+
+    folder = _copy(claimed, tmp_path)
+    path = folder / "claims.json"
+    if how.startswith("deleted"):
+        path.unlink()
+    elif how.startswith("emptied"):
+        path.write_text("[]")
+    if how.endswith("no-comparison"):
+        _edit_comparisons(folder, _without_the_claims_pair)
+    if how.startswith("holds"):
+        doc = json.loads(path.read_text())
+        doc[0].update(estimate=9.0, lo=8.0, hi=10.0, verdict="holds")
+        path.write_text(json.dumps(doc))
+        _edit_comparisons(folder, _far_above)
+    result = cli("check", folder.parent)
+    assert result.exit_code == int(verdict != "holds"), result.output
+    if verdict == "holds":
+        assert "1 claims hold" in result.output
+    else:
+        assert f"FAIL claim small: anfekf rmse_pos <= 5 x ekf: {verdict}" in result.output
+
+
+@pytest.mark.parametrize("name", ["steps.parquet", "runs.parquet", "summary.parquet",
+                                  "comparisons.parquet"])  # fmt: skip
+@pytest.mark.parametrize("command", ["report", "check"])
+def test_a_file_of_another_batch_is_refused(claimed, tmp_path, name: str, command: str) -> None:
+    """The same scenario run with another seed: a file copied over is refused in one line."""
+    other = write_scenario(tmp_path / "c.yaml", small_scenario(**SMALL, seed=8, claims=[CLAIM]))
+    _, theirs = execute(make_plan(*load_scenario(other), None, None, 1), tmp_path / "other")
+    folder = _copy(claimed, tmp_path)
+    (folder / name).write_bytes((theirs / name).read_bytes())
+    args = (
+        ["report", folder, "--out", tmp_path / "rep"] if command == "report" else ["check", folder]
+    )
+    assert_one_line_error(cli(*args), name, "different batches")
+
+
+def test_report_links_only_http_and_relative_addresses(claimed, tmp_path) -> None:
+    from anfekf_bench.report.document import inline_html
+
+    for bad in ("javascript:alert(1)", "data:text/html,x", "JAVASCRIPT:x", "vbscript:x",
+                " javascript:x", "java\tscript:x", "file:///etc/passwd"):  # fmt: skip
+        shown = inline_html(f"[click]({bad}) <b>")
+        assert "<a " not in shown and "&lt;b&gt;" in shown, shown
+    for good in ("https://example.org/a", "http://x.y", "figures/rmse.png", "#scenario-small"):
+        assert f'<a href="{good}">' in inline_html(f"[ok]({good})")
+
+
+def test_a_description_with_a_script_link_is_plain_text_in_report_html(tmp_path) -> None:
+    doc = small_scenario(**SMALL, description="see [click](javascript:alert(document.cookie))")
+    path = write_scenario(tmp_path / "d.yaml", doc)
+    _, target = execute(make_plan(*load_scenario(path), None, None, 1), tmp_path / "out")
+    result = cli("report", target, "--out", tmp_path / "rep")
+    assert result.exit_code == 0, result.output
+    page = (tmp_path / "rep" / "report.html").read_text()
+    assert "javascript:" in page and 'href="javascript' not in page
+
+
+@pytest.mark.parametrize("value", [".nan", ".inf", "-.inf"])
+@pytest.mark.parametrize("field", ["centres_d", "centres_dd"])
+def test_anfekf_centres_must_be_finite(tmp_path, field: str, value: str) -> None:
+    doc = small_scenario(**SMALL)
+    doc["filters"] = [{"name": "anfekf", "kind": "anfekf", field: [0.0, 0.1, 0.2, 0.3, 0.4]}]
+    path = write_scenario(tmp_path / "n.yaml", doc)
+    path.write_text(path.read_text().replace("- 0.2\n", f"- {value}\n", 1))
+    assert_one_line_error(cli("run", path, "--out", tmp_path / "out"), field, "finite")
+    assert not (tmp_path / "out").exists()

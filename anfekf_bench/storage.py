@@ -242,13 +242,31 @@ def _arrow():
     return pa, pq
 
 
+@contextmanager
+def _arrow_file(fh: BinaryIO) -> Iterator[object]:
+    """A native Arrow file over an opened regular file, for pyarrow to read.
+
+    Never the Python file object itself: pyarrow finishes with one (closing it needs the GIL) on
+    its own threads after a read returns, and a process that exits meanwhile aborts with
+    "terminate called without an active exception" (exit 134; apache/arrow#33975, #34314). The
+    file is reopened through /proc/self/fd (the same inode open_regular checked), mapped, not
+    copied; where there is no /proc its bytes are read into memory."""
+    pa, _ = _arrow()
+    proc = f"/proc/self/fd/{fh.fileno()}"
+    source = pa.memory_map(proc) if os.path.exists(proc) else pa.BufferReader(fh.read())
+    try:
+        yield source
+    finally:
+        source.close()
+
+
 def parquet_provenance(path: Path) -> dict[str, str]:
     """A Parquet file's `anfekf.*` key-value metadata (version, git_commit, seed, fingerprint,
     units as JSON, ...), read from its footer: what a copied file says about its origin."""
     pa, pq = _arrow()
-    with _open_result(Path(path), PARQUET_LIMIT) as fh:
+    with _open_result(Path(path), PARQUET_LIMIT) as fh, _arrow_file(fh) as source:
         try:
-            meta = pq.read_metadata(fh).metadata or {}
+            meta = pq.read_metadata(source).metadata or {}
         except (pa.ArrowException, OSError, ValueError) as exc:
             raise ResultsError(f"{path}: not a readable Parquet file ({exc})") from None
     prefix = PARQUET_KEY_PREFIX.encode()
@@ -291,9 +309,9 @@ def _open_result(path: Path, limit: int) -> BinaryIO:
 def read_parquet(path: Path) -> pd.DataFrame:
     pa, pq = _arrow()
     path = Path(path)
-    with _open_result(path, PARQUET_LIMIT) as fh:
+    with _open_result(path, PARQUET_LIMIT) as fh, _arrow_file(fh) as source:
         try:
-            return pq.read_table(fh).to_pandas()
+            return pq.read_table(source).to_pandas()
         except (pa.ArrowException, OSError, ValueError) as exc:
             first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             raise ResultsError(f"{path}: not a readable Parquet file ({first})") from None
@@ -467,8 +485,8 @@ def _check_parquet_footer(path: Path) -> None:
         return
     pa, pq = _arrow()
     try:
-        with _open_result(path, PARQUET_LIMIT) as fh:
-            pq.read_metadata(fh)
+        with _open_result(path, PARQUET_LIMIT) as fh, _arrow_file(fh) as source:
+            pq.read_metadata(source)
     except (pa.ArrowException, OSError, ValueError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise ResultsError(f"{path}: not a readable Parquet file ({first})") from None

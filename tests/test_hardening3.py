@@ -465,3 +465,56 @@ def test_anfekf_centres_must_be_finite(tmp_path, field: str, value: str) -> None
     path.write_text(path.read_text().replace("- 0.2\n", f"- {value}\n", 1))
     assert_one_line_error(cli("run", path, "--out", tmp_path / "out"), field, "finite")
     assert not (tmp_path / "out").exists()
+
+
+# --- Exit 134: pyarrow is never handed a Python file object -----------------------------------
+
+
+def test_pyarrow_reads_native_files_only(claimed, monkeypatch) -> None:
+    """pyarrow finishes with a Python file object on its threads after the read returns; a
+    process exiting then aborts (exit 134). Every read of a result goes through a native file."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from anfekf_bench.storage import parquet_provenance, read_parquet, scenario_dirs
+
+    seen = []
+    real_table, real_meta = pq.read_table, pq.read_metadata
+
+    def table(source, *args, **kwargs):
+        seen.append(source)
+        return real_table(source, *args, **kwargs)
+
+    def metadata(source, *args, **kwargs):
+        seen.append(source)
+        return real_meta(source, *args, **kwargs)
+
+    monkeypatch.setattr(pq, "read_table", table)
+    monkeypatch.setattr(pq, "read_metadata", metadata)
+    read_parquet(claimed / STEPS_FILE)
+    parquet_provenance(claimed / STEPS_FILE)
+    scenario_dirs(claimed)
+    assert len(seen) >= 3
+    python_files = [s for s in seen if not isinstance(s, pa.NativeFile) or isinstance(
+        s, pa.PythonFile)]  # fmt: skip
+    assert not python_files, python_files
+
+
+@pytest.mark.slow
+def test_a_one_filter_result_is_written_and_read_back_20_times_with_exit_0(tmp_path) -> None:
+    doc = small_scenario(runs=1, record_every=50, name="one")
+    doc["world"] = {"landmarks": [[10, 8], [25, -6]], "waypoints": [[20, 0]]}
+    doc["filters"] = [{"name": "ekf", "kind": "ekf"}]
+    path = write_scenario(tmp_path / "one.yaml", doc)
+    out = tmp_path / "out"
+    read_back = (
+        "import sys; from anfekf_bench.storage import read_parquet, read_manifest;"
+        " read_parquet(sys.argv[1] + '/steps.parquet'); read_manifest(sys.argv[1])"
+    )
+    for i in range(20):
+        run = subprocess.run([*ANFEKF, "run", str(path), "--out", str(out), "--force"],
+                             capture_output=True, text=True)  # fmt: skip
+        assert run.returncode == 0, (i, run.returncode, run.stderr[-500:])
+        read = subprocess.run([sys.executable, "-c", read_back, str(out / "one")],
+                              capture_output=True, text=True)  # fmt: skip
+        assert read.returncode == 0, (i, read.returncode, read.stderr[-500:])

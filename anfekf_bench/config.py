@@ -242,6 +242,18 @@ class BackendConfig(_Strict):
         return self
 
 
+def check_plain_names(filters: list) -> list:
+    """The filters, or ValueError for a name that is not plain text (it appears in tables,
+    legends, TeX-like figure text and file metadata: a scenario's or a recorded log's)."""
+    for i, spec in enumerate(filters):
+        if not FILTER_NAME_PATTERN.fullmatch(spec.name):
+            raise ValueError(
+                f"entry {i}: filter name {spec.name!r}: 1 to 64 characters, letters, digits,"
+                " space and _ . + - (starting with a letter or digit)"
+            )
+    return filters
+
+
 def check_unique_names(filters: list) -> list:
     """The filters, or ValueError naming the repeated names (a scenario's or a recorded log's)."""
     names = [f.name for f in filters]
@@ -316,13 +328,7 @@ class Scenario(_Strict):
     @field_validator("filters")
     @classmethod
     def _plain_filter_names(cls, filters: list) -> list:
-        for i, spec in enumerate(filters):
-            if not FILTER_NAME_PATTERN.fullmatch(spec.name):
-                raise ValueError(
-                    f"entry {i}: filter name {spec.name!r}: 1 to 64 characters, letters, digits,"
-                    " space and _ . + - (starting with a letter or digit)"
-                )
-        return filters
+        return check_plain_names(filters)
 
     @field_validator("filters")
     @classmethod

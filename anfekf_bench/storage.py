@@ -337,6 +337,15 @@ def _finite_float(text: str) -> float:
     return value
 
 
+INT_DIGITS = 30  # far beyond any count or seed we write (seeds < 2^63: 19 digits)
+
+
+def _bounded_int(text: str) -> int:
+    if len(text.lstrip("-")) > INT_DIGITS:
+        raise _BadJSON(f"an integer of {len(text)} digits is out of range (at most {INT_DIGITS})")
+    return int(text)
+
+
 def _no_constant(text: str):
     raise _BadJSON(f"{text} is not a number JSON allows (write null for undefined)")
 
@@ -348,6 +357,7 @@ def parse_strict_json(text: str) -> object:
         text,
         object_pairs_hook=_no_duplicate_keys,
         parse_float=_finite_float,
+        parse_int=_bounded_int,
         parse_constant=_no_constant,
     )
 

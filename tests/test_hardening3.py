@@ -518,3 +518,92 @@ def test_a_one_filter_result_is_written_and_read_back_20_times_with_exit_0(tmp_p
         read = subprocess.run([sys.executable, "-c", read_back, str(out / "one")],
                               capture_output=True, text=True)  # fmt: skip
         assert read.returncode == 0, (i, read.returncode, read.stderr[-500:])
+
+
+# --- Recorded-data results edited by hand; names; numbers out of range ----------------------------
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory) -> Path:
+    """A complete recorded-data result (the synthetic log of test_real_data)."""
+    from .test_real_data import user_scenario
+
+    root = tmp_path_factory.mktemp("recorded")
+    _, target = execute(make_plan(*load_scenario(user_scenario(root)), None, None, 1), root / "o")
+    return target
+
+
+def _edit_manifest(folder: Path, edit) -> None:
+    import json
+
+    path = folder / MANIFEST_FILE
+    doc = json.loads(path.read_text())
+    edit(doc)
+    path.write_text(json.dumps(doc))
+
+
+def _set(*keys, value):
+    def edit(doc):
+        node = doc
+        for key in keys[:-1]:
+            node = node[key]
+        node[keys[-1]] = value
+
+    return edit
+
+
+REAL_EDITS = {
+    "name-parent-path": (_set("scenario", "name", value="../victim/pwn"), "scenario.name"),
+    "name-absolute": (_set("scenario", "name", value="/tmp/pwn"), "scenario.name"),
+    "t0-text": (_set("data", "segments", 0, "t0", value="x"), "data.segments"),
+    "filters-empty": (_set("filters", value=[]), "filters"),
+    "landmarks-ragged": (_set("data", "landmarks", "x", value=[1.0]), "data.landmarks"),
+    "landmarks-1e308": (_set("data", "landmarks", "x", 0, value=1e308), "data.landmarks"),
+    "description-lone-surrogate": (
+        _set("scenario", "description", value="\ud800"),
+        "not valid Unicode",
+    ),
+    "filter-name-tex": (_set("filters", 0, "name", value="$\\alpha^$ {x}"), "filters.0"),
+    "filter-name-escape": (_set("filters", 0, "name", value="\x1b[2Jx"), "filters.0"),
+}
+
+
+@pytest.mark.parametrize("edit", list(REAL_EDITS))
+def test_a_hand_edited_recorded_manifest_is_one_line_and_writes_nothing(recorded, tmp_path, edit):
+    import shutil
+
+    folder = tmp_path / "res" / recorded.name
+    shutil.copytree(recorded, folder)
+    change, fragment = REAL_EDITS[edit]
+    _edit_manifest(folder, change)
+    report = tmp_path / "box" / "report"
+    (tmp_path / "box").mkdir()
+    before = snapshot(tmp_path)
+    assert_one_line_error(cli("report", folder, "--out", report), fragment)
+    after = snapshot(tmp_path)
+    assert {k: v for k, v in after.items() if not k.startswith("box/report")} == before
+    assert not Path("/tmp/pwn_ratios.png").exists()
+
+
+def test_recorded_filter_names_are_plain_text(tmp_path) -> None:
+    import yaml
+
+    from .test_real_data import user_scenario
+
+    path = user_scenario(tmp_path)
+    doc = yaml.safe_load(path.read_text())
+    for bad in ("\x1b[31mred", "[bold]x[/bold]", "$\\alpha^$"):
+        doc["filters"][0]["name"] = bad
+        path.write_text(yaml.safe_dump(doc))
+        assert_one_line_error(cli("run", path, "--out", tmp_path / "o"), "filter name")
+    doc["filters"][0]["name"] = "ekf"
+    doc["segment_s"] = 1e-9
+    path.write_text(yaml.safe_dump(doc))
+    assert_one_line_error(cli("run", path, "--out", tmp_path / "o"), "segment_s")
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_5001_digit_integer_in_a_baseline_is_one_line(claimed, tmp_path) -> None:
+    baseline = tmp_path / "b.json"
+    baseline.write_text('{"format": "anfekf-bench baseline", "version": ' + "9" * 5001 + "}")
+    assert_one_line_error(cli("check", claimed, "--baseline", baseline), "5001 digits")

@@ -36,6 +36,7 @@ from ..config import (
     ScenarioError,
     _format_validation_error,
     check_named_filters,
+    check_plain_names,
     check_unique_names,
 )
 from ..filters.ekf import RobotEKF
@@ -167,7 +168,10 @@ class RealScenario(StrictModel):
         None, description="split this many seconds after the first ground-truth stamp instead"
     )
     segment_s: PositiveFloat = Field(
-        60.0, description="segment length [s] of both parts; each segment is cold-started"
+        60.0,
+        ge=1.0,  # shorter segments are mostly cold start, and their count would explode
+        le=1e6,
+        description="segment length [s] of both parts; each segment is cold-started",
     )
     min_scorable_s: Annotated[float, Field(ge=0, allow_inf_nan=False)] = Field(
         10.0, description="segments with less scorable ground truth are left out"
@@ -217,6 +221,7 @@ class RealScenario(StrictModel):
     @field_validator("filters")
     @classmethod
     def _filters(cls, filters: list) -> list:
+        check_plain_names(filters)
         check_unique_names(filters)
         if any(f.kind == "ekf-oracle" for f in filters):
             raise ValueError("ekf-oracle needs the true noise, which a recorded log does not have")

@@ -607,3 +607,23 @@ def test_a_5001_digit_integer_in_a_baseline_is_one_line(claimed, tmp_path) -> No
     baseline = tmp_path / "b.json"
     baseline.write_text('{"format": "anfekf-bench baseline", "version": ' + "9" * 5001 + "}")
     assert_one_line_error(cli("check", claimed, "--baseline", baseline), "5001 digits")
+
+
+ENTRY = [sys.executable, "-c", "from anfekf_bench.entry import main; main()"]
+
+
+@pytest.mark.parametrize("after_s", [0.15, 0.3, 0.5, 0.8])
+def test_ctrl_c_in_the_first_second_is_one_line(tmp_path, after_s: float) -> None:
+    """SIGINT while the command's modules are still loading (or just after)."""
+    path = write_scenario(tmp_path / "s.yaml", small_scenario(**SMALL))
+    proc = subprocess.Popen([*ENTRY, "run", str(path), "--out", str(tmp_path / "o")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    time.sleep(after_s)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert "Traceback" not in err, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert proc.returncode in (0, 130), (proc.returncode, err)
+    assert len(lines) <= 1, err
+    if proc.returncode == 130:
+        assert lines and lines[0].startswith("error: "), err

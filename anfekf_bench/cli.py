@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from enum import Enum
@@ -561,6 +562,16 @@ def print_comparisons(out: Console, target: Path) -> None:
         out.print(table)
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A library's warning (matplotlib's about a glyph, say) as one escaped line on stderr."""
+    err_console.print(
+        one_line(f"warning: {category.__name__}: {message}"),
+        markup=False,
+        highlight=False,
+        soft_wrap=True,
+    )
+
+
 @app.command()
 def report(
     results: Annotated[
@@ -589,6 +600,7 @@ def report(
     from .report.sweep import find_sweeps, has_scenario_results, write_sweeps_report
     from .storage import ResultsError
 
+    warnings.showwarning = _one_line_warning  # a library's warning may quote a name
     formats = [f.value for f in ImageFormat]
     if image_format not in formats:
         fail(f"--format: {image_format!r} is not one of {', '.join(formats)}")

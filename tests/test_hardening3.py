@@ -627,3 +627,32 @@ def test_ctrl_c_in_the_first_second_is_one_line(tmp_path, after_s: float) -> Non
     assert len(lines) <= 1, err
     if proc.returncode == 130:
         assert lines and lines[0].startswith("error: "), err
+
+
+@pytest.mark.parametrize("n_axes", [1, 2])
+def test_a_sweep_without_the_oracle_is_reported(sandbox: Sandbox, n_axes: int) -> None:
+    axes = [{"scale": "R", "values": [1.0, 4.0]}, {"scale": "Qu", "values": [1.0, 4.0]}]
+    scenario = _sweep(sandbox, axes=axes[:n_axes])  # filters: ekf only, no ekf-oracle
+    assert cli(*sandbox.run(scenario)).exit_code == 0
+    result = cli("report", sandbox.out / "sw", "--out", sandbox.root / "rep")
+    assert result.exit_code == 0, result.output
+    assert "Traceback" not in result.output
+
+
+def test_check_refuses_names_that_are_not_plain_text(claimed, tmp_path) -> None:
+    from anfekf_bench.storage import SUMMARY_PARQUET, parquet_provenance, write_parquet
+
+    folder = _copy(claimed, tmp_path)
+    path = folder / SUMMARY_PARQUET
+    summary = pd.read_parquet(path)
+    summary["filter"] = summary["filter"].astype(str).replace("ekf", "\x1b[2Jekf")
+    write_parquet(path, summary, parquet_provenance(path))
+    assert_one_line_error(cli("check", folder.parent), "filter name", "not plain text")
+
+
+def test_a_library_warning_is_one_escaped_line(capsys) -> None:
+    from anfekf_bench.cli import _one_line_warning
+
+    _one_line_warning(UserWarning("Glyph 27 (\x1b[2J) missing"), UserWarning, "f.py", 1)
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "\x1b" not in err and "\\x1b[2J" in err

@@ -41,6 +41,7 @@ from ..storage import (
     read_parquet,
     read_summary,
     scenario_dirs,
+    scenario_name_problem,
     write_json,
 )
 from .comparisons import SHARE_METRICS, claim_text
@@ -250,6 +251,7 @@ def read_scenario(folder: Path, metrics: Iterable[str]) -> ScenarioSummary:
         raise ResultsError(f"{where}: expected one scenario name, found {names or 'none'}")
     if summary["filter"].duplicated().any():
         raise ResultsError(f"{where}: a filter appears twice")
+    _plain_names(where, names[0], summary["filter"].astype(str).tolist())
     declared = manifest.get("scenario")
     if isinstance(declared, dict) and declared.get("name") != names[0]:
         declared = declared.get("name")
@@ -280,6 +282,18 @@ def read_scenario(folder: Path, metrics: Iterable[str]) -> ScenarioSummary:
         versions=manifest.get("versions"),
         folder=Path(folder),
     )
+
+
+def _plain_names(where: Path, scenario: str, filters: list[str]) -> None:
+    """Names are printed in the gate's tables: plain text only (never escape sequences or
+    markup a terminal would act on)."""
+    from ..config import FILTER_NAME_PATTERN
+
+    if scenario_name_problem(scenario):
+        raise ResultsError(f"{where}: scenario name {scenario[:40]!r} is not a valid name")
+    for name in filters:
+        if not FILTER_NAME_PATTERN.fullmatch(name):
+            raise ResultsError(f"{where}: filter name {name[:40]!r} is not plain text")
 
 
 def read_results(results_dir: Path, metrics: Iterable[str]) -> dict[str, ScenarioSummary]:

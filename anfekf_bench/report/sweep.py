@@ -91,6 +91,14 @@ def line_figure(data: SweepData, axis: str, rows: pd.DataFrame, title: str) -> F
     fig = Figure(figsize=(10, 7), layout="constrained")
     grid = fig.subplots(2, 2)
     for ax, (column, interval, label, log, reference) in zip(grid.ravel(), PANELS, strict=True):
+        if not np.isfinite(rows[column].to_numpy(float)).any():
+            # e.g. a ratio to the oracle in a sweep without ekf-oracle: nothing to draw (and a
+            # log axis over no data cannot be scaled)
+            ax.text(0.5, 0.5, "no values (no reference filter in this sweep)", ha="center",
+                    va="center", transform=ax.transAxes)  # fmt: skip
+            ax.set_title(label)
+            ax.set_axis_off()
+            continue
         for name, sub in rows.groupby("filter", observed=True, sort=False):
             sub = sub.sort_values(axis)
             x, y = sub[axis].to_numpy(float), sub[column].to_numpy(float)
@@ -114,7 +122,9 @@ def line_figure(data: SweepData, axis: str, rows: pd.DataFrame, title: str) -> F
             _log_axis(ax.yaxis)
         ax.set_xlabel(axis)
         ax.set_title(label)
-    grid[0, 0].legend(loc="best")
+    drawn = [ax for ax in grid.ravel() if ax.get_legend_handles_labels()[0]]
+    if drawn:
+        drawn[0].legend(loc="best")
     fig.suptitle(title)
     return fig
 

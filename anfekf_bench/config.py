@@ -50,7 +50,7 @@ MAP_FILE_LIMIT = 16 * 2**20  # bytes
 # YAML: nesting depth and the number of values after expanding aliases (a "billion laughs" file
 # of a few hundred bytes expands to billions); a scenario needs a depth of 6 and a few hundred.
 YAML_MAX_DEPTH = 32
-YAML_MAX_VALUES = 200_000
+YAML_MAX_VALUES = 3 * MAX_POINTS + 100_000  # an inline map of MAX_POINTS [x, y] and the rest
 # Filter names appear in tables, figure legends and file contents: plain characters only.
 FILTER_NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9 _.+-]{0,63}")
 
@@ -582,7 +582,9 @@ def _expanded_size(node, depth: int, sizes: dict[int, int], active: set[int]) ->
     for child in children:
         total += _expanded_size(child, depth + 1, sizes, active)
         if total > YAML_MAX_VALUES:
-            raise _YAMLTooLarge(f"expands to more than {YAML_MAX_VALUES} values (through aliases)")
+            raise _YAMLTooLarge(
+                f"holds more than {YAML_MAX_VALUES} values (counting each alias's expansion)"
+            )
     active.discard(key)
     sizes[key] = total
     return total

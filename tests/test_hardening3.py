@@ -656,3 +656,15 @@ def test_a_library_warning_is_one_escaped_line(capsys) -> None:
     _one_line_warning(UserWarning("Glyph 27 (\x1b[2J) missing"), UserWarning, "f.py", 1)
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "\x1b" not in err and "\\x1b[2J" in err
+
+
+@pytest.mark.slow  # a 600 kB YAML file parsed by PyYAML: about a minute on a busy machine
+@pytest.mark.parametrize(("points", "fragment"), [(100_001, "more than 100000 points")])
+def test_an_inline_map_is_limited_by_its_points_not_by_aliases(tmp_path, points, fragment):
+    doc = small_scenario(**SMALL)
+    doc["world"] = {"landmarks": "LANDMARKS", "waypoints": [[20, 0]]}
+    path = write_scenario(tmp_path / "big.yaml", doc)
+    inline = "[" + ",".join(["[1,2]"] * points) + "]"
+    path.write_text(path.read_text().replace("LANDMARKS", inline))
+    line = assert_one_line_error(cli("run", path, "--out", tmp_path / "o"), fragment)
+    assert "alias" not in line

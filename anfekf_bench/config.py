@@ -642,11 +642,14 @@ def load_scenario(path: str | Path) -> tuple[Scenario, World]:
 def scenario_files(target: str | Path) -> list[Path]:
     """A scenario file, or every *.yaml / *.yml in a folder (sorted)."""
     target = Path(target)
-    if target.is_dir():
-        files = sorted(p for p in target.iterdir() if p.suffix in (".yaml", ".yml"))
-        if not files:
-            raise ScenarioError(target, "", "folder holds no *.yaml scenario files")
-        return files
-    if not target.exists():
-        raise ScenarioError(target, "", "scenario file does not exist")
+    try:
+        if target.is_dir():
+            files = sorted(p for p in target.iterdir() if p.suffix in (".yaml", ".yml"))
+            if not files:
+                raise ScenarioError(target, "", "folder holds no *.yaml scenario files")
+            return files
+        if not target.exists():
+            raise ScenarioError(target, "", "scenario file does not exist")
+    except OSError as exc:  # a name or path too long (ENAMETOOLONG), no permission, ...
+        raise ScenarioError(target, "", f"cannot be read ({exc.strerror or exc})") from None
     return [target]

@@ -379,14 +379,17 @@ def read_json(path: Path) -> dict | list:
 def scenario_dirs(results_dir: Path) -> list[Path]:
     """The complete scenario folders under `results_dir` (itself one, or its children)."""
     results_dir = Path(results_dir)
-    if not results_dir.exists():
-        raise ResultsError(f"{results_dir}: results folder does not exist")
-    if not results_dir.is_dir():
-        raise ResultsError(f"{results_dir}: not a folder")
-    if _is_result_dir(results_dir):
-        candidates = [results_dir]
-    else:
-        candidates = sorted(p for p in results_dir.iterdir() if _is_result_dir(p))
+    try:
+        if not results_dir.exists():
+            raise ResultsError(f"{results_dir}: results folder does not exist")
+        if not results_dir.is_dir():
+            raise ResultsError(f"{results_dir}: not a folder")
+        if _is_result_dir(results_dir):
+            candidates = [results_dir]
+        else:
+            candidates = sorted(p for p in results_dir.iterdir() if _is_result_dir(p))
+    except OSError as exc:  # a name or path too long (ENAMETOOLONG), no permission, ...
+        raise ResultsError(f"{results_dir}: cannot be read ({exc.strerror or exc})") from None
     if not candidates:
         raise ResultsError(
             f"{results_dir}: no results found (expected {STEPS_FILE} or {SUMMARY_PARQUET} in"

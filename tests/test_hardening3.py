@@ -668,3 +668,12 @@ def test_an_inline_map_is_limited_by_its_points_not_by_aliases(tmp_path, points,
     path.write_text(path.read_text().replace("LANDMARKS", inline))
     line = assert_one_line_error(cli("run", path, "--out", tmp_path / "o"), fragment)
     assert "alias" not in line
+
+
+@pytest.mark.parametrize("shape", ["300-char-name", "5000-char-path"])
+@pytest.mark.parametrize("command", ["run", "check", "report"])
+def test_a_path_too_long_is_one_line(tmp_path, shape: str, command: str) -> None:
+    long = "a" * 300 if shape == "300-char-name" else "/".join(["b" * 200] * 25)
+    target = tmp_path / (long + (".yaml" if command == "run" else ""))
+    args = [command, target] + (["--out", tmp_path / "rep"] if command == "report" else [])
+    assert_one_line_error(cli(*args), "too long")

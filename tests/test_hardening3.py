@@ -597,9 +597,9 @@ def test_recorded_filter_names_are_plain_text(tmp_path) -> None:
         path.write_text(yaml.safe_dump(doc))
         assert_one_line_error(cli("run", path, "--out", tmp_path / "o"), "filter name")
     doc["filters"][0]["name"] = "ekf"
-    doc["segment_s"] = 1e-9
-    path.write_text(yaml.safe_dump(doc))
-    assert_one_line_error(cli("run", path, "--out", tmp_path / "o"), "segment_s")
+    for key, value in (("segment_s", 1e-9), ("p0_std_xy", 1e300), ("starts", [1e300])):
+        path.write_text(yaml.safe_dump({**doc, key: value}))
+        assert_one_line_error(cli("run", path, "--out", tmp_path / "o"), key)
     assert not (tmp_path / "o").exists()
 
 

@@ -129,6 +129,17 @@ def check_real_plan(plan: RealPlan) -> int:
     problem = scenario_name_problem(plan.name)
     if problem:
         raise PlanError(f"name: {problem}")
+    log = plan.world.log
+    for part, segments in (("training", plan.world.train_segments),
+                           ("held-out", plan.world.test_segments)):  # fmt: skip
+        for seg in segments:
+            if not np.any((log.odo_t > seg.t0) & (log.odo_t <= seg.end)):
+                odo = f"{log.odo_t.min():.1f}-{log.odo_t.max():.1f} s" if len(log.odo_t) else "none"
+                raise PlanError(
+                    f"data: {part} segment {seg.index} ({seg.t0:.1f}-{seg.end:.1f} s) holds no"
+                    f" odometry (the log's odometry: {odo}); odometry and ground truth must"
+                    " overlap"
+                )
     return sum(
         int(np.sum((plan.world.log.odo_t > s.t0) & (plan.world.log.odo_t <= s.end)))
         for s in plan.world.test_segments

@@ -677,3 +677,25 @@ def test_a_path_too_long_is_one_line(tmp_path, shape: str, command: str) -> None
     target = tmp_path / (long + (".yaml" if command == "run" else ""))
     args = [command, target] + (["--out", tmp_path / "rep"] if command == "report" else [])
     assert_one_line_error(cli(*args), "too long")
+
+
+def test_a_recorded_log_whose_odometry_misses_the_truth_keeps_the_previous_result(
+    recorded, tmp_path
+) -> None:
+    """Odometry (and measurements) starting after the ground truth ends, forced over a result."""
+    import csv
+    import shutil
+
+    from .test_real_data import user_scenario
+
+    path = user_scenario(tmp_path)
+    for name in ("odometry.csv", "measurements.csv"):
+        rows = list(csv.reader((tmp_path / "my-log" / name).open()))
+        rows[1:] = [[str(float(r[0]) + 1000.0), *r[1:]] for r in rows[1:]]
+        with (tmp_path / "my-log" / name).open("w", newline="") as fh:
+            csv.writer(fh).writerows(rows)
+    out = tmp_path / "out"
+    shutil.copytree(recorded, out / recorded.name)
+    before = snapshot(out)
+    assert_one_line_error(cli("run", path, "--out", out, "--force"), "holds no odometry")
+    assert snapshot(out) == before

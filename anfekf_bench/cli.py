@@ -308,6 +308,7 @@ def run(
     ] = False,
 ) -> None:
     """Run Monte Carlo batches of every filter of a scenario and write Parquet results."""
+    warnings.showwarning = _one_line_warning  # a library's warning may quote a name
     # Checked here rather than by typer's min=/max=, whose error is a multi-line box.
     for flag, value, least, most in (
         ("--runs", runs, 1, MAX_RUNS),

@@ -91,6 +91,18 @@ class WrongShape(RobotEKF):
         self.x = [1.0, 2.0]
 
 
+class ComplexState(RobotEKF):
+    def predict(self, u=0, dt=None):
+        super().predict(u, dt)
+        self.x = self.x.astype(complex) + 1j
+
+
+class WrongR(RobotEKF):
+    def predict(self, u=0, dt=None):
+        super().predict(u, dt)
+        self.R = np.eye(3)
+
+
 class WritesItsInputs(RobotEKF):
     """Scribbles over the scans and odometry it is given, then behaves as the EKF."""
 
@@ -138,6 +150,8 @@ def _custom(sb: Sandbox, cls: str) -> Path:
         ("evil_filters:ExitsZeroInUpdate", ("'mine'", "predict/update", "SystemExit")),
         ("evil_filters:RaisesBaseException", ("'mine'", "predict/update", "Weird")),
         ("evil_filters:WrongShape", ("'mine'", "predict/update")),
+        ("evil_filters:ComplexState", ("'mine'", "predict/update", "ComplexWarning")),
+        ("evil_filters:WrongR", ("'mine'", "predict/update", "ValueError")),
         ("evil_filters:ExitsInInit", ("filters.1", "'mine'", "__init__", "SystemExit")),
         ("exits_at_import:F", ("cannot import module 'exits_at_import'", "SystemExit")),
         ("interrupts_at_import:F", ("cannot import module", "SystemExit")),
@@ -147,6 +161,8 @@ def _custom(sb: Sandbox, cls: str) -> Path:
         "run-exit-0",
         "run-base-exception",
         "run-wrong-shape",
+        "run-complex",
+        "run-wrong-R",
         "init-exits",
         "import-sys-exit-3",
         "import-exit-0",

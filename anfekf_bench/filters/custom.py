@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import importlib
 import re
+import warnings
 from collections.abc import Callable
 from importlib.metadata import entry_points
 from typing import Any, Literal, TypeVar
@@ -32,6 +33,7 @@ CLASS_PATH = r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za
 
 
 T = TypeVar("T")
+_COMPLEX_WARNING = getattr(getattr(np, "exceptions", np), "ComplexWarning", Warning)
 
 
 class CustomFilterFailed(Exception):
@@ -52,7 +54,10 @@ def contained(name: str, class_path: str, hook: str, call: Callable[..., T], *ar
     included) turned into CustomFilterFailed naming the filter and the hook. A plain
     KeyboardInterrupt passes: it is the user's Ctrl-C, and the batch stops as interrupted."""
     try:
-        return call(*args)
+        with warnings.catch_warnings():
+            # A complex number cast to real: the filter's state is of the wrong type.
+            warnings.simplefilter("error", _COMPLEX_WARNING)
+            return call(*args)
     except KeyboardInterrupt:
         raise
     except BaseException as exc:  # noqa: BLE001 - a user's filter may raise anything

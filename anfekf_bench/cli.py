@@ -6,6 +6,7 @@ import math
 import os
 import re
 import sys
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from enum import Enum
@@ -47,6 +48,7 @@ from .experiment import (
     scenario_folder,
     survey_output,
 )
+from .filters.custom import CustomFilterFailed
 from .provenance import version_line
 from .runner import BackendUnavailable
 from .sources.simulator import RouteNotCompleted
@@ -57,7 +59,7 @@ from .storage import (
     output_path_problem,
     read_manifest,
 )
-from .sweeps import CELLS_DIR, SweepError, cell_complete, cell_plans, expand, run_sweep
+from .sweeps import SweepError, cell_plans, expand, run_sweep, validate_sweep
 
 # click's exception classes as typer raises them (typer >= 0.17 vendors its own click): found
 # through typer's public BadParameter, so this works with either.
@@ -338,6 +340,7 @@ def run(
     ] = False,
 ) -> None:
     """Run Monte Carlo batches of every filter of a scenario and write Parquet results."""
+    warnings.showwarning = _one_line_warning  # a library's warning may quote a name
     # Checked here rather than by typer's min=/max=, whose error is a multi-line box.
     for flag, value, least, most in (
         ("--runs", runs, 1, MAX_RUNS),
@@ -383,9 +386,12 @@ def run(
     # again by execute, under the folder's lock, before --force removes anything).
     skipped: dict[str, str] = {}  # --skip-existing: scenario -> what its folder holds
     for path, plan in zip(scenario_files(scenario), plans, strict=True):
-        checked = sweeps[plan.name][1] if plan.name in sweeps else [plan]
+        if plan.name in sweeps:  # every cell, and the sweep's folder
+            with one_line_errors(debug, (PlanError, OutputExists, SweepError), prefix=f"{path}: "):
+                validate_sweep(plan.name, *sweeps[plan.name], out, force=force)
+            continue
         with one_line_errors(debug, (PlanError,), prefix=f"{path}: "):
-            check_plan(checked[0])  # the cells differ in noise only: one check serves all
+            check_plan(plan)
         with one_line_errors(debug, (OutputExists, SweepError), prefix=f"{plan.name}: "):
             if plan.name not in sweeps:
                 target = scenario_folder(out, plan.name)
@@ -400,11 +406,6 @@ def run(
                         " or --out to write elsewhere"
                     )
                 survey_output(plan, target, force)
-                continue
-            for cell, cell_plan in zip(*sweeps[plan.name], strict=True):
-                folder = Path(out) / plan.name / CELLS_DIR / cell.name
-                if force or not cell_complete(folder, cell_plan):
-                    survey_output(cell_plan, folder, force)
     for plan in plans:
         if plan.name in skipped:
             target = scenario_folder(out, plan.name)
@@ -519,7 +520,14 @@ def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
             one_line_errors(debug, (BackendUnavailable,)),
             one_line_errors(
                 debug,
-                (OutputExists, RouteNotCompleted, PlanError, FolderBusy, SweepError),
+                (
+                    OutputExists,
+                    RouteNotCompleted,
+                    PlanError,
+                    FolderBusy,
+                    SweepError,
+                    CustomFilterFailed,
+                ),  # fmt: skip
                 prefix=f"{plan.name}: ",
                 os_error=f"{plan.name}: cannot write results",
             ),
@@ -571,7 +579,7 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
             one_line_errors(debug, (BackendUnavailable,)),
             one_line_errors(
                 debug,
-                (OutputExists, RouteNotCompleted, PlanError, FolderBusy),
+                (OutputExists, RouteNotCompleted, PlanError, FolderBusy, CustomFilterFailed),
                 prefix=f"{plan.name}: ",
                 os_error=f"{plan.name}: cannot write results",
             ),
@@ -644,6 +652,16 @@ def print_comparisons(out: Console, target: Path) -> None:
         out.print(table)
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A library's warning (matplotlib's about a glyph, say) as one escaped line on stderr."""
+    err_console.print(
+        one_line(f"warning: {category.__name__}: {message}"),
+        markup=False,
+        highlight=False,
+        soft_wrap=True,
+    )
+
+
 @app.command()
 def report(
     results: Annotated[
@@ -672,6 +690,7 @@ def report(
     from .report.sweep import find_sweeps
     from .storage import ResultsError
 
+    warnings.showwarning = _one_line_warning  # a library's warning may quote a name
     formats = [f.value for f in ImageFormat]
     if image_format not in formats:
         fail(f"--format: {image_format!r} is not one of {', '.join(formats)}")

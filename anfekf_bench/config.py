@@ -53,7 +53,7 @@ MAP_FILE_LIMIT = 16 * 2**20  # bytes
 # YAML: nesting depth and the number of values after expanding aliases (a "billion laughs" file
 # of a few hundred bytes expands to billions); a scenario needs a depth of 6 and a few hundred.
 YAML_MAX_DEPTH = 32
-YAML_MAX_VALUES = 200_000
+YAML_MAX_VALUES = 3 * MAX_POINTS + 100_000  # an inline map of MAX_POINTS [x, y] and the rest
 # Filter names appear in tables, figure legends and file contents: plain characters only.
 FILTER_NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9 _.+-]{0,63}")
 
@@ -156,6 +156,13 @@ class SweepAxis(_Strict):
             raise ValueError("an axis needs exactly one of values or factors")
         if len(set(self.points())) != len(self.points()):
             raise ValueError("an axis lists a value twice")
+        if not all(math.isfinite(v) for v in self.points()):
+            raise ValueError("an axis value must be a finite number")
+        least = min(self.points())
+        if self.scale is not None and least <= 0:
+            raise ValueError(
+                f"scale factors multiply variances, so each must be > 0 (got {least:g})"
+            )
         return self
 
     @property
@@ -236,6 +243,18 @@ class BackendConfig(_Strict):
         if self.kind == "local" and self.scheduler is not None:
             raise ValueError("scheduler is only used with kind dask")
         return self
+
+
+def check_plain_names(filters: list) -> list:
+    """The filters, or ValueError for a name that is not plain text (it appears in tables,
+    legends, TeX-like figure text and file metadata: a scenario's or a recorded log's)."""
+    for i, spec in enumerate(filters):
+        if not FILTER_NAME_PATTERN.fullmatch(spec.name):
+            raise ValueError(
+                f"entry {i}: filter name {spec.name!r}: 1 to 64 characters, letters, digits,"
+                " space and _ . + - (starting with a letter or digit)"
+            )
+    return filters
 
 
 def check_unique_names(filters: list) -> list:
@@ -328,13 +347,7 @@ class Scenario(_Strict):
     @field_validator("filters")
     @classmethod
     def _plain_filter_names(cls, filters: list) -> list:
-        for i, spec in enumerate(filters):
-            if not FILTER_NAME_PATTERN.fullmatch(spec.name):
-                raise ValueError(
-                    f"entry {i}: filter name {spec.name!r}: 1 to 64 characters, letters, digits,"
-                    " space and _ . + - (starting with a letter or digit)"
-                )
-        return filters
+        return check_plain_names(filters)
 
     @field_validator("filters")
     @classmethod
@@ -604,7 +617,9 @@ def _expanded_size(node, depth: int, sizes: dict[int, int], active: set[int]) ->
     for child in children:
         total += _expanded_size(child, depth + 1, sizes, active)
         if total > YAML_MAX_VALUES:
-            raise _YAMLTooLarge(f"expands to more than {YAML_MAX_VALUES} values (through aliases)")
+            raise _YAMLTooLarge(
+                f"holds more than {YAML_MAX_VALUES} values (counting each alias's expansion)"
+            )
     active.discard(key)
     sizes[key] = total
     return total
@@ -669,11 +684,14 @@ def scenario_from_data(data: object, path: str | Path) -> tuple[Scenario, World]
 def scenario_files(target: str | Path) -> list[Path]:
     """A scenario file, or every *.yaml / *.yml in a folder (sorted)."""
     target = Path(target)
-    if target.is_dir():
-        files = sorted(p for p in target.iterdir() if p.suffix in (".yaml", ".yml"))
-        if not files:
-            raise ScenarioError(target, "", "folder holds no *.yaml scenario files")
-        return files
-    if not target.exists():
-        raise ScenarioError(target, "", "scenario file does not exist")
+    try:
+        if target.is_dir():
+            files = sorted(p for p in target.iterdir() if p.suffix in (".yaml", ".yml"))
+            if not files:
+                raise ScenarioError(target, "", "folder holds no *.yaml scenario files")
+            return files
+        if not target.exists():
+            raise ScenarioError(target, "", "scenario file does not exist")
+    except OSError as exc:  # a name or path too long (ENAMETOOLONG), no permission, ...
+        raise ScenarioError(target, "", f"cannot be read ({exc.strerror or exc})") from None
     return [target]

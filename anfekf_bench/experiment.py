@@ -41,6 +41,8 @@ from .analysis.tables import (
     update_statistics,
 )
 from .config import BackendConfig, Engine, Scenario, World
+from .filters.custom import CustomFilterFailed, CustomSpec
+from .filters.registry import build_filter
 from .runner import connect_dask, engine_of, fast_compiled, run_batch
 from .sources.simulator import RouteNotCompleted, simulate_truth
 from .storage import (
@@ -49,9 +51,11 @@ from .storage import (
     LOCK_FILE,
     MANIFEST_FILE,
     PHASES_FILE,
+    RESULT_FORMAT,
     RUN_FILE_PATTERN,
     RUNS_DIR,
     RUNS_FILE,
+    STAGING_DIR,
     STEPS_FILE,
     SUMMARY_JSON,
     SUMMARY_PARQUET,
@@ -59,9 +63,10 @@ from .storage import (
     FolderBusy,
     ResultsError,
     RunFileRefused,
-    clear_folder,
     folder_lock,
     foreign_entries,
+    install_result,
+    is_result_manifest,
     read_json,
     read_regular_bytes,
     read_run_file,
@@ -312,6 +317,12 @@ def check_plan(plan: Plan) -> int:
             f"record_every: {every} is longer than the route ({control_steps} control steps);"
             f" use at most {control_steps}"
         )
+    for i, spec in enumerate(plan.scenario.filters):
+        if isinstance(spec, CustomSpec):  # a user's __init__ that fails does so before any work
+            try:
+                build_filter(spec, plan.scenario, plan.world)
+            except CustomFilterFailed as exc:
+                raise PlanError(f"filters.{i}: {exc}") from None
     need, have = memory_estimate(plan, control_steps), machine_memory()
     if have is not None and need > MEMORY_SHARE * have:
         recorded = control_steps // every
@@ -366,12 +377,26 @@ def _is_our_manifest(target: Path) -> bool:
         doc = read_json(target / MANIFEST_FILE)
     except ResultsError:
         return False
-    return isinstance(doc, dict) and isinstance(doc.get("fingerprint"), str)
+    return is_result_manifest(doc)
+
+
+def _is_our_store(runs_dir: Path) -> bool:
+    """A run store of this tool: stamped with a batch's fingerprint, or what a kill before the
+    stamp leaves (an empty store, or one holding only temporaries)."""
+    if runs_dir.is_symlink() or not runs_dir.is_dir():
+        return False
+    if os.path.lexists(runs_dir / FINGERPRINT_FILE):
+        return True
+    return all(_is_temporary(e.name) for e in os.scandir(runs_dir))
 
 
 def survey_output(plan: Plan, target: Path, force: bool) -> list[str]:
-    """What preparing `target` would remove (--force), or OutputExists when it must not be
-    touched. Reads only; run before anything is written and again under the folder's lock."""
+    """What preparing `target` may replace (--force), or OutputExists when it must not be
+    touched. Reads only; run before anything is written and again under the folder's lock.
+
+    A folder is this tool's only when its manifest.json says so (`is_result_manifest`) or it
+    holds a run store of ours; a folder holding anything else is refused, with or without
+    --force, and nothing in it is removed."""
     if not os.path.lexists(target):
         return []
     target = scenario_folder(target.parent, target.name)
@@ -387,17 +412,22 @@ def survey_output(plan: Plan, target: Path, force: bool) -> list[str]:
             + "move them away or use another --out"
         )
     ours = sorted(e.name for e in os.scandir(target) if e.name != LOCK_FILE)
+    has_manifest = os.path.lexists(target / MANIFEST_FILE)
+    if has_manifest and not _is_our_manifest(target):
+        raise OutputExists(
+            f"{target}: holds no anfekf result (its {MANIFEST_FILE} was not written by this"
+            " tool); nothing is removed or overwritten: move it away or use another --out"
+        )
+    marked = has_manifest or _is_our_store(runs_dir)
+    if not marked and any(not _is_temporary(name) for name in ours):
+        raise OutputExists(
+            f"{target}: holds no anfekf result (no {MANIFEST_FILE} of this tool, no saved runs)"
+            " but other files; nothing is removed: move them away or use another --out"
+            + (" (--force replaces only anfekf results)" if force else "")
+        )
     if force:
-        # Marked as ours: a manifest with a fingerprint, or a run store (foreign_entries has
-        # refused a symlinked one). Temporaries of a write a kill cut short need no mark.
-        marked = _is_our_manifest(target) or runs_dir.is_dir()
-        if not marked and any(not _is_temporary(name) for name in ours):
-            raise OutputExists(
-                f"{target}: holds no anfekf result (no manifest.json with a fingerprint, no"
-                " saved runs); --force removes only anfekf results"
-            )
         return ours
-    if os.path.lexists(target / MANIFEST_FILE):
+    if has_manifest:
         raise OutputExists(
             f"{target}: holds a complete result already; use --force to overwrite it"
             " or --out to write elsewhere"
@@ -439,38 +469,66 @@ def _load_saved_runs(plan: Plan, runs_dir: Path) -> tuple[dict[int, dict], int]:
 
 
 def prepare_output(plan: Plan, out_dir: Path, force: bool) -> tuple[Path, dict[int, dict], str]:
-    """Prepare <out>/<name> for the batch (call with its lock held: see execute): with --force
-    remove the previous result, else find the saved runs to resume. Returns the folder, the runs
-    to resume and a sentence saying what we do."""
+    """Prepare <out>/<name> for the batch (call with its lock held: see execute): find the saved
+    runs to resume. A previous complete result (--force) is left whole: the new batch's files
+    are staged in the run store and replace it only once complete (`finish_result`). Returns
+    the folder, the runs to resume and a sentence saying what we do."""
     target = scenario_folder(out_dir, plan.name)
     target.mkdir(parents=True, exist_ok=True)
-    doomed = survey_output(plan, target, force)
+    survey_output(plan, target, force)
     runs_dir = target / RUNS_DIR
+    complete = os.path.lexists(target / MANIFEST_FILE)  # ours: survey_output checked it
+    stamp = _stamp(runs_dir)
+    if stamp is not None and stamp != plan.fingerprint():  # --force: another batch's runs
+        shutil.rmtree(runs_dir)
+        stamp = None
     action = "new results"
-    if force and doomed:
-        removed = clear_folder(target)
+    if complete:
         action = (
-            f"overwriting the previous results (--force): removed {', '.join(removed)}"
-            f" from {target}"
+            f"replacing the previous result in {target} (--force); it stays whole until the"
+            " new batch is complete"
         )
     done: dict[int, dict] = {}
-    if _stamp(runs_dir) is not None:
+    if stamp is not None:
         done, refused = _load_saved_runs(plan, runs_dir)
         action = f"resuming: {len(done)} of {plan.runs} runs already done in {runs_dir}"
         if refused:
             action += f" ({refused} saved run files refused and redone)"
+        if complete:
+            action += "; the previous result is replaced once the batch is complete"
     runs_dir.mkdir(parents=True, exist_ok=True)
-    stamp = runs_dir / FINGERPRINT_FILE
-    write_atomic(stamp, lambda tmp: tmp.write_text(plan.fingerprint() + "\n"))
-    # Results of an earlier, unfinished attempt (no manifest: not complete), and temporary files
-    # of writes a kill cut short (storage.write_atomic names them .<name>.*.tmp).
+    staging = runs_dir / STAGING_DIR
+    if staging.is_symlink() or staging.is_file():
+        staging.unlink()
+    elif staging.is_dir():
+        shutil.rmtree(staging)  # files of a batch killed before it replaced the result
+    stamp_path = runs_dir / FINGERPRINT_FILE
+    write_atomic(stamp_path, lambda tmp: tmp.write_text(plan.fingerprint() + "\n"))
+    # Without a manifest the folder is ours by its run store: results of an earlier, unfinished
+    # attempt (not complete) go, and temporary files of writes a kill cut short
+    # (storage.write_atomic names them .<name>.*.tmp) go always.
     for entry in os.scandir(target):
-        stale = entry.name.endswith((".parquet", ".json")) or _is_temporary(entry.name)
+        stale = _is_temporary(entry.name) or (
+            not complete and entry.name.endswith((".parquet", ".json"))
+        )
         if stale and entry.is_file(follow_symlinks=False):
             os.unlink(entry.path)
     for torn in runs_dir.glob(".*.tmp"):
         torn.unlink(missing_ok=True)
     return target, done, action
+
+
+def result_staging(target: Path) -> Path:
+    """The folder a finished batch writes its files to before they replace the result."""
+    staging = Path(target) / RUNS_DIR / STAGING_DIR
+    staging.mkdir(parents=True, exist_ok=True)
+    return staging
+
+
+def finish_result(target: Path, staging: Path) -> None:
+    """Swap the staged complete result in, then drop the run store."""
+    install_result(target, staging)
+    shutil.rmtree(Path(target) / RUNS_DIR, ignore_errors=True)
 
 
 def save_run(target: Path, result: dict, fingerprint: str) -> None:
@@ -548,8 +606,9 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result):
     ordered = [results[i] for i in range(plan.runs)]
     tables = result_tables(plan, ordered)
     records = tables.summary
+    staging = result_staging(target)
     write_result_tables(
-        target,
+        staging,
         tables,
         steps_table=plan.scenario.steps_table,
         metadata={"scenario": plan.name, "seed": str(plan.seed), "fingerprint": fingerprint},
@@ -565,6 +624,7 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result):
             f.name: engine_of(plan.engine, f, plan.scenario) for f in plan.scenario.filters
         },
         "fast_compiled": fast_compiled(plan.engine),  # false: numba missing, plain Python
+        "format": RESULT_FORMAT,
         "fingerprint": fingerprint,
         "world": {
             "landmarks": plan.world.landmarks.tolist(),
@@ -577,8 +637,8 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result):
         "machine": machine_info(),
         "wall_time_s": round(time.time() - started, 3),
     }
-    write_json(target / MANIFEST_FILE, manifest)
-    shutil.rmtree(target / RUNS_DIR, ignore_errors=True)
+    write_json(staging / MANIFEST_FILE, manifest)
+    finish_result(target, staging)
     return records, target
 
 

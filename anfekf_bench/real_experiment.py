@@ -20,10 +20,10 @@
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import math
-import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -36,6 +36,7 @@ from .analysis.comparisons import comparisons_frame, evaluate_claims
 from .analysis.metrics import add_trace_metrics
 from .analysis.tables import runs_frame, steps_frame, summary_records, update_statistics
 from .engines.events import Timeline, run_ekf_grid, run_filter_events, timeline
+from .filters.custom import CustomSpec, contained
 from .filters.ekf import gate_threshold
 from .filters.spec import FilterContext
 from .models import Unicycle
@@ -49,7 +50,7 @@ from .sources.recorded import (
     naive_covariances,
     p0,
 )
-from .storage import MANIFEST_FILE, RUNS_DIR, scenario_name_problem, write_json
+from .storage import MANIFEST_FILE, RESULT_FORMAT, scenario_name_problem, write_json
 
 LOST_LOCK_M = 1.0  # a run whose position error exceeds this at a scored time has lost lock
 
@@ -134,6 +135,17 @@ def check_real_plan(plan: RealPlan) -> int:
             int(np.sum((d.log.odo_t > d.segment.t0) & (d.log.odo_t <= d.segment.end)))
             for d in plan.world.drives
         )
+    log = plan.world.log
+    for part, segments in (("training", plan.world.train_segments),
+                           ("held-out", plan.world.test_segments)):  # fmt: skip
+        for seg in segments:
+            if not np.any((log.odo_t > seg.t0) & (log.odo_t <= seg.end)):
+                odo = f"{log.odo_t.min():.1f}-{log.odo_t.max():.1f} s" if len(log.odo_t) else "none"
+                raise PlanError(
+                    f"data: {part} segment {seg.index} ({seg.t0:.1f}-{seg.end:.1f} s) holds no"
+                    f" odometry (the log's odometry: {odo}); odometry and ground truth must"
+                    " overlap"
+                )
     return sum(
         int(np.sum((plan.world.log.odo_t > s.t0) & (plan.world.log.odo_t <= s.end)))
         for s in plan.world.test_segments
@@ -515,7 +527,12 @@ def run_segment(
             x0=np.array(seg.pose, dtype=float), P0=p0(scenario), Qu=Qu, R=R, model=model,
             dt=scenario.odometry_period_s, gate=gate,
         )  # fmt: skip
-        trace = run_filter_events(spec.build(ctx), inputs.timeline)
+        if isinstance(spec, CustomSpec):  # its own copy of the events; one line if it raises
+            flt, events = spec.build(ctx), copy.deepcopy(inputs.timeline)
+            hook = "predict/update"
+            trace = contained(name, spec.class_path, hook, run_filter_events, flt, events)
+        else:
+            trace = run_filter_events(spec.build(ctx), inputs.timeline)
         for key in ("x", "P", "R_diag", "Q_diag", "P_infl"):
             trace[key] = _pad(trace[key], n_steps)
         filters[name] = add_trace_metrics(trace, truth)
@@ -611,9 +628,11 @@ def execute_real(
 ) -> tuple[list[dict], Path]:
     """`experiment.execute` for a real-data scenario: same folder rules, run store and files."""
     from .experiment import (
+        finish_result,
         folder_lock,
         package_versions,
         prepare_output,
+        result_staging,
         save_run,
         scenario_folder,
         survey_output,
@@ -630,10 +649,8 @@ def execute_real(
         rec, scenario = plan.world, plan.scenario
         tuned = None
         if isinstance(rec, DriveSet):
-            return_value = _execute_drives(plan, target, done, action, fingerprint, on_start,
-                                           on_result, started)  # fmt: skip
-            shutil.rmtree(target / RUNS_DIR, ignore_errors=True)
-            return return_value
+            return _execute_drives(plan, target, done, action, fingerprint, on_start, on_result,
+                                   started)  # fmt: skip
         if scenario.reference() is not None:
             tuned = tune(scenario, rec, plan.jobs)
             action += (
@@ -665,10 +682,17 @@ def execute_real(
         run_seconds = time.perf_counter() - run_started
         ordered = [results[i] for i in range(plan.runs)]
         tables = real_result_tables(plan, ordered)
-        write_result_tables(target, tables, steps_table=scenario.steps_table)
+        staging = result_staging(target)
+        write_result_tables(
+            staging,
+            tables,
+            steps_table=scenario.steps_table,
+            metadata={"scenario": plan.name, "seed": str(plan.seed), "fingerprint": fingerprint},
+        )
         manifest = {
             "scenario": scenario.model_dump(mode="json"),
             "kind": "recorded",
+            "format": RESULT_FORMAT,
             "runs": plan.runs,
             "seed": plan.seed,
             "jobs": plan.jobs,
@@ -695,15 +719,21 @@ def execute_real(
             "run_seconds": round(run_seconds, 3),
             "wall_time_s": round(time.time() - started, 3),
         }
-        write_json(target / MANIFEST_FILE, manifest)
-        shutil.rmtree(target / RUNS_DIR, ignore_errors=True)
+        write_json(staging / MANIFEST_FILE, manifest)
+        finish_result(target, staging)
     return tables.summary, target
 
 
 def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result, started):
     """`execute_real`'s body for protocol drives: tune per test dataset, run every drive whole."""
+    from .experiment import (
+        finish_result,
+        package_versions,
+        result_staging,
+        save_run,
+        write_result_tables,
+    )
     from .experiment import machine_info as _machine
-    from .experiment import package_versions, save_run, write_result_tables
 
     world, scenario = plan.world, plan.scenario
     inputs = {d.id: segment_inputs(d, d.segment, scenario.eval_period_s) for d in world.drives}
@@ -734,10 +764,17 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
     run_seconds = time.perf_counter() - run_started
     ordered = [results[i] for i in range(plan.runs)]
     tables = real_result_tables(plan, ordered)
-    write_result_tables(target, tables, steps_table=scenario.steps_table)
+    staging = result_staging(target)
+    write_result_tables(
+        staging,
+        tables,
+        steps_table=scenario.steps_table,
+        metadata={"scenario": plan.name, "seed": str(plan.seed), "fingerprint": fingerprint},
+    )
     manifest = {
         "scenario": scenario.model_dump(mode="json"),
         "kind": "recorded",
+        "format": RESULT_FORMAT,
         "protocol": "drives",
         "runs": plan.runs,
         "seed": plan.seed,
@@ -767,5 +804,6 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
         "run_seconds": round(run_seconds, 3),
         "wall_time_s": round(time.time() - started, 3),
     }
-    write_json(target / MANIFEST_FILE, manifest)
+    write_json(staging / MANIFEST_FILE, manifest)
+    finish_result(target, staging)
     return tables.summary, target

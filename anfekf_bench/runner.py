@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
+import copy
 import logging
 import math
 import os
@@ -29,6 +30,7 @@ from .analysis.metrics import add_trace_metrics, recorded_steps
 from .config import Engine, Scenario, World
 from .engines.filterpy_engine import run_filter
 from .filters import FilterSpec
+from .filters.custom import CustomSpec, contained
 from .filters.registry import build_filter, filter_context
 from .sources.simulator import RunData, WorldPath, simulate_run, world_path
 
@@ -52,6 +54,15 @@ def run_filter_on(engine: Engine, spec: FilterSpec, scenario, world: World, data
         if fast.supports(spec) and not follows_schedule(spec, scenario):
             ctx = filter_context(spec, scenario, world)
             return fast.run_filter_fast(spec, ctx, data, world, scenario.record_every)
+    if isinstance(spec, CustomSpec):
+        # A user's filter gets its own copy of the run's arrays (it could write into the scans
+        # every other filter reads), and anything it raises is one line naming it.
+        flt = build_filter(spec, scenario, world)
+        mine = copy.deepcopy(data)
+        hook = "predict/update"
+        return contained(
+            spec.name, spec.class_path, hook, run_filter, flt, mine, world, scenario.record_every
+        )
     return run_filter(build_filter(spec, scenario, world), data, world, scenario.record_every)
 
 

@@ -4,7 +4,8 @@ A scenario's folder holds steps.parquet, summary.parquet, summary.json and, writ
 manifest.json. A folder without manifest.json is not a complete result.
 
 Also here: the layout's own names (`RESERVED_NAMES`: a scenario may not be called like them), the
-lock a batch holds on its folder (`folder_lock`), what `--force` may remove (`foreign_entries`),
+lock a batch holds on its folder (`folder_lock`), what a folder of ours may hold (`foreign_entries`,
+`is_result_manifest`), how a finished batch replaces the previous result (`install_result`),
 the run store's file format (`write_run_file` / `read_run_file`: npz without pickle, keyed to the
 fingerprint), and `open_regular`, through which every file a user names is read (a FIFO, device or
 folder is refused instead of hanging the command).
@@ -20,7 +21,6 @@ import json
 import math
 import os
 import re
-import shutil
 import stat
 import tempfile
 import zipfile
@@ -49,6 +49,11 @@ RUN_FILE_PATTERN = "run-*.npz"  # a finished run in RUNS_DIR (write_run_file)
 LOCK_FILE = ".lock"  # held (flock) by the batch writing a scenario folder
 SWEEP_KIND = "anfekf-bench sweep"  # a sweep folder's manifest.json says `kind: SWEEP_KIND`
 SWEEP_CELLS_DIR = "cells"  # a sweep's cells: <sweep>/cells/<cell>/, each a scenario result
+SWEEP_FILE = "sweep.parquet"  # a sweep's table: one row per cell and filter
+STAGING_DIR = "result"  # in RUNS_DIR: a finished batch's files before they replace the old ones
+RESULT_FORMAT = "anfekf-bench result v1"  # manifest.json's "format": what marks a folder as ours
+RESULT_FILES = (STEPS_FILE, RUNS_FILE, SUMMARY_PARQUET, SUMMARY_JSON, COMPARISONS_FILE, CLAIMS_FILE,
+                PHASES_FILE)  # fmt: skip
 
 # Names a scenario may not take: its folder is a direct child of --out, beside these.
 RESERVED_NAMES = frozenset(
@@ -242,13 +247,31 @@ def _arrow():
     return pa, pq
 
 
+@contextmanager
+def _arrow_file(fh: BinaryIO) -> Iterator[object]:
+    """A native Arrow file over an opened regular file, for pyarrow to read.
+
+    Never the Python file object itself: pyarrow finishes with one (closing it needs the GIL) on
+    its own threads after a read returns, and a process that exits meanwhile aborts with
+    "terminate called without an active exception" (exit 134; apache/arrow#33975, #34314). The
+    file is reopened through /proc/self/fd (the same inode open_regular checked), mapped, not
+    copied; where there is no /proc its bytes are read into memory."""
+    pa, _ = _arrow()
+    proc = f"/proc/self/fd/{fh.fileno()}"
+    source = pa.memory_map(proc) if os.path.exists(proc) else pa.BufferReader(fh.read())
+    try:
+        yield source
+    finally:
+        source.close()
+
+
 def parquet_provenance(path: Path) -> dict[str, str]:
     """A Parquet file's `anfekf.*` key-value metadata (version, git_commit, seed, fingerprint,
     units as JSON, ...), read from its footer: what a copied file says about its origin."""
     pa, pq = _arrow()
-    with _open_result(Path(path), PARQUET_LIMIT) as fh:
+    with _open_result(Path(path), PARQUET_LIMIT) as fh, _arrow_file(fh) as source:
         try:
-            meta = pq.read_metadata(fh).metadata or {}
+            meta = pq.read_metadata(source).metadata or {}
         except (pa.ArrowException, OSError, ValueError) as exc:
             raise ResultsError(f"{path}: not a readable Parquet file ({exc})") from None
     prefix = PARQUET_KEY_PREFIX.encode()
@@ -291,9 +314,9 @@ def _open_result(path: Path, limit: int) -> BinaryIO:
 def read_parquet(path: Path) -> pd.DataFrame:
     pa, pq = _arrow()
     path = Path(path)
-    with _open_result(path, PARQUET_LIMIT) as fh:
+    with _open_result(path, PARQUET_LIMIT) as fh, _arrow_file(fh) as source:
         try:
-            return pq.read_table(fh).to_pandas()
+            return pq.read_table(source).to_pandas()
         except (pa.ArrowException, OSError, ValueError) as exc:
             first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             raise ResultsError(f"{path}: not a readable Parquet file ({first})") from None
@@ -319,6 +342,15 @@ def _finite_float(text: str) -> float:
     return value
 
 
+INT_DIGITS = 30  # far beyond any count or seed we write (seeds < 2^63: 19 digits)
+
+
+def _bounded_int(text: str) -> int:
+    if len(text.lstrip("-")) > INT_DIGITS:
+        raise _BadJSON(f"an integer of {len(text)} digits is out of range (at most {INT_DIGITS})")
+    return int(text)
+
+
 def _no_constant(text: str):
     raise _BadJSON(f"{text} is not a number JSON allows (write null for undefined)")
 
@@ -330,6 +362,7 @@ def parse_strict_json(text: str) -> object:
         text,
         object_pairs_hook=_no_duplicate_keys,
         parse_float=_finite_float,
+        parse_int=_bounded_int,
         parse_constant=_no_constant,
     )
 
@@ -351,14 +384,17 @@ def read_json(path: Path) -> dict | list:
 def scenario_dirs(results_dir: Path) -> list[Path]:
     """The complete scenario folders under `results_dir` (itself one, or its children)."""
     results_dir = Path(results_dir)
-    if not results_dir.exists():
-        raise ResultsError(f"{results_dir}: results folder does not exist")
-    if not results_dir.is_dir():
-        raise ResultsError(f"{results_dir}: not a folder")
-    if _is_result_dir(results_dir):
-        candidates = [results_dir]
-    else:
-        candidates = sorted(p for p in results_dir.iterdir() if _is_result_dir(p))
+    try:
+        if not results_dir.exists():
+            raise ResultsError(f"{results_dir}: results folder does not exist")
+        if not results_dir.is_dir():
+            raise ResultsError(f"{results_dir}: not a folder")
+        if _is_result_dir(results_dir):
+            candidates = [results_dir]
+        else:
+            candidates = sorted(p for p in results_dir.iterdir() if _is_result_dir(p))
+    except OSError as exc:  # a name or path too long (ENAMETOOLONG), no permission, ...
+        raise ResultsError(f"{results_dir}: cannot be read ({exc.strerror or exc})") from None
     if not candidates:
         raise ResultsError(
             f"{results_dir}: no results found (expected {STEPS_FILE} or {SUMMARY_PARQUET} in"
@@ -393,6 +429,70 @@ def read_manifest(folder: Path) -> dict:
     return doc
 
 
+BATCH_FILES = (STEPS_FILE, RUNS_FILE, SUMMARY_PARQUET, COMPARISONS_FILE)
+
+
+def check_one_batch(folder: Path, manifest: dict) -> None:
+    """ResultsError unless every Parquet result file of `folder` says, in its metadata, that it
+    belongs to the batch its manifest describes (the same seed and fingerprint): a file copied
+    in from another batch is refused, not averaged. Files of results written before the
+    manifest had a format are checked only where their metadata holds the keys."""
+    folder = Path(folder)
+    seed = manifest.get("seed")
+    seed = None if seed is None else str(seed)
+    wanted = {"fingerprint": manifest.get("fingerprint"), "seed": seed}
+    strict = manifest.get("format") == RESULT_FORMAT
+    for name in BATCH_FILES:
+        path = folder / name
+        if not os.path.lexists(path):
+            continue
+        found = parquet_provenance(path)
+        for key, want in wanted.items():
+            got = found.get(key)
+            if got is None and not strict:
+                continue
+            if got != want:
+                raise ResultsError(
+                    f"{path}: {key} {str(got)[:20]!r} in its metadata, but {folder / MANIFEST_FILE}"
+                    f" says {str(want)[:20]!r}; the files come from different batches"
+                )
+
+
+def is_result_manifest(doc: object) -> bool:
+    """A manifest this tool wrote for a result: its format (or, written before the format key,
+    this package's version) and a fingerprint. Ownership is decided by this, never by names."""
+    if not isinstance(doc, dict) or not isinstance(doc.get("fingerprint"), str):
+        return False
+    if "format" in doc:
+        return doc["format"] == RESULT_FORMAT
+    versions = doc.get("versions")
+    return isinstance(versions, dict) and isinstance(versions.get("anfekf-bench"), str)
+
+
+def install_result(target: Path, staging: Path) -> None:
+    """Replace the result in `target` by the complete one in `staging` (manifest written last).
+
+    Until this is called the old result stays whole, whatever fails during a batch. The old
+    manifest goes first, so a kill during these few renames leaves a folder that reads as
+    incomplete (never a mix under an old manifest); the run store is still there, and the same
+    command resumes from it (every run saved) and writes the result again.
+    """
+    target, staging = Path(target), Path(staging)
+    new = {p.name for p in staging.iterdir()}
+    if MANIFEST_FILE not in new:
+        raise ResultsError(f"{staging}: incomplete staged result (no {MANIFEST_FILE})")
+    manifest = target / MANIFEST_FILE
+    if manifest.is_file() and not manifest.is_symlink():
+        os.unlink(manifest)
+    for name in RESULT_FILES:
+        old = target / name
+        if name not in new and old.is_file() and not old.is_symlink():
+            os.unlink(old)  # e.g. steps.parquet of a batch that recorded steps, this one does not
+    for name in sorted(new - {MANIFEST_FILE}):
+        os.replace(staging / name, target / name)
+    os.replace(staging / MANIFEST_FILE, manifest)
+
+
 def _check_parquet_footer(path: Path) -> None:
     """A cheap look at a Parquet file's footer (which a truncated file lacks), if it exists.
 
@@ -403,8 +503,8 @@ def _check_parquet_footer(path: Path) -> None:
         return
     pa, pq = _arrow()
     try:
-        with _open_result(path, PARQUET_LIMIT) as fh:
-            pq.read_metadata(fh)
+        with _open_result(path, PARQUET_LIMIT) as fh, _arrow_file(fh) as source:
+            pq.read_metadata(source)
     except (pa.ArrowException, OSError, ValueError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise ResultsError(f"{path}: not a readable Parquet file ({first})") from None
@@ -508,22 +608,6 @@ def foreign_entries(folder: Path) -> list[str]:
     store, symlinks, special files, files of other kinds. --force removes nothing if any."""
     with os.scandir(folder) as entries:
         return sorted(e.name for e in entries if not _is_ours(folder, e))
-
-
-def clear_folder(folder: Path) -> list[str]:
-    """Remove this tool's entries of `folder` (all but the lock); the names removed.
-    Call only when `foreign_entries(folder)` is empty and the lock is held."""
-    removed = []
-    with os.scandir(folder) as entries:
-        for entry in sorted(entries, key=lambda e: e.name):
-            if entry.name == LOCK_FILE or not _is_ours(folder, entry):
-                continue
-            if entry.name == RUNS_DIR:
-                shutil.rmtree(entry.path)  # removes symlinks inside, never follows them
-            else:
-                os.unlink(entry.path)
-            removed.append(entry.name)
-    return removed
 
 
 # ---------------------------------------------------------------------------------------------
@@ -728,3 +812,32 @@ def read_run_file(path: Path, fingerprint: str) -> dict:
     if used != set(arrays) or not isinstance(tree, dict):
         raise RunFileRefused("malformed header")
     return tree
+
+
+def is_sweep_folder(folder: Path) -> bool:
+    """A folder `anfekf run` wrote for a sweep: its manifest says so, and it holds its cells or
+    its table."""
+    folder = Path(folder)
+    manifest = folder / MANIFEST_FILE
+    if not manifest.is_file() or not (
+        (folder / SWEEP_CELLS_DIR).is_dir() or (folder / SWEEP_FILE).is_file()
+    ):
+        return False
+    try:
+        doc = read_json(manifest)
+    except ResultsError:
+        return False
+    return isinstance(doc, dict) and doc.get("kind") == SWEEP_KIND
+
+
+def sweep_folders(results_dir: Path) -> list[Path]:
+    """The sweep folders `results_dir` is or holds (`anfekf run` of a scenario with a sweep)."""
+    results_dir = Path(results_dir)
+    try:
+        if is_sweep_folder(results_dir):
+            return [results_dir]
+        if not results_dir.is_dir():
+            return []
+        return sorted(p for p in results_dir.iterdir() if p.is_dir() and is_sweep_folder(p))
+    except OSError as exc:  # a name or path too long (ENAMETOOLONG), no permission, ...
+        raise ResultsError(f"{results_dir}: cannot be read ({exc.strerror or exc})") from None

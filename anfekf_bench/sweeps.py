@@ -26,21 +26,34 @@ from pathlib import Path
 import pandas as pd
 
 from .config import Scenario, ScenarioError, SweepAxis, World, parse_scenario, resolve_world
-from .experiment import Plan, execute, make_plan, package_versions
+from .experiment import (
+    OutputExists,
+    Plan,
+    PlanError,
+    check_plan,
+    execute,
+    make_plan,
+    package_versions,
+    survey_output,
+)
 from .storage import (
     COMPARISONS_FILE,
     LOCK_FILE,
     MANIFEST_FILE,
     SWEEP_CELLS_DIR,
+    SWEEP_FILE,
     SWEEP_KIND,
+    ResultsError,
     folder_lock,
+    is_result_manifest,
+    parquet_provenance,
     read_json,
     read_parquet,
+    scenario_name_problem,
     write_json,
     write_parquet,
 )
 
-SWEEP_FILE = "sweep.parquet"
 CELLS_DIR = SWEEP_CELLS_DIR
 # The per-cell summary metrics kept in the sweep table.
 SUMMARY_METRICS = ("runs", "runs_used", "diverged", "rmse_pos", "rmse_heading", "anees",
@@ -153,12 +166,103 @@ def cell_complete(folder: Path, plan: Plan) -> bool:
     manifest = folder / MANIFEST_FILE
     if not manifest.is_file():
         return False
-    found = read_json(manifest)
+    try:
+        found = read_json(manifest)
+    except ResultsError as exc:
+        raise SweepError(str(exc)) from None
     if not isinstance(found, dict) or found.get("fingerprint") != plan.fingerprint():
         raise SweepError(
             f"{folder}: holds a result of another version of this cell; use --force to redo it"
         )
     return True
+
+
+def is_sweep_manifest(doc: object) -> bool:
+    """A manifest this tool wrote for a sweep (its kind and this package's version)."""
+    if not isinstance(doc, dict) or doc.get("kind") != SWEEP_KIND:
+        return False
+    versions = doc.get("versions")
+    return isinstance(versions, dict) and isinstance(versions.get("anfekf-bench"), str)
+
+
+def survey_sweep(name: str, out_dir: Path) -> None:
+    """SweepError unless <out>/<name> is absent or a sweep folder of this tool: never a symlink
+    (nor its cells/), no manifest.json of anything but a sweep of ours (an ordinary result of
+    the same name is refused, --force or not), no entries of other kinds. Reads only."""
+    problem = scenario_name_problem(name)
+    if problem:
+        raise SweepError(f"name: {problem}")
+    target = Path(out_dir) / name
+    if target.is_symlink():
+        raise SweepError(f"{target}: is a symbolic link; results are never written through one")
+    if not target.exists():
+        return
+    if not target.is_dir():
+        raise SweepError(f"{target}: exists and is not a folder")
+    cells = target / CELLS_DIR
+    if cells.is_symlink() or (cells.exists() and not cells.is_dir()):
+        raise SweepError(f"{cells}: is not a folder (a symbolic link or a file); refusing it")
+    manifest = target / MANIFEST_FILE
+    if manifest.is_symlink() or (manifest.exists() and not manifest.is_file()):
+        raise SweepError(f"{manifest}: not a regular file; refusing to overwrite it")
+    if manifest.exists():
+        try:
+            doc = read_json(manifest)
+        except ResultsError:
+            doc = None
+        if is_result_manifest(doc):
+            raise SweepError(
+                f"{target}: holds an ordinary result of this name, not a sweep; move it away or"
+                " use another --out"
+            )
+        if not is_sweep_manifest(doc):
+            raise SweepError(
+                f"{manifest}: not a sweep manifest of this tool; nothing is overwritten: move it"
+                " away or use another --out"
+            )
+    sweep_file = target / SWEEP_FILE
+    if sweep_file.is_symlink() or (sweep_file.exists() and not sweep_file.is_file()):
+        raise SweepError(f"{sweep_file}: not a regular file; refusing to overwrite it")
+    if sweep_file.exists() and not manifest.exists():
+        try:
+            ours = "version" in parquet_provenance(sweep_file)
+        except ResultsError:
+            ours = False
+        if not ours:
+            raise SweepError(f"{sweep_file}: not written by this tool; nothing is overwritten")
+    allowed = {CELLS_DIR, SWEEP_FILE, MANIFEST_FILE, LOCK_FILE}
+    foreign = sorted(
+        e.name
+        for e in target.iterdir()
+        if e.name not in allowed and not (e.name.startswith(".") and e.name.endswith(".tmp"))
+    )
+    if foreign:
+        raise SweepError(
+            f"{target}: holds entries this tool did not write ({', '.join(foreign[:3])}); move"
+            " them away or use another --out"
+        )
+
+
+def validate_sweep(
+    name: str, cells: list[Cell], plans: list[Plan], out_dir: Path, *, force: bool
+) -> None:
+    """Everything that can refuse a sweep, for every cell, before any cell runs: the sweep
+    folder, each cell's route and memory (check_plan) and each cell folder (survey_output).
+    SweepError, PlanError or OutputExists; reads only."""
+    survey_sweep(name, out_dir)
+    cells_dir = Path(out_dir) / name / CELLS_DIR
+    for cell, plan in zip(cells, plans, strict=True):
+        try:
+            check_plan(plan)
+        except PlanError as exc:
+            shown = ", ".join(f"{k} = {v:g}" for k, v in cell.coords.items())
+            raise PlanError(f"sweep cell {cell.index} ({shown}): {exc}") from None
+        folder = cells_dir / cell.name
+        if force or not cell_complete(folder, plan):
+            try:
+                survey_output(plan, folder, force)
+            except OutputExists as exc:
+                raise SweepError(str(exc)) from None
 
 
 def run_sweep(
@@ -175,6 +279,7 @@ def run_sweep(
 ) -> tuple[pd.DataFrame, Path]:
     """Run (or reuse) every cell, then write the sweep table and manifest."""
     started = time.time()
+    validate_sweep(name, cells, plans, out_dir, force=force)
     target = Path(out_dir) / name
     cells_dir = target / CELLS_DIR
     reused = []

@@ -107,9 +107,14 @@ def write_results(
         ]
         write_parquet(folder / SUMMARY_PARQUET, pd.DataFrame(records))
         write_json(folder / SUMMARY_JSON, records)
-        declared = [claim(f"anfekf rmse_pos <= 0.6 x ekf ({name})", "holds")]
-        write_json(folder / CLAIMS_FILE, (claims or {}).get(name, declared))
-        manifest = {"seed": SEEDS.get(name, 7), "runs": runs, "fingerprint": "0" * 16}
+        stored = (claims or {}).get(name, [claim("anfekf rmse_pos <= 0.6 x ekf", "holds")])
+        write_json(folder / CLAIMS_FILE, stored)
+        # The scenario declares the claims whose records claims.json holds (check decides them
+        # again from the declaration and the interval).
+        keys = ("filter", "vs", "metric", "at_most", "at_least")
+        declared = [{k: record[k] for k in keys} for record in stored]
+        manifest = {"seed": SEEDS.get(name, 7), "runs": runs, "fingerprint": "0" * 16,
+                    "scenario": {"name": name, "claims": declared}}  # fmt: skip
         write_json(folder / MANIFEST_FILE, manifest)
     return root
 
@@ -253,20 +258,20 @@ def test_other_seed_or_runs_are_not_comparable(gate):
 
 
 CLAIM_VERDICTS = {
-    # id: (verdict, fails the gate, fails it with --strict)
-    "holds": ("holds", False, False),
-    "fails": ("fails", True, True),
-    "inconclusive": ("inconclusive", False, True),
+    # id: (verdict, its interval against at_most 0.6, fails the gate, fails it with --strict)
+    "holds": ("holds", (0.5, 0.45, 0.55), False, False),
+    "fails": ("fails", (0.7, 0.65, 0.8), True, True),
+    "inconclusive": ("inconclusive", (0.6, 0.5, 0.7), False, True),
 }
 
 
 @pytest.mark.parametrize(
-    "verdict, fails, fails_strict", CLAIM_VERDICTS.values(), ids=CLAIM_VERDICTS
+    "verdict, interval, fails, fails_strict", CLAIM_VERDICTS.values(), ids=CLAIM_VERDICTS
 )
 def test_declared_claims_are_checked_even_when_the_baseline_agrees(
-    tmp_path, verdict, fails, fails_strict
+    tmp_path, verdict, interval, fails, fails_strict
 ):
-    claims = {"wrong_r": [claim("anfekf rmse_pos <= 0.6 x ekf", verdict, 0.6, 0.5, 0.7)]}
+    claims = {"wrong_r": [claim("anfekf rmse_pos <= 0.6 x ekf", verdict, *interval)]}
     results = write_results(tmp_path / "res", paper_like(), claims=claims)
     baseline = tmp_path / "ci.json"
     # The baseline is written from these very results, so every metric row passes.
@@ -280,8 +285,9 @@ def test_declared_claims_are_checked_even_when_the_baseline_agrees(
         assert done.exit_code == int(should_fail), done.output
         fails_ = _fail_lines(done.output)
         if should_fail:
+            shown = f"{interval[0]:g} [{interval[1]:g}, {interval[2]:g}]"
             assert fails_ == [
-                f"FAIL claim wrong_r: anfekf rmse_pos <= 0.6 x ekf: {verdict} (0.6 [0.5, 0.7])"
+                f"FAIL claim wrong_r: anfekf rmse_pos <= 0.6 x ekf: {verdict} ({shown})"
             ]
         else:
             assert fails_ == []

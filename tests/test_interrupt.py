@@ -217,7 +217,7 @@ def test_complete_folder_refuses_then_force_overwrites(small, tmp_path) -> None:
 
     forced = cli("run", str(path), "--out", str(out), "--force")
     assert forced.exit_code == 0, forced.output
-    assert "small: overwriting the previous results (--force)" in forced.stdout
+    assert "small: replacing the previous result" in forced.stdout
     pd.testing.assert_frame_equal(read_steps(out / "small"), reference)
 
 
@@ -234,18 +234,37 @@ def test_interrupted_folder_of_another_seed_refuses(small, tmp_path) -> None:
     assert len(list((out / "small" / RUNS_DIR).glob("run-*.npz"))) == 1, "nothing discarded"
 
 
-def test_folder_missing_its_manifest_is_recomputed(small, tmp_path) -> None:
-    """Killed between the last result file and manifest.json: not complete, so redone."""
+def test_folder_killed_while_swapping_in_the_result_is_recomputed(small, tmp_path, monkeypatch):
+    """Killed between the renames that swap a finished batch in (the old manifest already gone,
+    some files replaced): not complete, and the run store is still there, so the same command
+    resumes every run from it and writes the result again."""
+    import anfekf_bench.storage as storage
+
     path, reference = small
     out = tmp_path / "out"
-    assert cli("run", str(path), "--out", str(out)).exit_code == 0
-    (out / "small" / MANIFEST_FILE).unlink()
-    (out / "small" / STEPS_FILE).write_bytes(b"stale")
+    renamed = []
+    real_replace = os.replace
+
+    def die_on_the_second_rename(src, dst):
+        if Path(src).parent.name == "result" and Path(dst).parent.name == "small":
+            if len(renamed) == 1:
+                raise KeyboardInterrupt
+            renamed.append(dst)
+        real_replace(src, dst)
+
+    monkeypatch.setattr(storage.os, "replace", die_on_the_second_rename)
+    plan = make_plan(*load_scenario(path), None, None, 1)
+    with pytest.raises(KeyboardInterrupt):
+        execute(plan, out)
+    monkeypatch.setattr(storage.os, "replace", real_replace)
+    assert not (out / "small" / MANIFEST_FILE).exists()
     with pytest.raises(ResultsError, match="incomplete"):
         scenario_dirs(out)
     rerun = cli("run", str(path), "--out", str(out))
-    assert rerun.exit_code == 0 and "small: new results" in rerun.stdout
+    assert rerun.exit_code == 0, rerun.output
+    assert "small: resuming: 4 of 4 runs" in rerun.stdout
     pd.testing.assert_frame_equal(read_steps(out / "small"), reference)
+    assert not (out / "small" / RUNS_DIR).exists()
 
 
 @pytest.mark.parametrize("existing", [False, True], ids=["new-file", "replacing"])

@@ -66,7 +66,9 @@ def test_what_an_instance_adapts_from_its_spec_or_its_stored_record(record, adap
 def test_a_custom_or_unknown_kind_is_left_to_the_recorded_data():
     record = {"name": "mine", "kind": "custom", "class": "not_installed:Anything"}
     assert registry.adapted_noise(record) is None  # no import of the user's class
-    assert registry.adapted_noise({"name": "t", "kind": "ekf-tuned"}) is None
+    assert registry.adapted_noise({"name": "t", "kind": "no-such-kind"}) is None
+    # ekf-tuned is a registered kind now (simulated and recorded): a fixed EKF
+    assert registry.adapted_noise({"name": "t", "kind": "ekf-tuned"}) == frozenset()
 
 
 def test_a_new_kind_declares_its_capabilities_on_its_spec_class():

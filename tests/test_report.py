@@ -34,7 +34,7 @@ from anfekf_bench.report.report import (
     summary_rows,
     write_report,
 )
-from anfekf_bench.storage import ResultsError, read_steps
+from anfekf_bench.storage import ResultsError, parquet_provenance, read_steps, write_parquet
 
 from .conftest import SMALL_WORLD, small_scenario, write_scenario
 
@@ -363,6 +363,11 @@ def test_rmse_ratio_panel_shows_the_gap_to_the_oracle(results):
     assert fig.axes[2].get_yscale() == "log"
 
 
+def _rewrite(path: Path, df: pd.DataFrame) -> None:
+    """Edit a result file in place, keeping its batch's metadata (seed, fingerprint, units)."""
+    write_parquet(path, df, parquet_provenance(path))
+
+
 def test_diverged_runs_are_left_out_of_curves_bounds_and_table(results, tmp_path):
     """Mark anfekf's run 2 diverged (NaN from mid-route), as the runner records a divergence."""
     folder = _copy_scenario(results, tmp_path / "res" / "tiny_r")
@@ -371,7 +376,7 @@ def test_diverged_runs_are_left_out_of_curves_bounds_and_table(results, tmp_path
     steps.loc[lost, "diverged"] = True
     late = lost & (steps["step"] > steps["step"].median())
     steps.loc[late, ["x_est", "y_est", "P_xx", "P_xy", "P_yy", "pos_err", "nees", "R_rr"]] = np.nan
-    steps.to_parquet(folder / "steps.parquet")
+    _rewrite(folder / "steps.parquet", steps)
     sc = load_scenario_data(folder)
     anf = next(f for f in sc.filters if f.name == "anfekf")
     assert (anf.runs, anf.runs_used) == (RUNS, RUNS - 1)
@@ -578,7 +583,7 @@ def test_outlier_runs_are_marked_and_the_median_shown(results, tmp_path):
     wild = (steps["filter"] == "anfekf") & (steps["run"] == 1)
     steps.loc[wild, "nees"] *= 1000.0
     steps.loc[wild, "R_rr"] *= 1000.0
-    steps.to_parquet(folder / "steps.parquet")
+    _rewrite(folder / "steps.parquet", steps)
     sc = load_scenario_data(folder)
     anf = next(f for f in sc.filters if f.name == "anfekf")
     assert anf.outliers == (1,)

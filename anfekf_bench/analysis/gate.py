@@ -32,17 +32,25 @@ from rich.text import Text
 
 from ..storage import (
     CLAIMS_FILE,
+    COMPARISONS_FILE,
     MANIFEST_FILE,
     SUMMARY_PARQUET,
     SWEEP_CELLS_DIR,
-    SWEEP_KIND,
     ResultsError,
+    check_one_batch,
+    is_sweep_folder,
     read_json,
     read_manifest,
+    read_parquet,
     read_summary,
     scenario_dirs,
+    scenario_name_problem,
+    sweep_folders,
     write_json,
 )
+from .comparisons import SHARE_METRICS, claim_text
+from .comparisons import _point_verdict as point_verdict
+from .statistics import verdict as interval_verdict
 
 BASELINE_FORMAT = "anfekf-bench baseline"
 BASELINE_VERSION = 1
@@ -167,7 +175,7 @@ class ClaimResult:
     estimate: float | None
     lo: float | None
     hi: float | None
-    verdict: str  # "holds", "fails" or "inconclusive"
+    verdict: str  # "holds", "fails", "inconclusive" or "missing" (declared, no result: fails)
     note: str = ""
 
     def passed(self, strict: bool) -> bool:
@@ -233,6 +241,7 @@ def read_scenario(folder: Path, metrics: Iterable[str]) -> ScenarioSummary:
     """A scenario folder's summary and run settings; `metrics` must all be in the summary."""
     manifest_path = folder / MANIFEST_FILE
     manifest = read_manifest(folder)
+    check_one_batch(folder, manifest)
     seed = _manifest_int(manifest, "seed", manifest_path)
     runs = _manifest_int(manifest, "runs", manifest_path)
     summary = read_summary(folder)
@@ -246,6 +255,7 @@ def read_scenario(folder: Path, metrics: Iterable[str]) -> ScenarioSummary:
         raise ResultsError(f"{where}: expected one scenario name, found {names or 'none'}")
     if summary["filter"].duplicated().any():
         raise ResultsError(f"{where}: a filter appears twice")
+    _plain_names(where, names[0], summary["filter"].astype(str).tolist())
     declared = manifest.get("scenario")
     if isinstance(declared, dict) and declared.get("name") != names[0]:
         declared = declared.get("name")
@@ -278,6 +288,18 @@ def read_scenario(folder: Path, metrics: Iterable[str]) -> ScenarioSummary:
     )
 
 
+def _plain_names(where: Path, scenario: str, filters: list[str]) -> None:
+    """Names are printed in the gate's tables: plain text only (never escape sequences or
+    markup a terminal would act on)."""
+    from ..config import FILTER_NAME_PATTERN
+
+    if scenario_name_problem(scenario):
+        raise ResultsError(f"{where}: scenario name {scenario[:40]!r} is not a valid name")
+    for name in filters:
+        if not FILTER_NAME_PATTERN.fullmatch(name):
+            raise ResultsError(f"{where}: filter name {name[:40]!r} is not plain text")
+
+
 def read_results(results_dir: Path, metrics: Iterable[str]) -> dict[str, ScenarioSummary]:
     """Every complete scenario under `results_dir`, by scenario name; a sweep's cells count as
     scenarios named `<sweep>/<cell>` (`results_dir` may be a sweep folder or hold some)."""
@@ -300,26 +322,6 @@ def read_results(results_dir: Path, metrics: Iterable[str]) -> dict[str, Scenari
     return out
 
 
-def _is_sweep(folder: Path) -> bool:
-    manifest = Path(folder) / MANIFEST_FILE
-    if not manifest.is_file() or not (Path(folder) / SWEEP_CELLS_DIR).is_dir():
-        return False
-    try:
-        return read_json(manifest).get("kind") == SWEEP_KIND
-    except (ResultsError, AttributeError):
-        return False
-
-
-def sweep_folders(results_dir: Path) -> list[Path]:
-    """The sweep folders `results_dir` is or holds (`anfekf run` of a scenario with a sweep)."""
-    results_dir = Path(results_dir)
-    if _is_sweep(results_dir):
-        return [results_dir]
-    if not results_dir.is_dir():
-        return []
-    return sorted(p for p in results_dir.iterdir() if p.is_dir() and _is_sweep(p))
-
-
 def _holds_results(results_dir: Path) -> bool:
     """Whether `results_dir` is or holds an ordinary scenario result (besides its sweeps)."""
 
@@ -329,10 +331,10 @@ def _holds_results(results_dir: Path) -> bool:
         )
 
     results_dir = Path(results_dir)
-    if _is_sweep(results_dir):
+    if is_sweep_folder(results_dir):
         return False
     return is_result(results_dir) or any(
-        is_result(p) for p in results_dir.iterdir() if p.is_dir() and not _is_sweep(p)
+        is_result(p) for p in results_dir.iterdir() if p.is_dir() and not is_sweep_folder(p)
     )
 
 
@@ -638,29 +640,92 @@ def _optional(value) -> float | None:
     return None if value is None else _number(value)
 
 
-def read_claims(folder: Path, scenario: str) -> list[ClaimResult]:
-    """The verdicts `anfekf run` wrote for the claims a scenario declares (SPEC 8)."""
-    path = Path(folder) / CLAIMS_FILE
-    if not path.exists():  # results of a version without claims.json: nothing declared
+def _stored_claims(path: Path) -> list[dict]:
+    """claims.json's records (their intervals; their verdicts are never trusted)."""
+    if not path.exists():
         return []
     doc = read_json(path)
-    out = []
     if not isinstance(doc, list):
         raise ResultsError(f"{path}: expected a list of claims")
+    out = []
     for item in doc:
         try:
-            verdict = item["verdict"]
-            if verdict not in ("holds", "fails", "inconclusive"):
-                raise ValueError(verdict)
             out.append(
-                ClaimResult(
-                    scenario=scenario, text=str(item["claim"]),
-                    estimate=_optional(item["estimate"]), lo=_optional(item["lo"]),
-                    hi=_optional(item["hi"]), verdict=verdict, note=str(item.get("warning", "")),
-                )
+                {"claim": str(item["claim"]), "estimate": _optional(item["estimate"]),
+                 "lo": _optional(item["lo"]), "hi": _optional(item["hi"]),
+                 "verdict": str(item["verdict"]), "warning": str(item.get("warning", ""))}
             )  # fmt: skip
         except (KeyError, TypeError, ValueError, BaselineError):
             raise ResultsError(f"{path}: not a claims file written by anfekf run") from None
+    return out
+
+
+def _declared_claims(folder: Path) -> list:
+    """The claims the scenario declares, from its manifest (what was run, whatever claims.json
+    says)."""
+    from ..config import ClaimSpec  # the scenario schema: imported only when claims are checked
+
+    path = Path(folder) / MANIFEST_FILE
+    scenario = read_manifest(folder).get("scenario")
+    declared = scenario.get("claims", []) if isinstance(scenario, dict) else []
+    if not isinstance(declared, list):
+        raise ResultsError(f"{path}: scenario.claims: expected a list")
+    out = []
+    for i, item in enumerate(declared):
+        try:
+            out.append(ClaimSpec.model_validate(item))
+        except ValueError:
+            raise ResultsError(f"{path}: scenario.claims.{i}: not a claim") from None
+    return out
+
+
+def _compared(folder: Path, claim) -> tuple[float, float, float] | None:
+    """The paired interval of a claim's (filter, vs, metric) in comparisons.parquet, if there."""
+    path = Path(folder) / COMPARISONS_FILE
+    if claim.vs is None or not path.exists():
+        return None
+    table = read_parquet(path)
+    if not {"filter", "vs", "metric", "estimate", "lo", "hi"} <= set(table.columns):
+        raise ResultsError(f"{path}: missing the filter, vs, metric or interval columns")
+    hit = table[
+        (table["filter"].astype(str) == claim.filter)
+        & (table["vs"].astype(str) == claim.vs)
+        & (table["metric"].astype(str) == claim.metric)
+    ]
+    if len(hit) == 0:
+        return None
+    try:
+        return tuple(_number(hit.iloc[0][k]) for k in ("estimate", "lo", "hi"))
+    except (TypeError, ValueError):
+        shown = claim_text(claim)
+        raise ResultsError(f"{path}: the interval of {shown!r} is not numbers") from None
+
+
+def read_claims(folder: Path, scenario: str) -> list[ClaimResult]:
+    """Every claim the scenario declares (SPEC 8), its verdict decided here again on its paired
+    interval (comparisons.parquet, else claims.json) and the declared threshold: a verdict
+    stored in claims.json is never trusted, and a declared claim without an interval fails."""
+    stored = {r["claim"]: r for r in _stored_claims(Path(folder) / CLAIMS_FILE)}
+    out = []
+    for claim in _declared_claims(folder):
+        text = claim_text(claim)
+        record = stored.get(text)
+        found = _compared(folder, claim)
+        if found is None and record is not None:
+            found = (record["estimate"], record["lo"], record["hi"])
+        if found is None:
+            out.append(ClaimResult(scenario, text, None, None, None, "missing",
+                                   "declared by the scenario, but no result for it"))  # fmt: skip
+            continue
+        estimate, lo, hi = (math.nan if v is None else v for v in found)
+        if claim.vs is None and claim.metric in SHARE_METRICS:
+            verdict = point_verdict(estimate, claim.at_most, claim.at_least)
+        else:
+            verdict = interval_verdict(lo, hi, at_most=claim.at_most, at_least=claim.at_least)
+        note = record["warning"] if record is not None else ""
+        if record is not None and record["verdict"] != verdict:
+            note = (note + "; " if note else "") + f"claims.json said {record['verdict']!r:.20}"
+        out.append(ClaimResult(scenario, text, *found, verdict, note))
     return out
 
 

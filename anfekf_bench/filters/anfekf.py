@@ -9,7 +9,7 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from ..schema import NonNegativeFloat, PositiveFloat
+from ..schema import FiniteFloat, NonNegativeFloat, PositiveFloat
 from . import anfis
 from .adaptive import AdaptiveEKF
 from .ekf import Innovation
@@ -80,8 +80,12 @@ class ANFEKFSpec(AdaptiveSpec):
         (0.01, 0.01, 0.05), description="steepest-descent rates for (centres, widths, singletons)"
     )
     singleton_scale: PositiveFloat = Field(0.1, description="a: S1..S7 = a * (-3..3)")
-    centres_d: tuple[float, float, float, float, float] = (-1.0, -0.5, 0.0, 0.5, 1.0)
-    centres_dd: tuple[float, float, float, float, float] = (-0.2, -0.1, 0.0, 0.1, 0.2)
+    centres_d: tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat] = (
+        -1.0, -0.5, 0.0, 0.5, 1.0,
+    )  # fmt: skip
+    centres_dd: tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat] = (
+        -0.2, -0.1, 0.0, 0.1, 0.2,
+    )  # fmt: skip
     width_d: PositiveFloat = 0.35
     width_dd: PositiveFloat = 0.1
     output_clip: PositiveFloat = Field(1.0, description="|o| limit: one step scales by <= e^clip")

@@ -17,9 +17,12 @@ from __future__ import annotations
 
 import importlib
 import re
+import warnings
+from collections.abc import Callable
 from importlib.metadata import entry_points
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
+import numpy as np
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
 from .ekf import RobotEKF
@@ -29,14 +32,50 @@ ENTRY_POINT_GROUP = "anfekf_bench.filters"
 CLASS_PATH = r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*$"
 
 
+T = TypeVar("T")
+_COMPLEX_WARNING = getattr(getattr(np, "exceptions", np), "ComplexWarning", Warning)
+
+
+class CustomFilterFailed(Exception):
+    """A user's filter raised while being built or run; `str()` is the one-line message.
+
+    Raised in a worker, it reaches the command through joblib or Dask as itself (one argument,
+    so it pickles), and ends the batch in one line, exit 2; the saved runs and any previous
+    result stay."""
+
+
+def _shown(exc: BaseException) -> str:
+    text = str(exc).replace("\n", " ")
+    return type(exc).__name__ + (f": {text[:200]}" if text else "")
+
+
+def contained(name: str, class_path: str, hook: str, call: Callable[..., T], *args) -> T:
+    """`call(*args)`, with anything a user's code raises (SystemExit and other BaseExceptions
+    included) turned into CustomFilterFailed naming the filter and the hook. A plain
+    KeyboardInterrupt passes: it is the user's Ctrl-C, and the batch stops as interrupted."""
+    try:
+        with warnings.catch_warnings():
+            # A complex number cast to real: the filter's state is of the wrong type.
+            warnings.simplefilter("error", _COMPLEX_WARNING)
+            return call(*args)
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:  # noqa: BLE001 - a user's filter may raise anything
+        raise CustomFilterFailed(
+            f"filter {name!r} ({class_path}): {hook} raised {_shown(exc)}"
+        ) from None
+
+
 def load_filter_class(path: str) -> type[RobotEKF]:
     """The class named `module:Class`; ValueError (one line) if it cannot be used."""
     module_name, _, class_name = path.partition(":")
     try:
         module = importlib.import_module(module_name)
-    except Exception as exc:  # the user's module may fail in any way while importing
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:  # the user's module may fail in any way (sys.exit too)
         raise ValueError(
-            f"cannot import module {module_name!r} ({type(exc).__name__}: {exc}); is it"
+            f"cannot import module {module_name!r} ({_shown(exc)}); is it"
             " installed or on PYTHONPATH?"
         ) from None
     cls = getattr(module, class_name, None)
@@ -93,7 +132,12 @@ class CustomSpec(FilterSpec):
         return load_filter_class(self.class_path)
 
     def build(self, ctx: FilterContext) -> RobotEKF:
+        """The user's filter, given its own copies of the context's arrays (x0 is the world's:
+        a filter writing into it must not move every other filter's start)."""
         cls = self.filter_class()
         schema = getattr(cls, "Params", None)
         params = schema.model_validate(self.params) if schema is not None else None
-        return cls(**ctx.kwargs(), params=params)
+        kwargs = {k: v.copy() if isinstance(v, np.ndarray) else v for k, v in ctx.kwargs().items()}
+        return contained(
+            self.name, self.class_path, "__init__", lambda: cls(**kwargs, params=params)
+        )

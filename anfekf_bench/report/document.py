@@ -149,13 +149,35 @@ _EM = re.compile(r"(?<![*\w])\*([^*\s][^*]*)\*(?![*\w])")
 _LINK = re.compile(r"\[([^\]]+)\]\(([^)\s]+)\)")
 
 
+_SCHEME = re.compile(r"([A-Za-z][A-Za-z0-9+.-]*):")
+LINK_SCHEMES = ("http", "https")  # besides relative links: nothing that runs (javascript:, data:)
+
+
+def safe_href(url: str) -> bool:
+    """Whether a link target may become a live link: http(s) or relative. Checked on the text a
+    browser would see (entities decoded, the control characters and spaces it skips removed)."""
+    seen = re.sub(r"[\x00-\x20\x7f]", "", html.unescape(url))
+    scheme = _SCHEME.match(seen)
+    if scheme is not None:
+        return scheme.group(1).lower() in LINK_SCHEMES
+    return not seen.startswith("\\")
+
+
+def _link(match: re.Match) -> str:
+    text, url = match.group(1), match.group(2)
+    if safe_href(url):
+        return f'<a href="{url}">{text}</a>'
+    return match.group(0)  # shown as the (escaped) text it was written as
+
+
 def inline_html(text: str) -> str:
-    """The markdown subset of a block's text as HTML (everything else escaped)."""
+    """The markdown subset of a block's text as HTML (everything else escaped); a link only to
+    an http(s) or relative address (`safe_href`), any other shown as plain text."""
     out = html.escape(text, quote=True)
     out = _CODE.sub(r"<code>\1</code>", out)
     out = _BOLD.sub(r"<strong>\1</strong>", out)
     out = _EM.sub(r"<em>\1</em>", out)
-    return _LINK.sub(r'<a href="\2">\1</a>', out)
+    return _LINK.sub(_link, out)
 
 
 def _slug(text: str) -> str:

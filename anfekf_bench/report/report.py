@@ -48,6 +48,7 @@ from ..storage import (
     RUNS_FILE,
     STEPS_FILE,
     ResultsError,
+    check_one_batch,
     read_json,
     read_manifest,
     read_parquet,
@@ -528,6 +529,7 @@ def load_scenario_data(folder: Path) -> ScenarioData:
     from .consistency import check_saved_result  # one batch's steps, whole, under plain names
 
     check_saved_result(folder, steps, manifest)
+    check_one_batch(folder, manifest)
     names = [str(n) for n in steps["filter"].cat.categories if (steps["filter"] == n).any()]
     unknown = [n for n in names if n not in specs]
     if unknown:
@@ -559,6 +561,7 @@ def load_summary_only(folder: Path) -> ScenarioData:
     folder = Path(folder)
     manifest = _manifest(folder)
     manifest_path = folder / MANIFEST_FILE
+    check_one_batch(folder, manifest)
     if manifest["scenario"].get("steps_table", True) is not False:
         # The scenario writes steps.parquet: its absence is damage, not a summary-only result.
         raise ResultsError(

@@ -17,10 +17,16 @@ from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-from ..storage import MANIFEST_FILE, SWEEP_KIND, ResultsError, read_json, read_parquet
+from ..storage import (
+    MANIFEST_FILE,
+    SWEEP_FILE,
+    ResultsError,
+    read_json,
+    read_parquet,
+    sweep_folders,
+)
 from .plots import filter_colour, save_figure
 
-SWEEP_FILE = "sweep.parquet"
 # (column, its interval's columns or None, title, log scale, the value marking "as good as" the
 # reference, or None)
 PANELS = (
@@ -43,18 +49,6 @@ class SweepData:
     factor_axes: set[str]
     table: pd.DataFrame
     runs: int
-
-
-def is_sweep(folder: Path) -> bool:
-    """A folder `anfekf run` wrote for a sweep (its manifest says so)."""
-    manifest = Path(folder) / MANIFEST_FILE
-    if not (Path(folder) / SWEEP_FILE).is_file() or not manifest.is_file():
-        return False
-    try:
-        doc = read_json(manifest)
-    except ResultsError:
-        return False
-    return isinstance(doc, dict) and doc.get("kind") == SWEEP_KIND
 
 
 def read_sweep(folder: Path) -> SweepData:
@@ -97,6 +91,14 @@ def line_figure(data: SweepData, axis: str, rows: pd.DataFrame, title: str) -> F
     fig = Figure(figsize=(10, 7), layout="constrained")
     grid = fig.subplots(2, 2)
     for ax, (column, interval, label, log, reference) in zip(grid.ravel(), PANELS, strict=True):
+        if not np.isfinite(rows[column].to_numpy(float)).any():
+            # e.g. a ratio to the oracle in a sweep without ekf-oracle: nothing to draw (and a
+            # log axis over no data cannot be scaled)
+            ax.text(0.5, 0.5, "no values (no reference filter in this sweep)", ha="center",
+                    va="center", transform=ax.transAxes)  # fmt: skip
+            ax.set_title(label)
+            ax.set_axis_off()
+            continue
         for name, sub in rows.groupby("filter", observed=True, sort=False):
             sub = sub.sort_values(axis)
             x, y = sub[axis].to_numpy(float), sub[column].to_numpy(float)
@@ -120,7 +122,9 @@ def line_figure(data: SweepData, axis: str, rows: pd.DataFrame, title: str) -> F
             _log_axis(ax.yaxis)
         ax.set_xlabel(axis)
         ax.set_title(label)
-    grid[0, 0].legend(loc="best")
+    drawn = [ax for ax in grid.ravel() if ax.get_legend_handles_labels()[0]]
+    if drawn:
+        drawn[0].legend(loc="best")
     fig.suptitle(title)
     return fig
 
@@ -274,13 +278,7 @@ SWEEPS_REPORT = "sweeps.md"
 
 def find_sweeps(folders: list[Path]) -> list[Path]:
     """The sweep folders among `folders` and their children."""
-    found = []
-    for folder in map(Path, folders):
-        if is_sweep(folder):
-            found.append(folder)
-        elif folder.is_dir():
-            found += sorted(p for p in folder.iterdir() if p.is_dir() and is_sweep(p))
-    return found
+    return [sweep for folder in folders for sweep in sweep_folders(folder)]
 
 
 def has_scenario_results(folders: list[Path]) -> bool:

@@ -620,7 +620,7 @@ def regenerate_drive_copies(
 def _read_parquet(path: Path) -> pa.Table:
     data = _read_regular_file(path)
     try:
-        return pq.read_table(io.BytesIO(data))
+        return pq.read_table(pa.BufferReader(data))  # not a Python file object: arrow#33975
     except (pa.ArrowException, OSError, ValueError):
         raise LogError(path, "", "is not a readable Parquet file") from None
 

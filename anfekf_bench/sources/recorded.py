@@ -36,6 +36,7 @@ from ..config import (
     ScenarioError,
     _format_validation_error,
     check_named_filters,
+    check_plain_names,
     check_unique_names,
 )
 from ..filters.ekf import RobotEKF
@@ -116,10 +117,10 @@ class NaiveNoise(StrictModel):
     Unicycle's rate-consistent Qu); sigma_range [m], sigma_bearing_rad [rad].
     """
 
-    sigma_v: PositiveFloat = 0.1
-    sigma_w_rad: PositiveFloat = 0.1
-    sigma_range: PositiveFloat = 0.1
-    sigma_bearing_rad: PositiveFloat = 0.05
+    sigma_v: Annotated[PositiveFloat, Field(le=1e3)] = 0.1
+    sigma_w_rad: Annotated[PositiveFloat, Field(le=1e3)] = 0.1
+    sigma_range: Annotated[PositiveFloat, Field(le=1e3)] = 0.1
+    sigma_bearing_rad: Annotated[PositiveFloat, Field(le=1e3)] = 0.05
 
     def sigmas(self) -> np.ndarray:
         """(sv, sw, sr, sb)."""
@@ -189,7 +190,10 @@ class RealScenario(StrictModel):
         None, description="split this many seconds after the first ground-truth stamp instead"
     )
     segment_s: PositiveFloat = Field(
-        60.0, description="segment length [s] of both parts; each segment is cold-started"
+        60.0,
+        ge=1.0,  # shorter segments are mostly cold start, and their count would explode
+        le=1e6,
+        description="segment length [s] of both parts; each segment is cold-started",
     )
     min_scorable_s: Annotated[float, Field(ge=0, allow_inf_nan=False)] = Field(
         10.0, description="segments with less scorable ground truth are left out"
@@ -203,13 +207,16 @@ class RealScenario(StrictModel):
         0.12, description="T0 of the Unicycle: the step the naive sigma_v, sigma_w refer to"
     )
     naive: NaiveNoise = NaiveNoise()
-    starts: list[PositiveFloat] = Field(
+    starts: list[Annotated[PositiveFloat, Field(le=1e3)]] = Field(
         [0.25, 1.0, 4.0], min_length=1, max_length=20,
         description="multipliers of the naive standard deviations each filter starts from",
     )  # fmt: skip
     tuning: TuningConfig = TuningConfig()
-    p0_std_xy: PositiveFloat = Field(0.05, description="initial std of x and y [m]")
-    p0_std_phi_rad: PositiveFloat = Field(0.05, description="initial std of the heading [rad]")
+    # Bounded so that the variances (squares, then times the starts) stay finite.
+    p0_std_xy: PositiveFloat = Field(0.05, le=1e4, description="initial std of x and y [m]")
+    p0_std_phi_rad: PositiveFloat = Field(
+        0.05, le=1e3, description="initial std of the heading [rad]"
+    )
     gate_probability: Annotated[float, Field(gt=0, lt=1)] | None = Field(
         0.999, description="chi-square validation gate (eq. 26); null switches it off"
     )
@@ -281,6 +288,7 @@ class RealScenario(StrictModel):
     @field_validator("filters")
     @classmethod
     def _filters(cls, filters: list) -> list:
+        check_plain_names(filters)
         check_unique_names(filters)
         if any(f.kind == "ekf-oracle" for f in filters):
             raise ValueError("ekf-oracle needs the true noise, which a recorded log does not have")

@@ -136,6 +136,9 @@ def _check_real_manifest(path: Path, manifest: dict) -> None:
     data = manifest["data"]
     if not isinstance(data, dict):
         raise ResultsError(f"{path}: data: expected an object")
+    if manifest.get("protocol") == "drives":
+        _check_drives(path, data)
+        return
     segments = data.get("segments")
     if not isinstance(segments, list) or not all(
         isinstance(s, dict) and _finite(s.get("t0")) and type(s.get("index")) is int
@@ -164,6 +167,29 @@ def _check_real_manifest(path: Path, manifest: dict) -> None:
             isinstance(v, list) and len(v) == 2 and all(_finite(t) for t in v) for v in spans
         ):
             raise ResultsError(f"{path}: data.{key}: expected a list of [start, end] in seconds")
+
+
+def _check_drives(path: Path, data: dict) -> None:
+    """The drives of a cross-drive result as the report draws them: each a plain id and its
+    dataset's landmarks (finite x and y lists of one length)."""
+    drives = data.get("drives")
+    if not isinstance(drives, list) or not drives:
+        raise ResultsError(f"{path}: data.drives: expected a non-empty list of drives")
+    for i, d in enumerate(drives):
+        landmarks = d.get("landmarks") if isinstance(d, dict) else None
+        columns = [landmarks.get(k) for k in ("x", "y")] if isinstance(landmarks, dict) else []
+        if (
+            not isinstance(d.get("drive") if isinstance(d, dict) else None, str)
+            or scenario_name_problem(d["drive"])
+            or len(columns) != 2
+            or not all(isinstance(c, list) for c in columns)
+            or len({len(c) for c in columns}) != 1
+            or not all(_finite(v, COORDINATE_LIMIT) for c in columns for v in c)
+        ):
+            raise ResultsError(
+                f"{path}: data.drives.{i}: expected a plain drive id and landmarks x, y (finite"
+                f" numbers within {COORDINATE_LIMIT:g} m, lists of one length)"
+            )
 
 
 def load_real(folder: Path) -> RealData:

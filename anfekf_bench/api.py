@@ -22,8 +22,9 @@ from pathlib import Path
 
 import pandas as pd
 
-from .config import ScenarioError, load_scenario, scenario_from_data
+from .config import ScenarioError
 from .experiment import Plan, PlanError, execute, make_plan
+from .scenarios import load_scenario, scenario_from_data
 from .storage import (
     CLAIMS_FILE,
     COMPARISONS_FILE,

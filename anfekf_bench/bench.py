@@ -50,14 +50,16 @@ from filterpy.kalman import ExtendedKalmanFilter
 from rich.table import Table
 
 from .analysis.metrics import add_trace_metrics, recorded_steps
-from .config import Scenario, World, load_scenario, parse_scenario, scenario_files
+from .config import Scenario, World, parse_scenario, scenario_files
 from .engines.filterpy_engine import run_filter
 from .experiment import execute, machine_info, make_plan, package_versions
 from .filters import ANFEKFSpec, EKFSpec, FilterContext, FilterSpec, RobotEKF, build_filter
 from .models import F_jacobian, G_jacobian, H_jacobian, f, h, residual_z
-from .runner import local_workers, run_batch, simulate
+from .runner import run_batch, simulate
+from .scenarios import load_scenario
 from .sources.simulator import RunData
 from .storage import STEPS_FILE, output_path_problem, write_json
+from .workers import local_workers
 
 # Per-step figures use the correct-noise scenario: there the gate accepts (nearly) every
 # measurement for both filters, so the bare loop (no gate) and the harness do the same updates.

@@ -34,7 +34,6 @@ from .config import (
     MAX_RUNS,
     MAX_SEED,
     ScenarioError,
-    load_scenario,
     one_line,
     scenario_files,
 )
@@ -51,6 +50,7 @@ from .experiment import (
 from .filters.custom import CustomFilterFailed
 from .provenance import version_line
 from .runner import BackendUnavailable
+from .scenarios import load_scenario
 from .sources.simulator import RouteNotCompleted
 from .storage import (
     MANIFEST_FILE,

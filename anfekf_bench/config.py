@@ -638,8 +638,9 @@ def load_yaml(text: str) -> object:
         loader.dispose()
 
 
-def load_scenario(path: str | Path) -> tuple[Scenario, World]:
-    """Read, validate and resolve a scenario file; raises ScenarioError with a one-line message."""
+def read_scenario_document(path: str | Path) -> object:
+    """A scenario file's YAML document (not yet validated); raises ScenarioError with a one-line
+    message. `scenarios.load_scenario` validates and resolves it, whatever its source."""
     path = Path(path)
     try:
         raw = read_regular_bytes(path, SCENARIO_FILE_LIMIT)
@@ -666,19 +667,7 @@ def load_scenario(path: str | Path) -> tuple[Scenario, World]:
         raise ScenarioError(path, "", f"YAML {exc}; not a scenario") from None
     except RecursionError:
         raise ScenarioError(path, "", "YAML nested too deeply") from None
-    return scenario_from_data(data, path)
-
-
-def scenario_from_data(data: object, path: str | Path) -> tuple[Scenario, World]:
-    """A scenario document already read (a file's YAML, or a dict from Python) validated and
-    resolved; relative paths in it are taken relative to `path`'s folder."""
-    path = Path(path)
-    if isinstance(data, dict) and "data" in data:  # a recorded log, not the simulator (SPEC 9)
-        from .sources.recorded import load_recorded
-
-        return load_recorded(data, path)
-    scenario = parse_scenario(data, path)
-    return scenario, resolve_world(scenario.world, path)
+    return data
 
 
 def scenario_files(target: str | Path) -> list[Path]:

@@ -18,23 +18,16 @@ import contextlib
 import hashlib
 import json
 import os
-import platform
-import re
-import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
-import pandas as pd
 from pydantic import ValidationError
 
 from .analysis.comparisons import comparison_pairs, comparisons_frame, evaluate_claims
 from .analysis.phases import phases_frame, summary_tracking
 from .analysis.tables import (
-    column_units,
-    parquet_frame,
     runs_frame,
     steps_frame,
     summary_records,
@@ -43,61 +36,35 @@ from .analysis.tables import (
 from .config import BackendConfig, Engine, Scenario, World
 from .filters.custom import CustomFilterFailed, CustomSpec
 from .filters.registry import build_filter
+from .outputs import (
+    OutputExists,
+    PlanError,
+    ResultTables,
+    code_version,
+    finish_result,
+    machine_info,
+    package_versions,
+    prepare_output,
+    result_staging,
+    save_run,
+    scenario_folder,
+    survey_output,
+    write_result_tables,
+)
 from .runner import connect_dask, engine_of, fast_compiled, run_batch
 from .sources.simulator import RouteNotCompleted, simulate_truth
 from .storage import (
-    CLAIMS_FILE,
-    COMPARISONS_FILE,
-    LOCK_FILE,
     MANIFEST_FILE,
-    PHASES_FILE,
     RESULT_FORMAT,
-    RUN_FILE_PATTERN,
     RUNS_DIR,
-    RUNS_FILE,
-    STAGING_DIR,
-    STEPS_FILE,
-    SUMMARY_JSON,
-    SUMMARY_PARQUET,
-    FileProblem,
     FolderBusy,
-    ResultsError,
-    RunFileRefused,
     folder_lock,
-    foreign_entries,
-    install_result,
-    is_result_manifest,
-    read_json,
-    read_regular_bytes,
-    read_run_file,
     scenario_name_problem,
-    write_atomic,
     write_json,
-    write_parquet,
-    write_run_file,
 )
 from .training import fit_filters
 
 __all__ = ["FolderBusy", "OutputExists", "PlanError", "RUNS_DIR", "execute", "make_plan"]
-
-_PACKAGES = (
-    "anfekf-bench",
-    "numpy",
-    "scipy",
-    "filterpy",
-    "pandas",
-    "pyarrow",
-    "joblib",
-    "pydantic",
-)
-
-
-class OutputExists(Exception):
-    """The output folder holds results we must not overwrite silently."""
-
-
-class PlanError(ValueError):
-    """Command-line overrides that do not fit together; `str()` is the one-line message."""
 
 
 @dataclass(frozen=True)
@@ -148,29 +115,6 @@ class Plan:
             "code": code_version(),
         }
         return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
-
-
-def code_version() -> str:
-    """Hash of this package's source: runs saved by other code must not be resumed into a batch."""
-    digest = hashlib.sha256()
-    package = Path(__file__).parent
-    for path in sorted(package.rglob("*.py")):
-        digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes())
-    return digest.hexdigest()[:16]
-
-
-def machine_info() -> dict:
-    """Cores this process may use, the CPU model (from /proc/cpuinfo) and the platform."""
-    model = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        model = platform.processor() or "unknown"
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return {"cores": cores, "cpu_model": model, "platform": platform.platform()}
 
 
 def make_plan(
@@ -225,22 +169,6 @@ def resolve_backend(base: BackendConfig, kind: str | None, scheduler: str | None
         ) from None
 
 
-def package_versions() -> dict[str, str]:
-    out = {"python": platform.python_version()}
-    for pkg in _PACKAGES:
-        try:
-            out[pkg] = version(pkg)
-        except PackageNotFoundError:
-            out[pkg] = "not installed"
-    return out
-
-
-# --------------------------------------------------------------------------------------------
-# Validate first: values, route and memory (nothing on disk is touched)
-
-# Memory model of a batch (see check_plan): what one filter records per step (x 3, P 9, R and Q
-# diagonals 4, errors and NEES 3, with room for more), what the steps table costs per row (its
-# columns, twice while pandas assembles it), one worker process with its libraries loaded.
 FLOATS_PER_TRACE_STEP = 24
 STEPS_TABLE_BYTES_PER_ROW = 2 * 8 * 28
 WORKER_BASE_BYTES = 250 * 2**20
@@ -337,203 +265,6 @@ def check_plan(plan: Plan) -> int:
 
 # --------------------------------------------------------------------------------------------
 # The scenario folder: confined, surveyed read-only, then (locked) prepared
-
-FINGERPRINT_FILE = "fingerprint"  # in RUNS_DIR: the batch its saved runs belong to
-_RUN_FILE = re.compile(r"run-([0-9]{6,9})\.npz")
-
-
-def scenario_folder(out_dir: Path, name: str) -> Path:
-    """<out>/<name>, a direct child of --out with a safe name, not a symlink, not a file."""
-    problem = scenario_name_problem(name)
-    if problem:
-        raise OutputExists(f"name {name!r}: {problem}")
-    target = Path(out_dir) / name
-    if target.is_symlink():
-        raise OutputExists(
-            f"{target}: is a symbolic link; results are never written (or removed) through one"
-        )
-    if os.path.lexists(target) and not target.is_dir():
-        raise OutputExists(f"{target}: exists and is not a folder")
-    return target
-
-
-def _stamp(runs_dir: Path) -> str | None:
-    """The fingerprint of the saved runs, None without one (OutputExists if unreadable)."""
-    path = runs_dir / FINGERPRINT_FILE
-    if not os.path.lexists(path):
-        return None
-    try:
-        return read_regular_bytes(path, 1024).decode("ascii", "replace").strip()
-    except FileProblem as exc:
-        raise OutputExists(f"{path}: {exc}") from None
-
-
-def _is_temporary(name: str) -> bool:
-    return name.startswith(".") and name.endswith(".tmp")  # storage.write_atomic's names
-
-
-def _is_our_manifest(target: Path) -> bool:
-    try:
-        doc = read_json(target / MANIFEST_FILE)
-    except ResultsError:
-        return False
-    return is_result_manifest(doc)
-
-
-def _is_our_store(runs_dir: Path) -> bool:
-    """A run store of this tool: stamped with a batch's fingerprint, or what a kill before the
-    stamp leaves (an empty store, or one holding only temporaries)."""
-    if runs_dir.is_symlink() or not runs_dir.is_dir():
-        return False
-    if os.path.lexists(runs_dir / FINGERPRINT_FILE):
-        return True
-    return all(_is_temporary(e.name) for e in os.scandir(runs_dir))
-
-
-def survey_output(plan: Plan, target: Path, force: bool) -> list[str]:
-    """What preparing `target` may replace (--force), or OutputExists when it must not be
-    touched. Reads only; run before anything is written and again under the folder's lock.
-
-    A folder is this tool's only when its manifest.json says so (`is_result_manifest`) or it
-    holds a run store of ours; a folder holding anything else is refused, with or without
-    --force, and nothing in it is removed."""
-    if not os.path.lexists(target):
-        return []
-    target = scenario_folder(target.parent, target.name)
-    foreign = foreign_entries(target)
-    runs_dir = target / RUNS_DIR
-    if foreign:
-        shown = ", ".join(foreign[:3]) + (
-            f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
-        )
-        raise OutputExists(
-            f"{target}: holds entries this tool did not write ({shown}); "
-            + ("--force removes only anfekf results: " if force else "")
-            + "move them away or use another --out"
-        )
-    ours = sorted(e.name for e in os.scandir(target) if e.name != LOCK_FILE)
-    has_manifest = os.path.lexists(target / MANIFEST_FILE)
-    if has_manifest and not _is_our_manifest(target):
-        raise OutputExists(
-            f"{target}: holds no anfekf result (its {MANIFEST_FILE} was not written by this"
-            " tool); nothing is removed or overwritten: move it away or use another --out"
-        )
-    marked = has_manifest or _is_our_store(runs_dir)
-    if not marked and any(not _is_temporary(name) for name in ours):
-        raise OutputExists(
-            f"{target}: holds no anfekf result (no {MANIFEST_FILE} of this tool, no saved runs)"
-            " but other files; nothing is removed: move them away or use another --out"
-            + (" (--force replaces only anfekf results)" if force else "")
-        )
-    if force:
-        return ours
-    if has_manifest:
-        raise OutputExists(
-            f"{target}: holds a complete result already; use --force to overwrite it"
-            " or --out to write elsewhere"
-        )
-    stamp = _stamp(runs_dir)
-    if stamp is not None and stamp != plan.fingerprint():
-        raise OutputExists(
-            f"{target}: holds runs of a different scenario or seed; use --force to discard them"
-        )
-    return []
-
-
-def _load_saved_runs(plan: Plan, runs_dir: Path) -> tuple[dict[int, dict], int]:
-    """The saved runs of this batch, and how many files were refused (and removed: redone)."""
-    done: dict[int, dict] = {}
-    refused = 0
-    names = plan.filter_names()
-    fingerprint = plan.fingerprint()
-    for path in sorted(runs_dir.glob(RUN_FILE_PATTERN)):
-        match = _RUN_FILE.fullmatch(path.name)
-        if match is None or int(match.group(1)) >= plan.runs:
-            continue  # not a name we write, or a run this batch does not ask for
-        run = int(match.group(1))
-        try:
-            result = read_run_file(path, fingerprint)
-            if result.get("run") != run or not isinstance(result.get("filters"), dict):
-                raise RunFileRefused("not the run its name says")
-            if list(result["filters"]) != names:
-                raise RunFileRefused("other filters")
-        except RunFileRefused:
-            refused += 1
-            if path.is_dir() and not path.is_symlink():
-                shutil.rmtree(path)
-            else:
-                path.unlink(missing_ok=True)
-            continue
-        done[run] = result
-    return done, refused
-
-
-def prepare_output(plan: Plan, out_dir: Path, force: bool) -> tuple[Path, dict[int, dict], str]:
-    """Prepare <out>/<name> for the batch (call with its lock held: see execute): find the saved
-    runs to resume. A previous complete result (--force) is left whole: the new batch's files
-    are staged in the run store and replace it only once complete (`finish_result`). Returns
-    the folder, the runs to resume and a sentence saying what we do."""
-    target = scenario_folder(out_dir, plan.name)
-    target.mkdir(parents=True, exist_ok=True)
-    survey_output(plan, target, force)
-    runs_dir = target / RUNS_DIR
-    complete = os.path.lexists(target / MANIFEST_FILE)  # ours: survey_output checked it
-    stamp = _stamp(runs_dir)
-    if stamp is not None and stamp != plan.fingerprint():  # --force: another batch's runs
-        shutil.rmtree(runs_dir)
-        stamp = None
-    action = "new results"
-    if complete:
-        action = (
-            f"replacing the previous result in {target} (--force); it stays whole until the"
-            " new batch is complete"
-        )
-    done: dict[int, dict] = {}
-    if stamp is not None:
-        done, refused = _load_saved_runs(plan, runs_dir)
-        action = f"resuming: {len(done)} of {plan.runs} runs already done in {runs_dir}"
-        if refused:
-            action += f" ({refused} saved run files refused and redone)"
-        if complete:
-            action += "; the previous result is replaced once the batch is complete"
-    runs_dir.mkdir(parents=True, exist_ok=True)
-    staging = runs_dir / STAGING_DIR
-    if staging.is_symlink() or staging.is_file():
-        staging.unlink()
-    elif staging.is_dir():
-        shutil.rmtree(staging)  # files of a batch killed before it replaced the result
-    stamp_path = runs_dir / FINGERPRINT_FILE
-    write_atomic(stamp_path, lambda tmp: tmp.write_text(plan.fingerprint() + "\n"))
-    # Without a manifest the folder is ours by its run store: results of an earlier, unfinished
-    # attempt (not complete) go, and temporary files of writes a kill cut short
-    # (storage.write_atomic names them .<name>.*.tmp) go always.
-    for entry in os.scandir(target):
-        stale = _is_temporary(entry.name) or (
-            not complete and entry.name.endswith((".parquet", ".json"))
-        )
-        if stale and entry.is_file(follow_symlinks=False):
-            os.unlink(entry.path)
-    for torn in runs_dir.glob(".*.tmp"):
-        torn.unlink(missing_ok=True)
-    return target, done, action
-
-
-def result_staging(target: Path) -> Path:
-    """The folder a finished batch writes its files to before they replace the result."""
-    staging = Path(target) / RUNS_DIR / STAGING_DIR
-    staging.mkdir(parents=True, exist_ok=True)
-    return staging
-
-
-def finish_result(target: Path, staging: Path) -> None:
-    """Swap the staged complete result in, then drop the run store."""
-    install_result(target, staging)
-    shutil.rmtree(Path(target) / RUNS_DIR, ignore_errors=True)
-
-
-def save_run(target: Path, result: dict, fingerprint: str) -> None:
-    """Save a finished run in the run store (a data file keyed to the batch's fingerprint)."""
-    write_run_file(target / RUNS_DIR / f"run-{result['run']:06d}.npz", result, fingerprint)
 
 
 def execute(
@@ -642,18 +373,6 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result):
     return records, target
 
 
-@dataclass(frozen=True)
-class ResultTables:
-    """What a finished batch writes (besides the manifest), all computed from its runs."""
-
-    steps: pd.DataFrame
-    runs: pd.DataFrame
-    summary: list[dict]
-    comparisons: pd.DataFrame
-    claims: list[dict]
-    phases: pd.DataFrame | None = None  # a scenario with a noise schedule (SPEC 14)
-
-
 def result_tables(plan: Plan, ordered: list[dict]) -> ResultTables:
     """The steps, per-run, summary, comparison and claim tables of a batch (runs in order).
 
@@ -683,28 +402,3 @@ def result_tables(plan: Plan, ordered: list[dict]) -> ResultTables:
         claims=evaluate_claims(steps, plan.scenario.claims, seed=plan.seed),
         phases=phases,
     )
-
-
-def write_result_tables(
-    target: Path, tables: ResultTables, *, steps_table: bool, metadata: dict | None = None
-) -> None:
-    """Write every table atomically; steps.parquet only when the scenario asks for it.
-
-    Every Parquet file has scenario and filter as plain strings (they join across files) and
-    says in its key-value metadata where it came from: `metadata` (scenario, seed,
-    fingerprint), the units of its columns, the package version and git commit.
-    """
-
-    def parquet(name: str, df: pd.DataFrame) -> None:
-        df = parquet_frame(df)
-        write_parquet(target / name, df, {**(metadata or {}), "units": column_units(df)})
-
-    if steps_table:
-        parquet(STEPS_FILE, tables.steps)
-    parquet(RUNS_FILE, tables.runs)
-    parquet(SUMMARY_PARQUET, pd.DataFrame(tables.summary))
-    write_json(target / SUMMARY_JSON, tables.summary)
-    parquet(COMPARISONS_FILE, tables.comparisons)
-    write_json(target / CLAIMS_FILE, tables.claims)
-    if tables.phases is not None:
-        parquet(PHASES_FILE, tables.phases)

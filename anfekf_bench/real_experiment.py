@@ -40,7 +40,6 @@ from .filters.custom import CustomSpec, contained
 from .filters.ekf import gate_threshold
 from .filters.spec import FilterContext
 from .models import Unicycle
-from .runner import local_workers
 from .sources import mrclam
 from .sources.recorded import (
     DriveSet,
@@ -50,7 +49,14 @@ from .sources.recorded import (
     naive_covariances,
     p0,
 )
-from .storage import MANIFEST_FILE, RESULT_FORMAT, scenario_name_problem, write_json
+from .storage import (
+    MANIFEST_FILE,
+    RESULT_FORMAT,
+    folder_lock,
+    scenario_name_problem,
+    write_json,
+)
+from .workers import local_workers
 
 LOST_LOCK_M = 1.0  # a run whose position error exceeds this at a scored time has lost lock
 
@@ -83,7 +89,7 @@ class RealPlan:
 
     def fingerprint(self) -> str:
         """Hash of what determines a segment's bytes: the scenario, the log's content, the code."""
-        from .experiment import code_version
+        from .outputs import code_version
 
         doc = {
             "scenario": self.scenario.model_dump(mode="json", exclude={"jobs"}),
@@ -105,7 +111,7 @@ def make_real_plan(
     engine: str | None = None,
 ) -> RealPlan:
     """`experiment.make_plan` for a real-data scenario; PlanError for overrides it cannot take."""
-    from .experiment import PlanError
+    from .outputs import PlanError
 
     if runs is not None:
         raise PlanError(
@@ -125,7 +131,7 @@ def make_real_plan(
 
 def check_real_plan(plan: RealPlan) -> int:
     """What can fail before the batch; returns the held-out evaluation times."""
-    from .experiment import PlanError
+    from .outputs import PlanError
 
     problem = scenario_name_problem(plan.name)
     if problem:
@@ -583,7 +589,7 @@ def real_summary(records: list[dict], ordered: list[dict], scenario: RealScenari
 
 
 def real_result_tables(plan: RealPlan, ordered: list[dict]):
-    from .experiment import ResultTables
+    from .outputs import ResultTables
 
     names = plan.filter_names()
     ref = plan.scenario.reference()
@@ -627,9 +633,8 @@ def execute_real(
     on_result: Callable[[dict], None] | None = None,
 ) -> tuple[list[dict], Path]:
     """`experiment.execute` for a real-data scenario: same folder rules, run store and files."""
-    from .experiment import (
+    from .outputs import (
         finish_result,
-        folder_lock,
         package_versions,
         prepare_output,
         result_staging,
@@ -638,7 +643,7 @@ def execute_real(
         survey_output,
         write_result_tables,
     )
-    from .experiment import machine_info as _machine
+    from .outputs import machine_info as _machine
 
     started = time.time()
     check_real_plan(plan)
@@ -726,14 +731,14 @@ def execute_real(
 
 def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result, started):
     """`execute_real`'s body for protocol drives: tune per test dataset, run every drive whole."""
-    from .experiment import (
+    from .outputs import (
         finish_result,
         package_versions,
         result_staging,
         save_run,
         write_result_tables,
     )
-    from .experiment import machine_info as _machine
+    from .outputs import machine_info as _machine
 
     world, scenario = plan.world, plan.scenario
     inputs = {d.id: segment_inputs(d, d.segment, scenario.eval_period_s) for d in world.drives}

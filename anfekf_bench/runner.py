@@ -17,14 +17,12 @@ import contextlib
 import copy
 import logging
 import math
-import os
-import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import Literal
 
 import numpy as np
-from joblib import Parallel, delayed, parallel_config
+from joblib import Parallel, delayed
 
 from .analysis.metrics import add_trace_metrics, recorded_steps
 from .config import Engine, Scenario, World
@@ -33,6 +31,7 @@ from .filters import FilterSpec
 from .filters.custom import CustomSpec, contained
 from .filters.registry import build_filter, filter_context
 from .sources.simulator import RunData, WorldPath, simulate_run, world_path
+from .workers import local_workers
 
 
 def simulate(
@@ -355,37 +354,6 @@ def connect_dask(scheduler: str | None, timeout_s: float):
             f" start some with: dask worker {scheduler}"
         ) from None
     return client
-
-
-# ---------------------------------------------------------------------------------------------
-# Local workers end with their parent
-
-
-PARENT_POLL_S = 0.2
-
-
-def local_workers():
-    """joblib's loky workers for a batch: each starts by watching this process and ends with it
-    (`_watch_parent`), so a killed command leaves no worker behind."""
-    return parallel_config(backend="loky", initializer=_watch_parent, initargs=(os.getpid(),))
-
-
-def _watch_parent(parent: int) -> None:
-    """loky worker initializer: start a daemon thread that ends this worker process when its
-    parent `parent` is gone. loky keeps workers for minutes; after a kill -9 of the parent they
-    would live on, holding its stdout/stderr open (`anfekf run ... | tee log` would never end).
-    Not called with jobs 1 (joblib then runs the batch in the calling process)."""
-    if os.getpid() != parent:
-        threading.Thread(
-            target=_exit_with_parent, args=(parent,), name="anfekf-parent-watch", daemon=True
-        ).start()
-
-
-def _exit_with_parent(parent: int) -> None:
-    while True:
-        if os.getppid() != parent:  # re-parented: the parent died
-            os._exit(1)
-        time.sleep(PARENT_POLL_S)
 
 
 def _first_line(exc: BaseException) -> str:

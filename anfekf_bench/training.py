@@ -57,6 +57,23 @@ class TrainingSet:
         self.P0 = np.eye(3) * self.scenario.p0
         self.gate = gate_threshold(self.scenario.gate_probability)
 
+    def fit_noise(self, criterion: str, starts: list[float], max_evaluations: int) -> dict:
+        """The four sigmas of a fixed EKF that optimise `criterion` ("likelihood": innovations
+        only; "rmse": the truth) over these runs, from `starts` x the assumed sigmas
+        (`engines.tuning.fit_noise`); a service of the training layer, so that a filter spec
+        asks for it here and never imports an engine."""
+        from .engines.tuning import SIGMA_NAMES, TrainingProblem, fit_noise
+
+        problem = TrainingProblem.of(
+            self.runs, self.world, self.P0, self.gate, self.scenario.record_every
+        )
+        found = fit_noise(
+            problem, criterion, np.array(self.scenario.filter_noise.radians()), starts,
+            max_evaluations, jobs=self.jobs,
+        )  # fmt: skip
+        found["sigmas_rad"] = dict(zip(SIGMA_NAMES, found.pop("sigmas"), strict=True))
+        return found
+
 
 def simulate_training(scenario: Scenario, world: World, seed: int, jobs: int = 1) -> TrainingSet:
     """The scenario's training runs (see the module doc)."""

@@ -198,7 +198,7 @@ def test_warmed_workers_are_the_ones_a_batch_uses():
     first timed batch would then pay for starting and loading them)."""
     from joblib import Parallel, delayed
 
-    from anfekf_bench.runner import local_workers
+    from anfekf_bench.workers import local_workers
 
     warmed = bench.warm_workers(2)
     try:

@@ -12,8 +12,8 @@ import pytest
 from typer.testing import CliRunner
 
 from anfekf_bench.cli import app
-from anfekf_bench.config import load_scenario
 from anfekf_bench.experiment import execute, make_plan
+from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.storage import LOCK_FILE, PARQUET_KEY_PREFIX
 from anfekf_bench.sweeps import CELLS_DIR, SWEEP_FILE, cell_plans, expand, run_sweep
 

@@ -9,8 +9,9 @@ import yaml
 from typer.testing import CliRunner
 
 from anfekf_bench.cli import app, plural
-from anfekf_bench.config import ScenarioError, load_scenario
+from anfekf_bench.config import ScenarioError
 from anfekf_bench.filters.registry import KINDS
+from anfekf_bench.scenarios import load_scenario
 
 from .conftest import small_scenario, write_scenario
 

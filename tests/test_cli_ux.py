@@ -13,9 +13,9 @@ import pytest
 from typer.testing import CliRunner
 
 from anfekf_bench.cli import EXIT_BROKEN_PIPE, app
-from anfekf_bench.config import load_scenario
 from anfekf_bench.experiment import execute, make_plan
 from anfekf_bench.provenance import package_version
+from anfekf_bench.scenarios import load_scenario
 
 from .conftest import small_scenario, write_scenario
 

@@ -37,8 +37,8 @@ from typer.testing import CliRunner
 from anfekf_bench import experiment
 from anfekf_bench.analysis.metrics import NEES_EXPLODED, summarize_filter
 from anfekf_bench.cli import app
-from anfekf_bench.config import load_scenario
 from anfekf_bench.experiment import execute, make_plan
+from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.storage import (
     MANIFEST_FILE,
     RUNS_DIR,

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
-from anfekf_bench.config import ScenarioError, load_scenario
+from anfekf_bench.config import ScenarioError
 from anfekf_bench.engines.events import run_ekf_grid, timeline
 from anfekf_bench.engines.grid import score_setting
 from anfekf_bench.filters.ekf import gate_threshold
@@ -23,6 +23,7 @@ from anfekf_bench.real_experiment import (
     thin_records,
     tune_on_drives,
 )
+from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources import mrclam as m
 from anfekf_bench.sources.recorded import Segment, parse_real_scenario
 

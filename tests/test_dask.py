@@ -18,9 +18,10 @@ import yaml
 from typer.testing import CliRunner
 
 from anfekf_bench.cli import app
-from anfekf_bench.config import BackendConfig, load_scenario, parse_scenario
+from anfekf_bench.config import BackendConfig, parse_scenario
 from anfekf_bench.experiment import make_plan
 from anfekf_bench.runner import BackendUnavailable, connect_dask, run_batch
+from anfekf_bench.scenarios import load_scenario
 
 distributed = pytest.importorskip("distributed")
 

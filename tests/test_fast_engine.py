@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from anfekf_bench.config import load_scenario, parse_scenario, resolve_world
+from anfekf_bench.config import parse_scenario, resolve_world
 from anfekf_bench.engines import fast, kernels
 from anfekf_bench.engines.filterpy_engine import _healthy, run_filter
 from anfekf_bench.filters import (
@@ -43,6 +43,7 @@ from anfekf_bench.filters import (
 from anfekf_bench.filters.spec import FilterSpec
 from anfekf_bench.models import Bicycle, Unicycle
 from anfekf_bench.runner import simulate
+from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources.simulator import RunData, Scan
 
 from .conftest import small_scenario

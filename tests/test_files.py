@@ -10,9 +10,10 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from anfekf_bench.config import ScenarioError, load_scenario, read_points_csv
+from anfekf_bench.config import ScenarioError, read_points_csv
 from anfekf_bench.experiment import execute, make_plan
 from anfekf_bench.provenance import git_commit, package_version
+from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.storage import parquet_provenance
 
 from .conftest import small_scenario, write_scenario

@@ -24,9 +24,10 @@ from typer.testing import CliRunner
 from anfekf_bench import runner
 from anfekf_bench.analysis import tables
 from anfekf_bench.cli import app
-from anfekf_bench.config import ScenarioError, load_scenario
+from anfekf_bench.config import ScenarioError
 from anfekf_bench.experiment import execute, make_plan
 from anfekf_bench.filters import RobotEKF, build_filter
+from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources.simulator import simulate_run, simulate_truth
 from anfekf_bench.storage import (
     MANIFEST_FILE,

@@ -20,8 +20,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from anfekf_bench.config import load_scenario
 from anfekf_bench.experiment import execute, make_plan
+from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.storage import (
     LOCK_FILE,
     MANIFEST_FILE,

@@ -20,8 +20,8 @@ import pytest
 from typer.testing import CliRunner
 
 from anfekf_bench.cli import app
-from anfekf_bench.config import load_scenario
 from anfekf_bench.experiment import RUNS_DIR, execute, make_plan
+from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.storage import (
     LOCK_FILE,
     MANIFEST_FILE,

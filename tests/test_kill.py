@@ -27,8 +27,8 @@ import pytest
 from typer.testing import CliRunner
 
 from anfekf_bench.cli import app
-from anfekf_bench.config import load_scenario
 from anfekf_bench.experiment import execute, make_plan
+from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.storage import MANIFEST_FILE, RUNS_DIR, STEPS_FILE, folder_lock, read_json
 
 from .conftest import live_group_members, small_scenario, write_scenario

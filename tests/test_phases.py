@@ -160,9 +160,9 @@ def test_scheduled_batch_writes_phases_and_the_report(tmp_path):
 
     import pyarrow.parquet as pq
 
-    from anfekf_bench.config import load_scenario
     from anfekf_bench.experiment import execute, make_plan
     from anfekf_bench.report.report import write_report
+    from anfekf_bench.scenarios import load_scenario
 
     from .conftest import small_scenario, write_scenario
 
@@ -203,8 +203,8 @@ def test_scheduled_batch_writes_phases_and_the_report(tmp_path):
 
 
 def test_constant_noise_batch_has_no_phases(tmp_path):
-    from anfekf_bench.config import load_scenario
     from anfekf_bench.experiment import execute, make_plan
+    from anfekf_bench.scenarios import load_scenario
 
     from .conftest import small_scenario, write_scenario
 

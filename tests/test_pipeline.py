@@ -14,10 +14,11 @@ from typer.testing import CliRunner
 
 from anfekf_bench.analysis.tables import STEP_COLUMNS, steps_frame, update_statistics
 from anfekf_bench.cli import app
-from anfekf_bench.config import load_scenario, parse_scenario, resolve_world
+from anfekf_bench.config import parse_scenario, resolve_world
 from anfekf_bench.experiment import execute, make_plan
 from anfekf_bench.models import f
 from anfekf_bench.runner import run_one
+from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources.simulator import simulate_run, simulate_truth
 from anfekf_bench.storage import read_parquet, read_steps, write_parquet
 

@@ -19,11 +19,12 @@ from anfekf_bench.analysis.statistics import (
 )
 from anfekf_bench.analysis.tables import runs_frame
 from anfekf_bench.cli import app
-from anfekf_bench.config import ScenarioError, load_scenario
+from anfekf_bench.config import ScenarioError
 from anfekf_bench.engines.events import run_ekf_grid, run_filter_events, timeline
 from anfekf_bench.filters.ekf import RobotEKF, gate_threshold
 from anfekf_bench.models import Unicycle, measurement_covariance, wrap_angle
 from anfekf_bench.real_experiment import run_segment, segment_inputs, tune
+from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources import mrclam as m
 from anfekf_bench.sources.mrclam import RobotLog
 from anfekf_bench.storage import read_json, read_parquet, read_steps

@@ -12,7 +12,6 @@ import pytest
 from typer.testing import CliRunner
 
 from anfekf_bench.cli import app
-from anfekf_bench.config import load_scenario
 from anfekf_bench.engines import fast
 from anfekf_bench.experiment import execute, make_plan
 from anfekf_bench.filters import registry
@@ -20,6 +19,7 @@ from anfekf_bench.filters.ekf import RobotEKF
 from anfekf_bench.filters.spec import AdaptiveSpec, FilterContext
 from anfekf_bench.report import plots
 from anfekf_bench.report.report import load_scenario_data
+from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.storage import read_steps
 
 from .conftest import small_scenario, write_scenario

@@ -22,7 +22,6 @@ from typer.testing import CliRunner
 
 from anfekf_bench.analysis.metrics import format_sig
 from anfekf_bench.cli import app
-from anfekf_bench.config import load_scenario
 from anfekf_bench.experiment import execute, make_plan
 from anfekf_bench.report import plots
 from anfekf_bench.report.report import (
@@ -34,6 +33,7 @@ from anfekf_bench.report.report import (
     summary_rows,
     write_report,
 )
+from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.storage import ResultsError, parquet_provenance, read_steps, write_parquet
 
 from .conftest import SMALL_WORLD, small_scenario, write_scenario

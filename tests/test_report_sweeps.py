@@ -11,9 +11,9 @@ import pytest
 from typer.testing import CliRunner
 
 from anfekf_bench.cli import app
-from anfekf_bench.config import load_scenario
 from anfekf_bench.report import plots
 from anfekf_bench.report.sweep import heatmap_figure, read_sweep
+from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sweeps import cell_plans, expand, run_sweep
 
 from .conftest import small_scenario, write_scenario

@@ -8,9 +8,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from anfekf_bench.config import ScenarioError, load_scenario
+from anfekf_bench.config import ScenarioError
 from anfekf_bench.experiment import execute, make_plan
 from anfekf_bench.report.sweep import breakdown_range, write_sweep_report
+from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.storage import MANIFEST_FILE
 from anfekf_bench.sweeps import (
     CELLS_DIR,

@@ -262,7 +262,7 @@ def fit_noise(
     started = time.perf_counter()
     thetas = [np.log(np.asarray(start_sigmas, float) * m) for m in starts]
     if jobs > 1 and len(thetas) > 1:
-        from ..runner import local_workers
+        from ..workers import local_workers
 
         with local_workers():
             found = Parallel(n_jobs=min(jobs, len(thetas)))(

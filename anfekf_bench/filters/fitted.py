@@ -16,7 +16,6 @@ from __future__ import annotations
 
 from typing import Annotated, Any, ClassVar, Literal
 
-import numpy as np
 from pydantic import Field, PrivateAttr
 
 from .ekf import RobotEKF
@@ -59,7 +58,7 @@ class FittedSpec(FilterSpec):
 
 
 class FittedNoiseSpec(FittedSpec):
-    """A fixed EKF whose four sigmas are fitted (`engines.tuning.fit_noise`)."""
+    """A fixed EKF whose four sigmas are fitted (`training.TrainingSet.fit_noise`)."""
 
     criterion: ClassVar[str]
     starts: list[Multiplier] = Field(
@@ -74,18 +73,8 @@ class FittedNoiseSpec(FittedSpec):
     )
 
     def fit(self, training: Any) -> dict:
-        from ..engines.tuning import SIGMA_NAMES, TrainingProblem, fit_noise
-
-        scenario = training.scenario
-        problem = TrainingProblem.of(
-            training.runs, training.world, training.P0, training.gate, scenario.record_every
-        )
-        found = fit_noise(
-            problem, self.criterion, np.array(scenario.filter_noise.radians()),
-            list(self.starts), self.max_evaluations, jobs=training.jobs,
-        )  # fmt: skip
-        found["sigmas_rad"] = dict(zip(SIGMA_NAMES, found.pop("sigmas"), strict=True))
-        return found
+        # The training layer fits the sigmas on its tuning kernel (training.TrainingSet).
+        return training.fit_noise(self.criterion, list(self.starts), self.max_evaluations)
 
     def fitted_sigmas(self) -> tuple[float, float, float, float]:
         """(sv, sg, sr, sb) in radians, as `NoiseSigmas.radians` gives them."""

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -18,11 +17,9 @@ from ..analysis.metrics import format_share, format_sig
 from ..analysis.phases import RECOVERY_HOLD_S, RECOVERY_TOLERANCE
 from ..schedule import CHANNELS, NoiseSchedule
 from ..storage import PHASES_FILE, ResultsError, read_parquet
+from .data import NOISE_COLUMNS, FilterSeries, ScenarioData
 from .document import Cell, TableBlock
 from .plots import filter_colour, plain_log_axis
-
-if TYPE_CHECKING:
-    from .report import FilterSeries, ScenarioData
 
 _CHANNEL_OF = {"R_rr": "range", "R_bb": "bearing", "Q_vv": "speed", "Q_gg": "steering"}
 
@@ -105,7 +102,6 @@ def adapting(f: FilterSeries, col: str) -> bool:
 def variances_figure(sc: ScenarioData, schedule: NoiseSchedule) -> Figure | None:
     """Every adapting filter's variances (mean over runs) against the true schedule, one panel
     per channel some filter adapts; None when no filter adapts any."""
-    from .report import NOISE_COLUMNS
 
     columns = [c for c in NOISE_COLUMNS if any(adapting(f, c) for f in sc.filters)]
     if not columns:

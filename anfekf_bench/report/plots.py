@@ -11,7 +11,7 @@ import math
 from collections.abc import Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, BinaryIO
+from typing import BinaryIO
 
 import matplotlib
 
@@ -31,9 +31,18 @@ from matplotlib.ticker import (  # noqa: E402
 
 from ..analysis.metrics import format_share, format_sig  # noqa: E402
 from ..storage import write_atomic  # noqa: E402
-
-if TYPE_CHECKING:  # report.py imports this module; these names are for annotations only
-    from .report import Band, FilterSeries, Ratio, ScenarioData, SummaryRow
+from .data import (  # noqa: E402
+    _ADAPTED,
+    BAND_PERCENTILES,
+    FEW_RUNS,
+    NOISE_COLUMNS,
+    OUTLIER_FACTOR,
+    Band,
+    FilterSeries,
+    Ratio,
+    ScenarioData,
+    SummaryRow,
+)
 
 DPI = 110
 ELLIPSE_SIGMA = 3.0
@@ -318,7 +327,6 @@ def _mark_off_scale(ax: Axes, sc: ScenarioData, top: float) -> None:
 def nees_figure(sc: ScenarioData) -> Figure:
     """Run-averaged NEES per filter (log scale) with the two-sided 95 % chi-square bounds, the
     median over runs (dotted) and the outlier runs (thin) that pull the average up."""
-    from .report import OUTLIER_FACTOR
 
     fig = Figure(figsize=(9, 5.6), layout="constrained")
     ax = fig.subplots()
@@ -386,7 +394,6 @@ def noise_figure(sc: ScenarioData) -> Figure:
     """The adapted R/Q diagonal over time of every filter that adapts it (the registry says
     which, or its recorded values vary): the median over runs with the spread over runs and
     the mean, against the true and the assumed value."""
-    from .report import NOISE_COLUMNS
 
     columns = sc.adapted_columns
     groups = noise_groups(sc)
@@ -467,7 +474,6 @@ def noise_figure(sc: ScenarioData) -> Figure:
 
 def _adapted(adapts: frozenset[str]) -> tuple[str, ...]:
     """The noise columns a filter that adapts `adapts` ("R", "Q", "P") changes."""
-    from .report import _ADAPTED
 
     return tuple(c for a in sorted(adapts) for c in _ADAPTED.get(a, ()))
 
@@ -666,14 +672,12 @@ def overview_figure(rows: Sequence[SummaryRow]) -> Figure:
 
 def _tick(scenario: str, group: list) -> str:
     """The scenario's x label, with a warning when its runs are too few."""
-    from .report import FEW_RUNS
 
     used = min(r.runs_used for r in group)
     return f"{scenario}\n(only {used} runs)" if used < FEW_RUNS else scenario
 
 
 def _percentiles() -> tuple[float, float]:
-    from .report import BAND_PERCENTILES
 
     return BAND_PERCENTILES
 

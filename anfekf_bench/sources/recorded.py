@@ -1,6 +1,6 @@
 """Real-data scenarios (SPEC 9): a scenario file that names a recorded log instead of a world.
 
-A document with a `data:` key is a `RealScenario` (`config.load_scenario` hands it here):
+A document with a `data:` key is a `RealScenario` (`scenarios.load_scenario` hands it here):
 
     name: mrclam-d9
     data: {kind: mrclam, path: builtin}       # or {kind: log, path: my-log/} (docs/REAL_DATA.md)
@@ -548,7 +548,7 @@ def resolve_recording(scenario: RealScenario, scenario_path: Path) -> Recording:
 
 
 def load_recorded(data: dict, path: str | Path) -> tuple[RealScenario, Recording | DriveSet]:
-    """`config.load_scenario` for a document with a `data:` key."""
+    """`scenarios.load_scenario` for a document with a `data:` key."""
     path = Path(path)
     scenario = parse_real_scenario(data, path)
     if scenario.protocol == "drives":

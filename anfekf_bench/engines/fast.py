@@ -30,6 +30,7 @@ from ..filters.fading import FadingSpec
 from ..filters.fitted import EKFMLSpec, EKFTunedSpec
 from ..filters.registry import register_engine
 from ..filters.spec import FilterContext, FilterSpec
+from ..filters.vb import VBRSpec
 from ..models import Bicycle
 from ..sources.simulator import RunData
 from . import kernels as _jit_kernels
@@ -40,6 +41,7 @@ JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 # ekf-ml and ekf-tuned are the plain EKF with fitted noise (filters.fitted).
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
+    VBRSpec,
 )  # fmt: skip
 
 
@@ -160,6 +162,15 @@ def run_filter_fast(
             k, spec, ctx, data, every, flat, record_every, x, P, R, Qu
         )
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+    if isinstance(spec, VBRSpec):
+        diverged, j, nis_sum, n_updates, n_rejected = k.run_vbr_kernel(
+            *_common_args(ctx, data, every, flat),
+            bool(spec.adaptation), spec.adapt_from == "all",
+            float(spec.bounds[0]), float(spec.bounds[1]),
+            float(spec.rho), int(spec.iterations), float(spec.alpha0),
+            int(max(record_every, 0)), x, P, R, Qu,
+        )  # fmt: skip
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, FadingSpec):
         P_infl = np.full(n, np.nan)
         has_gate = ctx.gate is not None
@@ -201,6 +212,20 @@ def run_filter_fast(
         int(max(record_every, 0)), x, P, R, Qu,
     )  # fmt: skip
     return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+
+
+def _common_args(ctx: FilterContext, data: RunData, every: int, flat: FlatScans) -> tuple:
+    """The arguments every kernel starts with: the run (odometry, scans), the model's T and B,
+    the start (x0, P0), the noise (Qu, R) and the gate."""
+    has_gate = ctx.gate is not None
+    return (
+        np.ascontiguousarray(data.u_odo, dtype=float), int(every),
+        flat.start, flat.landmarks, flat.z,
+        float(ctx.dt), float(ctx.model.B),
+        np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
+        _matrix(ctx.Qu, 2), _matrix(ctx.R, 2),
+        float(ctx.gate) if has_gate else math.inf, has_gate,
+    )  # fmt: skip
 
 
 def _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl=None) -> dict:

@@ -934,3 +934,143 @@ def run_fading_kernel(
             out_infl[j] = infl
             j += 1
     return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# ---------------------------------------------------------------------------------------------
+# The variational-Bayes filters (filters.vb), their rules as written there: the VB iteration's
+# state update is `correct` above (the Joseph update of the filter itself), so only the noise
+# posterior's rules come from filters/vb.py and the bounds from filters/adaptive.py.
+
+from ..filters import adaptive as _adaptive  # noqa: E402
+from ..filters import vb as _vb  # noqa: E402
+
+if _NJIT is not None:
+    for _rule in (
+        _adaptive.clip_variance, _vb.vb_r_predict, _vb.vb_r_beta, _vb.vb_r_bounded_beta,
+    ):  # fmt: skip
+        register_jitable(_rule)
+
+clip_variance = _adaptive.clip_variance
+vb_r_predict = _vb.vb_r_predict
+vb_r_beta = _vb.vb_r_beta
+vb_r_bounded_beta = _vb.vb_r_bounded_beta
+
+
+@maybe_njit
+def record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q):
+    """Row j of the records (as `run_kernel` writes them); returns (j + 1, whether x or P has a
+    value that is not finite)."""
+    bad = False
+    for i in range(3):
+        out_x[j, i] = x[i]
+        if not math.isfinite(x[i]):
+            bad = True
+    for i in range(9):
+        out_P[j, i // 3, i % 3] = P[i]
+        if not math.isfinite(P[i]):
+            bad = True
+    out_R[j, 0] = R[0]
+    out_R[j, 1] = R[3]
+    out_Q[j, 0] = Qu[0]
+    out_Q[j, 1] = Qu[3]
+    return j + 1, bad
+
+
+@maybe_njit
+def hph_diag(H, P):
+    """diag(H P H^T) for the H of `innovation` (third column (0, -1))."""
+    return hqh_diag(H, P, math.inf, math.inf)
+
+
+@maybe_njit
+def run_vbr_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    adaptation, from_all, floor, ceiling, rho, iterations, alpha0,
+    record_every, out_x, out_P, out_R, out_Q,
+):  # fmt: skip
+    """filterpy_engine.run_filter with filters.vb.VBREKF (Sarkka & Nummenmaa's VB-AKF on
+    diag R): per scan with a landmark the forgetting of (alpha, beta), per landmark that feeds
+    adaptation `iterations` EKF updates from the same (x-, P-) with R = clip(beta / alpha), then
+    the filter's own gate and update with the last iteration's R. Returns as `run_kernel`."""
+    K = u_odo.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    a0 = alpha0
+    a1 = alpha0
+    b0 = alpha0 * R0[0]
+    b1 = alpha0 * R0[3]
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_rows = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        x, P, Q = predict(x, P, u_odo[k - 1, 0], u_odo[k - 1, 1], T, B, Qu)
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                if adaptation:
+                    a0, b0 = vb_r_predict(a0, b0, rho)
+                    a1, b1 = vb_r_predict(a1, b1, rho)
+                for m in range(first, last):
+                    z0 = scan_z[m, 0]
+                    z1 = scan_z[m, 1]
+                    lx = scan_lm[m, 0]
+                    ly = scan_lm[m, 1]
+                    H, zh, nu, HPHt = innovation(x, P, lx, ly, z0, z1)
+                    if adaptation:
+                        R = (b0 / a0, 0.0, 0.0, b1 / a1)  # the posterior estimate
+                        feeds = True
+                        if not from_all and has_gate:
+                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                            if not ok:
+                                return True, j, nis_sum, n_updates, n_rejected
+                            feeds = nis_a <= gate
+                        if feeds:
+                            # filters.vb.vb_r_update
+                            ap0 = a0 + 0.5
+                            ap1 = a1 + 0.5
+                            bn0 = b0
+                            bn1 = b1
+                            for _ in range(iterations):
+                                R = (
+                                    clip_variance(bn0 / ap0, R0[0], floor, ceiling), 0.0,
+                                    0.0, clip_variance(bn1 / ap1, R0[3], floor, ceiling),
+                                )  # fmt: skip
+                                ok, xn, Pn = correct(x, P, H, zh, z0, z1, R)
+                                if not ok:
+                                    return True, j, nis_sum, n_updates, n_rejected
+                                _, _, e, _ = innovation(xn, Pn, lx, ly, z0, z1)
+                                hph0, hph1 = hph_diag(H, Pn)
+                                bn0 = vb_r_beta(b0, e[0], hph0)
+                                bn1 = vb_r_beta(b1, e[1], hph1)
+                            a0 = ap0
+                            a1 = ap1
+                            b0, b1 = vb_r_bounded_beta(
+                                a0, a1, bn0, bn1, R0[0], R0[3], floor, ceiling
+                            )
+                    ok, v = nis(HPHt, R, nu[0], nu[1])
+                    if not ok or not math.isfinite(v):
+                        return True, j, nis_sum, n_updates, n_rejected
+                    if has_gate and not v <= gate:
+                        n_rejected += 1
+                        continue
+                    nis_sum += v
+                    n_updates += 1
+                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                if adaptation:
+                    R = (b0 / a0, 0.0, 0.0, b1 / a1)
+                if not healthy(x, P, R, Qu):
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
+            bad_record = bad_record or bad
+    return bad_record, j, nis_sum, n_updates, n_rejected

@@ -26,6 +26,21 @@ def clip_to_bounds(value: np.ndarray, start: np.ndarray, bounds: tuple[float, fl
     return np.clip(value, bounds[0] * start, bounds[1] * start)
 
 
+def clip_variance(v, start, floor, ceiling):
+    """One variance clipped to [floor * start, ceiling * start] (SPEC 7), as `clip_to_bounds`
+    elementwise (np.clip: NaN stays NaN); plain floats, so that the fast engine's kernels call
+    it too."""
+    lo = floor * start
+    hi = ceiling * start
+    if v != v:
+        return v
+    if v < lo:
+        v = lo
+    if v > hi:
+        v = hi
+    return v
+
+
 def qu_least_squares(
     Q_hat: np.ndarray, A_v: np.ndarray, A_g: np.ndarray, W: np.ndarray
 ) -> np.ndarray:

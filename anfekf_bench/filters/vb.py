@@ -25,7 +25,7 @@ from scipy import linalg
 
 from ..models import h, residual_z
 from ..schema import PositiveFloat
-from .adaptive import AdaptiveEKF, clip_to_bounds
+from .adaptive import AdaptiveEKF, clip_to_bounds, clip_variance
 from .ekf import Innovation
 from .spec import AdaptiveSpec, FilterContext
 
@@ -94,6 +94,25 @@ class VBRPosterior:
     P: np.ndarray
 
 
+def vb_r_beta(beta, e, hph):
+    """beta^(n) = beta- + 1/2 (e^2 + (H P^(n) H^T)_ii) of one channel (or of an array of
+    channels): the VB-AKF's scale update from the residual e at the iterate."""
+    return beta + 0.5 * (e * e + hph)
+
+
+def vb_r_bounded_beta(alpha0, alpha1, beta0, beta1, R00, R11, floor, ceiling):
+    """The stored posterior kept within the bounds: (beta0, beta1) unchanged when both
+    beta_i / alpha_i are within [floor R0_ii, ceiling R0_ii], else both set to
+    clip(beta_i / alpha_i) alpha_i, so that beta / alpha is the R in force."""
+    r0 = beta0 / alpha0
+    r1 = beta1 / alpha1
+    c0 = clip_variance(r0, R00, floor, ceiling)
+    c1 = clip_variance(r1, R11, floor, ceiling)
+    if c0 == r0 and c1 == r1:
+        return beta0, beta1
+    return c0 * alpha0, c1 * alpha1
+
+
 def vb_r_update(
     x: np.ndarray, P: np.ndarray, nu: np.ndarray, H: np.ndarray, alpha: np.ndarray,
     beta: np.ndarray, iterations: int, residual: Residual,
@@ -115,7 +134,7 @@ def vb_r_update(
         R_n = clip(beta_n / alpha_post)
         x_n, P_n = kalman_update(x, P, nu, H, np.diag(R_n))
         e = residual(x_n)
-        beta_n = beta + 0.5 * (e * e + np.einsum("ij,jk,ik->i", H, P_n, H))
+        beta_n = vb_r_beta(beta, e, np.einsum("ij,jk,ik->i", H, P_n, H))
     return VBRPosterior(alpha=alpha_post, beta=beta_n, R_gain=R_n, x=x_n, P=P_n)
 
 
@@ -190,9 +209,12 @@ class VBREKF(AdaptiveEKF):
         )  # fmt: skip
         self.alpha = post.alpha
         # Keep beta / alpha within the bounds, so the stored posterior is the one in force.
-        ratio = post.beta / post.alpha
-        clipped = clip_to_bounds(ratio, R0, self.bounds)
-        self.beta = post.beta if np.array_equal(ratio, clipped) else clipped * post.alpha
+        self.beta = np.array(
+            vb_r_bounded_beta(
+                post.alpha[0], post.alpha[1], post.beta[0], post.beta[1], R0[0], R0[1],
+                self.bounds[0], self.bounds[1],
+            )
+        )  # fmt: skip
         self.R = np.diag(post.R_gain)
 
     def end_scan(self) -> None:

@@ -23,6 +23,7 @@ import numpy as np
 
 from ..config import World
 from ..filters import anfis
+from ..filters.akhlaghi import AkhlaghiSpec
 from ..filters.anfekf import ANFEKFSpec
 from ..filters.bank import IMMSpec, MMAESpec, hypotheses
 from ..filters.ekf import EKFSpec, OracleSpec
@@ -41,7 +42,7 @@ JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 # ekf-ml and ekf-tuned are the plain EKF with fitted noise (filters.fitted).
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
-    VBRSpec,
+    VBRSpec, AkhlaghiSpec,
 )  # fmt: skip
 
 
@@ -161,6 +162,15 @@ def run_filter_fast(
         diverged, j, nis_sum, n_updates, n_rejected = _run_bank(
             k, spec, ctx, data, every, flat, record_every, x, P, R, Qu
         )
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+    if isinstance(spec, AkhlaghiSpec):
+        diverged, j, nis_sum, n_updates, n_rejected = k.run_akhlaghi_kernel(
+            *_common_args(ctx, data, every, flat),
+            "R" in spec.adapt, "Q" in spec.adapt, bool(spec.adaptation),
+            spec.adapt_from == "all", float(spec.bounds[0]), float(spec.bounds[1]),
+            float(spec.alpha),
+            int(max(record_every, 0)), x, P, R, Qu,
+        )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, VBRSpec):
         diverged, j, nis_sum, n_updates, n_rejected = k.run_vbr_kernel(

@@ -111,25 +111,26 @@ def min_nan(a, b):
 
 
 @maybe_njit
+def jacobians(x2, V, g, T, B):
+    """The bicycle's F and G at heading x2 and controls (V, g): (f02, f12, G) with
+    F = [[1, 0, f02], [0, 1, f12], [0, 0, 1]] (bicycle.F_jacobian) and G = (g00, g01, g10,
+    g11, g20, g21) row-major (bicycle.G_jacobian)."""
+    a = x2 + g
+    ca = math.cos(a)
+    sa = math.sin(a)
+    G = (T * ca, -T * V * sa, T * sa, T * V * ca, T * math.sin(g) / B, T * V * math.cos(g) / B)
+    return -T * V * sa, T * V * ca, G
+
+
+@maybe_njit
 def predict(x, P, V, g, T, B, Qu):
     """RobotEKF.predict with the bicycle model: F and G at (x, u), x- = f(x, u),
     P- = F P F^T + G Qu G^T (eqs. 19-21). Returns (x-, P-, Q) with Q = G Qu G^T."""
     x0, x1, x2 = x
     p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
     q00, q01, q10, q11 = Qu
-    a = x2 + g
-    ca = math.cos(a)
-    sa = math.sin(a)
-    # F = [[1, 0, f02], [0, 1, f12], [0, 0, 1]] (bicycle.F_jacobian)
-    f02 = -T * V * sa
-    f12 = T * V * ca
-    # G (bicycle.G_jacobian)
-    g00 = T * ca
-    g01 = -T * V * sa
-    g10 = T * sa
-    g11 = T * V * ca
-    g20 = T * math.sin(g) / B
-    g21 = T * V * math.cos(g) / B
+    f02, f12, G = jacobians(x2, V, g, T, B)
+    g00, g01, g10, g11, g20, g21 = G
     # Q = (G Qu) G^T
     a00 = g00 * q00 + g01 * q10
     a01 = g00 * q01 + g01 * q11
@@ -143,7 +144,8 @@ def predict(x, P, V, g, T, B, Qu):
         a20 * g00 + a21 * g01, a20 * g10 + a21 * g11, a20 * g20 + a21 * g21,
     )  # fmt: skip
     # x- = f(x, u) (bicycle.f)
-    xn = (x0 + T * V * ca, x1 + T * V * sa, wrap(x2 + T * V * math.sin(g) / B))
+    # (f12 is T V cos(x2 + g) and -f02 is T V sin(x2 + g), bit for bit: negation is exact)
+    xn = (x0 + f12, x1 - f02, wrap(x2 + T * V * math.sin(g) / B))
     # (F P) F^T + Q, F's zeros and ones taken as they are
     b00 = p00 + f02 * p20
     b01 = p01 + f02 * p21
@@ -1068,6 +1070,156 @@ def run_vbr_kernel(
                         return True, j, nis_sum, n_updates, n_rejected
                 if adaptation:
                     R = (b0 / a0, 0.0, 0.0, b1 / a1)
+                if not healthy(x, P, R, Qu):
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
+            bad_record = bad_record or bad
+    return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# ---------------------------------------------------------------------------------------------
+# Akhlaghi et al. (filters.akhlaghi): residual-based R, innovation-based Qu, their rules as
+# written there; the Qu least squares and the interval's accumulators from filters/adaptive.py.
+
+from ..filters import akhlaghi as _akhlaghi  # noqa: E402
+
+if _NJIT is not None:
+    for _rule in (
+        _akhlaghi.forget, _akhlaghi.residual_variance, _adaptive.qu_least_squares,
+        _adaptive.interval_step,
+    ):  # fmt: skip
+        register_jitable(_rule)
+
+forget = _akhlaghi.forget
+residual_variance = _akhlaghi.residual_variance
+qu_least_squares = _adaptive.qu_least_squares
+interval_step = _adaptive.interval_step
+
+
+@maybe_njit
+def square(P):
+    """A 9-tuple as a 3 x 3 array."""
+    A = np.empty((3, 3))
+    for i in range(9):
+        A[i // 3, i % 3] = P[i]
+    return A
+
+
+@maybe_njit
+def run_akhlaghi_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    adapt_R, adapt_Q, adaptation, from_all, floor, ceiling, alpha,
+    record_every, out_x, out_P, out_R, out_Q,
+):  # fmt: skip
+    """filterpy_engine.run_filter with filters.akhlaghi.AkhlaghiEKF: after every landmark
+    update (and, with from_all, the update a gate-rejected landmark would have made) the
+    residual sample feeds R (eq. 11, the scan's mean, forgotten once per scan) and the
+    correction x+ - x- the scan's dx; at the end of the scan Qu from eq. (15) through the
+    interval's accumulators. Returns as `run_kernel`."""
+    K = u_odo.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    A_v = np.zeros((3, 3))
+    A_g = np.zeros((3, 3))
+    F = np.eye(3)
+    Q_v = np.empty((3, 3))
+    Q_g = np.empty((3, 3))
+    Q_hat = np.empty((3, 3))
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_rows = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        V = u_odo[k - 1, 0]
+        g = u_odo[k - 1, 1]
+        if adapt_Q:  # AdaptiveEKF.predict: F and G at the estimate before the predict
+            f02, f12, G = jacobians(x[2], V, g, T, B)
+            F[0, 2] = f02
+            F[1, 2] = f12
+            for r in range(3):
+                for c in range(3):
+                    Q_v[r, c] = G[2 * r] * G[2 * c]
+                    Q_g[r, c] = G[2 * r + 1] * G[2 * c + 1]
+            A_v = interval_step(A_v, F, Q_v)
+            A_g = interval_step(A_g, F, Q_g)
+        x, P, Q = predict(x, P, V, g, T, B, Qu)
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                Rs0 = R[0]  # R_(k-1) of eq. (11)
+                Rs1 = R[3]
+                sum0 = 0.0
+                sum1 = 0.0
+                n_samples = 0
+                dx0 = 0.0
+                dx1 = 0.0
+                dx2 = 0.0
+                dx_fed = False
+                for m in range(first, last):
+                    z0 = scan_z[m, 0]
+                    z1 = scan_z[m, 1]
+                    lx = scan_lm[m, 0]
+                    ly = scan_lm[m, 1]
+                    H, zh, nu, HPHt = innovation(x, P, lx, ly, z0, z1)
+                    ok, v = nis(HPHt, R, nu[0], nu[1])
+                    if not ok or not math.isfinite(v):
+                        return True, j, nis_sum, n_updates, n_rejected
+                    accepted = not (has_gate and not v <= gate)
+                    if accepted:
+                        nis_sum += v
+                        n_updates += 1
+                    else:
+                        n_rejected += 1
+                    # a rejected landmark feeds through the update it would have made (nothing
+                    # changes x, P or R before the class settles it at the next landmark)
+                    if not adaptation or not (accepted or from_all):
+                        continue
+                    ok, xp, Pp = correct(x, P, H, zh, z0, z1, R)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                    _, _, e, _ = innovation(xp, Pp, lx, ly, z0, z1)
+                    hph0, hph1 = hph_diag(H, Pp)
+                    if adapt_R:
+                        sum0 += residual_variance(e[0], hph0)
+                        sum1 += residual_variance(e[1], hph1)
+                        n_samples += 1
+                    dx0 += xp[0] - x[0]
+                    dx1 += xp[1] - x[1]
+                    dx2 += wrap(xp[2] - x[2])
+                    dx_fed = True
+                    if accepted:
+                        x = xp
+                        P = Pp
+                    if adapt_R:
+                        R = (
+                            clip_variance(forget(Rs0, sum0 / n_samples, alpha), R0[0], floor,
+                                          ceiling), 0.0,
+                            0.0, clip_variance(forget(Rs1, sum1 / n_samples, alpha), R0[3],
+                                               floor, ceiling),
+                        )  # fmt: skip
+                if adaptation and adapt_Q and dx_fed:
+                    # eq. (15) on the interval, mapped to Qu (AdaptiveEKF.qu_estimate)
+                    dx = (dx0, dx1, dx2)
+                    for r in range(3):
+                        for c in range(3):
+                            Q_hat[r, c] = forget(
+                                Qu[0] * A_v[r, c] + Qu[3] * A_g[r, c], dx[r] * dx[c], alpha
+                            )
+                    q = qu_least_squares(Q_hat, A_v, A_g, np.linalg.inv(square(P)))
+                    Qu = (
+                        clip_variance(q[0], Qu0[0], floor, ceiling), 0.0,
+                        0.0, clip_variance(q[1], Qu0[3], floor, ceiling),
+                    )  # fmt: skip
+                    A_v = np.zeros((3, 3))
+                    A_g = np.zeros((3, 3))
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
         if record_every > 0 and k % record_every == 0 and j < n_rows:

@@ -1180,24 +1180,30 @@ def run_akhlaghi_kernel(
                         n_rejected += 1
                     # a rejected landmark feeds through the update it would have made (nothing
                     # changes x, P or R before the class settles it at the next landmark)
-                    if not adaptation or not (accepted or from_all):
+                    feeds = adaptation and (accepted or from_all)
+                    if not (accepted or feeds):
                         continue
                     ok, xp, Pp = correct(x, P, H, zh, z0, z1, R)
                     if not ok:
                         return True, j, nis_sum, n_updates, n_rejected
+                    if accepted:
+                        x_prior = x
+                        x = xp
+                        P = Pp
+                    if not feeds:
+                        continue
+                    if not accepted:
+                        x_prior = x
                     _, _, e, _ = innovation(xp, Pp, lx, ly, z0, z1)
                     hph0, hph1 = hph_diag(H, Pp)
                     if adapt_R:
                         sum0 += residual_variance(e[0], hph0)
                         sum1 += residual_variance(e[1], hph1)
                         n_samples += 1
-                    dx0 += xp[0] - x[0]
-                    dx1 += xp[1] - x[1]
-                    dx2 += wrap(xp[2] - x[2])
+                    dx0 += xp[0] - x_prior[0]
+                    dx1 += xp[1] - x_prior[1]
+                    dx2 += wrap(xp[2] - x_prior[2])
                     dx_fed = True
-                    if accepted:
-                        x = xp
-                        P = Pp
                     if adapt_R:
                         R = (
                             clip_variance(forget(Rs0, sum0 / n_samples, alpha), R0[0], floor,

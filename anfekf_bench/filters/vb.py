@@ -48,7 +48,9 @@ def kalman_update(
     """
     PHt = P @ H.T
     S = H @ PHt + R
-    K = PHt @ linalg.inv(S)
+    # check_finite off: a non-finite S gives NaNs that the gate's NIS reports as divergence,
+    # as the plain EKF's, instead of scipy's ValueError
+    K = PHt @ linalg.inv(S, check_finite=False)
     I_KH = np.eye(len(x)) - K @ H
     return x + K @ nu, I_KH @ P @ I_KH.T + K @ R @ K.T
 

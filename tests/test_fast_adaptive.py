@@ -14,7 +14,7 @@ import pytest
 from anfekf_bench.config import load_scenario, parse_scenario, resolve_world
 from anfekf_bench.engines import fast
 from anfekf_bench.filters.akhlaghi import AkhlaghiSpec
-from anfekf_bench.filters.vb import VBRSpec
+from anfekf_bench.filters.vb import VBAKFSpec, VBRSpec
 from anfekf_bench.runner import simulate
 
 from .conftest import small_scenario
@@ -31,6 +31,10 @@ def _vbr(**kw):
     return VBRSpec(name="v", kind="vb-r", **kw)
 
 
+def _vbakf(**kw):
+    return VBAKFSpec(name="h", kind="vbakf", **kw)
+
+
 VARIANTS = {
     "akhlaghi": _akhlaghi(),
     "akhlaghi-R": _akhlaghi(adapt="R"),
@@ -45,6 +49,13 @@ VARIANTS = {
     "vb-r-accepted": _vbr(adapt_from="accepted"),
     "vb-r-bounds": _vbr(bounds=(0.5, 2.0)),
     "vb-r-off": _vbr(adaptation=False),
+    "vbakf": _vbakf(),
+    "vbakf-full-R": _vbakf(R_structure="full"),
+    "vbakf-few-iterations": _vbakf(iterations=2, tau=6.0, tau_R=1.0),
+    "vbakf-stationary": _vbakf(rho=1.0),
+    "vbakf-accepted": _vbakf(adapt_from="accepted"),
+    "vbakf-bounds": _vbakf(bounds=(0.5, 2.0)),
+    "vbakf-off": _vbakf(adaptation=False),
 }
 
 
@@ -81,20 +92,23 @@ def test_small_world_every_variant(worlds, noise, name, mode):
         assert np.ptp(ref["R_diag"][:, 0]) > 0
     if spec.adaptation and name.startswith("akhlaghi") and name != "akhlaghi-R":
         assert np.ptp(ref["Q_diag"][:, 0]) > 0
+    if spec.adaptation and name.startswith("vbakf"):  # it did rescale P-
+        assert np.nanmax(np.abs(ref["P_infl"] - 1.0)) > 0.01
     assert_same_run(ref, out, what=f"{noise} {name}")
 
 
 def test_rejected_landmarks_feed_adaptation(worlds):
-    """The wrong-R world has rejections, so `adapt_from: all` is exercised on both engines."""
+    """The wrong-R world has rejections (R held within tight bounds for the VB filters, which
+    otherwise learn it within a few scans), so `adapt_from: all` feeds them on both engines."""
     scenario, world, data = worlds["wrong-R"]
-    for name in ("akhlaghi", "vb-r-accepted"):
+    for name in ("akhlaghi", "vb-r-bounds", "vbakf-bounds"):
         spec = VARIANTS[name]
         ref, out = both(spec, ctx_of(spec, scenario, world), data, world, 1)
         assert ref["n_rejected"] > 0
         assert_same_run(ref, out, what=name)
 
 
-@pytest.mark.parametrize("name", ["akhlaghi", "vb-r"])
+@pytest.mark.parametrize("name", ["akhlaghi", "vb-r", "vbakf"])
 def test_gate_off_and_record_every(worlds, name):
     scenario, world, data = worlds["wrong-R"]
     spec = VARIANTS[name]
@@ -106,7 +120,7 @@ def test_gate_off_and_record_every(worlds, name):
 
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")
-@pytest.mark.parametrize("name", ["akhlaghi", "vb-r"])
+@pytest.mark.parametrize("name", ["akhlaghi", "vb-r", "vbakf"])
 @pytest.mark.parametrize(
     "changes",
     [
@@ -123,7 +137,7 @@ def test_forced_divergence(worlds, name, changes):
     assert_same_run(ref, out, what=str(changes))
 
 
-@pytest.mark.parametrize("name", ["akhlaghi", "vb-r"])
+@pytest.mark.parametrize("name", ["akhlaghi", "vb-r", "vbakf"])
 def test_paper_wrong_r_scenario(name):
     """The paper's wrong-R scenario, one run, on both engines."""
     scenario, world = load_scenario(CONFIGS / "wrong_r.yaml")

@@ -166,7 +166,6 @@ def innovation(x, P, lx, ly, z0, z1):
     """RobotEKF.innovation: H (eq. 25), z_hat = h(x-) (eq. 22), nu (eq. 23, bearing wrapped)
     and H P- H^T, all at x-."""
     x0, x1, x2 = x
-    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
     dx = lx - x0
     dy = ly - x1
     q = dx * dx + dy * dy
@@ -179,6 +178,15 @@ def innovation(x, P, lx, ly, z0, z1):
     zh1 = wrap(math.atan2(dy, dx) - x2)
     nu0 = z0 - zh0
     nu1 = wrap(z1 - zh1)
+    H = (h00, h01, h10, h11)
+    return H, (zh0, zh1), (nu0, nu1), hph(H, P)
+
+
+@maybe_njit
+def hph(H, P):
+    """H P H^T (row-major 4-tuple) for the H of `innovation` (third column (0, -1))."""
+    h00, h01, h10, h11 = H
+    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
     # H P (2 x 3); H's third column is (0, -1)
     c00 = h00 * p00 + h01 * p10
     c01 = h00 * p01 + h01 * p11
@@ -190,7 +198,7 @@ def innovation(x, P, lx, ly, z0, z1):
         c00 * h00 + c01 * h01, c00 * h10 + c01 * h11 - c02,
         c10 * h00 + c11 * h01, c10 * h10 + c11 * h11 - c12,
     )  # fmt: skip
-    return (h00, h01, h10, h11), (zh0, zh1), (nu0, nu1), HPHt
+    return HPHt
 
 
 @maybe_njit
@@ -1229,6 +1237,167 @@ def run_akhlaghi_kernel(
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
         if record_every > 0 and k % record_every == 0 and j < n_rows:
+            j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
+            bad_record = bad_record or bad
+    return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# ---------------------------------------------------------------------------------------------
+# Huang et al.'s VBAKF (filters.vb.VBAKF): inverse-Wishart on P- and R, its rules as written in
+# filters/vb.py.
+
+if _NJIT is not None:
+    for _rule in (
+        _vb.vbakf_predict, _vb.vbakf_prior, _vb.inflation_cap, _vb.clip_covariance_2,
+    ):  # fmt: skip
+        register_jitable(_rule)
+
+vbakf_predict = _vb.vbakf_predict
+vbakf_prior = _vb.vbakf_prior
+inflation_cap = _vb.inflation_cap
+clip_covariance_2 = _vb.clip_covariance_2
+
+
+@maybe_njit
+def run_vbakf_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    adaptation, from_all, floor, ceiling, rho, iterations, tau, tau_R, diagonal_R,
+    record_every, out_x, out_P, out_R, out_Q, out_infl,
+):  # fmt: skip
+    """filterpy_engine.run_filter with filters.vb.VBAKF (Huang et al. 2018, Algorithm 1): per
+    scan with a landmark the forgetting of (u, U); per landmark that feeds adaptation
+    `iterations` updates from the same x- (filters.vb.vbakf_update), P- re-estimated at the
+    first landmark of the scan only and put back if the gate rejects that landmark. out_infl
+    records the filter's P_inflation. Returns as `run_kernel`."""
+    m2 = 2.0  # the measurement's dimension m
+    K = u_odo.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    u = m2 + 1.0 + tau_R
+    U = (tau_R * R0[0], tau_R * R0[1], tau_R * R0[2], tau_R * R0[3])
+    infl = 1.0
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_rows = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        x, P, Q = predict(x, P, u_odo[k - 1, 0], u_odo[k - 1, 1], T, B, Qu)
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                if adaptation:
+                    u_, U00 = vbakf_predict(u, U[0], rho, m2)
+                    _, U01 = vbakf_predict(u, U[1], rho, m2)
+                    _, U10 = vbakf_predict(u, U[2], rho, m2)
+                    _, U11 = vbakf_predict(u, U[3], rho, m2)
+                    u = u_
+                    U = (U00, U01, U10, U11)
+                for m in range(first, last):
+                    z0 = scan_z[m, 0]
+                    z1 = scan_z[m, 1]
+                    lx = scan_lm[m, 0]
+                    ly = scan_lm[m, 1]
+                    H, zh, nu, HPHt = innovation(x, P, lx, ly, z0, z1)
+                    adapted_P = False
+                    P_predicted = P
+                    if adaptation:
+                        infl = 1.0
+                        d = u - m2 - 1.0
+                        R = (U[0] / d, U[1] / d, U[2] / d, U[3] / d)
+                        feeds = True
+                        if not from_all and has_gate:
+                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                            if not ok:
+                                return True, j, nis_sum, n_updates, n_rejected
+                            feeds = nis_a <= gate
+                        if feeds:
+                            # filters.vb.vbakf_update
+                            adapt_P = m == first
+                            u_post = u + 1.0
+                            d = u_post - m2 - 1.0
+                            xi = x
+                            Pi = P
+                            P_hat = P
+                            tr_P = P[0] + P[4] + P[8]
+                            U_post = U
+                            clipped = False
+                            for _ in range(iterations):
+                                if adapt_P:
+                                    dx = (xi[0] - x[0], xi[1] - x[1], wrap(xi[2] - x[2]))
+                                    P_hat = (
+                                        vbakf_prior(Pi[0], dx[0] * dx[0], P[0], tau),
+                                        vbakf_prior(Pi[1], dx[0] * dx[1], P[1], tau),
+                                        vbakf_prior(Pi[2], dx[0] * dx[2], P[2], tau),
+                                        vbakf_prior(Pi[3], dx[1] * dx[0], P[3], tau),
+                                        vbakf_prior(Pi[4], dx[1] * dx[1], P[4], tau),
+                                        vbakf_prior(Pi[5], dx[1] * dx[2], P[5], tau),
+                                        vbakf_prior(Pi[6], dx[2] * dx[0], P[6], tau),
+                                        vbakf_prior(Pi[7], dx[2] * dx[1], P[7], tau),
+                                        vbakf_prior(Pi[8], dx[2] * dx[2], P[8], tau),
+                                    )  # fmt: skip
+                                    cap = inflation_cap(
+                                        P_hat[0] + P_hat[4] + P_hat[8], tr_P, ceiling
+                                    )
+                                    if cap != 1.0:
+                                        P_hat = (
+                                            P_hat[0] * cap, P_hat[1] * cap, P_hat[2] * cap,
+                                            P_hat[3] * cap, P_hat[4] * cap, P_hat[5] * cap,
+                                            P_hat[6] * cap, P_hat[7] * cap, P_hat[8] * cap,
+                                        )  # fmt: skip
+                                _, _, e, _ = innovation(xi, Pi, lx, ly, z0, z1)
+                                HPiHt = hph(H, Pi)
+                                b00 = e[0] * e[0] + HPiHt[0]
+                                b11 = e[1] * e[1] + HPiHt[3]
+                                if diagonal_R:
+                                    U_post = (U[0] + b00, U[1], U[2], U[3] + b11)
+                                else:
+                                    b01 = e[0] * e[1] + HPiHt[1]
+                                    b10 = e[1] * e[0] + HPiHt[2]
+                                    U_post = (
+                                        U[0] + 0.5 * (b00 + b00), U[1] + 0.5 * (b01 + b10),
+                                        U[2] + 0.5 * (b10 + b01), U[3] + 0.5 * (b11 + b11),
+                                    )  # fmt: skip
+                                R_raw = (U_post[0] / d, U_post[1] / d, U_post[2] / d,
+                                         U_post[3] / d)  # fmt: skip
+                                clipped, R = clip_covariance_2(R_raw, R0[0], R0[3], floor, ceiling)
+                                ok, xi, Pi = correct(x, P_hat, H, zh, z0, z1, R)
+                                if not ok:
+                                    return True, j, nis_sum, n_updates, n_rejected
+                            if clipped:  # keep the posterior consistent with the R in force
+                                U_post = (d * R[0], d * R[1], d * R[2], d * R[3])
+                            u = u_post
+                            U = U_post
+                            if adapt_P:
+                                adapted_P = True
+                                infl = (P_hat[0] + P_hat[4] + P_hat[8]) / (P[0] + P[4] + P[8])
+                                P = P_hat
+                    if infl != 1.0:  # RobotEKF.update_landmark: H P- H^T follows the new P-
+                        HPHt = hph(H, P)
+                    ok, v = nis(HPHt, R, nu[0], nu[1])
+                    if not ok or not math.isfinite(v):
+                        return True, j, nis_sum, n_updates, n_rejected
+                    if has_gate and not v <= gate:
+                        n_rejected += 1
+                        if adapted_P:  # VBAKF.update_landmark: back to the prediction
+                            P = P_predicted
+                            infl = 1.0
+                        continue
+                    nis_sum += v
+                    n_updates += 1
+                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                if not healthy(x, P, R, Qu):
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            out_infl[j] = infl
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad
     return bad_record, j, nis_sum, n_updates, n_rejected

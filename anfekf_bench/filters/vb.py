@@ -58,18 +58,41 @@ def kalman_update(
 def clip_covariance(
     R: np.ndarray, start_diag: np.ndarray, bounds: tuple[float, float]
 ) -> np.ndarray:
-    """R with its variances clipped to the bounds (SPEC 7) and its correlations kept.
+    """R with its variances clipped to the bounds (SPEC 7) and its correlations kept
+    (`clip_covariance_2`); R itself (the same object) when no variance is outside the bounds."""
+    changed, Rc = clip_covariance_2(
+        (R[0, 0], R[0, 1], R[1, 0], R[1, 1]), start_diag[0], start_diag[1], bounds[0], bounds[1]
+    )
+    return np.array(Rc).reshape(2, 2) if changed else R
 
-    R' = D R D with D = diag(sqrt(clipped / raw)): for a diagonal R simply the clipped diagonal;
-    for a full R the correlation coefficients are unchanged, so R' stays positive definite.
-    R itself (the same object) when no variance is outside the bounds.
-    """
-    d = np.diag(R)
-    clipped = clip_to_bounds(d, start_diag, bounds)
-    if np.array_equal(d, clipped):
-        return R
-    s = np.sqrt(clipped / d)
-    return R * np.outer(s, s)
+
+def clip_covariance_2(R, start0, start1, floor, ceiling):
+    """A 2 x 2 R (row-major 4-tuple) with its variances clipped to [floor, ceiling] times their
+    starting values (SPEC 7) and its correlations kept: R' = D R D with
+    D = diag(sqrt(clipped / raw)), so that R' stays positive definite. Returns (whether a
+    variance was clipped, R')."""
+    c0 = clip_variance(R[0], start0, floor, ceiling)
+    c1 = clip_variance(R[3], start1, floor, ceiling)
+    if c0 == R[0] and c1 == R[3]:
+        return False, R
+    s0 = np.sqrt(c0 / R[0])  # np: NaN (not an error) for a negative variance
+    s1 = np.sqrt(c1 / R[3])
+    return True, (R[0] * (s0 * s0), R[1] * (s0 * s1), R[2] * (s1 * s0), R[3] * (s1 * s1))
+
+
+def vbakf_prior(P_i, dxdx, P, tau):
+    """Huang et al.'s P^- = T / (t - n - 1) = (A + tau P~-) / (tau + 1), A = P^(i) + dx dx^T
+    (elementwise: arrays or one element)."""
+    return (P_i + dxdx + tau * P) / (tau + 1.0)
+
+
+def inflation_cap(trace_prior, trace_predicted, max_inflation):
+    """The factor that caps tr(P^-) / tr(P~-) at max_inflation (research notes 5.3): 1 when
+    it is within the cap."""
+    inflation = trace_prior / trace_predicted
+    if inflation > max_inflation:
+        return max_inflation / inflation
+    return 1.0
 
 
 def landmark_residual(z: np.ndarray, landmark: np.ndarray) -> Residual:
@@ -275,11 +298,10 @@ def vbakf_update(
     for _ in range(iterations):
         if adapt_P:
             dx = x_i - x  # = K nu: no heading to wrap (the iterates are not wrapped)
-            A = P_i + np.outer(dx, dx)
-            P_hat = (A + tau * P) / (tau + 1.0)  # T / (t - n - 1): t - n - 1 = tau + 1
-            inflation = np.trace(P_hat) / tr_P
-            if inflation > max_inflation:
-                P_hat = P_hat * (max_inflation / inflation)
+            P_hat = vbakf_prior(P_i, np.outer(dx, dx), P, tau)
+            cap = inflation_cap(np.trace(P_hat), tr_P, max_inflation)
+            if cap != 1.0:
+                P_hat = P_hat * cap
         e = residual(x_i)
         B = np.outer(e, e) + H @ P_i @ H.T
         U_post = U + (np.diag(np.diag(B)) if diagonal_R else 0.5 * (B + B.T))

@@ -127,7 +127,6 @@ def predict(x, P, V, g, T, B, Qu):
     """RobotEKF.predict with the bicycle model: F and G at (x, u), x- = f(x, u),
     P- = F P F^T + G Qu G^T (eqs. 19-21). Returns (x-, P-, Q) with Q = G Qu G^T."""
     x0, x1, x2 = x
-    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
     q00, q01, q10, q11 = Qu
     f02, f12, G = jacobians(x2, V, g, T, B)
     g00, g01, g10, g11, g20, g21 = G
@@ -146,19 +145,25 @@ def predict(x, P, V, g, T, B, Qu):
     # x- = f(x, u) (bicycle.f)
     # (f12 is T V cos(x2 + g) and -f02 is T V sin(x2 + g), bit for bit: negation is exact)
     xn = (x0 + f12, x1 - f02, wrap(x2 + T * V * math.sin(g) / B))
-    # (F P) F^T + Q, F's zeros and ones taken as they are
+    return xn, propagate(P, f02, f12, Q), Q
+
+
+@maybe_njit
+def propagate(P, f02, f12, Q):
+    """(F P) F^T + Q for the bicycle's F = [[1, 0, f02], [0, 1, f12], [0, 0, 1]], its zeros and
+    ones taken as they are (P, Q row-major 9-tuples)."""
+    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
     b00 = p00 + f02 * p20
     b01 = p01 + f02 * p21
     b02 = p02 + f02 * p22
     b10 = p10 + f12 * p20
     b11 = p11 + f12 * p21
     b12 = p12 + f12 * p22
-    Pn = (
+    return (
         (b00 + b02 * f02) + Q[0], (b01 + b02 * f12) + Q[1], b02 + Q[2],
         (b10 + b12 * f02) + Q[3], (b11 + b12 * f12) + Q[4], b12 + Q[5],
         (p20 + p22 * f02) + Q[6], (p21 + p22 * f12) + Q[7], p22 + Q[8],
     )  # fmt: skip
-    return xn, Pn, Q
 
 
 @maybe_njit
@@ -1095,14 +1100,12 @@ from ..filters import akhlaghi as _akhlaghi  # noqa: E402
 if _NJIT is not None:
     for _rule in (
         _akhlaghi.forget, _akhlaghi.residual_variance, _adaptive.qu_least_squares,
-        _adaptive.interval_step,
     ):  # fmt: skip
         register_jitable(_rule)
 
 forget = _akhlaghi.forget
 residual_variance = _akhlaghi.residual_variance
 qu_least_squares = _adaptive.qu_least_squares
-interval_step = _adaptive.interval_step
 
 
 @maybe_njit
@@ -1131,11 +1134,9 @@ def run_akhlaghi_kernel(
     P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
     Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
     R = (R0[0], R0[1], R0[2], R0[3])
-    A_v = np.zeros((3, 3))
-    A_g = np.zeros((3, 3))
-    F = np.eye(3)
-    Q_v = np.empty((3, 3))
-    Q_g = np.empty((3, 3))
+    zero = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    A_v = zero  # the interval's accumulators (filters.adaptive), row-major
+    A_g = zero
     Q_hat = np.empty((3, 3))
     nis_sum = 0.0
     n_updates = 0
@@ -1146,16 +1147,15 @@ def run_akhlaghi_kernel(
     for k in range(1, K + 1):
         V = u_odo[k - 1, 0]
         g = u_odo[k - 1, 1]
-        if adapt_Q:  # AdaptiveEKF.predict: F and G at the estimate before the predict
+        if adapt_Q:  # AdaptiveEKF.predict (interval_step): F and G before the predict
             f02, f12, G = jacobians(x[2], V, g, T, B)
-            F[0, 2] = f02
-            F[1, 2] = f12
-            for r in range(3):
-                for c in range(3):
-                    Q_v[r, c] = G[2 * r] * G[2 * c]
-                    Q_g[r, c] = G[2 * r + 1] * G[2 * c + 1]
-            A_v = interval_step(A_v, F, Q_v)
-            A_g = interval_step(A_g, F, Q_g)
+            g0, g1, g2, g3, g4, g5 = G
+            A_v = propagate(A_v, f02, f12, (
+                g0 * g0, g0 * g2, g0 * g4, g2 * g0, g2 * g2, g2 * g4, g4 * g0, g4 * g2, g4 * g4,
+            ))  # fmt: skip
+            A_g = propagate(A_g, f02, f12, (
+                g1 * g1, g1 * g3, g1 * g5, g3 * g1, g3 * g3, g3 * g5, g5 * g1, g5 * g3, g5 * g5,
+            ))  # fmt: skip
         x, P, Q = predict(x, P, V, g, T, B, Qu)
         if k % every == 0:
             s = k // every - 1
@@ -1224,16 +1224,17 @@ def run_akhlaghi_kernel(
                     dx = (dx0, dx1, dx2)
                     for r in range(3):
                         for c in range(3):
+                            i = 3 * r + c
                             Q_hat[r, c] = forget(
-                                Qu[0] * A_v[r, c] + Qu[3] * A_g[r, c], dx[r] * dx[c], alpha
+                                Qu[0] * A_v[i] + Qu[3] * A_g[i], dx[r] * dx[c], alpha
                             )
-                    q = qu_least_squares(Q_hat, A_v, A_g, np.linalg.inv(square(P)))
+                    q = qu_least_squares(Q_hat, square(A_v), square(A_g), np.linalg.inv(square(P)))
                     Qu = (
                         clip_variance(q[0], Qu0[0], floor, ceiling), 0.0,
                         0.0, clip_variance(q[1], Qu0[3], floor, ceiling),
                     )  # fmt: skip
-                    A_v = np.zeros((3, 3))
-                    A_g = np.zeros((3, 3))
+                    A_v = zero
+                    A_g = zero
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
         if record_every > 0 and k % record_every == 0 and j < n_rows:

@@ -1,5 +1,5 @@
 """The residual- and VB-based adaptive filters on the fast engine against the filterpy engine
-(SPEC 11, issue 22): akhlaghi, vb-r and vbakf in every mode, the same update, rejection and
+(SPEC 11, issue 22): akhlaghi, vb-r, vbakf and swvb in every mode, the same update, rejection and
 divergence counts, the same NaN records, x, P, R_diag, Q_diag and P_infl to 1e-9
 (`test_fast_engine.assert_same_run`), compiled and as plain Python."""
 
@@ -14,6 +14,7 @@ import pytest
 from anfekf_bench.config import load_scenario, parse_scenario, resolve_world
 from anfekf_bench.engines import fast
 from anfekf_bench.filters.akhlaghi import AkhlaghiSpec
+from anfekf_bench.filters.swvb import SWVBSpec
 from anfekf_bench.filters.vb import VBAKFSpec, VBRSpec
 from anfekf_bench.runner import simulate
 
@@ -33,6 +34,10 @@ def _vbr(**kw):
 
 def _vbakf(**kw):
     return VBAKFSpec(name="h", kind="vbakf", **kw)
+
+
+def _swvb(**kw):
+    return SWVBSpec(name="s", kind="swvb", **kw)
 
 
 VARIANTS = {
@@ -56,6 +61,12 @@ VARIANTS = {
     "vbakf-accepted": _vbakf(adapt_from="accepted"),
     "vbakf-bounds": _vbakf(bounds=(0.5, 2.0)),
     "vbakf-off": _vbakf(adaptation=False),
+    "swvb": _swvb(),
+    "swvb-one-iteration": _swvb(iterations=1, a0=3.0),
+    "swvb-stationary": _swvb(rho=1.0),
+    "swvb-accepted": _swvb(adapt_from="accepted"),
+    "swvb-bounds": _swvb(bounds=(0.5, 2.0)),
+    "swvb-off": _swvb(adaptation=False),
 }
 
 
@@ -90,7 +101,7 @@ def test_small_world_every_variant(worlds, noise, name, mode):
     adapts = spec.adaptation and name != "akhlaghi-Q"
     if adapts:  # it did adapt R (the test compares something that moves)
         assert np.ptp(ref["R_diag"][:, 0]) > 0
-    if spec.adaptation and name.startswith("akhlaghi") and name != "akhlaghi-R":
+    if spec.adaptation and name.startswith(("akhlaghi", "swvb")) and name != "akhlaghi-R":
         assert np.ptp(ref["Q_diag"][:, 0]) > 0
     if spec.adaptation and name.startswith("vbakf"):  # it did rescale P-
         assert np.nanmax(np.abs(ref["P_infl"] - 1.0)) > 0.01
@@ -101,14 +112,14 @@ def test_rejected_landmarks_feed_adaptation(worlds):
     """The wrong-R world has rejections (R held within tight bounds for the VB filters, which
     otherwise learn it within a few scans), so `adapt_from: all` feeds them on both engines."""
     scenario, world, data = worlds["wrong-R"]
-    for name in ("akhlaghi", "vb-r-bounds", "vbakf-bounds"):
+    for name in ("akhlaghi", "vb-r-bounds", "vbakf-bounds", "swvb-bounds"):
         spec = VARIANTS[name]
         ref, out = both(spec, ctx_of(spec, scenario, world), data, world, 1)
         assert ref["n_rejected"] > 0
         assert_same_run(ref, out, what=name)
 
 
-@pytest.mark.parametrize("name", ["akhlaghi", "vb-r", "vbakf"])
+@pytest.mark.parametrize("name", ["akhlaghi", "vb-r", "vbakf", "swvb"])
 def test_gate_off_and_record_every(worlds, name):
     scenario, world, data = worlds["wrong-R"]
     spec = VARIANTS[name]
@@ -120,7 +131,7 @@ def test_gate_off_and_record_every(worlds, name):
 
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")
-@pytest.mark.parametrize("name", ["akhlaghi", "vb-r", "vbakf"])
+@pytest.mark.parametrize("name", ["akhlaghi", "vb-r", "vbakf", "swvb"])
 @pytest.mark.parametrize(
     "changes",
     [
@@ -137,11 +148,14 @@ def test_forced_divergence(worlds, name, changes):
     assert_same_run(ref, out, what=str(changes))
 
 
-@pytest.mark.parametrize("name", ["akhlaghi", "vb-r", "vbakf"])
-def test_paper_wrong_r_scenario(name):
-    """The paper's wrong-R scenario, one run, on both engines."""
-    scenario, world = load_scenario(CONFIGS / "wrong_r.yaml")
+@pytest.mark.parametrize("name", ["akhlaghi", "vb-r", "vbakf", "swvb"])
+@pytest.mark.parametrize(
+    "path", ["wrong_r.yaml", pytest.param("wrong_q.yaml", marks=pytest.mark.slow)]
+)
+def test_paper_scenarios(path, name):
+    """The paper's scenarios, one run each, on both engines."""
+    scenario, world = load_scenario(CONFIGS / path)
     data = simulate(scenario, world, np.random.SeedSequence(scenario.seed).spawn(1)[0])
     spec = VARIANTS[name]
     ctx = ctx_of(spec, scenario, world)
-    assert_same_run(*both(spec, ctx, data, world, scenario.record_every), what=name)
+    assert_same_run(*both(spec, ctx, data, world, scenario.record_every), what=f"{path} {name}")

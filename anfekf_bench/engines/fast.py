@@ -31,6 +31,7 @@ from ..filters.fading import FadingSpec
 from ..filters.fitted import EKFMLSpec, EKFTunedSpec
 from ..filters.registry import register_engine
 from ..filters.spec import FilterContext, FilterSpec
+from ..filters.swvb import SWVBSpec
 from ..filters.vb import VBAKFSpec, VBRSpec
 from ..models import Bicycle
 from ..sources.simulator import RunData
@@ -42,7 +43,7 @@ JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 # ekf-ml and ekf-tuned are the plain EKF with fitted noise (filters.fitted).
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
-    VBRSpec, AkhlaghiSpec, VBAKFSpec,
+    VBRSpec, AkhlaghiSpec, VBAKFSpec, SWVBSpec,
 )  # fmt: skip
 
 
@@ -183,6 +184,15 @@ def run_filter_fast(
             int(max(record_every, 0)), x, P, R, Qu, P_infl,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl)
+    if isinstance(spec, SWVBSpec):
+        diverged, j, nis_sum, n_updates, n_rejected = k.run_swvb_kernel(
+            *_common_args(ctx, data, every, flat),
+            bool(spec.adaptation), spec.adapt_from == "all",
+            float(spec.bounds[0]), float(spec.bounds[1]),
+            float(spec.rho), int(spec.iterations), float(spec.a0),
+            int(max(record_every, 0)), x, P, R, Qu,
+        )  # fmt: skip
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, VBRSpec):
         diverged, j, nis_sum, n_updates, n_rejected = k.run_vbr_kernel(
             *_common_args(ctx, data, every, flat),

@@ -1402,3 +1402,176 @@ def run_vbakf_kernel(
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad
     return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# ---------------------------------------------------------------------------------------------
+# Sliding-window VB on Qu and R (filters.swvb), its rules as written there (numpy on 3 x 3
+# arrays, compiled as they are).
+
+from ..filters import swvb as _swvb  # noqa: E402
+
+if _NJIT is not None:
+    for _rule in (_swvb.interval_prior, _swvb.process_noise_moment, _adaptive.clip_to_bounds):
+        register_jitable(_rule)
+
+interval_prior = _swvb.interval_prior
+process_noise_moment = _swvb.process_noise_moment
+clip_to_bounds = _adaptive.clip_to_bounds
+
+
+@maybe_njit
+def flat9(A):
+    """A 3 x 3 array as a row-major 9-tuple."""
+    return (
+        A[0, 0], A[0, 1], A[0, 2], A[1, 0], A[1, 1], A[1, 2], A[2, 0], A[2, 1], A[2, 2],
+    )  # fmt: skip
+
+
+@maybe_njit
+def run_swvb_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    adaptation, from_all, floor, ceiling, rho, iterations, a0,
+    record_every, out_x, out_P, out_R, out_Q,
+):  # fmt: skip
+    """filterpy_engine.run_filter with filters.swvb.SWVBEKF: per scan with a landmark and
+    adaptation, `iterations` passes of the scan's sequential EKF updates from the same x-, the
+    first from the filter's P-, the others from the interval's prior with the last Qu estimate;
+    after each pass the lag-one smoother's process-noise moment gives Qu, the posterior's
+    residuals R (SWVBEKF.update_scan). Returns as `run_kernel`."""
+    K = u_odo.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    bounds = (floor, ceiling)
+    qu_start = np.array([Qu0[0], Qu0[3]])
+    r_start = np.array([R0[0], R0[3]])
+    a_q = np.full(2, a0)
+    b_q = a0 * qu_start
+    a_r = np.full(2, a0)
+    b_r = a0 * r_start
+    zero = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    A_v = zero  # the interval's accumulators (filters.adaptive.AdaptiveEKF), row-major
+    A_g = zero
+    Fs02 = 0.0  # F_scan = [[1, 0, Fs02], [0, 1, Fs12], [0, 0, 1]]
+    Fs12 = 0.0
+    P_s = P  # P+ at the previous Q event
+    fed = np.zeros(max(scan_lm.shape[0], 1), np.bool_)
+    dx = np.empty(3)
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_rows = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        V = u_odo[k - 1, 0]
+        g = u_odo[k - 1, 1]
+        f02, f12, G = jacobians(x[2], V, g, T, B)
+        g0, g1, g2, g3, g4, g5 = G
+        A_v = propagate(A_v, f02, f12, (
+            g0 * g0, g0 * g2, g0 * g4, g2 * g0, g2 * g2, g2 * g4, g4 * g0, g4 * g2, g4 * g4,
+        ))  # fmt: skip
+        A_g = propagate(A_g, f02, f12, (
+            g1 * g1, g1 * g3, g1 * g5, g3 * g1, g3 * g3, g3 * g5, g5 * g1, g5 * g3, g5 * g5,
+        ))  # fmt: skip
+        Fs02 = Fs02 + f02  # F @ F_scan
+        Fs12 = Fs12 + f12
+        x, P, Q = predict(x, P, V, g, T, B, Qu)
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                passes = iterations if adaptation else 1
+                if adaptation:
+                    a_q = rho * a_q
+                    b_q = rho * b_q
+                    a_r = rho * a_r
+                    b_r = rho * b_r
+                x_m = x
+                P_m = P
+                counts = (nis_sum, n_updates, n_rejected)
+                qu = np.array([Qu[0], Qu[3]])
+                r = np.array([R[0], R[3]])
+                F_s = np.eye(3)
+                F_s[0, 2] = Fs02
+                F_s[1, 2] = Fs12
+                P_s_a = square(P_s)
+                A_v_a = square(A_v)
+                A_g_a = square(A_g)
+                b_q_n = b_q
+                a_r_n = a_r
+                b_r_n = b_r
+                for n in range(passes):
+                    if n > 0:
+                        P_m = flat9(interval_prior(P_s_a, F_s, A_v_a, A_g_a, qu[0], qu[1]))
+                    x = x_m
+                    P = P_m
+                    if adaptation:
+                        R = (r[0], 0.0, 0.0, r[1])
+                    nis_sum, n_updates, n_rejected = counts
+                    for m in range(first, last):
+                        z0 = scan_z[m, 0]
+                        z1 = scan_z[m, 1]
+                        H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                        ok, v = nis(HPHt, R, nu[0], nu[1])
+                        if not ok or not math.isfinite(v):
+                            return True, j, nis_sum, n_updates, n_rejected
+                        fed[m - first] = from_all or not has_gate or v <= gate
+                        if has_gate and not v <= gate:
+                            n_rejected += 1
+                            continue
+                        nis_sum += v
+                        n_updates += 1
+                        ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                        if not ok:
+                            return True, j, nis_sum, n_updates, n_rejected
+                    if not adaptation:
+                        break
+                    dx[0] = x[0] - x_m[0]
+                    dx[1] = x[1] - x_m[1]
+                    dx[2] = wrap(x[2] - x_m[2])
+                    P_m_a = square(P_m)
+                    W = process_noise_moment(dx, P_s_a, F_s, P_m_a, square(P))
+                    q = clip_to_bounds(
+                        qu_least_squares(W, A_v_a, A_g_a, np.linalg.inv(P_m_a)), qu_start, bounds
+                    )
+                    b_q_n = b_q + 0.5 * q
+                    qu = clip_to_bounds(b_q_n / (a_q + 0.5), qu_start, bounds)
+                    a_r_n = a_r
+                    b_r_n = b_r
+                    n_fed = 0
+                    s0 = 0.0
+                    s1 = 0.0
+                    for m in range(first, last):  # swvb.r_moment at the posterior
+                        if fed[m - first]:
+                            n_fed += 1
+                            _, _, e, HPH = innovation(
+                                x, P, scan_lm[m, 0], scan_lm[m, 1], scan_z[m, 0], scan_z[m, 1]
+                            )  # fmt: skip
+                            s0 = s0 + e[0] * e[0] + HPH[0]
+                            s1 = s1 + e[1] * e[1] + HPH[3]
+                    if n_fed > 0:
+                        a_r_n = a_r + 0.5 * n_fed
+                        b_r_n = b_r + 0.5 * np.array([s0, s1])
+                    r = clip_to_bounds(b_r_n / a_r_n, r_start, bounds)
+                if adaptation:
+                    a_q = a_q + 0.5
+                    b_q = b_q_n
+                    a_r = a_r_n
+                    b_r = b_r_n
+                    Qu = (qu[0], 0.0, 0.0, qu[1])
+                    R = (r[0], 0.0, 0.0, r[1])
+                    A_v = zero
+                    A_g = zero
+                    Fs02 = 0.0
+                    Fs12 = 0.0
+                    P_s = P
+                if not healthy(x, P, R, Qu):
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
+            bad_record = bad_record or bad
+    return bad_record, j, nis_sum, n_updates, n_rejected

@@ -8,9 +8,12 @@ plain Python otherwise; `JIT` says which.
 What it runs (`supports`): the EKF, the oracle EKF, ekf-ml and ekf-tuned (fitted noise), the
 ANFEKF with any of its parameters (adapt R, Q or RQ, adaptation and learning on or off,
 adapt_from, bounds, window, rates, ...), the multiple-model banks `mmae` and `imm` with any of
-theirs (`kernels.run_bank_kernel`) and the fading-factor EKF (`kernels.run_fading_kernel`), on the
-bicycle motion model. Anything else (a user's own filter, the other adaptive baselines) is not
-implemented here: the caller runs it on filterpy.
+theirs (`kernels.run_bank_kernel`), the fading-factor EKF (`kernels.run_fading_kernel`),
+`akhlaghi`, `vb-r`, `vbakf` and `swvb` in every mode (`kernels.run_akhlaghi_kernel`,
+`run_vbr_kernel`, `run_vbakf_kernel`, `run_swvb_kernel`: each family's rules are the plain
+functions of its filter module, called by both engines), on the bicycle motion model. Anything
+else (a user's own filter, the adaptive baselines not yet ported) is not implemented here: the
+caller runs it on filterpy.
 """
 
 from __future__ import annotations

@@ -334,7 +334,7 @@ def _anfis_start(
 
 def warm_up(jit: bool = True) -> float:
     """Compile (or load from numba's cache) every kernel signature the engine uses by running
-    a tiny EKF and ANFEKF; returns the seconds it took."""
+    a tiny EKF, ANFEKF, akhlaghi, vb-r, vbakf and swvb; returns the seconds it took."""
     import time
 
     from ..sources.simulator import Scan, Truth
@@ -351,7 +351,12 @@ def warm_up(jit: bool = True) -> float:
         x0=np.zeros(3), P0=np.eye(3) * 1e-9, Qu=np.diag([0.09, 0.003]), R=np.diag([0.01, 3e-4]),
         model=Bicycle(world.T, world.B), dt=world.T, gate=13.8,
     )  # fmt: skip
-    for spec in (EKFSpec(name="ekf"), ANFEKFSpec(name="anfekf", kind="anfekf", adapt="RQ")):
+    specs = (
+        EKFSpec(name="ekf"), ANFEKFSpec(name="anfekf", kind="anfekf", adapt="RQ"),
+        AkhlaghiSpec(name="akhlaghi", kind="akhlaghi"), VBRSpec(name="vb-r", kind="vb-r"),
+        VBAKFSpec(name="vbakf", kind="vbakf"), SWVBSpec(name="swvb", kind="swvb"),
+    )  # fmt: skip
+    for spec in specs:
         run_filter_fast(spec, ctx, data, world, 1, jit=jit)
     clear_cache()
     return time.perf_counter() - t0

@@ -159,3 +159,19 @@ def test_paper_scenarios(path, name):
     spec = VARIANTS[name]
     ctx = ctx_of(spec, scenario, world)
     assert_same_run(*both(spec, ctx, data, world, scenario.record_every), what=f"{path} {name}")
+
+
+def test_each_rule_is_written_once():
+    """The kernels call the filter modules' own rule functions (no copies in kernels.py)."""
+    from anfekf_bench.engines import kernels
+    from anfekf_bench.filters import adaptive, akhlaghi, swvb, vb
+
+    rules = {
+        "clip_variance": adaptive, "qu_least_squares": adaptive, "clip_to_bounds": adaptive,
+        "forget": akhlaghi, "residual_variance": akhlaghi, "vb_r_predict": vb, "vb_r_beta": vb,
+        "vb_r_bounded_beta": vb, "vbakf_predict": vb, "vbakf_prior": vb, "inflation_cap": vb,
+        "clip_covariance_2": vb, "interval_prior": swvb, "process_noise_moment": swvb,
+    }  # fmt: skip
+    for mod in (kernels, kernels.pure_module()):
+        for name, home in rules.items():
+            assert getattr(mod, name) is getattr(home, name), name

@@ -8,9 +8,12 @@ plain Python otherwise; `JIT` says which.
 What it runs (`supports`): the EKF, the oracle EKF, ekf-ml and ekf-tuned (fitted noise), the
 ANFEKF with any of its parameters (adapt R, Q or RQ, adaptation and learning on or off,
 adapt_from, bounds, window, rates, ...), the multiple-model banks `mmae` and `imm` with any of
-theirs (`kernels.run_bank_kernel`) and the fading-factor EKF (`kernels.run_fading_kernel`), on the
-bicycle motion model. Anything else (a user's own filter, the other adaptive baselines) is not
-implemented here: the caller runs it on filterpy.
+theirs (`kernels.run_bank_kernel`), the fading-factor EKF (`kernels.run_fading_kernel`),
+`akhlaghi`, `vb-r`, `vbakf` and `swvb` in every mode (`kernels.run_akhlaghi_kernel`,
+`run_vbr_kernel`, `run_vbakf_kernel`, `run_swvb_kernel`: each family's rules are the plain
+functions of its filter module, called by both engines), on the bicycle motion model. Anything
+else (a user's own filter, the adaptive baselines not yet ported) is not implemented here: the
+caller runs it on filterpy.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import numpy as np
 
 from ..config import World
 from ..filters import anfis
+from ..filters.akhlaghi import AkhlaghiSpec
 from ..filters.anfekf import ANFEKFSpec
 from ..filters.bank import IMMSpec, MMAESpec, hypotheses
 from ..filters.ekf import EKFSpec, OracleSpec
@@ -30,6 +34,8 @@ from ..filters.fading import FadingSpec
 from ..filters.fitted import EKFMLSpec, EKFTunedSpec
 from ..filters.registry import register_engine
 from ..filters.spec import FilterContext, FilterSpec
+from ..filters.swvb import SWVBSpec
+from ..filters.vb import VBAKFSpec, VBRSpec
 from ..models import Bicycle
 from ..sources.simulator import RunData
 from . import kernels as _jit_kernels
@@ -40,6 +46,7 @@ JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 # ekf-ml and ekf-tuned are the plain EKF with fitted noise (filters.fitted).
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
+    VBRSpec, AkhlaghiSpec, VBAKFSpec, SWVBSpec,
 )  # fmt: skip
 
 
@@ -160,6 +167,44 @@ def run_filter_fast(
             k, spec, ctx, data, every, flat, record_every, x, P, R, Qu
         )
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+    if isinstance(spec, AkhlaghiSpec):
+        diverged, j, nis_sum, n_updates, n_rejected = k.run_akhlaghi_kernel(
+            *_common_args(ctx, data, every, flat),
+            "R" in spec.adapt, "Q" in spec.adapt, bool(spec.adaptation),
+            spec.adapt_from == "all", float(spec.bounds[0]), float(spec.bounds[1]),
+            float(spec.alpha),
+            int(max(record_every, 0)), x, P, R, Qu,
+        )  # fmt: skip
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+    if isinstance(spec, VBAKFSpec):
+        P_infl = np.full(n, np.nan)
+        diverged, j, nis_sum, n_updates, n_rejected = k.run_vbakf_kernel(
+            *_common_args(ctx, data, every, flat),
+            bool(spec.adaptation), spec.adapt_from == "all",
+            float(spec.bounds[0]), float(spec.bounds[1]),
+            float(spec.rho), int(spec.iterations), float(spec.tau), float(spec.tau_R),
+            spec.R_structure == "diagonal",
+            int(max(record_every, 0)), x, P, R, Qu, P_infl,
+        )  # fmt: skip
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl)
+    if isinstance(spec, SWVBSpec):
+        diverged, j, nis_sum, n_updates, n_rejected = k.run_swvb_kernel(
+            *_common_args(ctx, data, every, flat),
+            bool(spec.adaptation), spec.adapt_from == "all",
+            float(spec.bounds[0]), float(spec.bounds[1]),
+            float(spec.rho), int(spec.iterations), float(spec.a0),
+            int(max(record_every, 0)), x, P, R, Qu,
+        )  # fmt: skip
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+    if isinstance(spec, VBRSpec):
+        diverged, j, nis_sum, n_updates, n_rejected = k.run_vbr_kernel(
+            *_common_args(ctx, data, every, flat),
+            bool(spec.adaptation), spec.adapt_from == "all",
+            float(spec.bounds[0]), float(spec.bounds[1]),
+            float(spec.rho), int(spec.iterations), float(spec.alpha0),
+            int(max(record_every, 0)), x, P, R, Qu,
+        )  # fmt: skip
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, FadingSpec):
         P_infl = np.full(n, np.nan)
         has_gate = ctx.gate is not None
@@ -201,6 +246,20 @@ def run_filter_fast(
         int(max(record_every, 0)), x, P, R, Qu,
     )  # fmt: skip
     return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+
+
+def _common_args(ctx: FilterContext, data: RunData, every: int, flat: FlatScans) -> tuple:
+    """The arguments every kernel starts with: the run (odometry, scans), the model's T and B,
+    the start (x0, P0), the noise (Qu, R) and the gate."""
+    has_gate = ctx.gate is not None
+    return (
+        np.ascontiguousarray(data.u_odo, dtype=float), int(every),
+        flat.start, flat.landmarks, flat.z,
+        float(ctx.dt), float(ctx.model.B),
+        np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
+        _matrix(ctx.Qu, 2), _matrix(ctx.R, 2),
+        float(ctx.gate) if has_gate else math.inf, has_gate,
+    )  # fmt: skip
 
 
 def _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl=None) -> dict:
@@ -275,7 +334,7 @@ def _anfis_start(
 
 def warm_up(jit: bool = True) -> float:
     """Compile (or load from numba's cache) every kernel signature the engine uses by running
-    a tiny EKF and ANFEKF; returns the seconds it took."""
+    a tiny EKF, ANFEKF, akhlaghi, vb-r, vbakf and swvb; returns the seconds it took."""
     import time
 
     from ..sources.simulator import Scan, Truth
@@ -292,7 +351,12 @@ def warm_up(jit: bool = True) -> float:
         x0=np.zeros(3), P0=np.eye(3) * 1e-9, Qu=np.diag([0.09, 0.003]), R=np.diag([0.01, 3e-4]),
         model=Bicycle(world.T, world.B), dt=world.T, gate=13.8,
     )  # fmt: skip
-    for spec in (EKFSpec(name="ekf"), ANFEKFSpec(name="anfekf", kind="anfekf", adapt="RQ")):
+    specs = (
+        EKFSpec(name="ekf"), ANFEKFSpec(name="anfekf", kind="anfekf", adapt="RQ"),
+        AkhlaghiSpec(name="akhlaghi", kind="akhlaghi"), VBRSpec(name="vb-r", kind="vb-r"),
+        VBAKFSpec(name="vbakf", kind="vbakf"), SWVBSpec(name="swvb", kind="swvb"),
+    )  # fmt: skip
+    for spec in specs:
         run_filter_fast(spec, ctx, data, world, 1, jit=jit)
     clear_cache()
     return time.perf_counter() - t0

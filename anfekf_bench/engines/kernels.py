@@ -111,25 +111,25 @@ def min_nan(a, b):
 
 
 @maybe_njit
+def jacobians(x2, V, g, T, B):
+    """The bicycle's F and G at heading x2 and controls (V, g): (f02, f12, G) with
+    F = [[1, 0, f02], [0, 1, f12], [0, 0, 1]] (bicycle.F_jacobian) and G = (g00, g01, g10,
+    g11, g20, g21) row-major (bicycle.G_jacobian)."""
+    a = x2 + g
+    ca = math.cos(a)
+    sa = math.sin(a)
+    G = (T * ca, -T * V * sa, T * sa, T * V * ca, T * math.sin(g) / B, T * V * math.cos(g) / B)
+    return -T * V * sa, T * V * ca, G
+
+
+@maybe_njit
 def predict(x, P, V, g, T, B, Qu):
     """RobotEKF.predict with the bicycle model: F and G at (x, u), x- = f(x, u),
     P- = F P F^T + G Qu G^T (eqs. 19-21). Returns (x-, P-, Q) with Q = G Qu G^T."""
     x0, x1, x2 = x
-    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
     q00, q01, q10, q11 = Qu
-    a = x2 + g
-    ca = math.cos(a)
-    sa = math.sin(a)
-    # F = [[1, 0, f02], [0, 1, f12], [0, 0, 1]] (bicycle.F_jacobian)
-    f02 = -T * V * sa
-    f12 = T * V * ca
-    # G (bicycle.G_jacobian)
-    g00 = T * ca
-    g01 = -T * V * sa
-    g10 = T * sa
-    g11 = T * V * ca
-    g20 = T * math.sin(g) / B
-    g21 = T * V * math.cos(g) / B
+    f02, f12, G = jacobians(x2, V, g, T, B)
+    g00, g01, g10, g11, g20, g21 = G
     # Q = (G Qu) G^T
     a00 = g00 * q00 + g01 * q10
     a01 = g00 * q01 + g01 * q11
@@ -143,20 +143,27 @@ def predict(x, P, V, g, T, B, Qu):
         a20 * g00 + a21 * g01, a20 * g10 + a21 * g11, a20 * g20 + a21 * g21,
     )  # fmt: skip
     # x- = f(x, u) (bicycle.f)
-    xn = (x0 + T * V * ca, x1 + T * V * sa, wrap(x2 + T * V * math.sin(g) / B))
-    # (F P) F^T + Q, F's zeros and ones taken as they are
+    # (f12 is T V cos(x2 + g) and -f02 is T V sin(x2 + g), bit for bit: negation is exact)
+    xn = (x0 + f12, x1 - f02, wrap(x2 + T * V * math.sin(g) / B))
+    return xn, propagate(P, f02, f12, Q), Q
+
+
+@maybe_njit
+def propagate(P, f02, f12, Q):
+    """(F P) F^T + Q for the bicycle's F = [[1, 0, f02], [0, 1, f12], [0, 0, 1]], its zeros and
+    ones taken as they are (P, Q row-major 9-tuples)."""
+    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
     b00 = p00 + f02 * p20
     b01 = p01 + f02 * p21
     b02 = p02 + f02 * p22
     b10 = p10 + f12 * p20
     b11 = p11 + f12 * p21
     b12 = p12 + f12 * p22
-    Pn = (
+    return (
         (b00 + b02 * f02) + Q[0], (b01 + b02 * f12) + Q[1], b02 + Q[2],
         (b10 + b12 * f02) + Q[3], (b11 + b12 * f12) + Q[4], b12 + Q[5],
         (p20 + p22 * f02) + Q[6], (p21 + p22 * f12) + Q[7], p22 + Q[8],
     )  # fmt: skip
-    return xn, Pn, Q
 
 
 @maybe_njit
@@ -164,7 +171,6 @@ def innovation(x, P, lx, ly, z0, z1):
     """RobotEKF.innovation: H (eq. 25), z_hat = h(x-) (eq. 22), nu (eq. 23, bearing wrapped)
     and H P- H^T, all at x-."""
     x0, x1, x2 = x
-    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
     dx = lx - x0
     dy = ly - x1
     q = dx * dx + dy * dy
@@ -177,6 +183,15 @@ def innovation(x, P, lx, ly, z0, z1):
     zh1 = wrap(math.atan2(dy, dx) - x2)
     nu0 = z0 - zh0
     nu1 = wrap(z1 - zh1)
+    H = (h00, h01, h10, h11)
+    return H, (zh0, zh1), (nu0, nu1), hph(H, P)
+
+
+@maybe_njit
+def hph(H, P):
+    """H P H^T (row-major 4-tuple) for the H of `innovation` (third column (0, -1))."""
+    h00, h01, h10, h11 = H
+    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
     # H P (2 x 3); H's third column is (0, -1)
     c00 = h00 * p00 + h01 * p10
     c01 = h00 * p01 + h01 * p11
@@ -188,7 +203,7 @@ def innovation(x, P, lx, ly, z0, z1):
         c00 * h00 + c01 * h01, c00 * h10 + c01 * h11 - c02,
         c10 * h00 + c11 * h01, c10 * h10 + c11 * h11 - c12,
     )  # fmt: skip
-    return (h00, h01, h10, h11), (zh0, zh1), (nu0, nu1), HPHt
+    return HPHt
 
 
 @maybe_njit
@@ -933,4 +948,630 @@ def run_fading_kernel(
             out_Q[j, 1] = Qu[3]
             out_infl[j] = infl
             j += 1
+    return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# ---------------------------------------------------------------------------------------------
+# The variational-Bayes filters (filters.vb), their rules as written there: the VB iteration's
+# state update is `correct` above (the Joseph update of the filter itself), so only the noise
+# posterior's rules come from filters/vb.py and the bounds from filters/adaptive.py.
+
+from ..filters import adaptive as _adaptive  # noqa: E402
+from ..filters import vb as _vb  # noqa: E402
+
+if _NJIT is not None:
+    for _rule in (
+        _adaptive.clip_variance, _vb.vb_r_predict, _vb.vb_r_beta, _vb.vb_r_bounded_beta,
+    ):  # fmt: skip
+        register_jitable(_rule)
+
+clip_variance = _adaptive.clip_variance
+vb_r_predict = _vb.vb_r_predict
+vb_r_beta = _vb.vb_r_beta
+vb_r_bounded_beta = _vb.vb_r_bounded_beta
+
+
+@maybe_njit
+def record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q):
+    """Row j of the records (as `run_kernel` writes them); returns (j + 1, whether x or P has a
+    value that is not finite)."""
+    bad = False
+    for i in range(3):
+        out_x[j, i] = x[i]
+        if not math.isfinite(x[i]):
+            bad = True
+    for i in range(9):
+        out_P[j, i // 3, i % 3] = P[i]
+        if not math.isfinite(P[i]):
+            bad = True
+    out_R[j, 0] = R[0]
+    out_R[j, 1] = R[3]
+    out_Q[j, 0] = Qu[0]
+    out_Q[j, 1] = Qu[3]
+    return j + 1, bad
+
+
+@maybe_njit
+def hph_diag(H, P):
+    """diag(H P H^T) for the H of `innovation` (third column (0, -1))."""
+    return hqh_diag(H, P, math.inf, math.inf)
+
+
+@maybe_njit
+def run_vbr_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    adaptation, from_all, floor, ceiling, rho, iterations, alpha0,
+    record_every, out_x, out_P, out_R, out_Q,
+):  # fmt: skip
+    """filterpy_engine.run_filter with filters.vb.VBREKF (Sarkka & Nummenmaa's VB-AKF on
+    diag R): per scan with a landmark the forgetting of (alpha, beta), per landmark that feeds
+    adaptation `iterations` EKF updates from the same (x-, P-) with R = clip(beta / alpha), then
+    the filter's own gate and update with the last iteration's R. Returns as `run_kernel`."""
+    K = u_odo.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    a0 = alpha0
+    a1 = alpha0
+    b0 = alpha0 * R0[0]
+    b1 = alpha0 * R0[3]
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_rows = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        x, P, Q = predict(x, P, u_odo[k - 1, 0], u_odo[k - 1, 1], T, B, Qu)
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                if adaptation:
+                    a0, b0 = vb_r_predict(a0, b0, rho)
+                    a1, b1 = vb_r_predict(a1, b1, rho)
+                for m in range(first, last):
+                    z0 = scan_z[m, 0]
+                    z1 = scan_z[m, 1]
+                    lx = scan_lm[m, 0]
+                    ly = scan_lm[m, 1]
+                    H, zh, nu, HPHt = innovation(x, P, lx, ly, z0, z1)
+                    if adaptation:
+                        R = (b0 / a0, 0.0, 0.0, b1 / a1)  # the posterior estimate
+                        feeds = True
+                        if not from_all and has_gate:
+                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                            if not ok:
+                                return True, j, nis_sum, n_updates, n_rejected
+                            feeds = nis_a <= gate
+                        if feeds:
+                            # filters.vb.vb_r_update
+                            ap0 = a0 + 0.5
+                            ap1 = a1 + 0.5
+                            bn0 = b0
+                            bn1 = b1
+                            for _ in range(iterations):
+                                R = (
+                                    clip_variance(bn0 / ap0, R0[0], floor, ceiling), 0.0,
+                                    0.0, clip_variance(bn1 / ap1, R0[3], floor, ceiling),
+                                )  # fmt: skip
+                                ok, xn, Pn = correct(x, P, H, zh, z0, z1, R)
+                                if not ok:
+                                    return True, j, nis_sum, n_updates, n_rejected
+                                _, _, e, _ = innovation(xn, Pn, lx, ly, z0, z1)
+                                hph0, hph1 = hph_diag(H, Pn)
+                                bn0 = vb_r_beta(b0, e[0], hph0)
+                                bn1 = vb_r_beta(b1, e[1], hph1)
+                            a0 = ap0
+                            a1 = ap1
+                            b0, b1 = vb_r_bounded_beta(
+                                a0, a1, bn0, bn1, R0[0], R0[3], floor, ceiling
+                            )
+                    ok, v = nis(HPHt, R, nu[0], nu[1])
+                    if not ok or not math.isfinite(v):
+                        return True, j, nis_sum, n_updates, n_rejected
+                    if has_gate and not v <= gate:
+                        n_rejected += 1
+                        continue
+                    nis_sum += v
+                    n_updates += 1
+                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                if adaptation:
+                    R = (b0 / a0, 0.0, 0.0, b1 / a1)
+                if not healthy(x, P, R, Qu):
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
+            bad_record = bad_record or bad
+    return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# ---------------------------------------------------------------------------------------------
+# Akhlaghi et al. (filters.akhlaghi): residual-based R, innovation-based Qu, their rules as
+# written there; the Qu least squares and the interval's accumulators from filters/adaptive.py.
+
+from ..filters import akhlaghi as _akhlaghi  # noqa: E402
+
+if _NJIT is not None:
+    for _rule in (
+        _akhlaghi.forget, _akhlaghi.residual_variance, _adaptive.qu_least_squares,
+    ):  # fmt: skip
+        register_jitable(_rule)
+
+forget = _akhlaghi.forget
+residual_variance = _akhlaghi.residual_variance
+qu_least_squares = _adaptive.qu_least_squares
+
+
+@maybe_njit
+def square(P):
+    """A 9-tuple as a 3 x 3 array."""
+    A = np.empty((3, 3))
+    for i in range(9):
+        A[i // 3, i % 3] = P[i]
+    return A
+
+
+@maybe_njit
+def run_akhlaghi_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    adapt_R, adapt_Q, adaptation, from_all, floor, ceiling, alpha,
+    record_every, out_x, out_P, out_R, out_Q,
+):  # fmt: skip
+    """filterpy_engine.run_filter with filters.akhlaghi.AkhlaghiEKF: after every landmark
+    update (and, with from_all, the update a gate-rejected landmark would have made) the
+    residual sample feeds R (eq. 11, the scan's mean, forgotten once per scan) and the
+    correction x+ - x- the scan's dx; at the end of the scan Qu from eq. (15) through the
+    interval's accumulators. Returns as `run_kernel`."""
+    K = u_odo.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    zero = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    A_v = zero  # the interval's accumulators (filters.adaptive), row-major
+    A_g = zero
+    Q_hat = np.empty((3, 3))
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_rows = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        V = u_odo[k - 1, 0]
+        g = u_odo[k - 1, 1]
+        if adapt_Q:  # AdaptiveEKF.predict (interval_step): F and G before the predict
+            f02, f12, G = jacobians(x[2], V, g, T, B)
+            g0, g1, g2, g3, g4, g5 = G
+            A_v = propagate(A_v, f02, f12, (
+                g0 * g0, g0 * g2, g0 * g4, g2 * g0, g2 * g2, g2 * g4, g4 * g0, g4 * g2, g4 * g4,
+            ))  # fmt: skip
+            A_g = propagate(A_g, f02, f12, (
+                g1 * g1, g1 * g3, g1 * g5, g3 * g1, g3 * g3, g3 * g5, g5 * g1, g5 * g3, g5 * g5,
+            ))  # fmt: skip
+        x, P, Q = predict(x, P, V, g, T, B, Qu)
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                Rs0 = R[0]  # R_(k-1) of eq. (11)
+                Rs1 = R[3]
+                sum0 = 0.0
+                sum1 = 0.0
+                n_samples = 0
+                dx0 = 0.0
+                dx1 = 0.0
+                dx2 = 0.0
+                dx_fed = False
+                for m in range(first, last):
+                    z0 = scan_z[m, 0]
+                    z1 = scan_z[m, 1]
+                    lx = scan_lm[m, 0]
+                    ly = scan_lm[m, 1]
+                    H, zh, nu, HPHt = innovation(x, P, lx, ly, z0, z1)
+                    ok, v = nis(HPHt, R, nu[0], nu[1])
+                    if not ok or not math.isfinite(v):
+                        return True, j, nis_sum, n_updates, n_rejected
+                    accepted = not (has_gate and not v <= gate)
+                    if accepted:
+                        nis_sum += v
+                        n_updates += 1
+                    else:
+                        n_rejected += 1
+                    # a rejected landmark feeds through the update it would have made (nothing
+                    # changes x, P or R before the class settles it at the next landmark)
+                    feeds = adaptation and (accepted or from_all)
+                    if not (accepted or feeds):
+                        continue
+                    ok, xp, Pp = correct(x, P, H, zh, z0, z1, R)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                    if accepted:
+                        x_prior = x
+                        x = xp
+                        P = Pp
+                    if not feeds:
+                        continue
+                    if not accepted:
+                        x_prior = x
+                    _, _, e, _ = innovation(xp, Pp, lx, ly, z0, z1)
+                    hph0, hph1 = hph_diag(H, Pp)
+                    if adapt_R:
+                        sum0 += residual_variance(e[0], hph0)
+                        sum1 += residual_variance(e[1], hph1)
+                        n_samples += 1
+                    dx0 += xp[0] - x_prior[0]
+                    dx1 += xp[1] - x_prior[1]
+                    dx2 += wrap(xp[2] - x_prior[2])
+                    dx_fed = True
+                    if adapt_R:
+                        R = (
+                            clip_variance(forget(Rs0, sum0 / n_samples, alpha), R0[0], floor,
+                                          ceiling), 0.0,
+                            0.0, clip_variance(forget(Rs1, sum1 / n_samples, alpha), R0[3],
+                                               floor, ceiling),
+                        )  # fmt: skip
+                if adaptation and adapt_Q and dx_fed:
+                    # eq. (15) on the interval, mapped to Qu (AdaptiveEKF.qu_estimate)
+                    dx = (dx0, dx1, dx2)
+                    for r in range(3):
+                        for c in range(3):
+                            i = 3 * r + c
+                            Q_hat[r, c] = forget(
+                                Qu[0] * A_v[i] + Qu[3] * A_g[i], dx[r] * dx[c], alpha
+                            )
+                    q = qu_least_squares(Q_hat, square(A_v), square(A_g), np.linalg.inv(square(P)))
+                    Qu = (
+                        clip_variance(q[0], Qu0[0], floor, ceiling), 0.0,
+                        0.0, clip_variance(q[1], Qu0[3], floor, ceiling),
+                    )  # fmt: skip
+                    A_v = zero
+                    A_g = zero
+                if not healthy(x, P, R, Qu):
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
+            bad_record = bad_record or bad
+    return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# ---------------------------------------------------------------------------------------------
+# Huang et al.'s VBAKF (filters.vb.VBAKF): inverse-Wishart on P- and R, its rules as written in
+# filters/vb.py.
+
+if _NJIT is not None:
+    for _rule in (
+        _vb.vbakf_predict, _vb.vbakf_prior, _vb.inflation_cap, _vb.clip_covariance_2,
+    ):  # fmt: skip
+        register_jitable(_rule)
+
+vbakf_predict = _vb.vbakf_predict
+vbakf_prior = _vb.vbakf_prior
+inflation_cap = _vb.inflation_cap
+clip_covariance_2 = _vb.clip_covariance_2
+
+
+@maybe_njit
+def run_vbakf_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    adaptation, from_all, floor, ceiling, rho, iterations, tau, tau_R, diagonal_R,
+    record_every, out_x, out_P, out_R, out_Q, out_infl,
+):  # fmt: skip
+    """filterpy_engine.run_filter with filters.vb.VBAKF (Huang et al. 2018, Algorithm 1): per
+    scan with a landmark the forgetting of (u, U); per landmark that feeds adaptation
+    `iterations` updates from the same x- (filters.vb.vbakf_update), P- re-estimated at the
+    first landmark of the scan only and put back if the gate rejects that landmark. out_infl
+    records the filter's P_inflation. Returns as `run_kernel`."""
+    m2 = 2.0  # the measurement's dimension m
+    K = u_odo.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    u = m2 + 1.0 + tau_R
+    U = (tau_R * R0[0], tau_R * R0[1], tau_R * R0[2], tau_R * R0[3])
+    infl = 1.0
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_rows = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        x, P, Q = predict(x, P, u_odo[k - 1, 0], u_odo[k - 1, 1], T, B, Qu)
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                if adaptation:
+                    u_, U00 = vbakf_predict(u, U[0], rho, m2)
+                    _, U01 = vbakf_predict(u, U[1], rho, m2)
+                    _, U10 = vbakf_predict(u, U[2], rho, m2)
+                    _, U11 = vbakf_predict(u, U[3], rho, m2)
+                    u = u_
+                    U = (U00, U01, U10, U11)
+                for m in range(first, last):
+                    z0 = scan_z[m, 0]
+                    z1 = scan_z[m, 1]
+                    lx = scan_lm[m, 0]
+                    ly = scan_lm[m, 1]
+                    H, zh, nu, HPHt = innovation(x, P, lx, ly, z0, z1)
+                    adapted_P = False
+                    P_predicted = P
+                    if adaptation:
+                        infl = 1.0
+                        d = u - m2 - 1.0
+                        R = (U[0] / d, U[1] / d, U[2] / d, U[3] / d)
+                        feeds = True
+                        if not from_all and has_gate:
+                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                            if not ok:
+                                return True, j, nis_sum, n_updates, n_rejected
+                            feeds = nis_a <= gate
+                        if feeds:
+                            # filters.vb.vbakf_update
+                            adapt_P = m == first
+                            u_post = u + 1.0
+                            d = u_post - m2 - 1.0
+                            xi = x
+                            Pi = P
+                            P_hat = P
+                            tr_P = P[0] + P[4] + P[8]
+                            U_post = U
+                            clipped = False
+                            for _ in range(iterations):
+                                if adapt_P:
+                                    dx = (xi[0] - x[0], xi[1] - x[1], wrap(xi[2] - x[2]))
+                                    P_hat = (
+                                        vbakf_prior(Pi[0], dx[0] * dx[0], P[0], tau),
+                                        vbakf_prior(Pi[1], dx[0] * dx[1], P[1], tau),
+                                        vbakf_prior(Pi[2], dx[0] * dx[2], P[2], tau),
+                                        vbakf_prior(Pi[3], dx[1] * dx[0], P[3], tau),
+                                        vbakf_prior(Pi[4], dx[1] * dx[1], P[4], tau),
+                                        vbakf_prior(Pi[5], dx[1] * dx[2], P[5], tau),
+                                        vbakf_prior(Pi[6], dx[2] * dx[0], P[6], tau),
+                                        vbakf_prior(Pi[7], dx[2] * dx[1], P[7], tau),
+                                        vbakf_prior(Pi[8], dx[2] * dx[2], P[8], tau),
+                                    )  # fmt: skip
+                                    cap = inflation_cap(
+                                        P_hat[0] + P_hat[4] + P_hat[8], tr_P, ceiling
+                                    )
+                                    if cap != 1.0:
+                                        P_hat = (
+                                            P_hat[0] * cap, P_hat[1] * cap, P_hat[2] * cap,
+                                            P_hat[3] * cap, P_hat[4] * cap, P_hat[5] * cap,
+                                            P_hat[6] * cap, P_hat[7] * cap, P_hat[8] * cap,
+                                        )  # fmt: skip
+                                _, _, e, _ = innovation(xi, Pi, lx, ly, z0, z1)
+                                HPiHt = hph(H, Pi)
+                                b00 = e[0] * e[0] + HPiHt[0]
+                                b11 = e[1] * e[1] + HPiHt[3]
+                                if diagonal_R:
+                                    U_post = (U[0] + b00, U[1], U[2], U[3] + b11)
+                                else:
+                                    b01 = e[0] * e[1] + HPiHt[1]
+                                    b10 = e[1] * e[0] + HPiHt[2]
+                                    U_post = (
+                                        U[0] + 0.5 * (b00 + b00), U[1] + 0.5 * (b01 + b10),
+                                        U[2] + 0.5 * (b10 + b01), U[3] + 0.5 * (b11 + b11),
+                                    )  # fmt: skip
+                                R_raw = (U_post[0] / d, U_post[1] / d, U_post[2] / d,
+                                         U_post[3] / d)  # fmt: skip
+                                clipped, R = clip_covariance_2(R_raw, R0[0], R0[3], floor, ceiling)
+                                ok, xi, Pi = correct(x, P_hat, H, zh, z0, z1, R)
+                                if not ok:
+                                    return True, j, nis_sum, n_updates, n_rejected
+                            if clipped:  # keep the posterior consistent with the R in force
+                                U_post = (d * R[0], d * R[1], d * R[2], d * R[3])
+                            u = u_post
+                            U = U_post
+                            if adapt_P:
+                                adapted_P = True
+                                infl = (P_hat[0] + P_hat[4] + P_hat[8]) / (P[0] + P[4] + P[8])
+                                P = P_hat
+                    if infl != 1.0:  # RobotEKF.update_landmark: H P- H^T follows the new P-
+                        HPHt = hph(H, P)
+                    ok, v = nis(HPHt, R, nu[0], nu[1])
+                    if not ok or not math.isfinite(v):
+                        return True, j, nis_sum, n_updates, n_rejected
+                    if has_gate and not v <= gate:
+                        n_rejected += 1
+                        if adapted_P:  # VBAKF.update_landmark: back to the prediction
+                            P = P_predicted
+                            infl = 1.0
+                        continue
+                    nis_sum += v
+                    n_updates += 1
+                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                if not healthy(x, P, R, Qu):
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            out_infl[j] = infl
+            j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
+            bad_record = bad_record or bad
+    return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# ---------------------------------------------------------------------------------------------
+# Sliding-window VB on Qu and R (filters.swvb), its rules as written there (numpy on 3 x 3
+# arrays, compiled as they are).
+
+from ..filters import swvb as _swvb  # noqa: E402
+
+if _NJIT is not None:
+    for _rule in (_swvb.interval_prior, _swvb.process_noise_moment, _adaptive.clip_to_bounds):
+        register_jitable(_rule)
+
+interval_prior = _swvb.interval_prior
+process_noise_moment = _swvb.process_noise_moment
+clip_to_bounds = _adaptive.clip_to_bounds
+
+
+@maybe_njit
+def flat9(A):
+    """A 3 x 3 array as a row-major 9-tuple."""
+    return (
+        A[0, 0], A[0, 1], A[0, 2], A[1, 0], A[1, 1], A[1, 2], A[2, 0], A[2, 1], A[2, 2],
+    )  # fmt: skip
+
+
+@maybe_njit
+def run_swvb_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    adaptation, from_all, floor, ceiling, rho, iterations, a0,
+    record_every, out_x, out_P, out_R, out_Q,
+):  # fmt: skip
+    """filterpy_engine.run_filter with filters.swvb.SWVBEKF: per scan with a landmark and
+    adaptation, `iterations` passes of the scan's sequential EKF updates from the same x-, the
+    first from the filter's P-, the others from the interval's prior with the last Qu estimate;
+    after each pass the lag-one smoother's process-noise moment gives Qu, the posterior's
+    residuals R (SWVBEKF.update_scan). Returns as `run_kernel`."""
+    K = u_odo.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    bounds = (floor, ceiling)
+    qu_start = np.array([Qu0[0], Qu0[3]])
+    r_start = np.array([R0[0], R0[3]])
+    a_q = np.full(2, a0)
+    b_q = a0 * qu_start
+    a_r = np.full(2, a0)
+    b_r = a0 * r_start
+    zero = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    A_v = zero  # the interval's accumulators (filters.adaptive.AdaptiveEKF), row-major
+    A_g = zero
+    Fs02 = 0.0  # F_scan = [[1, 0, Fs02], [0, 1, Fs12], [0, 0, 1]]
+    Fs12 = 0.0
+    P_s = P  # P+ at the previous Q event
+    fed = np.zeros(max(scan_lm.shape[0], 1), np.bool_)
+    dx = np.empty(3)
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_rows = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        V = u_odo[k - 1, 0]
+        g = u_odo[k - 1, 1]
+        f02, f12, G = jacobians(x[2], V, g, T, B)
+        g0, g1, g2, g3, g4, g5 = G
+        A_v = propagate(A_v, f02, f12, (
+            g0 * g0, g0 * g2, g0 * g4, g2 * g0, g2 * g2, g2 * g4, g4 * g0, g4 * g2, g4 * g4,
+        ))  # fmt: skip
+        A_g = propagate(A_g, f02, f12, (
+            g1 * g1, g1 * g3, g1 * g5, g3 * g1, g3 * g3, g3 * g5, g5 * g1, g5 * g3, g5 * g5,
+        ))  # fmt: skip
+        Fs02 = Fs02 + f02  # F @ F_scan
+        Fs12 = Fs12 + f12
+        x, P, Q = predict(x, P, V, g, T, B, Qu)
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                passes = iterations if adaptation else 1
+                if adaptation:
+                    a_q = rho * a_q
+                    b_q = rho * b_q
+                    a_r = rho * a_r
+                    b_r = rho * b_r
+                x_m = x
+                P_m = P
+                counts = (nis_sum, n_updates, n_rejected)
+                qu = np.array([Qu[0], Qu[3]])
+                r = np.array([R[0], R[3]])
+                F_s = np.eye(3)
+                F_s[0, 2] = Fs02
+                F_s[1, 2] = Fs12
+                P_s_a = square(P_s)
+                A_v_a = square(A_v)
+                A_g_a = square(A_g)
+                b_q_n = b_q
+                a_r_n = a_r
+                b_r_n = b_r
+                for n in range(passes):
+                    if n > 0:
+                        P_m = flat9(interval_prior(P_s_a, F_s, A_v_a, A_g_a, qu[0], qu[1]))
+                    x = x_m
+                    P = P_m
+                    if adaptation:
+                        R = (r[0], 0.0, 0.0, r[1])
+                    nis_sum, n_updates, n_rejected = counts
+                    for m in range(first, last):
+                        z0 = scan_z[m, 0]
+                        z1 = scan_z[m, 1]
+                        H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                        ok, v = nis(HPHt, R, nu[0], nu[1])
+                        if not ok or not math.isfinite(v):
+                            return True, j, nis_sum, n_updates, n_rejected
+                        fed[m - first] = from_all or not has_gate or v <= gate
+                        if has_gate and not v <= gate:
+                            n_rejected += 1
+                            continue
+                        nis_sum += v
+                        n_updates += 1
+                        ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                        if not ok:
+                            return True, j, nis_sum, n_updates, n_rejected
+                    if not adaptation:
+                        break
+                    dx[0] = x[0] - x_m[0]
+                    dx[1] = x[1] - x_m[1]
+                    dx[2] = wrap(x[2] - x_m[2])
+                    P_m_a = square(P_m)
+                    W = process_noise_moment(dx, P_s_a, F_s, P_m_a, square(P))
+                    q = clip_to_bounds(
+                        qu_least_squares(W, A_v_a, A_g_a, np.linalg.inv(P_m_a)), qu_start, bounds
+                    )
+                    b_q_n = b_q + 0.5 * q
+                    qu = clip_to_bounds(b_q_n / (a_q + 0.5), qu_start, bounds)
+                    a_r_n = a_r
+                    b_r_n = b_r
+                    n_fed = 0
+                    s0 = 0.0
+                    s1 = 0.0
+                    for m in range(first, last):  # swvb.r_moment at the posterior
+                        if fed[m - first]:
+                            n_fed += 1
+                            _, _, e, HPH = innovation(
+                                x, P, scan_lm[m, 0], scan_lm[m, 1], scan_z[m, 0], scan_z[m, 1]
+                            )  # fmt: skip
+                            s0 = s0 + e[0] * e[0] + HPH[0]
+                            s1 = s1 + e[1] * e[1] + HPH[3]
+                    if n_fed > 0:
+                        a_r_n = a_r + 0.5 * n_fed
+                        b_r_n = b_r + 0.5 * np.array([s0, s1])
+                    r = clip_to_bounds(b_r_n / a_r_n, r_start, bounds)
+                if adaptation:
+                    a_q = a_q + 0.5
+                    b_q = b_q_n
+                    a_r = a_r_n
+                    b_r = b_r_n
+                    Qu = (qu[0], 0.0, 0.0, qu[1])
+                    R = (r[0], 0.0, 0.0, r[1])
+                    A_v = zero
+                    A_g = zero
+                    Fs02 = 0.0
+                    Fs12 = 0.0
+                    P_s = P
+                if not healthy(x, P, R, Qu):
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
+            bad_record = bad_record or bad
     return bad_record, j, nis_sum, n_updates, n_rejected

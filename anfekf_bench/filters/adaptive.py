@@ -26,23 +26,51 @@ def clip_to_bounds(value: np.ndarray, start: np.ndarray, bounds: tuple[float, fl
     return np.clip(value, bounds[0] * start, bounds[1] * start)
 
 
-def qu_least_squares(
-    Q_hat: np.ndarray, A_v: np.ndarray, A_g: np.ndarray, W: np.ndarray
-) -> np.ndarray:
+def clip_variance(v, start, floor, ceiling):
+    """One variance clipped to [floor * start, ceiling * start] (SPEC 7), as `clip_to_bounds`
+    elementwise (np.clip: NaN stays NaN); plain floats, so that the fast engine's kernels call
+    it too."""
+    lo = floor * start
+    hi = ceiling * start
+    if v != v:
+        return v
+    if v < lo:
+        v = lo
+    if v > hi:
+        v = hi
+    return v
+
+
+# numpy's lstsq cutoff for rcond=None on a 2 x 2 system (eps * max(M, N)), given explicitly so
+# that numba's lstsq (whose default differs) cuts the same singular values.
+LSTSQ_RCOND = 2.0 * float(np.finfo(float).eps)
+
+
+def qu_least_squares(Q_hat, A_v, A_g, W):
     """(qv, qg) minimising ||W^1/2 (Q_hat - qv A_v - qg A_g) W^1/2||_F (research notes 0.4 a).
 
     The normal equations M q = b with <X, Y>_W = tr(W X W Y); a singular M (an interval that
-    excited one control only) falls back to the least-norm solution. Not yet clipped.
+    excited one control only) falls back to the least-norm solution. Not yet clipped. 3 x 3
+    float64 arrays in, a (2,) array out; numba compiles it as it is (the fast engine's kernels).
     """
-    WAv, WAg, WQ = W @ A_v, W @ A_g, W @ Q_hat
-    M = np.array(
-        [
-            [np.trace(WAv @ WAv), np.trace(WAv @ WAg)],
-            [np.trace(WAg @ WAv), np.trace(WAg @ WAg)],
-        ]
-    )
-    b = np.array([np.trace(WAv @ WQ), np.trace(WAg @ WQ)])
-    return np.linalg.lstsq(M, b, rcond=None)[0]
+    WAv = W @ A_v
+    WAg = W @ A_g
+    WQ = W @ Q_hat
+    M = np.empty((2, 2))
+    M[0, 0] = np.trace(WAv @ WAv)
+    M[0, 1] = np.trace(WAv @ WAg)
+    M[1, 0] = np.trace(WAg @ WAv)
+    M[1, 1] = np.trace(WAg @ WAg)
+    b = np.empty(2)
+    b[0] = np.trace(WAv @ WQ)
+    b[1] = np.trace(WAg @ WQ)
+    return np.linalg.lstsq(M, b, rcond=LSTSQ_RCOND)[0]
+
+
+def interval_step(A, F, Q_e):
+    """One predict of a process-noise accumulator: A <- F A F^T + Q_e, Q_e the step's state
+    noise from one control alone (G e e^T G^T for the bicycle)."""
+    return F @ A @ F.T + Q_e
 
 
 class AdaptiveEKF(RobotEKF):
@@ -72,8 +100,8 @@ class AdaptiveEKF(RobotEKF):
         super().predict(u, dt)
         if "Q" in self.adapts:
             F, G = self.F, self.G
-            self.A_v = F @ self.A_v @ F.T + self.model.Q(G, _E_V, self.dt)
-            self.A_g = F @ self.A_g @ F.T + self.model.Q(G, _E_G, self.dt)
+            self.A_v = interval_step(self.A_v, F, self.model.Q(G, _E_V, self.dt))
+            self.A_g = interval_step(self.A_g, F, self.model.Q(G, _E_G, self.dt))
             self.F_scan = F @ self.F_scan
 
     @property

@@ -28,13 +28,18 @@ from .ekf import Innovation
 from .spec import AdaptiveSpec, FilterContext
 
 
+def residual_variance(e, hph):
+    """One channel of eq. (11)'s bracket: e^2 + (H P+ H^T)_ii (floats or arrays)."""
+    return e * e + hph
+
+
 def residual_sample(eps: np.ndarray, H: np.ndarray, P_post: np.ndarray) -> np.ndarray:
     """The bracket of eq. (11), diagonal only: diag(eps eps^T + H P+ H^T).
 
     For a linear h and the right R its expectation is R exactly (E[eps eps^T] = R S^-1 R,
     H P+ H^T = R - R S^-1 R), and it is a sum of PSD terms, so R stays positive.
     """
-    return eps * eps + np.einsum("ij,jk,ik->i", H, P_post, H)
+    return residual_variance(eps, np.einsum("ij,jk,ik->i", H, P_post, H))
 
 
 def forget(previous: np.ndarray, sample: np.ndarray, alpha: float) -> np.ndarray:

@@ -25,7 +25,7 @@ from scipy import linalg
 
 from ..models import h, residual_z
 from ..schema import PositiveFloat
-from .adaptive import AdaptiveEKF, clip_to_bounds
+from .adaptive import AdaptiveEKF, clip_to_bounds, clip_variance
 from .ekf import Innovation
 from .spec import AdaptiveSpec, FilterContext
 
@@ -48,7 +48,9 @@ def kalman_update(
     """
     PHt = P @ H.T
     S = H @ PHt + R
-    K = PHt @ linalg.inv(S)
+    # check_finite off: a non-finite S gives NaNs that the gate's NIS reports as divergence,
+    # as the plain EKF's, instead of scipy's ValueError
+    K = PHt @ linalg.inv(S, check_finite=False)
     I_KH = np.eye(len(x)) - K @ H
     return x + K @ nu, I_KH @ P @ I_KH.T + K @ R @ K.T
 
@@ -56,18 +58,41 @@ def kalman_update(
 def clip_covariance(
     R: np.ndarray, start_diag: np.ndarray, bounds: tuple[float, float]
 ) -> np.ndarray:
-    """R with its variances clipped to the bounds (SPEC 7) and its correlations kept.
+    """R with its variances clipped to the bounds (SPEC 7) and its correlations kept
+    (`clip_covariance_2`); R itself (the same object) when no variance is outside the bounds."""
+    changed, Rc = clip_covariance_2(
+        (R[0, 0], R[0, 1], R[1, 0], R[1, 1]), start_diag[0], start_diag[1], bounds[0], bounds[1]
+    )
+    return np.array(Rc).reshape(2, 2) if changed else R
 
-    R' = D R D with D = diag(sqrt(clipped / raw)): for a diagonal R simply the clipped diagonal;
-    for a full R the correlation coefficients are unchanged, so R' stays positive definite.
-    R itself (the same object) when no variance is outside the bounds.
-    """
-    d = np.diag(R)
-    clipped = clip_to_bounds(d, start_diag, bounds)
-    if np.array_equal(d, clipped):
-        return R
-    s = np.sqrt(clipped / d)
-    return R * np.outer(s, s)
+
+def clip_covariance_2(R, start0, start1, floor, ceiling):
+    """A 2 x 2 R (row-major 4-tuple) with its variances clipped to [floor, ceiling] times their
+    starting values (SPEC 7) and its correlations kept: R' = D R D with
+    D = diag(sqrt(clipped / raw)), so that R' stays positive definite. Returns (whether a
+    variance was clipped, R')."""
+    c0 = clip_variance(R[0], start0, floor, ceiling)
+    c1 = clip_variance(R[3], start1, floor, ceiling)
+    if c0 == R[0] and c1 == R[3]:
+        return False, R
+    s0 = np.sqrt(c0 / R[0])  # np: NaN (not an error) for a negative variance
+    s1 = np.sqrt(c1 / R[3])
+    return True, (R[0] * (s0 * s0), R[1] * (s0 * s1), R[2] * (s1 * s0), R[3] * (s1 * s1))
+
+
+def vbakf_prior(P_i, dxdx, P, tau):
+    """Huang et al.'s P^- = T / (t - n - 1) = (A + tau P~-) / (tau + 1), A = P^(i) + dx dx^T
+    (elementwise: arrays or one element)."""
+    return (P_i + dxdx + tau * P) / (tau + 1.0)
+
+
+def inflation_cap(trace_prior, trace_predicted, max_inflation):
+    """The factor that caps tr(P^-) / tr(P~-) at max_inflation (research notes 5.3): 1 when
+    it is within the cap."""
+    inflation = trace_prior / trace_predicted
+    if inflation > max_inflation:
+        return max_inflation / inflation
+    return 1.0
 
 
 def landmark_residual(z: np.ndarray, landmark: np.ndarray) -> Residual:
@@ -94,6 +119,25 @@ class VBRPosterior:
     P: np.ndarray
 
 
+def vb_r_beta(beta, e, hph):
+    """beta^(n) = beta- + 1/2 (e^2 + (H P^(n) H^T)_ii) of one channel (or of an array of
+    channels): the VB-AKF's scale update from the residual e at the iterate."""
+    return beta + 0.5 * (e * e + hph)
+
+
+def vb_r_bounded_beta(alpha0, alpha1, beta0, beta1, R00, R11, floor, ceiling):
+    """The stored posterior kept within the bounds: (beta0, beta1) unchanged when both
+    beta_i / alpha_i are within [floor R0_ii, ceiling R0_ii], else both set to
+    clip(beta_i / alpha_i) alpha_i, so that beta / alpha is the R in force."""
+    r0 = beta0 / alpha0
+    r1 = beta1 / alpha1
+    c0 = clip_variance(r0, R00, floor, ceiling)
+    c1 = clip_variance(r1, R11, floor, ceiling)
+    if c0 == r0 and c1 == r1:
+        return beta0, beta1
+    return c0 * alpha0, c1 * alpha1
+
+
 def vb_r_update(
     x: np.ndarray, P: np.ndarray, nu: np.ndarray, H: np.ndarray, alpha: np.ndarray,
     beta: np.ndarray, iterations: int, residual: Residual,
@@ -115,7 +159,7 @@ def vb_r_update(
         R_n = clip(beta_n / alpha_post)
         x_n, P_n = kalman_update(x, P, nu, H, np.diag(R_n))
         e = residual(x_n)
-        beta_n = beta + 0.5 * (e * e + np.einsum("ij,jk,ik->i", H, P_n, H))
+        beta_n = vb_r_beta(beta, e, np.einsum("ij,jk,ik->i", H, P_n, H))
     return VBRPosterior(alpha=alpha_post, beta=beta_n, R_gain=R_n, x=x_n, P=P_n)
 
 
@@ -190,9 +234,12 @@ class VBREKF(AdaptiveEKF):
         )  # fmt: skip
         self.alpha = post.alpha
         # Keep beta / alpha within the bounds, so the stored posterior is the one in force.
-        ratio = post.beta / post.alpha
-        clipped = clip_to_bounds(ratio, R0, self.bounds)
-        self.beta = post.beta if np.array_equal(ratio, clipped) else clipped * post.alpha
+        self.beta = np.array(
+            vb_r_bounded_beta(
+                post.alpha[0], post.alpha[1], post.beta[0], post.beta[1], R0[0], R0[1],
+                self.bounds[0], self.bounds[1],
+            )
+        )  # fmt: skip
         self.R = np.diag(post.R_gain)
 
     def end_scan(self) -> None:
@@ -251,11 +298,10 @@ def vbakf_update(
     for _ in range(iterations):
         if adapt_P:
             dx = x_i - x  # = K nu: no heading to wrap (the iterates are not wrapped)
-            A = P_i + np.outer(dx, dx)
-            P_hat = (A + tau * P) / (tau + 1.0)  # T / (t - n - 1): t - n - 1 = tau + 1
-            inflation = np.trace(P_hat) / tr_P
-            if inflation > max_inflation:
-                P_hat = P_hat * (max_inflation / inflation)
+            P_hat = vbakf_prior(P_i, np.outer(dx, dx), P, tau)
+            cap = inflation_cap(np.trace(P_hat), tr_P, max_inflation)
+            if cap != 1.0:
+                P_hat = P_hat * cap
         e = residual(x_i)
         B = np.outer(e, e) + H @ P_i @ H.T
         U_post = U + (np.diag(np.diag(B)) if diagonal_R else 0.5 * (B + B.T))

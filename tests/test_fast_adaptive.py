@@ -11,12 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from anfekf_bench.config import load_scenario, parse_scenario, resolve_world
+from anfekf_bench.config import parse_scenario, resolve_world
 from anfekf_bench.engines import fast
 from anfekf_bench.filters.akhlaghi import AkhlaghiSpec
 from anfekf_bench.filters.swvb import SWVBSpec
 from anfekf_bench.filters.vb import VBAKFSpec, VBRSpec
 from anfekf_bench.runner import simulate
+from anfekf_bench.scenarios import load_scenario
 
 from .conftest import small_scenario
 from .test_fast_engine import assert_same_run, both, ctx_of

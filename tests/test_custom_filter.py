@@ -25,10 +25,22 @@ EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "custom_filter"
 runner = CliRunner()
 
 
+def _restart_workers() -> None:
+    """End joblib's reusable loky workers: the next batch starts new ones, which see the
+    current sys.path and PYTHONPATH (workers started by an earlier test would not)."""
+    from joblib.externals.loky import get_reusable_executor
+
+    get_reusable_executor().shutdown(wait=True)
+
+
 @pytest.fixture
 def example_on_path(monkeypatch):
+    # As a user does it (docs/CUSTOM_FILTERS.md): the module on PYTHONPATH, for the workers too.
     monkeypatch.syspath_prepend(str(EXAMPLE))
+    monkeypatch.setenv("PYTHONPATH", str(EXAMPLE))
+    _restart_workers()
     yield
+    _restart_workers()
     sys.modules.pop("nis_scaled", None)
 
 

@@ -18,6 +18,7 @@ from .cm_scale import CMScaleSpec
 from .custom import CustomSpec, entry_point_kinds
 from .ekf import EKFSpec, OracleSpec, RobotEKF, gate_threshold
 from .iae import IAESpec
+from .kalmannet import KalmanNetSpec
 from .sage_husa import SageHusaSpec
 from .spec import FilterContext, FilterSpec
 from .vb import VBAKFSpec, VBRSpec
@@ -32,6 +33,7 @@ SPECS: tuple[type[FilterSpec], ...] = (
     CMScaleSpec,
     VBRSpec,
     VBAKFSpec,
+    KalmanNetSpec,
     CustomSpec,
 )
 

@@ -225,3 +225,33 @@ def test_without_torch_a_scenario_naming_kalmannet_is_one_line_exit_2(tmp_path, 
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0] == f"error: {path}: filters.1: {INSTALL_HINT}"
     assert not (tmp_path / "out").exists(), "nothing is written before the error"
+
+
+@pytest.mark.slow
+def test_the_report_says_a_filter_without_covariance_has_no_nees(tmp_path):
+    """What the report does with a filter whose P (so NEES) is NaN at every step: the NEES
+    figure's legend and the summary table say "not available"; its RMSE is still reported."""
+    from anfekf_bench.report import plots
+    from anfekf_bench.report.report import load_scenario_data, markdown_table, summary_rows
+    from anfekf_bench.storage import read_steps
+
+    filters = [{"name": "ekf", "kind": "ekf"}, {"name": "ekf-oracle", "kind": "ekf-oracle"}]
+    doc = small_scenario(runs=3, record_every=8, filters=filters)
+    path = write_scenario(tmp_path / "s.yaml", doc)
+    result = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    folder = tmp_path / "out" / "small"
+    steps = read_steps(folder)
+    nan_columns = ["nees"] + [c for c in steps.columns if c.startswith("P_")]
+    steps.loc[steps["filter"] == "ekf", nan_columns] = np.nan  # as KalmanNet records them
+    steps.to_parquet(folder / "steps.parquet")
+    sc = load_scenario_data(folder)
+    fig = plots.nees_figure(sc)
+    legends = [*fig.legends, *(ax.get_legend() for ax in fig.axes if ax.get_legend())]
+    legend = [t.get_text() for leg in legends for t in leg.get_texts()]
+    assert "ekf: NEES not available (no covariance)" in legend
+    assert any(t.startswith("ekf-oracle: ANEES") for t in legend)
+    rows = {r.filter: r for r in summary_rows([sc])}
+    assert math.isnan(rows["ekf"].anees) and math.isfinite(rows["ekf"].rmse_pos)
+    assert math.isfinite(rows["ekf-oracle"].anees)
+    assert "NEES not available (-) for ekf: no covariance" in markdown_table(list(rows.values()))

@@ -255,3 +255,31 @@ def test_the_report_says_a_filter_without_covariance_has_no_nees(tmp_path):
     assert math.isnan(rows["ekf"].anees) and math.isfinite(rows["ekf"].rmse_pos)
     assert math.isfinite(rows["ekf-oracle"].anees)
     assert "NEES not available (-) for ekf: no covariance" in markdown_table(list(rows.values()))
+
+
+def test_a_trained_spec_pickles_with_its_weights(tiny_robot):
+    """Workers receive the spec pickled: the weights travel with it."""
+    import pickle
+
+    scenario, world, spec, result, data = tiny_robot
+    back = pickle.loads(pickle.dumps(spec.with_weights(result.weights)))
+    assert back._weights.to_bytes() == result.weights.to_bytes() and spec._weights is None
+
+
+def test_the_study_scores_kalmannet_on_the_scenarios_own_runs(tmp_path, capsys):
+    from anfekf_bench import kalmannet_study
+
+    filters = [{"name": "ekf", "kind": "ekf"}, {"name": "ekf-oracle", "kind": "ekf-oracle"}]
+    path = write_scenario(tmp_path / "s.yaml", small_scenario(record_every=8, filters=filters))
+    kalmannet_study.main(
+        [str(path), "--eval-runs", "2", "--train-runs", "2", "--epochs", "1", "--out",
+         str(tmp_path / "out")]
+    )  # fmt: skip
+    import json
+
+    res = json.loads((tmp_path / "out" / "kalmannet-small.json").read_text())
+    assert res["evaluation_runs"] == 2 and res["training_runs"] == 2
+    assert set(res["rmse_pos"]) == {"ekf", "ekf-oracle", "kalmannet"}
+    assert all(math.isfinite(v) for v in res["rmse_pos"].values())
+    assert set(res["kalmannet_over"]) == {"ekf", "ekf-oracle"}
+    assert "kalmannet / ekf-oracle" in capsys.readouterr().out

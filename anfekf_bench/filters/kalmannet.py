@@ -260,7 +260,7 @@ class KalmanNetSpec(FilterSpec):
     bptt: int = Field(
         25, ge=1, le=100_000, description="truncated BPTT: landmark updates per gradient step"
     )
-    batch_size: int = Field(10, ge=1, le=10_000, description="training runs per batch")
+    batch_size: int = Field(25, ge=1, le=10_000, description="training runs per batch")
     seed: int = Field(0, ge=0, le=2**63 - 1, description="initial weights and batch order")
     _weights: KalmanNetWeights | None = PrivateAttr(None)
 

@@ -283,3 +283,15 @@ def test_the_study_scores_kalmannet_on_the_scenarios_own_runs(tmp_path, capsys):
     assert all(math.isfinite(v) for v in res["rmse_pos"].values())
     assert set(res["kalmannet_over"]) == {"ekf", "ekf-oracle"}
     assert "kalmannet / ekf-oracle" in capsys.readouterr().out
+
+
+def test_anfekf_run_refuses_an_untrained_kalmannet_in_one_line(tmp_path):
+    """Until the batch trains filters itself: exit 2 before any work, never a traceback."""
+    doc = small_scenario(runs=2)
+    doc["filters"] = [{"name": "ekf", "kind": "ekf"}, {"name": "kn", "kind": "kalmannet"}]
+    path = write_scenario(tmp_path / "kn.yaml", doc)
+    result = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2, result.output
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "filters: kn: anfekf run does not train filters yet" in lines[0]
+    assert not (tmp_path / "out" / "small").exists()

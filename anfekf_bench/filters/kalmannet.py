@@ -270,6 +270,11 @@ class KalmanNetSpec(FilterSpec):
             raise ValueError(INSTALL_HINT)
         return self
 
+    @property
+    def trained(self) -> bool:
+        """Whether this spec carries trained weights (`with_weights`)."""
+        return self._weights is not None
+
     def with_weights(self, weights: KalmanNetWeights) -> KalmanNetSpec:
         """This spec carrying trained weights (what `build` needs)."""
         spec = self.model_copy()

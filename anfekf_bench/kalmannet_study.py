@@ -82,8 +82,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=Path("results/learned"))
     parser.add_argument("--train-runs", type=int, default=None)
     parser.add_argument("--epochs", type=int, default=None)
+    parser.add_argument("--seed", type=int, default=None, help="KalmanNet's own seed")
     args = parser.parse_args(argv)
-    overrides = {k: v for k, v in (("train_runs", args.train_runs), ("epochs", args.epochs)) if v}
+    chosen = (("train_runs", args.train_runs), ("epochs", args.epochs), ("seed", args.seed))
+    overrides = {k: v for k, v in chosen if v is not None}
     spec = KalmanNetSpec(name="kalmannet", kind="kalmannet", **overrides)
     args.out.mkdir(parents=True, exist_ok=True)
     for path in args.scenarios:

@@ -41,7 +41,7 @@ import numpy as np
 from pydantic import Field, PrivateAttr, model_validator
 
 from ..models import residual_z, wrap_scalar
-from .ekf import RobotEKF
+from .ekf import FilterDiverged, RobotEKF
 from .spec import FilterContext, FilterSpec
 
 INSTALL_HINT = "kind kalmannet needs PyTorch: install the extra with pip install -e '.[learned]'"
@@ -233,8 +233,6 @@ class KalmanNetFilter(RobotEKF):
         x_post = x + K @ nu
         x_post[2] = wrap_scalar(x_post[2])
         if not np.isfinite(x_post).all():
-            from .ekf import FilterDiverged
-
             raise FilterDiverged("KalmanNet estimate is not finite")
         self.x_post_prev2, self.x_post_prev, self.x_prior_prev = self.x_post_prev, x_post, x
         self.x = x_post

@@ -295,3 +295,16 @@ def test_anfekf_run_refuses_an_untrained_kalmannet_in_one_line(tmp_path):
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "filters: kn: anfekf run does not train filters yet" in lines[0]
     assert not (tmp_path / "out" / "small").exists()
+
+
+def test_a_non_finite_gain_marks_the_run_diverged(tiny_robot):
+    scenario, world, spec, result, data = tiny_robot
+    arrays = {k: v.copy() for k, v in result.weights.arrays.items()}
+    arrays["fc_out2.bias"][0] = np.nan
+    broken = KalmanNetWeights(
+        arrays, result.weights.obs_scale, result.weights.state_scale,
+        result.weights.range_scale, result.weights.hidden_size,
+    )  # fmt: skip
+    flt = build_filter(spec.with_weights(broken), scenario, world)
+    out = run_filter(flt, data, world, scenario.record_every)
+    assert out["diverged"] and np.isnan(out["x"][-1]).all()

@@ -61,6 +61,7 @@ def study(path: Path, eval_runs: int, spec: KalmanNetSpec, progress: bool = True
         "training_runs": spec.train_runs,
         "training_seed_branch": "SeedSequence(seed, spawn_key=(2**32 - 1,)).spawn(train_runs)",
         "training_time_s": round(trained.training_time_s, 2),
+        "training_cpu_s": round(trained.training_cpu_s, 2),
         "epoch_loss": trained.epoch_loss,
         "weights_sha256": hashlib.sha256(trained.weights.to_bytes()).hexdigest(),
         "evaluation_runs": len(tasks),
@@ -93,7 +94,10 @@ def main(argv: list[str] | None = None) -> None:
         target = args.out / f"kalmannet-{res['scenario']}.json"
         text = json.dumps(res, indent=2) + "\n"
         write_atomic(target, lambda tmp, text=text: tmp.write_text(text))
-        print(f"{res['scenario']}: training {res['training_time_s']} s on {spec.train_runs} runs")
+        print(
+            f"{res['scenario']}: training {res['training_time_s']} s (CPU"
+            f" {res['training_cpu_s']} s) on {spec.train_runs} runs"
+        )
         for name, value in res["rmse_pos"].items():
             print(f"  {name:12s} rmse_pos {value:.4f} m  diverged {res['diverged'][name]}")
         for name, r in res["kalmannet_over"].items():

@@ -100,6 +100,7 @@ def test_on_a_linear_gaussian_model_its_mse_is_within_10_percent_of_the_kalman_f
     dead = kt.estimate(untrained, system, kt.linear_batch(x, z))
     assert np.mean((dead.transpose(1, 0, 2) - x[:, 1:]) ** 2) > 1.5 * mse_kf
     assert result.training_time_s > 0 and len(result.epoch_loss) == 6
+    assert 0 < result.training_cpu_s
 
 
 def test_same_seed_same_weights_bytes_and_another_seed_others():

@@ -119,12 +119,13 @@ class KalmanNetWeights:
 
 @dataclass
 class TrainingResult:
-    """What `train` returns: the weights, the training time [s] (for the manifest) and the mean
-    loss of each epoch."""
+    """What `train` returns: the weights, the training time [s] (for the manifest), the mean loss
+    of each epoch and the CPU time [s]."""
 
     weights: KalmanNetWeights
-    training_time_s: float
+    training_time_s: float  # wall
     epoch_loss: list[float] = field(default_factory=list)
+    training_cpu_s: float = float("nan")  # this process's CPU time (a shared machine's wall lies)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -410,7 +410,7 @@ def fit(
     description: str = "training KalmanNet",
 ) -> TrainingResult:
     """Train a GainNet on `batches` of `system`; deterministic for `seed` (module docstring)."""
-    started = time.perf_counter()
+    started, cpu_started = time.perf_counter(), time.process_time()
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     deterministic = torch.are_deterministic_algorithms_enabled()
@@ -436,7 +436,8 @@ def fit(
     finally:
         torch.set_num_threads(threads)
         torch.use_deterministic_algorithms(deterministic)
-    return TrainingResult(weights, time.perf_counter() - started, epoch_loss)
+    cpu = time.process_time() - cpu_started
+    return TrainingResult(weights, time.perf_counter() - started, epoch_loss, cpu)
 
 
 class _progress:

@@ -734,7 +734,7 @@ def markdown_table(rows: Sequence[SummaryRow]) -> str:
 
 
 def summary_table(rows: Sequence[SummaryRow]) -> TableBlock:
-    # A filter without a covariance (KalmanNet) has runs but no NEES: say so under the table.
+    # A filter without a covariance (KalmanNet) has runs but no NEES: the caption says so.
     no_nees = sorted({r.filter for r in rows if r.runs_used and math.isnan(r.anees)})
     caption = (
         f"NEES not available (-) for {', '.join(no_nees)}: no covariance (a learned gain)"

@@ -63,6 +63,8 @@ def study(path: Path, eval_runs: int, spec: KalmanNetSpec, progress: bool = True
         "training_time_s": round(trained.training_time_s, 2),
         "training_cpu_s": round(trained.training_cpu_s, 2),
         "epoch_loss": trained.epoch_loss,
+        "validation_loss": trained.validation_loss,
+        "best_epoch": trained.best_epoch,
         "weights_sha256": hashlib.sha256(trained.weights.to_bytes()).hexdigest(),
         "evaluation_runs": len(tasks),
         "evaluation_time_s": round(time.perf_counter() - started, 2),
@@ -84,8 +86,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--train-runs", type=int, default=None)
     parser.add_argument("--epochs", type=int, default=None)
     parser.add_argument("--seed", type=int, default=None, help="KalmanNet's own seed")
+    parser.add_argument("--validation-runs", type=int, default=None)
     args = parser.parse_args(argv)
-    chosen = (("train_runs", args.train_runs), ("epochs", args.epochs), ("seed", args.seed))
+    chosen = (
+        ("train_runs", args.train_runs), ("epochs", args.epochs), ("seed", args.seed),
+        ("validation_runs", args.validation_runs),
+    )  # fmt: skip
     overrides = {k: v for k, v in chosen if v is not None}
     spec = KalmanNetSpec(name="kalmannet", kind="kalmannet", **overrides)
     args.out.mkdir(parents=True, exist_ok=True)

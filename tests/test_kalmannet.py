@@ -103,6 +103,27 @@ def test_on_a_linear_gaussian_model_its_mse_is_within_10_percent_of_the_kalman_f
     assert 0 < result.training_cpu_s
 
 
+def test_held_out_runs_keep_the_epoch_that_does_best_on_them():
+    F, Q, H, R = cv_model()
+    rng = np.random.default_rng(5)
+    system = kt.LinearSystem(F, H)
+    batches = [kt.linear_batch(*simulate_linear(F, Q, H, R, 20, 30, rng)) for _ in range(2)]
+    held_out = [kt.linear_batch(*simulate_linear(F, Q, H, R, 20, 30, rng))]
+    settings = dict(epochs=4, learning_rate=5e-2, hidden_size=8, bptt=30, seed=0)
+    result = kt.fit(system, batches, validation=held_out, **settings)
+    assert len(result.validation_loss) == 4
+    kept = kt.from_weights(result.weights, system)
+    scales = (result.weights.obs_scale, result.weights.state_scale)
+    with torch.no_grad():
+        loss = kt.run_pass(kept, system, held_out[0], scales, 30)[0]
+    assert loss == min(result.validation_loss)
+    assert result.best_epoch == 1 + int(np.argmin(result.validation_loss))
+    last = kt.fit(system, batches, **settings)  # without held-out runs: the last epoch's
+    assert last.best_epoch == 4 and not last.validation_loss
+    if result.best_epoch != 4:
+        assert last.weights.to_bytes() != result.weights.to_bytes()
+
+
 def test_same_seed_same_weights_bytes_and_another_seed_others():
     a = train_linear(seed=3, epochs=2)[0].weights.to_bytes()
     b = train_linear(seed=3, epochs=2)[0].weights.to_bytes()
@@ -127,6 +148,7 @@ def test_weights_round_trip_through_bytes():
 def small_kalmannet_scenario(**spec):
     doc = small_scenario(record_every=8)
     kn = {"name": "kn", "kind": "kalmannet", "train_runs": 3, "epochs": 2, "hidden_size": 8}
+    kn["validation_runs"] = 1
     doc["filters"] = [{"name": "ekf", "kind": "ekf"}, {**kn, **spec}]
     scenario = parse_scenario(doc)
     return scenario, resolve_world(scenario.world, Path("small.yaml"))
@@ -146,6 +168,8 @@ def tiny_robot():
 def test_a_tiny_robot_training_runs_an_evaluation_run_with_finite_estimates(tiny_robot):
     scenario, world, spec, result, data = tiny_robot
     assert result.training_time_s < 30 and all(map(math.isfinite, result.epoch_loss))
+    # 2 runs fitted, 1 held out: one validation loss per epoch, the best epoch's weights kept.
+    assert len(result.validation_loss) == 2 and 1 <= result.best_epoch <= 2
     trained = spec.with_weights(result.weights)
     out = run_filter(build_filter(trained, scenario, world), data, world, scenario.record_every)
     assert not out["diverged"] and np.isfinite(out["x"]).all()
@@ -209,6 +233,8 @@ def test_training_seeds_are_disjoint_from_every_evaluation_seed():
 
 def test_registered_with_documented_defaults():
     assert "kalmannet" in KINDS
+    with pytest.raises(ScenarioError, match="validation_runs: must be fewer than train_runs"):
+        small_kalmannet_scenario(train_runs=3, validation_runs=3)
     fields = KalmanNetSpec.model_fields
     for name in ("train_runs", "epochs", "learning_rate", "hidden_size", "bptt", "seed"):
         assert fields[name].description, name
@@ -273,8 +299,8 @@ def test_the_study_scores_kalmannet_on_the_scenarios_own_runs(tmp_path, capsys):
     filters = [{"name": "ekf", "kind": "ekf"}, {"name": "ekf-oracle", "kind": "ekf-oracle"}]
     path = write_scenario(tmp_path / "s.yaml", small_scenario(record_every=8, filters=filters))
     kalmannet_study.main(
-        [str(path), "--eval-runs", "2", "--train-runs", "2", "--epochs", "1", "--out",
-         str(tmp_path / "out")]
+        [str(path), "--eval-runs", "2", "--train-runs", "2", "--validation-runs", "1",
+         "--epochs", "1", "--out", str(tmp_path / "out")]
     )  # fmt: skip
     import json
 

@@ -126,6 +126,14 @@ class TrainingResult:
     training_time_s: float  # wall
     epoch_loss: list[float] = field(default_factory=list)
     training_cpu_s: float = float("nan")  # this process's CPU time (a shared machine's wall lies)
+    validation_loss: list[float] = field(default_factory=list)  # per epoch, on held-out runs
+
+    @property
+    def best_epoch(self) -> int:
+        """The epoch (1-based) whose weights were kept: the lowest validation loss, or the last."""
+        if not self.validation_loss:
+            return len(self.epoch_loss)
+        return int(np.argmin(self.validation_loss)) + 1
 
 
 # ---------------------------------------------------------------------------------------------
@@ -260,8 +268,19 @@ class KalmanNetSpec(FilterSpec):
         25, ge=1, le=100_000, description="truncated BPTT: landmark updates per gradient step"
     )
     batch_size: int = Field(25, ge=1, le=10_000, description="training runs per batch")
+    validation_runs: int = Field(
+        10, ge=0, le=10_000,
+        description="of the training runs, held out to keep the epoch that does best on them"
+        " (0: keep the last epoch)",
+    )  # fmt: skip
     seed: int = Field(0, ge=0, le=2**63 - 1, description="initial weights and batch order")
     _weights: KalmanNetWeights | None = PrivateAttr(None)
+
+    @model_validator(mode="after")
+    def _some_runs_fitted(self) -> KalmanNetSpec:
+        if self.validation_runs >= self.train_runs:
+            raise ValueError("validation_runs: must be fewer than train_runs (the rest are fitted)")
+        return self
 
     @model_validator(mode="after")
     def _torch_installed(self) -> KalmanNetSpec:

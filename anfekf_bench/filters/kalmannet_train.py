@@ -406,10 +406,13 @@ def fit(
     hidden_size: int,
     bptt: int,
     seed: int,
+    validation: list[Batch] | None = None,
     progress: bool = False,
     description: str = "training KalmanNet",
 ) -> TrainingResult:
-    """Train a GainNet on `batches` of `system`; deterministic for `seed` (module docstring)."""
+    """Train a GainNet on `batches` of `system`; deterministic for `seed` (module docstring).
+    With `validation` batches (held-out training runs), the weights returned are those of the
+    epoch with the lowest validation loss (early stopping by selection); else the last epoch's."""
     started, cpu_started = time.perf_counter(), time.process_time()
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -422,7 +425,7 @@ def fit(
         net = GainNet(2 * system.m + 2 * system.n + system.g, hidden_size, system.n, system.m)
         optimizer = torch.optim.Adam(net.parameters(), lr=learning_rate)
         total = epochs * sum(windows_of(b, bptt) for b in batches)
-        epoch_loss = []
+        epoch_loss, validation_loss, best = [], [], None
         with _progress(progress, description, total) as advance:
             for _ in range(epochs):
                 losses = [
@@ -432,12 +435,20 @@ def fit(
                 epoch_loss.append(float(np.mean(losses)))
                 if not math.isfinite(epoch_loss[-1]):
                     raise FloatingPointError("KalmanNet training loss is not finite")
+                if validation:
+                    with torch.no_grad():
+                        passes = [run_pass(net, system, b, scales, bptt)[0] for b in validation]
+                    validation_loss.append(float(np.mean(passes)))
+                    if best is None or validation_loss[-1] < min(validation_loss[:-1]):
+                        best = {k: v.clone() for k, v in net.state_dict().items()}
+        if best is not None:
+            net.load_state_dict(best)
         weights = to_weights(net, scales, system.range_scale)
     finally:
         torch.set_num_threads(threads)
         torch.use_deterministic_algorithms(deterministic)
     cpu = time.process_time() - cpu_started
-    return TrainingResult(weights, time.perf_counter() - started, epoch_loss, cpu)
+    return TrainingResult(weights, time.perf_counter() - started, epoch_loss, cpu, validation_loss)
 
 
 class _progress:
@@ -481,7 +492,8 @@ def estimate(weights: KalmanNetWeights, system, batch: Batch) -> np.ndarray:
 
 def train(spec, runs, world, ctx, progress: bool = False) -> TrainingResult:
     """KalmanNet for the robot from simulated training runs of `world` (`spec`'s parameters):
-    runs in batches of `spec.batch_size`, the filter's model from `ctx`."""
+    the last `spec.validation_runs` runs held out to pick the best epoch, the others fitted in
+    batches of `spec.batch_size`; the filter's model from `ctx`."""
     if not runs:
         raise ValueError("kalmannet: no training runs")
     if not isinstance(ctx.model, Bicycle):
@@ -489,11 +501,16 @@ def train(spec, runs, world, ctx, progress: bool = False) -> TrainingResult:
     ranges = np.concatenate([s.z[:, 0] for r in runs for s in r.scans if len(s.ids)])
     range_scale = float(np.mean(ranges)) if len(ranges) else 1.0
     system = RobotSystem(ctx.dt, ctx.model.B, range_scale)
-    size = spec.batch_size
-    batches = [robot_batch(system, runs[i : i + size], world) for i in range(0, len(runs), size)]
+    size, held_out = spec.batch_size, min(spec.validation_runs, len(runs) - 1)
+    fitted, checked = runs[: len(runs) - held_out], runs[len(runs) - held_out :]
+    batches = [
+        robot_batch(system, fitted[i : i + size], world) for i in range(0, len(fitted), size)
+    ]
+    validation = [robot_batch(system, checked, world)] if checked else None
     return fit(
         system,
         batches,
+        validation=validation,
         epochs=spec.epochs,
         learning_rate=spec.learning_rate,
         hidden_size=spec.hidden_size,

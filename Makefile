@@ -68,10 +68,11 @@ real: setup
 	$(ANFEKF) run configs/real --out $(OUT)/real --force
 	$(ANFEKF) report $(OUT)/real --out $(OUT)/real/report
 
-## KalmanNet (docs/DESIGN.md): trained on 50 training runs of wrong_r and of correct (seeds disjoint
-## from the evaluation runs'), scored on 20 of each scenario's own runs against its filters.
+## KalmanNet (docs/DESIGN.md): trained on 50 training runs of each paper scenario (seeds disjoint
+## from the evaluation runs'), scored on 20 of the scenario's own runs against its filters.
 ## Needs the extra: pip install -e ".[learned]" (PyTorch; the CPU wheel is enough).
 LEARNED_FLAGS ?= --eval-runs 20
 learned: setup
 	@$(PY) -c "import torch" 2>/dev/null || { echo "make learned needs PyTorch: pip install -e '.[learned]'"; exit 2; }
-	$(PY) -m anfekf_bench.kalmannet_study configs/wrong_r.yaml configs/correct.yaml --out $(OUT)/learned $(LEARNED_FLAGS)
+	$(PY) -m anfekf_bench.kalmannet_study configs/correct.yaml configs/wrong_r.yaml \
+		configs/wrong_q.yaml configs/consistency.yaml --out $(OUT)/learned $(LEARNED_FLAGS)

@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 ANFEKF := $(VENV)/bin/anfekf
 OUT    ?= results
 
-.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps real changing drives
+.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps real changing drives learned
 
 setup: $(VENV)/.installed
 
@@ -75,3 +75,12 @@ real: setup
 drives: setup
 	$(ANFEKF) run configs/drives --out $(OUT)/drives --force
 	$(ANFEKF) report $(OUT)/drives --out $(OUT)/drives/report
+
+## KalmanNet (docs/DESIGN.md): trained on 50 training runs of each paper scenario (seeds disjoint
+## from the evaluation runs'), scored on 20 of the scenario's own runs against its filters.
+## Needs the extra: pip install -e ".[learned]" (PyTorch; the CPU wheel is enough).
+LEARNED_FLAGS ?= --eval-runs 20
+learned: setup
+	@$(PY) -c "import torch" 2>/dev/null || { echo "make learned needs PyTorch: pip install -e '.[learned]'"; exit 2; }
+	$(PY) -m anfekf_bench.kalmannet_study configs/correct.yaml configs/wrong_r.yaml \
+		configs/wrong_q.yaml configs/consistency.yaml --out $(OUT)/learned $(LEARNED_FLAGS)

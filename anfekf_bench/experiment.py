@@ -300,6 +300,13 @@ def check_plan(plan: Plan) -> int:
     problem = scenario_name_problem(plan.name)
     if problem:
         raise PlanError(f"name: {problem}")
+    filters = plan.scenario.filters
+    untrained = [f.name for f in filters if getattr(f, "trains", False) and not f.trained]
+    if untrained:  # until the batch trains filters on training runs itself
+        raise PlanError(
+            f"filters: {', '.join(untrained)}: anfekf run does not train filters yet; train and"
+            " score KalmanNet with: make learned (python -m anfekf_bench.kalmannet_study)"
+        )
     try:
         control_steps = len(simulate_truth(plan.world).u)
     except RouteNotCompleted as exc:

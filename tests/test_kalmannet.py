@@ -1,0 +1,337 @@
+"""KalmanNet (filters/kalmannet.py, kalmannet_train.py): the linear-Gaussian acceptance test,
+determinism, a tiny training on the robot model, the missing-extra error, and the NEES that is
+"not available" (NaN) through the metrics."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from anfekf_bench.analysis.metrics import add_trace_metrics, format_number, summarize_filter
+from anfekf_bench.cli import app
+from anfekf_bench.config import ScenarioError, parse_scenario, resolve_world
+from anfekf_bench.engines.filterpy_engine import run_filter
+from anfekf_bench.filters.kalmannet import (
+    INSTALL_HINT,
+    KalmanNetSpec,
+    KalmanNetWeights,
+    training_seeds,
+)
+from anfekf_bench.filters.registry import KINDS, build_filter, filter_context
+from anfekf_bench.runner import simulate
+from anfekf_bench.sources.simulator import world_path
+
+from .conftest import small_scenario, write_scenario
+
+torch = pytest.importorskip("torch")
+kt = pytest.importorskip("anfekf_bench.filters.kalmannet_train")
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+# ---------------------------------------------------------------------------------------------
+# A linear-Gaussian model: 2-D constant velocity, position measurements
+
+
+def cv_model(dt=1.0, q=0.1, r=1.0):
+    F1 = np.array([[1.0, dt], [0.0, 1.0]])
+    Q1 = q * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+    H1 = np.array([[1.0, 0.0]])
+    return np.kron(np.eye(2), F1), np.kron(np.eye(2), Q1), np.kron(np.eye(2), H1), r * np.eye(2)
+
+
+def simulate_linear(F, Q, H, R, n_seq, T, rng):
+    """x (n_seq, T + 1, n) from x0 ~ N(0, I); z (n_seq, T, m) of x[:, 1:]."""
+    n, m = F.shape[0], H.shape[0]
+    LQ, LR = np.linalg.cholesky(Q), np.linalg.cholesky(R)
+    x = np.zeros((n_seq, T + 1, n))
+    x[:, 0] = rng.standard_normal((n_seq, n))
+    z = np.zeros((n_seq, T, m))
+    for t in range(T):
+        x[:, t + 1] = x[:, t] @ F.T + rng.standard_normal((n_seq, n)) @ LQ.T
+        z[:, t] = x[:, t + 1] @ H.T + rng.standard_normal((n_seq, m)) @ LR.T
+    return x, z
+
+
+def kalman_filter(F, Q, H, R, x, z):
+    """The Kalman filter from the known x0 (P0 = 0): the optimal estimates (n_seq, T, n)."""
+    x_est, P, out = x[:, 0].copy(), np.zeros((F.shape[0],) * 2), []
+    for t in range(z.shape[1]):
+        x_est, P = x_est @ F.T, F @ P @ F.T + Q
+        K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+        x_est = x_est + (z[:, t] - x_est @ H.T) @ K.T
+        P = (np.eye(len(P)) - K @ H) @ P
+        out.append(x_est.copy())
+    return np.stack(out, axis=1)
+
+
+def train_linear(seed=0, epochs=6, T=30):
+    F, Q, H, R = cv_model()
+    rng = np.random.default_rng(0)
+    system = kt.LinearSystem(F, H)
+    batches = [kt.linear_batch(*simulate_linear(F, Q, H, R, 20, T, rng)) for _ in range(5)]
+    result = kt.fit(
+        system, batches, epochs=epochs, learning_rate=1e-2, hidden_size=16, bptt=T, seed=seed
+    )
+    return result, system, (F, Q, H, R), rng
+
+
+def test_on_a_linear_gaussian_model_its_mse_is_within_10_percent_of_the_kalman_filter():
+    result, system, (F, Q, H, R), rng = train_linear()
+    x, z = simulate_linear(F, Q, H, R, 500, 30, rng)  # held-out sequences
+    mse_kf = np.mean((kalman_filter(F, Q, H, R, x, z) - x[:, 1:]) ** 2)
+    est = kt.estimate(result.weights, system, kt.linear_batch(x, z)).transpose(1, 0, 2)
+    mse_kn = np.mean((est - x[:, 1:]) ** 2)
+    # The Kalman filter is optimal here: the network cannot beat it beyond sampling noise.
+    assert 0.97 * mse_kf < mse_kn < 1.10 * mse_kf, (mse_kn, mse_kf)
+    # Dead reckoning (the untrained network's zero gain) is far worse: the bound is not loose.
+    untrained = kt.to_weights(kt.GainNet(12, 16, 4, 2), (np.ones(2), np.ones(4)), 1.0)
+    dead = kt.estimate(untrained, system, kt.linear_batch(x, z))
+    assert np.mean((dead.transpose(1, 0, 2) - x[:, 1:]) ** 2) > 1.5 * mse_kf
+    assert result.training_time_s > 0 and len(result.epoch_loss) == 6
+    assert 0 < result.training_cpu_s
+
+
+def test_held_out_runs_keep_the_epoch_that_does_best_on_them():
+    F, Q, H, R = cv_model()
+    rng = np.random.default_rng(5)
+    system = kt.LinearSystem(F, H)
+    batches = [kt.linear_batch(*simulate_linear(F, Q, H, R, 20, 30, rng)) for _ in range(2)]
+    held_out = [kt.linear_batch(*simulate_linear(F, Q, H, R, 20, 30, rng))]
+    settings = dict(epochs=4, learning_rate=5e-2, hidden_size=8, bptt=30, seed=0)
+    result = kt.fit(system, batches, validation=held_out, **settings)
+    assert len(result.validation_loss) == 4
+    kept = kt.from_weights(result.weights, system)
+    scales = (result.weights.obs_scale, result.weights.state_scale)
+    with torch.no_grad():
+        loss = kt.run_pass(kept, system, held_out[0], scales, 30)[0]
+    assert loss == min(result.validation_loss)
+    assert result.best_epoch == 1 + int(np.argmin(result.validation_loss))
+    last = kt.fit(system, batches, **settings)  # without held-out runs: the last epoch's
+    assert last.best_epoch == 4 and not last.validation_loss
+    if result.best_epoch != 4:
+        assert last.weights.to_bytes() != result.weights.to_bytes()
+
+
+def test_same_seed_same_weights_bytes_and_another_seed_others():
+    a = train_linear(seed=3, epochs=2)[0].weights.to_bytes()
+    b = train_linear(seed=3, epochs=2)[0].weights.to_bytes()
+    c = train_linear(seed=4, epochs=2)[0].weights.to_bytes()
+    assert a == b and a != c
+
+
+def test_weights_round_trip_through_bytes():
+    w = train_linear(epochs=1)[0].weights
+    back = KalmanNetWeights.from_bytes(w.to_bytes())
+    assert back.to_bytes() == w.to_bytes() and back.hidden_size == 16
+    for name, array in w.arrays.items():
+        np.testing.assert_array_equal(back.arrays[name], array)
+    with pytest.raises(ValueError, match="size"):
+        KalmanNetWeights.from_bytes(w.to_bytes()[:-8])
+
+
+# ---------------------------------------------------------------------------------------------
+# The robot model: a tiny training on short simulated runs, then an evaluation run
+
+
+def small_kalmannet_scenario(**spec):
+    doc = small_scenario(record_every=8)
+    kn = {"name": "kn", "kind": "kalmannet", "train_runs": 3, "epochs": 2, "hidden_size": 8}
+    kn["validation_runs"] = 1
+    doc["filters"] = [{"name": "ekf", "kind": "ekf"}, {**kn, **spec}]
+    scenario = parse_scenario(doc)
+    return scenario, resolve_world(scenario.world, Path("small.yaml"))
+
+
+@pytest.fixture(scope="module")
+def tiny_robot():
+    scenario, world = small_kalmannet_scenario()
+    spec = scenario.filters[1]
+    path = world_path(world)
+    runs = [simulate(scenario, world, s, path) for s in training_seeds(scenario.seed, 3)]
+    result = spec.train(runs, world, filter_context(spec, scenario, world))
+    evaluation = simulate(scenario, world, np.random.SeedSequence(scenario.seed).spawn(1)[0], path)
+    return scenario, world, spec, result, evaluation
+
+
+def test_a_tiny_robot_training_runs_an_evaluation_run_with_finite_estimates(tiny_robot):
+    scenario, world, spec, result, data = tiny_robot
+    assert result.training_time_s < 30 and all(map(math.isfinite, result.epoch_loss))
+    # 2 runs fitted, 1 held out: one validation loss per epoch, the best epoch's weights kept.
+    assert len(result.validation_loss) == 2 and 1 <= result.best_epoch <= 2
+    trained = spec.with_weights(result.weights)
+    out = run_filter(build_filter(trained, scenario, world), data, world, scenario.record_every)
+    assert not out["diverged"] and np.isfinite(out["x"]).all()
+    assert np.isnan(out["P"]).all() and math.isnan(out["nis_sum"])
+    seen = sum(len(s.ids) for s in data.scans)
+    assert seen > 0 and out["n_updates"] == seen and out["n_rejected"] == 0
+    # It corrects: far closer to the truth than its own dead reckoning would stay.
+    x_true = data.truth.x[scenario.record_every :: scenario.record_every]
+    err = np.hypot(*(out["x"][:, :2] - x_true[:, :2]).T)
+    assert np.sqrt(np.mean(err**2)) < 5.0
+
+
+def test_the_numpy_filter_is_the_trained_torch_filter(tiny_robot):
+    """The filter the engine runs (numpy) and the one training optimised (torch) are the same
+    maths: the same estimates at every scan step."""
+    scenario, world, spec, result, data = tiny_robot
+    trained = spec.with_weights(result.weights)
+    out = run_filter(build_filter(trained, scenario, world), data, world, world.sensor_every)
+    ctx = filter_context(spec, scenario, world)
+    system = kt.RobotSystem(ctx.dt, ctx.model.B, result.weights.range_scale)
+    est = kt.estimate(result.weights, system, kt.robot_batch(system, [data], world))[:, 0]
+    np.testing.assert_allclose(out["x"][: len(est)], est, rtol=0, atol=1e-9)
+
+
+def test_its_nees_is_not_available_through_the_metrics(tiny_robot):
+    scenario, world, spec, result, data = tiny_robot
+    trained = spec.with_weights(result.weights)
+    trace = run_filter(build_filter(trained, scenario, world), data, world, scenario.record_every)
+    x_true = data.truth.x[scenario.record_every :: scenario.record_every][: len(trace["x"])]
+    trace = add_trace_metrics(trace, x_true)
+    assert np.isnan(trace["nees"]).all() and np.isfinite(trace["pos_err"]).all()
+    runs = 3
+    rec = summarize_filter(
+        np.tile(trace["pos_err"], (runs, 1)),
+        np.tile(trace["heading_err"], (runs, 1)),
+        np.tile(trace["nees"], (runs, 1)),
+        np.zeros(runs, dtype=bool),
+    )
+    assert math.isfinite(rec["rmse_pos"]) and rec["diverged"] == 0 and rec["inconsistent"] == 0
+    assert math.isnan(rec["anees"]) and math.isnan(rec["nees_in_bounds"])
+    assert format_number(rec["anees"], 2) == "-"
+
+
+def test_a_spec_without_weights_does_not_build():
+    scenario, world = small_kalmannet_scenario()
+    with pytest.raises(RuntimeError, match="no trained weights"):
+        build_filter(scenario.filters[1], scenario, world)
+
+
+def test_training_seeds_are_disjoint_from_every_evaluation_seed():
+    train = {tuple(s.generate_state(4)) for s in training_seeds(1002, 200)}
+    evaluation = {tuple(s.generate_state(4)) for s in np.random.SeedSequence(1002).spawn(2000)}
+    assert len(train) == 200 and not train & evaluation
+    again = [tuple(s.generate_state(4)) for s in training_seeds(1002, 3)]
+    assert again == [tuple(s.generate_state(4)) for s in training_seeds(1002, 200)[:3]]
+
+
+# ---------------------------------------------------------------------------------------------
+# Without the extra
+
+
+def test_registered_with_documented_defaults():
+    assert "kalmannet" in KINDS
+    with pytest.raises(ScenarioError, match="validation_runs: must be fewer than train_runs"):
+        small_kalmannet_scenario(train_runs=3, validation_runs=3)
+    fields = KalmanNetSpec.model_fields
+    for name in ("train_runs", "epochs", "learning_rate", "hidden_size", "bptt", "seed"):
+        assert fields[name].description, name
+
+
+def test_without_torch_a_scenario_naming_kalmannet_is_one_line_exit_2(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "torch", None)  # what `import torch` sees when not installed
+    doc = small_scenario()
+    doc["filters"] = [{"name": "ekf", "kind": "ekf"}, {"name": "kn", "kind": "kalmannet"}]
+    with pytest.raises(ScenarioError, match=r"filters\.1: .*\.\[learned\]"):
+        parse_scenario(doc, "x.yaml")
+    path = write_scenario(tmp_path / "kn.yaml", doc)
+    result = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2, result.output
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0] == f"error: {path}: filters.1: {INSTALL_HINT}"
+    assert not (tmp_path / "out").exists(), "nothing is written before the error"
+
+
+@pytest.mark.slow
+def test_the_report_says_a_filter_without_covariance_has_no_nees(tmp_path):
+    """What the report does with a filter whose P (so NEES) is NaN at every step: the NEES
+    figure's legend and the summary table say "not available"; its RMSE is still reported."""
+    from anfekf_bench.report import plots
+    from anfekf_bench.report.report import load_scenario_data, markdown_table, summary_rows
+    from anfekf_bench.storage import read_steps
+
+    filters = [{"name": "ekf", "kind": "ekf"}, {"name": "ekf-oracle", "kind": "ekf-oracle"}]
+    doc = small_scenario(runs=3, record_every=8, filters=filters)
+    path = write_scenario(tmp_path / "s.yaml", doc)
+    result = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    folder = tmp_path / "out" / "small"
+    steps = read_steps(folder)
+    nan_columns = ["nees"] + [c for c in steps.columns if c.startswith("P_")]
+    steps.loc[steps["filter"] == "ekf", nan_columns] = np.nan  # as KalmanNet records them
+    steps.to_parquet(folder / "steps.parquet")
+    sc = load_scenario_data(folder)
+    fig = plots.nees_figure(sc)
+    legends = [*fig.legends, *(ax.get_legend() for ax in fig.axes if ax.get_legend())]
+    legend = [t.get_text() for leg in legends for t in leg.get_texts()]
+    assert "ekf: NEES not available (no covariance)" in legend
+    assert any(t.startswith("ekf-oracle: ANEES") for t in legend)
+    rows = {r.filter: r for r in summary_rows([sc])}
+    assert math.isnan(rows["ekf"].anees) and math.isfinite(rows["ekf"].rmse_pos)
+    assert math.isfinite(rows["ekf-oracle"].anees)
+    assert "NEES not available (-) for ekf: no covariance" in markdown_table(list(rows.values()))
+
+
+def test_a_trained_spec_pickles_with_its_weights(tiny_robot):
+    """Workers receive the spec pickled: the weights travel with it."""
+    import pickle
+
+    scenario, world, spec, result, data = tiny_robot
+    back = pickle.loads(pickle.dumps(spec.with_weights(result.weights)))
+    assert back._weights.to_bytes() == result.weights.to_bytes() and spec._weights is None
+
+
+def test_the_study_scores_kalmannet_on_the_scenarios_own_runs(tmp_path, capsys):
+    from anfekf_bench import kalmannet_study
+
+    filters = [{"name": "ekf", "kind": "ekf"}, {"name": "ekf-oracle", "kind": "ekf-oracle"}]
+    path = write_scenario(tmp_path / "s.yaml", small_scenario(record_every=8, filters=filters))
+    kalmannet_study.main(
+        [str(path), "--eval-runs", "2", "--train-runs", "2", "--validation-runs", "1",
+         "--epochs", "1", "--out", str(tmp_path / "out")]
+    )  # fmt: skip
+    import json
+
+    res = json.loads((tmp_path / "out" / "kalmannet-small.json").read_text())
+    assert res["evaluation_runs"] == 2 and res["training_runs"] == 2
+    assert set(res["rmse_pos"]) == {"ekf", "ekf-oracle", "kalmannet"}
+    assert all(math.isfinite(v) for v in res["rmse_pos"].values())
+    assert set(res["kalmannet_over"]) == {"ekf", "ekf-oracle"}
+    assert "kalmannet / ekf-oracle" in capsys.readouterr().out
+
+
+def test_anfekf_run_refuses_an_untrained_kalmannet_in_one_line(tmp_path):
+    """Until the batch trains filters itself: exit 2 before any work, never a traceback."""
+    doc = small_scenario(runs=2)
+    doc["filters"] = [{"name": "ekf", "kind": "ekf"}, {"name": "kn", "kind": "kalmannet"}]
+    path = write_scenario(tmp_path / "kn.yaml", doc)
+    result = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2, result.output
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "filters: kn: anfekf run does not train filters yet" in lines[0]
+    assert not (tmp_path / "out" / "small").exists()
+
+
+def test_a_non_finite_gain_marks_the_run_diverged(tiny_robot):
+    scenario, world, spec, result, data = tiny_robot
+    arrays = {k: v.copy() for k, v in result.weights.arrays.items()}
+    arrays["fc_out2.bias"][0] = np.nan
+    broken = KalmanNetWeights(
+        arrays, result.weights.obs_scale, result.weights.state_scale,
+        result.weights.range_scale, result.weights.hidden_size,
+    )  # fmt: skip
+    flt = build_filter(spec.with_weights(broken), scenario, world)
+    out = run_filter(flt, data, world, scenario.record_every)
+    assert out["diverged"] and np.isnan(out["x"][-1]).all()

@@ -76,11 +76,11 @@ drives: setup
 	$(ANFEKF) run configs/drives --out $(OUT)/drives --force
 	$(ANFEKF) report $(OUT)/drives --out $(OUT)/drives/report
 
-## KalmanNet (docs/DESIGN.md): trained on 50 training runs of each paper scenario (seeds disjoint
-## from the evaluation runs'), scored on 20 of the scenario's own runs against its filters.
+## KalmanNet (docs/DESIGN.md): configs/learned, the four paper scenarios and the zoo's two mirrors
+## with ekf, anfekf, ekf-oracle and kalmannet; `anfekf run` trains KalmanNet on 50 training runs
+## (seeds disjoint from the 20 scored) and compares it with the others, paired over runs.
 ## Needs the extra: pip install -e ".[learned]" (PyTorch; the CPU wheel is enough).
-LEARNED_FLAGS ?= --eval-runs 20
 learned: setup
 	@$(PY) -c "import torch" 2>/dev/null || { echo "make learned needs PyTorch: pip install -e '.[learned]'"; exit 2; }
-	$(PY) -m anfekf_bench.kalmannet_study configs/correct.yaml configs/wrong_r.yaml \
-		configs/wrong_q.yaml configs/consistency.yaml --out $(OUT)/learned $(LEARNED_FLAGS)
+	$(ANFEKF) run configs/learned --out $(OUT)/learned --force
+	$(ANFEKF) report $(OUT)/learned --out $(OUT)/learned/report

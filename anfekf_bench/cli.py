@@ -586,8 +586,9 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
             progress,
         ):
             records, target = execute(
-                plan, out, force=force, on_start=on_start, on_result=on_result
-            )
+                plan, out, force=force, on_start=on_start, on_result=on_result,
+                progress=progress,
+            )  # fmt: skip
     except KeyboardInterrupt:
         if debug:
             raise

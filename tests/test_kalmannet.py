@@ -16,15 +16,11 @@ from anfekf_bench.analysis.metrics import add_trace_metrics, format_number, summ
 from anfekf_bench.cli import app
 from anfekf_bench.config import ScenarioError, parse_scenario, resolve_world
 from anfekf_bench.engines.filterpy_engine import run_filter
-from anfekf_bench.filters.kalmannet import (
-    INSTALL_HINT,
-    KalmanNetSpec,
-    KalmanNetWeights,
-    training_seeds,
-)
+from anfekf_bench.filters.kalmannet import INSTALL_HINT, KalmanNetSpec, KalmanNetWeights
 from anfekf_bench.filters.registry import KINDS, build_filter, filter_context
 from anfekf_bench.runner import simulate
 from anfekf_bench.sources.simulator import world_path
+from anfekf_bench.training import training_seeds
 
 from .conftest import small_scenario, write_scenario
 
@@ -147,9 +143,9 @@ def test_weights_round_trip_through_bytes():
 
 def small_kalmannet_scenario(**spec):
     doc = small_scenario(record_every=8)
-    kn = {"name": "kn", "kind": "kalmannet", "train_runs": 3, "epochs": 2, "hidden_size": 8}
-    kn["validation_runs"] = 1
+    kn = {"name": "kn", "kind": "kalmannet", "epochs": 2, "hidden_size": 8, "validation_runs": 1}
     doc["filters"] = [{"name": "ekf", "kind": "ekf"}, {**kn, **spec}]
+    doc["training"] = {"runs": 3}
     scenario = parse_scenario(doc)
     return scenario, resolve_world(scenario.world, Path("small.yaml"))
 
@@ -219,24 +215,15 @@ def test_a_spec_without_weights_does_not_build():
         build_filter(scenario.filters[1], scenario, world)
 
 
-def test_training_seeds_are_disjoint_from_every_evaluation_seed():
-    train = {tuple(s.generate_state(4)) for s in training_seeds(1002, 200)}
-    evaluation = {tuple(s.generate_state(4)) for s in np.random.SeedSequence(1002).spawn(2000)}
-    assert len(train) == 200 and not train & evaluation
-    again = [tuple(s.generate_state(4)) for s in training_seeds(1002, 3)]
-    assert again == [tuple(s.generate_state(4)) for s in training_seeds(1002, 200)[:3]]
-
-
 # ---------------------------------------------------------------------------------------------
 # Without the extra
 
 
 def test_registered_with_documented_defaults():
-    assert "kalmannet" in KINDS
-    with pytest.raises(ScenarioError, match="validation_runs: must be fewer than train_runs"):
-        small_kalmannet_scenario(train_runs=3, validation_runs=3)
+    assert "kalmannet" in KINDS and KalmanNetSpec.fitted_on_training
     fields = KalmanNetSpec.model_fields
-    for name in ("train_runs", "epochs", "learning_rate", "hidden_size", "bptt", "seed"):
+    assert "train_runs" not in fields, "training.runs is the one training-set size"
+    for name in ("epochs", "learning_rate", "hidden_size", "bptt", "validation_runs", "seed"):
         assert fields[name].description, name
 
 
@@ -260,7 +247,7 @@ def test_the_report_says_a_filter_without_covariance_has_no_nees(tmp_path):
     figure's legend and the summary table say "not available"; its RMSE is still reported."""
     from anfekf_bench.report import plots
     from anfekf_bench.report.report import load_scenario_data, markdown_table, summary_rows
-    from anfekf_bench.storage import read_steps
+    from anfekf_bench.storage import parquet_provenance, read_steps, write_parquet
 
     filters = [{"name": "ekf", "kind": "ekf"}, {"name": "ekf-oracle", "kind": "ekf-oracle"}]
     doc = small_scenario(runs=3, record_every=8, filters=filters)
@@ -271,7 +258,8 @@ def test_the_report_says_a_filter_without_covariance_has_no_nees(tmp_path):
     steps = read_steps(folder)
     nan_columns = ["nees"] + [c for c in steps.columns if c.startswith("P_")]
     steps.loc[steps["filter"] == "ekf", nan_columns] = np.nan  # as KalmanNet records them
-    steps.to_parquet(folder / "steps.parquet")
+    provenance = parquet_provenance(folder / "steps.parquet")
+    write_parquet(folder / "steps.parquet", steps, provenance)  # the batch's own file, edited
     sc = load_scenario_data(folder)
     fig = plots.nees_figure(sc)
     legends = [*fig.legends, *(ax.get_legend() for ax in fig.axes if ax.get_legend())]
@@ -293,37 +281,6 @@ def test_a_trained_spec_pickles_with_its_weights(tiny_robot):
     assert back._weights.to_bytes() == result.weights.to_bytes() and spec._weights is None
 
 
-def test_the_study_scores_kalmannet_on_the_scenarios_own_runs(tmp_path, capsys):
-    from anfekf_bench import kalmannet_study
-
-    filters = [{"name": "ekf", "kind": "ekf"}, {"name": "ekf-oracle", "kind": "ekf-oracle"}]
-    path = write_scenario(tmp_path / "s.yaml", small_scenario(record_every=8, filters=filters))
-    kalmannet_study.main(
-        [str(path), "--eval-runs", "2", "--train-runs", "2", "--validation-runs", "1",
-         "--epochs", "1", "--out", str(tmp_path / "out")]
-    )  # fmt: skip
-    import json
-
-    res = json.loads((tmp_path / "out" / "kalmannet-small.json").read_text())
-    assert res["evaluation_runs"] == 2 and res["training_runs"] == 2
-    assert set(res["rmse_pos"]) == {"ekf", "ekf-oracle", "kalmannet"}
-    assert all(math.isfinite(v) for v in res["rmse_pos"].values())
-    assert set(res["kalmannet_over"]) == {"ekf", "ekf-oracle"}
-    assert "kalmannet / ekf-oracle" in capsys.readouterr().out
-
-
-def test_anfekf_run_refuses_an_untrained_kalmannet_in_one_line(tmp_path):
-    """Until the batch trains filters itself: exit 2 before any work, never a traceback."""
-    doc = small_scenario(runs=2)
-    doc["filters"] = [{"name": "ekf", "kind": "ekf"}, {"name": "kn", "kind": "kalmannet"}]
-    path = write_scenario(tmp_path / "kn.yaml", doc)
-    result = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
-    assert result.exit_code == 2, result.output
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and "filters: kn: anfekf run does not train filters yet" in lines[0]
-    assert not (tmp_path / "out" / "small").exists()
-
-
 def test_a_non_finite_gain_marks_the_run_diverged(tiny_robot):
     scenario, world, spec, result, data = tiny_robot
     arrays = {k: v.copy() for k, v in result.weights.arrays.items()}
@@ -335,3 +292,105 @@ def test_a_non_finite_gain_marks_the_run_diverged(tiny_robot):
     flt = build_filter(spec.with_weights(broken), scenario, world)
     out = run_filter(flt, data, world, scenario.record_every)
     assert out["diverged"] and np.isnan(out["x"][-1]).all()
+
+
+# ---------------------------------------------------------------------------------------------
+# Trained by `anfekf run` itself: the training-runs mechanism (anfekf_bench.training)
+
+
+class _Stop(Exception):
+    pass
+
+
+def tiny_run_scenario(tmp_path, **training):
+    doc = small_scenario(runs=2, jobs=1, record_every=8)
+    doc["filters"] = [
+        {"name": "ekf", "kind": "ekf"},
+        {"name": "kn", "kind": "kalmannet", "epochs": 2, "hidden_size": 8, "validation_runs": 1},
+    ]
+    doc["training"] = {"runs": 3, **training}
+    return write_scenario(tmp_path / "kn.yaml", doc)
+
+
+def test_anfekf_run_trains_kalmannet_and_records_the_weights_and_time(tmp_path):
+    """The CLI trains it on the training runs (no second mechanism), records the weights' hash
+    and the training time in the manifest, and a second identical run trains the same weights
+    and scores the same results."""
+    import json
+
+    import pandas as pd
+
+    path = tiny_run_scenario(tmp_path)
+    shas, summaries = [], []
+    for out in ("a", "b"):
+        result = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / out)])
+        assert result.exit_code == 0, result.output
+        assert "kn fitted (3 training runs)" in result.output
+        folder = tmp_path / out / "small"
+        manifest = json.loads((folder / "manifest.json").read_text())
+        rec = manifest["training"]["kn"]
+        assert rec["kind"] == "kalmannet" and rec["cached"] is False and rec["training_runs"] == 3
+        fitted = rec["fitted"]
+        assert len(fitted["weights_sha256"]) == 64 and "weights_base64" not in fitted
+        assert fitted["training_time_s"] > 0 and fitted["epochs"] == 2
+        assert 1 <= fitted["best_epoch"] <= 2 and len(fitted["validation_loss"]) == 2
+        shas.append(fitted["weights_sha256"])
+        summary = pd.read_parquet(folder / "summary.parquet")
+        kn = summary[summary["filter"] == "kn"].iloc[0]
+        assert math.isfinite(kn["rmse_pos"]) and math.isnan(kn["anees"])
+        summaries.append(summary.drop(columns=[c for c in summary if "time" in c]))
+    assert shas[0] == shas[1], "deterministic on CPU for a seed"
+    pd.testing.assert_frame_equal(summaries[0], summaries[1])
+
+
+def test_a_resumed_batch_reads_the_trained_weights_from_the_cache(tmp_path, monkeypatch):
+    from anfekf_bench.config import load_scenario
+    from anfekf_bench.experiment import execute, make_plan
+
+    scenario, world = load_scenario(tiny_run_scenario(tmp_path))
+    plan = make_plan(scenario, world, None, None, None)
+
+    def stop(result):
+        raise _Stop
+
+    with pytest.raises(_Stop):
+        execute(plan, tmp_path / "out", on_result=stop)
+    cached = list((tmp_path / "out" / "small" / ".runs").glob("fit-*.json"))
+    assert len(cached) == 1
+    import json
+
+    doc = json.loads(cached[0].read_text())
+
+    def train_again(*args, **kwargs):
+        raise AssertionError("trained again although the fit is cached")
+
+    monkeypatch.setattr(kt, "train", train_again)
+    records, folder = execute(plan, tmp_path / "out")
+    rec = json.loads((folder / "manifest.json").read_text())["training"]["kn"]
+    assert rec["cached"] is True
+    assert rec["fitted"]["weights_sha256"] == doc["fitted"]["weights_sha256"]
+    assert any(r["filter"] == "kn" and math.isfinite(r["rmse_pos"]) for r in records)
+
+
+def test_a_fit_restores_the_exact_weights_and_refuses_a_tampered_one(tiny_robot):
+    import base64
+    import hashlib
+
+    scenario, world, spec, result, data = tiny_robot
+    raw = result.weights.to_bytes()
+    fitted = {"weights_sha256": hashlib.sha256(raw).hexdigest(),
+              "weights_base64": base64.b64encode(raw).decode()}  # fmt: skip
+    assert spec.with_fit(fitted)._weights.to_bytes() == raw
+    fitted["weights_sha256"] = "0" * 64
+    with pytest.raises(ValueError, match="do not match their hash"):
+        spec.with_fit(fitted)
+
+
+def test_more_validation_runs_than_training_runs_is_one_line_exit_2(tmp_path):
+    path = tiny_run_scenario(tmp_path, runs=1)
+    result = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2, result.output
+    lines = result.stderr.strip().splitlines()
+    want = "filters.kn.validation_runs: 1 must be fewer than training.runs (1)"
+    assert len(lines) == 1 and want in lines[0]
+    assert not (tmp_path / "out" / "small").exists()

@@ -30,6 +30,8 @@ This module needs only numpy (the trained filter runs without PyTorch); training
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import importlib.util
 import io
 import json
@@ -42,14 +44,10 @@ from pydantic import Field, PrivateAttr, model_validator
 
 from ..models import residual_z, wrap_scalar
 from .ekf import FilterDiverged, RobotEKF
-from .spec import FilterContext, FilterSpec
+from .fitted import FittedSpec
+from .spec import FilterContext
 
 INSTALL_HINT = "kind kalmannet needs PyTorch: install the extra with pip install -e '.[learned]'"
-
-# Training runs draw from this branch of the scenario's seed: SeedSequence(seed,
-# spawn_key=(TRAINING_BRANCH,)).spawn(n). Evaluation run i draws from SeedSequence(seed).spawn(N)[i]
-# (spawn_key (i,), i < MAX_RUNS), so no training run can share an evaluation run's stream.
-TRAINING_BRANCH = 2**32 - 1
 
 N_STATE, N_OBS = 3, 2
 
@@ -252,13 +250,16 @@ class KalmanNetFilter(RobotEKF):
 # The scenario's spec
 
 
-class KalmanNetSpec(FilterSpec):
+class KalmanNetSpec(FittedSpec):
     """KalmanNet (Revach et al. 2022, architecture 1): the EKF's structure with each landmark's
-    gain from a GRU, trained on training runs (the extra `.[learned]`); no covariance, no NEES."""
+    gain from a GRU, trained on the scenario's training runs (`training.runs`, see
+    anfekf_bench.training; the extra `.[learned]`); no covariance, no NEES.
+
+    A fitted filter like `ekf-ml`: `fit` trains on the training set and returns the weights
+    (base64 of `KalmanNetWeights.to_bytes`, their SHA-256) with the training cost, which the
+    experiment caches by fingerprint and records in the manifest's `training` key."""
 
     kind: Literal["kalmannet"]
-    trains: ClassVar[bool] = True  # fitted on training runs before it can run
-    train_runs: int = Field(50, ge=1, le=10_000, description="training runs (simulated scenarios)")
     epochs: int = Field(30, ge=1, le=10_000, description="passes over the training runs")
     learning_rate: float = Field(
         2e-3, gt=0, le=1, allow_inf_nan=False, description="Adam's step size"
@@ -270,17 +271,11 @@ class KalmanNetSpec(FilterSpec):
     batch_size: int = Field(25, ge=1, le=10_000, description="training runs per batch")
     validation_runs: int = Field(
         10, ge=0, le=10_000,
-        description="of the training runs, held out to keep the epoch that does best on them"
-        " (0: keep the last epoch)",
+        description="of the scenario's training runs (training.runs), held out to keep the"
+        " epoch that does best on them (0: keep the last epoch)",
     )  # fmt: skip
     seed: int = Field(0, ge=0, le=2**63 - 1, description="initial weights and batch order")
     _weights: KalmanNetWeights | None = PrivateAttr(None)
-
-    @model_validator(mode="after")
-    def _some_runs_fitted(self) -> KalmanNetSpec:
-        if self.validation_runs >= self.train_runs:
-            raise ValueError("validation_runs: must be fewer than train_runs (the rest are fitted)")
-        return self
 
     @model_validator(mode="after")
     def _torch_installed(self) -> KalmanNetSpec:
@@ -288,9 +283,18 @@ class KalmanNetSpec(FilterSpec):
             raise ValueError(INSTALL_HINT)
         return self
 
+    def training_problem(self, training_runs: int) -> str | None:
+        """Why the scenario's `training.runs` cannot train this filter, or None."""
+        if self.validation_runs >= training_runs:
+            return (
+                f"validation_runs: {self.validation_runs} must be fewer than training.runs"
+                f" ({training_runs}): the rest are fitted"
+            )
+        return None
+
     @property
     def trained(self) -> bool:
-        """Whether this spec carries trained weights (`with_weights`)."""
+        """Whether this spec carries trained weights (`with_fit` or `with_weights`)."""
         return self._weights is not None
 
     def with_weights(self, weights: KalmanNetWeights) -> KalmanNetSpec:
@@ -299,18 +303,45 @@ class KalmanNetSpec(FilterSpec):
         spec._weights = weights
         return spec
 
-    def train(self, runs, world, ctx: FilterContext, progress: bool = False) -> TrainingResult:
-        """Train on `runs` (simulated RunData with truth) of `world`; deterministic for `seed`."""
+    def train(self, runs, world, ctx: FilterContext, progress=False) -> TrainingResult:
+        """Train on `runs` (simulated RunData with truth) of `world`; deterministic for `seed`.
+        `progress`: False (quiet), True (its own bar) or a rich Progress to add a task to."""
         from . import kalmannet_train
 
         return kalmannet_train.train(self, runs, world, ctx, progress=progress)
+
+    def fit(self, training) -> dict:
+        """Train on the training set's runs (all `training.runs` of them, the last
+        `validation_runs` held out); the weights and the cost, JSON-able."""
+        from .registry import filter_context
+
+        ctx = filter_context(self, training.scenario, training.world)
+        result = self.train(training.runs, training.world, ctx, progress=training.progress)
+        data = result.weights.to_bytes()
+        return {
+            "weights_sha256": hashlib.sha256(data).hexdigest(),
+            "training_time_s": round(result.training_time_s, 3),
+            "training_cpu_s": round(result.training_cpu_s, 3),
+            "epochs": len(result.epoch_loss),
+            "best_epoch": result.best_epoch,
+            "epoch_loss": [float(v) for v in result.epoch_loss],
+            "validation_loss": [float(v) for v in result.validation_loss],
+            "weights_base64": base64.b64encode(data).decode("ascii"),
+        }
+
+    def fit_record(self, fitted: dict) -> dict:
+        """The manifest records the weights' hash and the cost, not the weights themselves."""
+        return {k: v for k, v in fitted.items() if k != "weights_base64"}
+
+    def with_fit(self, fitted: dict) -> KalmanNetSpec:
+        data = base64.b64decode(fitted["weights_base64"])
+        if hashlib.sha256(data).hexdigest() != fitted["weights_sha256"]:
+            raise ValueError(f"kalmannet {self.name!r}: the fitted weights do not match their hash")
+        spec = super().with_fit(fitted)
+        spec._weights = KalmanNetWeights.from_bytes(data)
+        return spec
 
     def build(self, ctx: FilterContext) -> KalmanNetFilter:
         if self._weights is None:
             raise RuntimeError(f"kalmannet filter {self.name!r} has no trained weights")
         return KalmanNetFilter(**ctx.kwargs(), weights=self._weights)
-
-
-def training_seeds(seed: int, n: int) -> list[np.random.SeedSequence]:
-    """The seeds of n training runs, disjoint from every evaluation run's (TRAINING_BRANCH)."""
-    return np.random.SeedSequence(seed, spawn_key=(TRAINING_BRANCH,)).spawn(n)

@@ -452,10 +452,12 @@ def fit(
 
 
 class _progress:
-    """A rich progress bar with an ETA (as the CLI's), or nothing when quiet."""
+    """A rich progress bar with an ETA: a task added to `show` when it is a rich Progress (the
+    CLI's bar, already live), a bar of its own when `show` is True, nothing when it is falsy."""
 
-    def __init__(self, show: bool, description: str, total: int):
+    def __init__(self, show, description: str, total: int):
         self.show, self.description, self.total = show, description, total
+        self.bar, self.own = None, False
 
     def __enter__(self):
         if not self.show:
@@ -468,16 +470,20 @@ class _progress:
             TimeRemainingColumn,
         )
 
-        self.bar = Progress(
-            "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
-            TimeElapsedColumn(), "ETA", TimeRemainingColumn(), transient=False,
-        )  # fmt: skip
-        self.bar.__enter__()
+        if isinstance(self.show, Progress):
+            self.bar = self.show
+        else:
+            self.own = True
+            self.bar = Progress(
+                "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
+                TimeElapsedColumn(), "ETA", TimeRemainingColumn(), transient=False,
+            )  # fmt: skip
+            self.bar.__enter__()
         task = self.bar.add_task(self.description, total=self.total)
         return lambda: self.bar.advance(task)
 
     def __exit__(self, *exc):
-        if self.show:
+        if self.own:
             self.bar.__exit__(*exc)
         return False
 

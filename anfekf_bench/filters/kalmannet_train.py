@@ -479,7 +479,7 @@ class _progress:
                 TimeElapsedColumn(), "ETA", TimeRemainingColumn(), transient=False,
             )  # fmt: skip
             self.bar.__enter__()
-        task = self.bar.add_task(self.description, total=self.total)
+        task = self.bar.add_task(self.description, total=self.total, unit="steps")
         return lambda: self.bar.advance(task)
 
     def __exit__(self, *exc):

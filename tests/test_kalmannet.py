@@ -394,3 +394,23 @@ def test_more_validation_runs_than_training_runs_is_one_line_exit_2(tmp_path):
     want = "filters.kn.validation_runs: 1 must be fewer than training.runs (1)"
     assert len(lines) == 1 and want in lines[0]
     assert not (tmp_path / "out" / "small").exists()
+
+
+@pytest.mark.parametrize(
+    "name, source",
+    [("correct", "correct"), ("wrong_r", "wrong_r"), ("wrong_q", "wrong_q"),
+     ("consistency", "consistency"), ("r_small", "zoo/r_small"), ("q_large", "zoo/q_large")],
+)  # fmt: skip
+def test_make_learned_scores_the_runs_of_the_scenario_it_mirrors(name, source):
+    """configs/learned/<name>.yaml: the source scenario's seed and noise (so its 20 runs are the
+    first 20 of the source's), the four filters, and KalmanNet compared with the ANFEKF."""
+    from anfekf_bench.config import load_scenario
+
+    configs = Path(__file__).resolve().parents[1] / "configs"
+    learned, _ = load_scenario(configs / "learned" / f"{name}.yaml")
+    original, _ = load_scenario(configs / f"{source}.yaml")
+    assert learned.seed == original.seed and learned.runs == 20 and learned.training.runs == 50
+    assert learned.true_noise == original.true_noise
+    assert learned.filter_noise == original.filter_noise
+    assert [f.kind for f in learned.filters] == ["ekf", "anfekf", "ekf-oracle", "kalmannet"]
+    assert ("kalmannet", "anfekf") in [tuple(p) for p in learned.compare]

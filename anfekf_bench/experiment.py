@@ -300,10 +300,8 @@ def check_plan(plan: Plan) -> int:
     problem = scenario_name_problem(plan.name)
     if problem:
         raise PlanError(f"name: {problem}")
-    filters = plan.scenario.filters
-    for f in filters:  # a fitted filter that the scenario's training runs cannot train
-        problem = f.fitted_on_training and getattr(f, "training_problem", None)
-        message = problem(plan.scenario.training.runs) if problem else None
+    for f in plan.scenario.filters:  # a fitted filter that the training runs cannot train
+        message = f.fitted_on_training and f.training_problem(plan.scenario.training.runs)
         if message:
             raise PlanError(f"filters.{f.name}.{message}")
     try:

@@ -47,6 +47,11 @@ class FittedSpec(FilterSpec):
         spec._fit = dict(fitted)
         return spec
 
+    def training_problem(self, training_runs: int) -> str | None:
+        """Why `training_runs` training runs cannot fit this filter ("<field>: <why>"), or None;
+        checked before any work."""
+        return None
+
     def fit_record(self, fitted: dict) -> dict:
         """What the manifest's `training` key records of `fitted` (all of it, unless bulky)."""
         return fitted

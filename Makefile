@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 ANFEKF := $(VENV)/bin/anfekf
 OUT    ?= results
 
-.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps real changing drives
+.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps real changing drives learned
 
 setup: $(VENV)/.installed
 
@@ -76,3 +76,12 @@ real: setup
 drives: setup
 	$(ANFEKF) run configs/drives --out $(OUT)/drives --force
 	$(ANFEKF) report $(OUT)/drives --out $(OUT)/drives/report
+
+## KalmanNet (docs/DESIGN.md): configs/learned, the four paper scenarios and the zoo's two mirrors
+## with ekf, anfekf, ekf-oracle and kalmannet; `anfekf run` trains KalmanNet on 50 training runs
+## (seeds disjoint from the 20 scored) and compares it with the others, paired over runs.
+## Needs the extra: pip install -e ".[learned]" (PyTorch; the CPU wheel is enough).
+learned: setup
+	@$(PY) -c "import torch" 2>/dev/null || { echo "make learned needs PyTorch: pip install -e '.[learned]'"; exit 2; }
+	$(ANFEKF) run configs/learned --out $(OUT)/learned --force
+	$(ANFEKF) report $(OUT)/learned --out $(OUT)/learned/report

@@ -448,13 +448,15 @@ def complete_result(target: Path, plan) -> str | None:
 
 
 class RunRateColumn(ProgressColumn):
-    """Runs per second (per minute when slower), from rich's moving estimate."""
+    """Runs per second (per minute when slower), from rich's moving estimate; a task's `unit`
+    field names another unit."""
 
     def render(self, task) -> Text:
         speed = task.finished_speed or task.speed
         if not speed:
             return Text("", style="progress.data.speed")
-        shown = f"{speed:.2g} runs/s" if speed >= 1 else f"{speed * 60:.2g} runs/min"
+        unit = task.fields.get("unit", "runs")  # a training task counts gradient steps
+        shown = f"{speed:.2g} {unit}/s" if speed >= 1 else f"{speed * 60:.2g} {unit}/min"
         return Text(shown, style="progress.data.speed")
 
 
@@ -586,8 +588,9 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
             progress,
         ):
             records, target = execute(
-                plan, out, force=force, on_start=on_start, on_result=on_result
-            )
+                plan, out, force=force, on_start=on_start, on_result=on_result,
+                progress=progress,
+            )  # fmt: skip
     except KeyboardInterrupt:
         if debug:
             raise

@@ -278,9 +278,9 @@ def check_named_filters(items: list, names: set[str]) -> list:
 
 
 class TrainingConfig(_Strict):
-    """Training runs for the filters fitted before the batch (`ekf-ml`, `ekf-tuned`: see
-    anfekf_bench.training). Their seeds come from a branch of the root seed that no evaluation
-    run draws from; unused when no filter of the scenario is fitted."""
+    """Training runs for the filters fitted before the batch (`ekf-ml`, `ekf-tuned`,
+    `kalmannet`: see anfekf_bench.training). Their seeds come from a branch of the root seed
+    that no evaluation run draws from; unused when no filter of the scenario is fitted."""
 
     runs: int = Field(20, ge=1, le=10_000, description="training runs simulated for fitting")
 

@@ -228,6 +228,10 @@ def check_plan(plan: Plan) -> int:
     problem = scenario_name_problem(plan.name)
     if problem:
         raise PlanError(f"name: {problem}")
+    for f in plan.scenario.filters:  # a fitted filter that the training runs cannot train
+        message = f.fitted_on_training and f.training_problem(plan.scenario.training.runs)
+        if message:
+            raise PlanError(f"filters.{f.name}.{message}")
     try:
         control_steps = len(simulate_truth(plan.world).u)
     except RouteNotCompleted as exc:
@@ -274,8 +278,10 @@ def execute(
     force: bool = False,
     on_start: Callable[[str, int, int], None] | None = None,
     on_result: Callable[[dict], None] | None = None,
+    progress=None,
 ) -> tuple[list[dict], Path]:
-    """Run the plan and write its results; returns (summary records, scenario folder)."""
+    """Run the plan and write its results; returns (summary records, scenario folder).
+    `progress`: the CLI's rich Progress, to which a long fit (kalmannet) adds its bar."""
     if not isinstance(plan, Plan):  # a recorded log (SPEC 9)
         from .real_experiment import execute_real
 
@@ -290,14 +296,16 @@ def execute(
         client = connect_dask(plan.backend.scheduler, plan.backend.connect_timeout_s)
     try:
         with folder_lock(Path(out_dir) / plan.name):
-            return _execute_locked(plan, out_dir, force, client, started, on_start, on_result)
+            return _execute_locked(
+                plan, out_dir, force, client, started, on_start, on_result, progress
+            )
     finally:
         if client is not None:
             with contextlib.suppress(Exception):
                 client.close()
 
 
-def _execute_locked(plan, out_dir, force, client, started, on_start, on_result):
+def _execute_locked(plan, out_dir, force, client, started, on_start, on_result, progress=None):
     target, done, action = prepare_output(plan, out_dir, force)
     fingerprint = plan.fingerprint()
 
@@ -308,7 +316,7 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result):
 
     # Filters fitted on training runs: fitted (or read from the run store's cache) here, once;
     # the workers get the fitted values in their copy of the scenario.
-    fits = fit_filters(plan, target / RUNS_DIR)
+    fits = fit_filters(plan, target / RUNS_DIR, progress)
     if fits.records:
         action += "; " + ", ".join(
             f"{name} {'read from the cache' if r['cached'] else 'fitted'}"

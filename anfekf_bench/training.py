@@ -1,4 +1,5 @@
-"""Training runs for the filters fitted before the batch (filters.fitted: `ekf-ml`, `ekf-tuned`).
+"""Training runs for the filters fitted before the batch (filters.fitted: `ekf-ml`, `ekf-tuned`;
+filters.kalmannet: `kalmannet`, trained on them).
 
 1. **Seeds.** Evaluation run i draws from `SeedSequence(seed).spawn(runs)[i]`, whose spawn key is
    (i,) with i < MAX_RUNS. Training run j draws from `training_seeds(seed, n)[j]`: the children
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -50,6 +52,7 @@ class TrainingSet:
     runs: list[RunData]
     seeds: list[np.random.SeedSequence]
     jobs: int = 1
+    progress: Any = None  # the CLI's rich Progress, for a long fit's bar (kalmannet); None: quiet
     P0: np.ndarray = field(init=False)
     gate: float | None = field(init=False)
 
@@ -75,12 +78,16 @@ class TrainingSet:
         return found
 
 
-def simulate_training(scenario: Scenario, world: World, seed: int, jobs: int = 1) -> TrainingSet:
+def simulate_training(
+    scenario: Scenario, world: World, seed: int, jobs: int = 1, progress: Any = None
+) -> TrainingSet:
     """The scenario's training runs (see the module doc)."""
     seeds = training_seeds(seed, scenario.training.runs)
     path = world_path(world)
     runs = [simulate(scenario, world, s, path) for s in seeds]
-    return TrainingSet(scenario=scenario, world=world, runs=runs, seeds=seeds, jobs=jobs)
+    return TrainingSet(
+        scenario=scenario, world=world, runs=runs, seeds=seeds, jobs=jobs, progress=progress
+    )
 
 
 def fitted_filters(scenario: Scenario) -> list[FilterSpec]:
@@ -111,9 +118,10 @@ def _read_cached(path: Path, fingerprint: str) -> dict | None:
     return doc["fitted"]
 
 
-def fit_filters(plan, cache_dir: Path | None) -> Fits:
+def fit_filters(plan, cache_dir: Path | None, progress: Any = None) -> Fits:
     """Fit every fitted filter of `plan` (an experiment.Plan) once, or read its fit from
-    `cache_dir` (None: no cache); see the module doc."""
+    `cache_dir` (None: no cache); see the module doc. `progress`: a rich Progress a long fit
+    adds its bar to (None: quiet)."""
     scenario = plan.scenario
     todo = fitted_filters(scenario)
     if not todo:
@@ -127,7 +135,7 @@ def fit_filters(plan, cache_dir: Path | None) -> Fits:
         cached = fitted is not None
         if fitted is None:
             if training is None:
-                training = simulate_training(scenario, plan.world, plan.seed, plan.jobs)
+                training = simulate_training(scenario, plan.world, plan.seed, plan.jobs, progress)
             fitted = spec.fit(training)
             fitted_now += 1
             if path is not None:
@@ -140,7 +148,7 @@ def fit_filters(plan, cache_dir: Path | None) -> Fits:
             "cached": cached,
             "training_runs": scenario.training.runs,
             "training_seed_branch": [plan.seed, TRAINING_BRANCH],
-            "fitted": fitted,
+            "fitted": spec.fit_record(fitted),
         }
     filters = [specs.get(f.name, f) for f in scenario.filters]
     return Fits(

@@ -113,7 +113,7 @@ def run_filter_events(flt: RobotEKF, tl: Timeline) -> dict:
                     raise FilterDiverged(f"t = {t_list[k]:.3f} s")
             if rec_list[k]:
                 trace.record(flt)
-        trace.check_finite()
+        trace.check_finite(flt.has_covariance)
     except (FilterDiverged, np.linalg.LinAlgError):
         diverged = True
     return trace.result(flt, diverged)

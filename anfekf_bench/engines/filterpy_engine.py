@@ -18,6 +18,8 @@ def _healthy(flt: RobotEKF) -> bool:
     floats cost a fraction of numpy's reductions (the same answer: math.isfinite and > 0 treat
     NaN as np.isfinite does).
     """
+    if not flt.has_covariance:  # P is NaN by design (KalmanNet): x must be finite
+        return all(map(math.isfinite, flt.x.ravel().tolist()))
     if not all(map(math.isfinite, flt.x.ravel().tolist() + flt.P.ravel().tolist())):
         return False
     try:
@@ -49,10 +51,10 @@ class StepRecorder:
         self.P_infl[j] = flt.P_inflation
         self.j = j + 1
 
-    def check_finite(self) -> None:
+    def check_finite(self, has_covariance: bool = True) -> None:
         """Health is checked at scans; a blow-up in the predictions after the last one shows
-        here."""
-        if not (np.isfinite(self.x).all() and np.isfinite(self.P).all()):
+        here (P only for a filter that has one)."""
+        if not (np.isfinite(self.x).all() and (not has_covariance or np.isfinite(self.P).all())):
             raise FilterDiverged("non-finite estimate after the last scan")
 
     def result(self, flt: RobotEKF, diverged: bool) -> dict:
@@ -96,7 +98,7 @@ def run_filter(flt: RobotEKF, data: RunData, world: World, record_every: int) ->
                         raise FilterDiverged(f"step {k}")
             if k % record_every == 0:
                 trace.record(flt)
-        trace.check_finite()
+        trace.check_finite(flt.has_covariance)
     except (FilterDiverged, np.linalg.LinAlgError):
         diverged = True
     return trace.result(flt, diverged)

@@ -76,6 +76,8 @@ class RobotEKF(ExtendedKalmanFilter):
     """
 
     adapts: ClassVar[frozenset[str]] = frozenset()
+    # False for a filter without a covariance (KalmanNet): its P is NaN, its NEES not available.
+    has_covariance: ClassVar[bool] = True
 
     def __init__(
         self,

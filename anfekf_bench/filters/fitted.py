@@ -4,8 +4,9 @@ scenarios, `ekf-tuned`.
 A `FittedSpec` declares `fitted_on_training`: the experiment (anfekf_bench.training) simulates
 the scenario's training runs, from seeds disjoint from every evaluation run, calls `fit` once,
 caches what it returns, and hands every worker a copy of the spec carrying those values
-(`with_fit`); `filter_context` then builds the filter from them. A later learned filter reuses
-the same mechanism by subclassing `FittedSpec` with its own `fit` and `build`.
+(`with_fit`); `filter_context` then builds the filter from them. The learned filter
+(`kalmannet`, filters.kalmannet) uses the same mechanism: a `FittedSpec` whose `fit` trains the
+network and returns its weights.
 
 Both kinds here fit the four sigmas (sigma_v, sigma_gamma, sigma_range, sigma_bearing) of a
 fixed EKF (engines.tuning): `ekf-ml` maximises the innovation log-likelihood (no truth),
@@ -44,6 +45,15 @@ class FittedSpec(FilterSpec):
         spec = self.model_copy()
         spec._fit = dict(fitted)
         return spec
+
+    def training_problem(self, training_runs: int) -> str | None:
+        """Why `training_runs` training runs cannot fit this filter ("<field>: <why>"), or None;
+        checked before any work."""
+        return None
+
+    def fit_record(self, fitted: dict) -> dict:
+        """What the manifest's `training` key records of `fitted` (all of it, unless bulky)."""
+        return fitted
 
     def fitted_sigmas(self) -> tuple[float, float, float, float] | None:
         """The fitted (sv, sg, sr, sb) in radians the filter starts from, or None: the

@@ -25,6 +25,7 @@ from .ekf import EKFSpec, OracleSpec, RobotEKF, gate_threshold
 from .fading import FadingSpec
 from .fitted import EKFMLSpec, EKFTunedSpec
 from .iae import IAESpec
+from .kalmannet import KalmanNetSpec
 from .sage_husa import SageHusaSpec
 from .spec import FilterContext, FilterSpec
 from .swvb import SWVBSpec
@@ -47,6 +48,7 @@ SPECS: tuple[type[FilterSpec], ...] = (
     ALSSpec,
     EKFMLSpec,
     EKFTunedSpec,
+    KalmanNetSpec,
     CustomSpec,
 )
 

@@ -334,6 +334,8 @@ def nees_figure(sc: ScenarioData) -> Figure:
         s = f.summary
         share = format_share(s["nees_in_bounds"])
         label = f"{f.name}: ANEES {format_sig(s['anees'])}, {share} in bounds{_lost(f)}"
+        if f.runs_used and np.isnan(f.nees).all():  # no covariance (KalmanNet): no NEES
+            label = f"{f.name}: NEES not available (no covariance)"
         ax.plot(f.t, f.nees, lw=1.2, label=label, gid=f"nees/{f.name}", **_style(f))
         ax.plot(f.t, f.nees_median, lw=0.9, ls=":", color=filter_colour(f.name),
                 gid=f"nees_median/{f.name}")  # fmt: skip

@@ -221,7 +221,7 @@ def _error_band(err: np.ndarray) -> Band:
 def outlier_runs(run_ids: np.ndarray, run_mean_nees: np.ndarray) -> tuple[int, ...]:
     """The runs whose time-mean NEES exceeds OUTLIER_FACTOR x the median run's, worst first."""
     values = np.asarray(run_mean_nees, dtype=float)
-    if values.size < 3:
+    if values.size < 3 or np.isnan(values).all():  # all NaN: no covariance, no NEES
         return ()
     with np.errstate(invalid="ignore"):
         median = float(np.nanmedian(np.where(np.isinf(values), np.nan, values)))
@@ -591,7 +591,14 @@ def markdown_table(rows: Sequence[SummaryRow]) -> str:
 
 
 def summary_table(rows: Sequence[SummaryRow]) -> TableBlock:
-    return TableBlock(TABLE_HEADER, [table_row(r) for r in rows], _NUMERIC)
+    # A filter without a covariance (KalmanNet) has runs but no NEES: the caption says so.
+    no_nees = sorted({r.filter for r in rows if r.runs_used and math.isnan(r.anees)})
+    caption = (
+        f"NEES not available (-) for {', '.join(no_nees)}: no covariance (a learned gain)"
+        if no_nees
+        else ""
+    )
+    return TableBlock(TABLE_HEADER, [table_row(r) for r in rows], _NUMERIC, caption)
 
 
 def leaderboard_table(rows: Sequence[SummaryRow]) -> TableBlock:

@@ -344,8 +344,8 @@ def test_anfekf_run_trains_kalmannet_and_records_the_weights_and_time(tmp_path):
 
 
 def test_a_resumed_batch_reads_the_trained_weights_from_the_cache(tmp_path, monkeypatch):
-    from anfekf_bench.scenarios import load_scenario
     from anfekf_bench.experiment import execute, make_plan
+    from anfekf_bench.scenarios import load_scenario
 
     scenario, world = load_scenario(tiny_run_scenario(tmp_path))
     plan = make_plan(scenario, world, None, None, None)

@@ -54,6 +54,7 @@ from .config import Scenario, World, parse_scenario, scenario_files
 from .engines.filterpy_engine import run_filter
 from .experiment import execute, machine_info, make_plan, package_versions
 from .filters import ANFEKFSpec, EKFSpec, FilterContext, FilterSpec, RobotEKF, build_filter
+from .filters.registry import filter_context
 from .models import F_jacobian, G_jacobian, H_jacobian, f, h, residual_z
 from .runner import run_batch, simulate
 from .scenarios import load_scenario
@@ -284,8 +285,9 @@ class StepSetup:
         return build_filter(spec, self.scenario, self.world)
 
     def context(self, spec: FilterSpec) -> FilterContext:
-        """What the fast engine starts from: the context `build_filter` gives this spec."""
-        return context_of(self._build(spec))
+        """What the fast engine starts from: the context `build_filter` builds this spec from
+        (not read back from a built filter: a bank's R and Qu are its mixture's, not its start)."""
+        return filter_context(spec, self.scenario, self.world)
 
 
 def step_setup(scenario: Scenario, world: World) -> StepSetup:
@@ -345,14 +347,6 @@ def update_counts(setup: StepSetup) -> dict[str, dict[str, int]]:
 
 # ---------------------------------------------------------------------------------------------
 # The fast engine against the filterpy engine, per step
-
-
-def context_of(flt: RobotEKF) -> FilterContext:
-    """The FilterContext a freshly built filter was made from (x0, P0, Qu, R, model, dt, gate)."""
-    return FilterContext(
-        x0=flt.x.copy(), P0=flt.P.copy(), Qu=flt.Qu.copy(), R=flt.R.copy(), model=flt.model,
-        dt=flt.dt, gate=flt.gate,
-    )  # fmt: skip
 
 
 def _fast_passes(spec: FilterSpec, ctx: FilterContext, setup: StepSetup, n: int) -> None:

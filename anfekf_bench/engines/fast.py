@@ -25,6 +25,7 @@ from ..config import World
 from ..filters import anfis
 from ..filters.anfekf import ANFEKFSpec
 from ..filters.bank import IMMSpec, MMAESpec, hypotheses
+from ..filters.cm_scale import CMScaleSpec
 from ..filters.ekf import EKFSpec, OracleSpec
 from ..filters.fading import FadingSpec
 from ..filters.fitted import EKFMLSpec, EKFTunedSpec
@@ -40,6 +41,7 @@ JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 # ekf-ml and ekf-tuned are the plain EKF with fitted noise (filters.fitted).
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
+    CMScaleSpec,
 )  # fmt: skip
 
 
@@ -182,12 +184,23 @@ def run_filter_fast(
         lo, hi = (float(b) for b in spec.bounds)
         adaptation, learning = bool(spec.adaptation), bool(spec.learning)
         from_all, window, clip = spec.adapt_from == "all", int(spec.window), float(spec.output_clip)
+    elif isinstance(spec, CMScaleSpec):  # the ANFEKF's supervisor with the proportional rule
+        adapt_R, adapt_Q = "R" in spec.adapt, "Q" in spec.adapt
+        adaptation, learning = bool(spec.adaptation), False
+        anf = np.zeros((3, _jit_kernels.N_ANFIS))
+        eta_m = eta_d = eta_w = 0.0
+        lo, hi = (float(b) for b in spec.bounds)
+        from_all, window, clip = spec.adapt_from == "all", int(spec.window), float(spec.output_clip)
     else:
         adapt_R = adapt_Q = adaptation = learning = False
         anf = np.zeros((3, _jit_kernels.N_ANFIS))
         eta_m = eta_d = eta_w = 0.0
         lo, hi = 1.0, 1.0
         from_all, window, clip = True, 1, 1.0
+    if isinstance(spec, CMScaleSpec):
+        rule, kappa = _jit_kernels.RULE_PROPORTIONAL, float(spec.kappa)
+    else:
+        rule, kappa = _jit_kernels.RULE_ANFIS, 1.0
     has_gate = ctx.gate is not None
     diverged, j, nis_sum, n_updates, n_rejected = k.run_kernel(
         np.ascontiguousarray(data.u_odo, dtype=float), int(every),
@@ -197,7 +210,7 @@ def run_filter_fast(
         _matrix(ctx.Qu, 2), _matrix(ctx.R, 2),
         float(ctx.gate) if has_gate else math.inf, has_gate,
         adapt_R, adapt_Q, adaptation, learning, from_all, lo, hi, window, clip,
-        eta_m, eta_d, eta_w, anf,
+        eta_m, eta_d, eta_w, anf, rule, kappa,
         int(max(record_every, 0)), x, P, R, Qu,
     )  # fmt: skip
     return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)

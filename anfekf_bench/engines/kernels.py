@@ -480,6 +480,28 @@ def hqh_diag(H, Qi, HPH0, HPH1):
 
 
 # ---------------------------------------------------------------------------------------------
+# The rules of the adaptive families, as written in their modules (filters/*.py) and registered
+# with numba so that compiled code calls them. numba's disk cache is keyed on THIS file: after
+# editing a rule there, touch this file (or delete its __pycache__/*.nbi) so that the kernels are
+# compiled again; the equivalence tests fail on a stale cache.
+
+from ..filters import cm_scale as _cm_scale  # noqa: E402
+
+if _NJIT is not None:
+    from numba.extending import register_jitable
+
+    for _rule in (_cm_scale.proportional_step, _cm_scale.mean_mismatch):
+        register_jitable(_rule)
+
+proportional_step = _cm_scale.proportional_step
+mean_mismatch = _cm_scale.mean_mismatch
+
+# run_kernel's supervisor rules: the ANFEKF's ANFIS, or cm-scale's proportional rule
+RULE_ANFIS = 0
+RULE_PROPORTIONAL = 1
+
+
+# ---------------------------------------------------------------------------------------------
 # One run
 
 
@@ -488,16 +510,17 @@ def run_kernel(
     u_odo, every, scan_start, scan_lm, scan_z,
     T, B, x0, P0, Qu0, R0, gate, has_gate,
     adapt_R, adapt_Q, adaptation, learning, from_all, lo, hi, window, clip,
-    eta_m, eta_d, eta_w, anf,
+    eta_m, eta_d, eta_w, anf, rule, kappa,
     record_every, out_x, out_P, out_R, out_Q,
 ):  # fmt: skip
-    """One filter over one run (filterpy_engine.run_filter with RobotEKF or ANFEKF).
+    """One filter over one run (filterpy_engine.run_filter with RobotEKF, ANFEKF or CMScaleEKF).
 
     u_odo (K, 2): odometry; scan i (0-based) is at control step (i + 1) * every and holds
     measurements scan_start[i] .. scan_start[i + 1] - 1 of scan_lm (M, 2, landmark positions)
     and scan_z (M, 2). x0 (3,), P0 (9,), Qu0 (4,), R0 (4,) row-major; gate is used when has_gate.
     adapt_R / adapt_Q select the ANFEKF supervisors (both False: the EKF); `anf` (3, 27) holds
     the ANFIS parameters (rows 0, 1: R of range and bearing; row 2: Qu) and is updated in place.
+    rule RULE_PROPORTIONAL replaces the ANFIS by cm-scale's proportional rule of gain kappa.
     Every record_every-th step (0: none) is written to row j of out_x (n, 3), out_P (n, 3, 3),
     out_R (n, 2), out_Q (n, 2); rows from the divergence on are left as they are (NaN).
 
@@ -589,21 +612,33 @@ def run_kernel(
                                 d_prev1 = d1
                                 have_d_prev = True
                                 if adapt_R:
-                                    r0 = r_step(
-                                        anf[0], d0, dd0, R[0], HPH0, c0, clip, learning,
-                                        eta_m, eta_d, eta_w, grad, ws,
-                                    )  # fmt: skip
-                                    r1 = r_step(
-                                        anf[1], d1, dd1, R[3], HPH1, c1, clip, learning,
-                                        eta_m, eta_d, eta_w, grad, ws,
-                                    )  # fmt: skip
+                                    if rule == RULE_PROPORTIONAL:
+                                        r0 = R[0] * math.exp(proportional_step(d0, kappa, clip))
+                                        r1 = R[3] * math.exp(proportional_step(d1, kappa, clip))
+                                    else:
+                                        r0 = r_step(
+                                            anf[0], d0, dd0, R[0], HPH0, c0, clip, learning,
+                                            eta_m, eta_d, eta_w, grad, ws,
+                                        )  # fmt: skip
+                                        r1 = r_step(
+                                            anf[1], d1, dd1, R[3], HPH1, c1, clip, learning,
+                                            eta_m, eta_d, eta_w, grad, ws,
+                                        )  # fmt: skip
                                     R = (
                                         clip_nan(r0, R_lo0, R_hi0), 0.0,
                                         0.0, clip_nan(r1, R_lo1, R_hi1),
                                     )  # fmt: skip
                                     S0 = HPH0 + R[0]
                                     S1 = HPH1 + R[3]
-                                if adapt_Q and first_of_scan:
+                                if adapt_Q and first_of_scan and rule == RULE_PROPORTIONAL:
+                                    scale = math.exp(
+                                        proportional_step(mean_mismatch(d0, d1), kappa, clip)
+                                    )
+                                    Qu = (
+                                        clip_nan(Qu[0] * scale, Q_lo0, Q_hi0), 0.0,
+                                        0.0, clip_nan(Qu[3] * scale, Q_lo1, Q_hi1),
+                                    )  # fmt: skip
+                                elif adapt_Q and first_of_scan:
                                     dS0, dS1 = hqh_diag(H, Qi, HPH0, HPH1)
                                     scale = q_step(
                                         anf[2], d0, d1, S0, S1, c0, c1, dS0, dS1, clip,

@@ -14,6 +14,7 @@ import pytest
 from anfekf_bench.config import load_scenario, parse_scenario, resolve_world
 from anfekf_bench.engines import fast
 from anfekf_bench.filters.cm_scale import CMScaleSpec
+from anfekf_bench.filters.sage_husa import SageHusaSpec
 from anfekf_bench.runner import simulate
 
 from .conftest import small_scenario
@@ -31,7 +32,18 @@ CM = {
     "cm-off": CMScaleSpec(name="c", kind="cm-scale", adapt="RQ", adaptation=False),
 }
 
-VARIANTS = {**CM}
+SH = {
+    "sh-R": SageHusaSpec(name="s", kind="sage-husa"),
+    "sh-R-fast-fading": SageHusaSpec(name="s", kind="sage-husa", b=0.5),
+    "sh-RQ": SageHusaSpec(name="s", kind="sage-husa", adapt="RQ", b=0.9),
+    "sh-RQ-biased": SageHusaSpec(name="s", kind="sage-husa", adapt="RQ", q_sample="biased"),
+    "sh-warmup": SageHusaSpec(name="s", kind="sage-husa", adapt="RQ", warmup=5),
+    "sh-accepted": SageHusaSpec(name="s", kind="sage-husa", adapt="RQ", adapt_from="accepted"),
+    "sh-bounds": SageHusaSpec(name="s", kind="sage-husa", adapt="RQ", bounds=(0.5, 2.0)),
+    "sh-off": SageHusaSpec(name="s", kind="sage-husa", adapt="RQ", adaptation=False),
+}
+
+VARIANTS = {**CM, **SH}
 
 
 @pytest.fixture(scope="module")
@@ -86,7 +98,7 @@ def test_gate_off_and_record_every(small):
         pytest.param({"R": np.diag([1e-2, 0.0])}, id="R-not-positive"),
     ],
 )
-@pytest.mark.parametrize("name", ["cm-RQ"])
+@pytest.mark.parametrize("name", ["cm-RQ", "sh-RQ"])
 def test_forced_divergence(small, changes, name):
     scenario, world, runs = small
     spec = VARIANTS[name]
@@ -97,7 +109,7 @@ def test_forced_divergence(small, changes, name):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["cm-RQ"])
+@pytest.mark.parametrize("name", ["cm-RQ", "sh-RQ"])
 def test_paper_wrong_r_scenario(name):
     """The paper's wrong-R scenario, one run, on both engines."""
     scenario, world = load_scenario(CONFIGS / "wrong_r.yaml")

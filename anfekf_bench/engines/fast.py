@@ -30,6 +30,7 @@ from ..filters.ekf import EKFSpec, OracleSpec
 from ..filters.fading import FadingSpec
 from ..filters.fitted import EKFMLSpec, EKFTunedSpec
 from ..filters.registry import register_engine
+from ..filters.sage_husa import SageHusaSpec
 from ..filters.spec import FilterContext, FilterSpec
 from ..models import Bicycle
 from ..sources.simulator import RunData
@@ -41,7 +42,7 @@ JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 # ekf-ml and ekf-tuned are the plain EKF with fitted noise (filters.fitted).
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
-    CMScaleSpec,
+    CMScaleSpec, SageHusaSpec,
 )  # fmt: skip
 
 
@@ -177,6 +178,14 @@ def run_filter_fast(
             int(max(record_every, 0)), x, P, R, Qu, P_infl,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl)
+    if isinstance(spec, SageHusaSpec):
+        diverged, j, nis_sum, n_updates, n_rejected = k.run_sage_husa_kernel(
+            *_common_args(ctx, data, every, flat),
+            bool(spec.adaptation), spec.adapt_from == "all", *(float(b) for b in spec.bounds),
+            "Q" in spec.adapt, float(spec.b), int(spec.warmup), spec.q_sample == "unbiased",
+            int(max(record_every, 0)), x, P, R, Qu,
+        )  # fmt: skip
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, ANFEKFSpec):
         adapt_R, adapt_Q = "R" in spec.adapt, "Q" in spec.adapt
         anf = _anfis_rows(spec)
@@ -214,6 +223,20 @@ def run_filter_fast(
         int(max(record_every, 0)), x, P, R, Qu,
     )  # fmt: skip
     return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+
+
+def _common_args(ctx: FilterContext, data: RunData, every: int, flat: FlatScans) -> tuple:
+    """A kernel's first arguments: the run's controls and scans, the step, the wheelbase, the
+    start (x0, P0, Qu, R row-major) and the gate (has_gate last)."""
+    has_gate = ctx.gate is not None
+    return (
+        np.ascontiguousarray(data.u_odo, dtype=float), int(every),
+        flat.start, flat.landmarks, flat.z,
+        float(ctx.dt), float(ctx.model.B),
+        np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
+        _matrix(ctx.Qu, 2), _matrix(ctx.R, 2),
+        float(ctx.gate) if has_gate else math.inf, has_gate,
+    )  # fmt: skip
 
 
 def _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl=None) -> dict:

@@ -111,25 +111,39 @@ def min_nan(a, b):
 
 
 @maybe_njit
+def jacobians(x2, V, g, T, B):
+    """The bicycle's F and G at heading x2 and controls (V, g): (cos, sin of x2 + g, f02, f12,
+    G row-major); F = [[1, 0, f02], [0, 1, f12], [0, 0, 1]] (bicycle.F_jacobian, G_jacobian)."""
+    a = x2 + g
+    ca = math.cos(a)
+    sa = math.sin(a)
+    f02 = -T * V * sa
+    f12 = T * V * ca
+    G = (T * ca, -T * V * sa, T * sa, T * V * ca, T * math.sin(g) / B, T * V * math.cos(g) / B)
+    return ca, sa, f02, f12, G
+
+
+@maybe_njit
+def jacobian_arrays(x2, V, g, T, B):
+    """`jacobians` as arrays: F (3 x 3) and G (3 x 2), for the rules written with numpy."""
+    _, _, f02, f12, G = jacobians(x2, V, g, T, B)
+    F = np.eye(3)
+    F[0, 2] = f02
+    F[1, 2] = f12
+    Ga = np.empty((3, 2))
+    for i in range(6):
+        Ga[i // 2, i % 2] = G[i]
+    return F, Ga
+
+
+@maybe_njit
 def predict(x, P, V, g, T, B, Qu):
     """RobotEKF.predict with the bicycle model: F and G at (x, u), x- = f(x, u),
     P- = F P F^T + G Qu G^T (eqs. 19-21). Returns (x-, P-, Q) with Q = G Qu G^T."""
     x0, x1, x2 = x
     p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
     q00, q01, q10, q11 = Qu
-    a = x2 + g
-    ca = math.cos(a)
-    sa = math.sin(a)
-    # F = [[1, 0, f02], [0, 1, f12], [0, 0, 1]] (bicycle.F_jacobian)
-    f02 = -T * V * sa
-    f12 = T * V * ca
-    # G (bicycle.G_jacobian)
-    g00 = T * ca
-    g01 = -T * V * sa
-    g10 = T * sa
-    g11 = T * V * ca
-    g20 = T * math.sin(g) / B
-    g21 = T * V * math.cos(g) / B
+    ca, sa, f02, f12, (g00, g01, g10, g11, g20, g21) = jacobians(x2, V, g, T, B)
     # Q = (G Qu) G^T
     a00 = g00 * q00 + g01 * q10
     a01 = g00 * q01 + g01 * q11
@@ -967,5 +981,191 @@ def run_fading_kernel(
             out_Q[j, 0] = Qu[0]
             out_Q[j, 1] = Qu[3]
             out_infl[j] = infl
+            j += 1
+    return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# ---------------------------------------------------------------------------------------------
+# What the adaptive families share (filters.adaptive): the bounds, the interval's process-noise
+# accumulators A_v, A_g and the least-squares map of a state-space Q to Qu
+
+from ..filters import adaptive as _adaptive  # noqa: E402
+from ..filters import sage_husa as _sage_husa  # noqa: E402
+
+if _NJIT is not None:
+    for _rule in (
+        _adaptive.clip_to_bounds, _adaptive.propagate_interval, _adaptive.qu_least_squares,
+        _sage_husa.next_beta, _sage_husa.fading_mean, _sage_husa.r_sample, _sage_husa.q_sample,
+    ):  # fmt: skip
+        register_jitable(_rule)
+
+clip_to_bounds = _adaptive.clip_to_bounds
+propagate_interval = _adaptive.propagate_interval
+qu_least_squares = _adaptive.qu_least_squares
+E_V = _adaptive.E_V
+E_G = _adaptive.E_G
+next_beta = _sage_husa.next_beta
+fading_mean = _sage_husa.fading_mean
+r_sample = _sage_husa.r_sample
+q_sample = _sage_husa.q_sample
+
+
+@maybe_njit
+def as_matrix(P):
+    """A row-major 3 x 3 tuple as an array."""
+    A = np.empty((3, 3))
+    for i in range(9):
+        A[i // 3, i % 3] = P[i]
+    return A
+
+
+@maybe_njit
+def as_diag(v):
+    """A length-2 array as the row-major tuple of diag(v)."""
+    return (v[0], 0.0, 0.0, v[1])
+
+
+@maybe_njit
+def interval_step(A_v, A_g, F_scan, x2, V, g, T, B):
+    """AdaptiveEKF.predict's accumulators at a predict from heading x2 with controls (V, g)."""
+    F, G = jacobian_arrays(x2, V, g, T, B)
+    return propagate_interval(A_v, A_g, F_scan, F, G @ E_V @ G.T, G @ E_G @ G.T)
+
+
+@maybe_njit
+def qu_sample(Q_hat, A_v, A_g, P, Qu0_diag, lo, hi):
+    """AdaptiveEKF.qu_estimate, clipped to the bounds: (ok, diag(Qu)); ok is False when P is
+    singular (numpy's LinAlgError: the filter diverged)."""
+    try:
+        W = np.linalg.inv(as_matrix(P))
+    except Exception:  # noqa: BLE001 (numba catches no narrower class)
+        return False, Qu0_diag
+    return True, clip_to_bounds(qu_least_squares(Q_hat, A_v, A_g, W), Qu0_diag, (lo, hi))
+
+
+# ---------------------------------------------------------------------------------------------
+# Fading-memory Sage-Husa (filters.sage_husa)
+
+
+@maybe_njit
+def run_sage_husa_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    adaptation, from_all, lo, hi, adapt_Q, b, warmup, unbiased,
+    record_every, out_x, out_P, out_R, out_Q,
+):  # fmt: skip
+    """filterpy_engine.run_filter with filters.sage_husa.SageHusaEKF: R per landmark before its
+    gain (the scan's samples pooled), Qu (adapt_Q) at the end of a scan, d_k once per scan that
+    fed adaptation, the estimates in force after `warmup` events. Arguments and returns as
+    `run_kernel`; lo, hi the bounds, b the fading factor, unbiased the Q sample's form."""
+    K = u_odo.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    R0_diag = np.array([R0[0], R0[3]])
+    Qu0_diag = np.array([Qu0[0], Qu0[3]])
+    bounds = (lo, hi)
+    R_min = lo * R0_diag
+    R_max = hi * R0_diag
+    beta = 1.0
+    n_events = 0
+    R_hat = R0_diag.copy()
+    Qu_hat = Qu0_diag.copy()
+    A_v = np.zeros((3, 3))
+    A_g = np.zeros((3, 3))
+    F_scan = np.eye(3)
+    P_scan_start = as_matrix(P)
+    nu_a = np.empty(2)
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_rows = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        V = u_odo[k - 1, 0]
+        g = u_odo[k - 1, 1]
+        if adapt_Q:
+            A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], V, g, T, B)
+        x, P, Q = predict(x, P, V, g, T, B, Qu)
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                # SageHusaEKF.begin_scan
+                d = beta
+                R_start = R_hat.copy()
+                x_prior = x
+                rho_sum = np.zeros(2)
+                n_fed = 0
+                n_accepted = 0
+                for m in range(first, last):
+                    z0 = scan_z[m, 0]
+                    z1 = scan_z[m, 1]
+                    H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                    if adaptation:
+                        feeds = True
+                        if not from_all and has_gate:
+                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                            if not ok:
+                                return True, j, nis_sum, n_updates, n_rejected
+                            feeds = nis_a <= gate
+                        if feeds:  # SageHusaEKF.before_gain
+                            nu_a[0] = nu[0]
+                            nu_a[1] = nu[1]
+                            HPH_a = np.array([[HPHt[0], HPHt[1]], [HPHt[2], HPHt[3]]])
+                            rho_sum = rho_sum + r_sample(nu_a, HPH_a, R_min, R_max)
+                            n_fed += 1
+                            R_hat = fading_mean(d, R_start, rho_sum, n_fed)
+                            if n_events >= warmup:
+                                R = as_diag(clip_to_bounds(R_hat, R0_diag, bounds))
+                    ok, v = nis(HPHt, R, nu[0], nu[1])
+                    if not ok or not math.isfinite(v):
+                        return True, j, nis_sum, n_updates, n_rejected
+                    if has_gate and not v <= gate:
+                        n_rejected += 1
+                        continue
+                    nis_sum += v
+                    n_updates += 1
+                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                    n_accepted += 1
+                # SageHusaEKF.end_scan
+                if adapt_Q:
+                    if adaptation and n_fed > 0 and n_accepted > 0:
+                        dx = np.array([x[0] - x_prior[0], x[1] - x_prior[1], x[2] - x_prior[2]])
+                        dx[2] = wrap(dx[2])
+                        Q_hat = q_sample(dx, as_matrix(P), P_scan_start, F_scan, unbiased)
+                        ok, q_hat = qu_sample(Q_hat, A_v, A_g, P, Qu0_diag, lo, hi)
+                        if not ok:
+                            return True, j, nis_sum, n_updates, n_rejected
+                        Qu_hat = fading_mean(d, Qu_hat, q_hat, 1)
+                        if n_events >= warmup:
+                            Qu = as_diag(clip_to_bounds(Qu_hat, Qu0_diag, bounds))
+                    A_v = np.zeros((3, 3))
+                    A_g = np.zeros((3, 3))
+                    F_scan = np.eye(3)
+                    P_scan_start = as_matrix(P)
+                if n_fed > 0:
+                    beta = next_beta(beta, b)
+                    n_events += 1
+                if not healthy(x, P, R, Qu):
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            for i in range(3):
+                out_x[j, i] = x[i]
+                if not math.isfinite(x[i]):
+                    bad_record = True
+            for i in range(9):
+                out_P[j, i // 3, i % 3] = P[i]
+                if not math.isfinite(P[i]):
+                    bad_record = True
+            out_R[j, 0] = R[0]
+            out_R[j, 1] = R[3]
+            out_Q[j, 0] = Qu[0]
+            out_Q[j, 1] = Qu[3]
             j += 1
     return bad_record, j, nis_sum, n_updates, n_rejected

@@ -19,6 +19,7 @@ from .spec import AdaptiveParams
 
 _E_V = np.array([[1.0, 0.0], [0.0, 0.0]])
 _E_G = np.array([[0.0, 0.0], [0.0, 1.0]])
+E_V, E_G = _E_V, _E_G  # unit variance on V, on gamma (the fast engine's kernels read them)
 
 
 def clip_to_bounds(value: np.ndarray, start: np.ndarray, bounds: tuple[float, float]) -> np.ndarray:
@@ -42,7 +43,14 @@ def qu_least_squares(
         ]
     )
     b = np.array([np.trace(WAv @ WQ), np.trace(WAg @ WQ)])
-    return np.linalg.lstsq(M, b, rcond=None)[0]
+    # rcond spelled out as numpy's default for a 2 x 2 system (eps max(2, 2)): numba needs a number
+    return np.linalg.lstsq(M, b, rcond=2.0 * np.finfo(np.float64).eps)[0]
+
+
+def propagate_interval(A_v, A_g, F_scan, F, Q_v, Q_g):
+    """One predict of the interval's accumulators: A <- F A F^T + Q_e with Q_e the step's noise
+    of a unit variance on one control (G e e^T G^T), and F_scan <- F F_scan."""
+    return F @ A_v @ F.T + Q_v, F @ A_g @ F.T + Q_g, F @ F_scan
 
 
 class AdaptiveEKF(RobotEKF):
@@ -71,10 +79,11 @@ class AdaptiveEKF(RobotEKF):
     def predict(self, u=0, dt: float | None = None):
         super().predict(u, dt)
         if "Q" in self.adapts:
-            F, G = self.F, self.G
-            self.A_v = F @ self.A_v @ F.T + self.model.Q(G, _E_V, self.dt)
-            self.A_g = F @ self.A_g @ F.T + self.model.Q(G, _E_G, self.dt)
-            self.F_scan = F @ self.F_scan
+            G = self.G
+            self.A_v, self.A_g, self.F_scan = propagate_interval(
+                self.A_v, self.A_g, self.F_scan, self.F,
+                self.model.Q(G, _E_V, self.dt), self.model.Q(G, _E_G, self.dt),
+            )  # fmt: skip
 
     @property
     def Q_scan(self) -> np.ndarray:

@@ -49,6 +49,12 @@ def fading_weight(k: int, b: float) -> float:
     return (1.0 - b) / (1.0 - b ** (k + 1))
 
 
+def fading_mean(d, old, total, n):
+    """(1 - d) old + d total / n: the estimate after an event of weight d whose n samples sum to
+    `total` (eq. 1.2; n pools a scan's landmarks). Floats or arrays, elementwise."""
+    return (1.0 - d) * old + d * total / n
+
+
 def r_sample(nu: np.ndarray, HPHt: np.ndarray, R_min: np.ndarray, R_max: np.ndarray) -> np.ndarray:
     """rho_c = nu_c^2 - (H P- H^T)_cc per channel, clamped to [R_min, R_max] (PSINS's fix of the
     positivity problem: the unclamped sample is negative whenever nu_c^2 < (H P- H^T)_cc)."""
@@ -153,7 +159,7 @@ class SageHusaEKF(AdaptiveEKF):
         self.rho_sum += r_sample(inn.nu, inn.HPHt, self.R_min, self.R_max)
         self.n_fed += 1
         # A convex combination of in-bound values: in bounds, positive.
-        self.R_hat = (1.0 - self.d) * self.R_start + self.d * self.rho_sum / self.n_fed
+        self.R_hat = fading_mean(self.d, self.R_start, self.rho_sum, self.n_fed)
         if self.warm:
             self.set_R_diag(self.R_hat)
 
@@ -179,6 +185,6 @@ class SageHusaEKF(AdaptiveEKF):
         )
         # PSINS's clamp, on the sample: the least squares of an indefinite Q_hat can be < 0.
         q_hat = clip_to_bounds(self.qu_estimate(Q_hat), np.diag(self.Qu0), self.bounds)
-        self.Qu_hat = (1.0 - self.d) * self.Qu_hat + self.d * q_hat
+        self.Qu_hat = fading_mean(self.d, self.Qu_hat, q_hat, 1)
         if self.warm:
             self.set_Qu_diag(self.Qu_hat)

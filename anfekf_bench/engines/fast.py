@@ -29,6 +29,7 @@ from ..filters.cm_scale import CMScaleSpec
 from ..filters.ekf import EKFSpec, OracleSpec
 from ..filters.fading import FadingSpec
 from ..filters.fitted import EKFMLSpec, EKFTunedSpec
+from ..filters.iae import IAESpec
 from ..filters.registry import register_engine
 from ..filters.sage_husa import SageHusaSpec
 from ..filters.spec import FilterContext, FilterSpec
@@ -42,7 +43,7 @@ JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 # ekf-ml and ekf-tuned are the plain EKF with fitted noise (filters.fitted).
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
-    CMScaleSpec, SageHusaSpec,
+    CMScaleSpec, SageHusaSpec, IAESpec,
 )  # fmt: skip
 
 
@@ -186,6 +187,15 @@ def run_filter_fast(
             int(max(record_every, 0)), x, P, R, Qu,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+    if isinstance(spec, IAESpec):
+        diverged, j, nis_sum, n_updates, n_rejected = k.run_iae_kernel(
+            *_common_args(ctx, data, every, flat),
+            bool(spec.adaptation), spec.adapt_from == "all", *(float(b) for b in spec.bounds),
+            spec.adapt == "Q", int(spec.window), spec.hph == "window",
+            spec.nonpositive == "hold", spec.q_form == "full", int(spec.q_window),
+            int(max(record_every, 0)), x, P, R, Qu,
+        )  # fmt: skip
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, ANFEKFSpec):
         adapt_R, adapt_Q = "R" in spec.adapt, "Q" in spec.adapt
         anf = _anfis_rows(spec)
@@ -310,8 +320,8 @@ def _anfis_start(
 
 
 def warm_up(jit: bool = True) -> float:
-    """Compile (or load from numba's cache) every kernel signature the engine uses by running
-    a tiny EKF and ANFEKF; returns the seconds it took."""
+    """Compile (or load from numba's cache) the kernels by running a tiny EKF, ANFEKF (and
+    cm-scale: the same kernel), Sage-Husa and IAE; returns the seconds it took."""
     import time
 
     from ..sources.simulator import Scan, Truth
@@ -328,7 +338,11 @@ def warm_up(jit: bool = True) -> float:
         x0=np.zeros(3), P0=np.eye(3) * 1e-9, Qu=np.diag([0.09, 0.003]), R=np.diag([0.01, 3e-4]),
         model=Bicycle(world.T, world.B), dt=world.T, gate=13.8,
     )  # fmt: skip
-    for spec in (EKFSpec(name="ekf"), ANFEKFSpec(name="anfekf", kind="anfekf", adapt="RQ")):
+    for spec in (
+        EKFSpec(name="ekf"), ANFEKFSpec(name="anfekf", kind="anfekf", adapt="RQ"),
+        SageHusaSpec(name="sage-husa", kind="sage-husa", adapt="RQ"),
+        IAESpec(name="iae", kind="iae", adapt="Q"),
+    ):  # fmt: skip
         run_filter_fast(spec, ctx, data, world, 1, jit=jit)
     clear_cache()
     return time.perf_counter() - t0

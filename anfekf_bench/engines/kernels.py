@@ -233,11 +233,9 @@ def nis(HPHt, R, nu0, nu1):
 
 
 @maybe_njit
-def correct(x, P, H, zh, z0, z1, R):
-    """RobotEKF.correct: filterpy's update with the H and z_hat of the innovation, Joseph form
-    P = (I - K H) P (I - K H)^T + K R K^T, then heading wrapped and P symmetrised.
-    Returns (ok, x+, P+); ok is False for an exactly singular S (scipy's inv raises)."""
-    x0, x1, x2 = x
+def gain(P, H, R):
+    """filterpy's gain K = P H^T S^-1, S = H P H^T + R, S^-1 as scipy.linalg.inv computes it.
+    Returns (ok, K) with K (3 x 2) row-major; ok is False for an exactly singular S."""
     p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
     h00, h01, h10, h11 = H
     r00, r01, r10, r11 = R
@@ -257,7 +255,7 @@ def correct(x, P, H, zh, z0, z1, R):
     # with L (getri)
     swapped, u00, u01, l10, u11 = lu2(s00, s01, s10, s11)
     if u00 == 0.0 or u11 == 0.0:
-        return False, x, P
+        return False, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     v00 = 1.0 / u00
     v11 = 1.0 / u11
     v01 = (v00 * u01) * (-v11)
@@ -274,6 +272,22 @@ def correct(x, P, H, zh, z0, z1, R):
     k11 = t10 * i01 + t11 * i11
     k20 = t20 * i00 + t21 * i10
     k21 = t20 * i01 + t21 * i11
+    return True, (k00, k01, k10, k11, k20, k21)
+
+
+@maybe_njit
+def correct(x, P, H, zh, z0, z1, R):
+    """RobotEKF.correct: filterpy's update with the H and z_hat of the innovation, Joseph form
+    P = (I - K H) P (I - K H)^T + K R K^T, then heading wrapped and P symmetrised.
+    Returns (ok, x+, P+); ok is False for an exactly singular S (scipy's inv raises)."""
+    x0, x1, x2 = x
+    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
+    h00, h01, h10, h11 = H
+    r00, r01, r10, r11 = R
+    ok, K = gain(P, H, R)
+    if not ok:
+        return False, x, P
+    k00, k01, k10, k11, k20, k21 = K
     # y = residual_z(z, z_hat); x = x + K y
     y0 = z0 - zh[0]
     y1 = wrap(z1 - zh[1])
@@ -1033,14 +1047,14 @@ def interval_step(A_v, A_g, F_scan, x2, V, g, T, B):
 
 
 @maybe_njit
-def qu_sample(Q_hat, A_v, A_g, P, Qu0_diag, lo, hi):
-    """AdaptiveEKF.qu_estimate, clipped to the bounds: (ok, diag(Qu)); ok is False when P is
-    singular (numpy's LinAlgError: the filter diverged)."""
+def qu_estimate(Q_hat, A_v, A_g, P):
+    """AdaptiveEKF.qu_estimate: (ok, diag(Qu)) not clipped; ok is False when P is singular
+    (numpy's LinAlgError: the filter diverged)."""
     try:
         W = np.linalg.inv(as_matrix(P))
-    except Exception:  # noqa: BLE001 (numba catches no narrower class)
-        return False, Qu0_diag
-    return True, clip_to_bounds(qu_least_squares(Q_hat, A_v, A_g, W), Qu0_diag, (lo, hi))
+    except Exception:  # numba catches no narrower class
+        return False, np.zeros(2)
+    return True, qu_least_squares(Q_hat, A_v, A_g, W)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1139,9 +1153,10 @@ def run_sage_husa_kernel(
                         dx = np.array([x[0] - x_prior[0], x[1] - x_prior[1], x[2] - x_prior[2]])
                         dx[2] = wrap(dx[2])
                         Q_hat = q_sample(dx, as_matrix(P), P_scan_start, F_scan, unbiased)
-                        ok, q_hat = qu_sample(Q_hat, A_v, A_g, P, Qu0_diag, lo, hi)
+                        ok, q_hat = qu_estimate(Q_hat, A_v, A_g, P)
                         if not ok:
                             return True, j, nis_sum, n_updates, n_rejected
+                        q_hat = clip_to_bounds(q_hat, Qu0_diag, bounds)
                         Qu_hat = fading_mean(d, Qu_hat, q_hat, 1)
                         if n_events >= warmup:
                             Qu = as_diag(clip_to_bounds(Qu_hat, Qu0_diag, bounds))
@@ -1152,6 +1167,178 @@ def run_sage_husa_kernel(
                 if n_fed > 0:
                     beta = next_beta(beta, b)
                     n_events += 1
+                if not healthy(x, P, R, Qu):
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            for i in range(3):
+                out_x[j, i] = x[i]
+                if not math.isfinite(x[i]):
+                    bad_record = True
+            for i in range(9):
+                out_P[j, i // 3, i % 3] = P[i]
+                if not math.isfinite(P[i]):
+                    bad_record = True
+            out_R[j, 0] = R[0]
+            out_R[j, 1] = R[3]
+            out_Q[j, 0] = Qu[0]
+            out_Q[j, 1] = Qu[3]
+            j += 1
+    return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# ---------------------------------------------------------------------------------------------
+# Innovation-based adaptive estimation (filters.iae)
+
+from ..filters import iae as _iae  # noqa: E402
+
+if _NJIT is not None:
+    for _rule in (
+        _iae.window_covariance, _iae.window_mean, _iae.r_estimate, _iae.hold_nonpositive,
+        _iae.q_estimate,
+    ):  # fmt: skip
+        register_jitable(_rule)
+
+window_covariance = _iae.window_covariance
+window_mean = _iae.window_mean
+r_estimate = _iae.r_estimate
+hold_nonpositive = _iae.hold_nonpositive
+q_estimate = _iae.q_estimate
+
+
+@maybe_njit
+def oldest_first(ring, pos):
+    """A full ring buffer (first axis) as an array, oldest first (a deque's order)."""
+    n = ring.shape[0]
+    out = np.empty_like(ring)
+    for i in range(n):
+        out[i] = ring[(pos + i) % n]
+    return out
+
+
+@maybe_njit
+def run_iae_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    adaptation, from_all, lo, hi, adapt_Q, window, hph_window, hold, q_full, q_window,
+    record_every, out_x, out_P, out_R, out_Q,
+):  # fmt: skip
+    """filterpy_engine.run_filter with filters.iae.IAEEKF: a window of the last `window`
+    innovations (and their H P- H^T) that feed adaptation; adapt R (not adapt_Q) at every
+    landmark once it is full, or Qu (adapt_Q) at the end of a scan with fused landmarks, Qu the
+    mean of the last q_window samples. hph_window: subtract the window's mean H P- H^T (else the
+    current one); hold: `nonpositive: hold` (else floor); q_full: M&S's full Q form (else
+    steady). Arguments and returns as `run_kernel`."""
+    K = u_odo.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    R0_diag = np.array([R0[0], R0[3]])
+    Qu0_diag = np.array([Qu0[0], Qu0[3]])
+    bounds = (lo, hi)
+    nus = np.zeros((window, 2))
+    hphs = np.zeros((window, 2, 2))
+    n_win = 0
+    pos = 0
+    q_samples = np.zeros((q_window, 2))
+    n_q = 0
+    q_pos = 0
+    max_per_scan = 0
+    for s in range(scan_start.shape[0] - 1):
+        max_per_scan = max(max_per_scan, scan_start[s + 1] - scan_start[s])
+    Ks = np.zeros((max(max_per_scan, 1), 3, 2))
+    A_v = np.zeros((3, 3))
+    A_g = np.zeros((3, 3))
+    F_scan = np.eye(3)
+    P_scan_start = as_matrix(P)
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_rows = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        V = u_odo[k - 1, 0]
+        g = u_odo[k - 1, 1]
+        if adapt_Q:
+            A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], V, g, T, B)
+        x, P, Q = predict(x, P, V, g, T, B, Qu)
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                n_K = 0  # IAEEKF.begin_scan
+                for m in range(first, last):
+                    z0 = scan_z[m, 0]
+                    z1 = scan_z[m, 1]
+                    H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                    feeds = True
+                    if not from_all and has_gate:
+                        ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                        if not ok:
+                            return True, j, nis_sum, n_updates, n_rejected
+                        feeds = nis_a <= gate
+                    if feeds:  # IAEEKF.before_gain
+                        nus[pos, 0] = nu[0]
+                        nus[pos, 1] = nu[1]
+                        for i in range(4):
+                            hphs[pos, i // 2, i % 2] = HPHt[i]
+                        pos = (pos + 1) % window
+                        if n_win < window:
+                            n_win += 1
+                        if not adapt_Q and n_win == window and adaptation:  # IAEEKF.adapt_R
+                            C = window_covariance(oldest_first(nus, pos))
+                            if hph_window:
+                                HPH_w = window_mean(oldest_first(hphs, pos))
+                            else:
+                                HPH_w = np.array([[HPHt[0], HPHt[1]], [HPHt[2], HPHt[3]]])
+                            R_hat = r_estimate(C, HPH_w)
+                            if hold:
+                                R_hat = hold_nonpositive(R_hat, np.array([R[0], R[3]]))
+                            R = as_diag(clip_to_bounds(R_hat, R0_diag, bounds))
+                    ok, v = nis(HPHt, R, nu[0], nu[1])
+                    if not ok or not math.isfinite(v):
+                        return True, j, nis_sum, n_updates, n_rejected
+                    if has_gate and not v <= gate:
+                        n_rejected += 1
+                        continue
+                    nis_sum += v
+                    n_updates += 1
+                    if adapt_Q:  # IAEEKF.after_update: the gain of each fused landmark
+                        ok, Kg = gain(P, H, R)
+                        for i in range(6):
+                            Ks[n_K, i // 2, i % 2] = Kg[i]
+                        n_K += 1
+                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                # IAEEKF.end_scan
+                if adapt_Q and adaptation and n_win == window and n_K > 0:
+                    C = window_covariance(oldest_first(nus, pos))
+                    P_post = as_matrix(P)
+                    if q_full:
+                        F_scan_T = np.ascontiguousarray(F_scan.T)
+                        Q_hat = q_estimate(Ks[:n_K], C, P_post - F_scan @ P_scan_start @ F_scan_T)
+                    else:
+                        Q_hat = q_estimate(Ks[:n_K], C, np.zeros((3, 3)))
+                    ok, q = qu_estimate(Q_hat, A_v, A_g, P)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                    q_samples[q_pos] = q
+                    q_pos = (q_pos + 1) % q_window
+                    if n_q < q_window:
+                        n_q += 1
+                    if n_q == q_window:
+                        Qu = as_diag(
+                            clip_to_bounds(
+                                window_mean(oldest_first(q_samples, q_pos)), Qu0_diag, bounds
+                            )
+                        )
+                A_v = np.zeros((3, 3))
+                A_g = np.zeros((3, 3))
+                F_scan = np.eye(3)
+                P_scan_start = as_matrix(P)
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
         if record_every > 0 and k % record_every == 0 and j < n_rows:

@@ -7,10 +7,12 @@ plain Python otherwise; `JIT` says which.
 
 What it runs (`supports`): the EKF, the oracle EKF, ekf-ml and ekf-tuned (fitted noise), the
 ANFEKF with any of its parameters (adapt R, Q or RQ, adaptation and learning on or off,
-adapt_from, bounds, window, rates, ...), the multiple-model banks `mmae` and `imm` with any of
-theirs (`kernels.run_bank_kernel`) and the fading-factor EKF (`kernels.run_fading_kernel`), on the
-bicycle motion model. Anything else (a user's own filter, the other adaptive baselines) is not
-implemented here: the caller runs it on filterpy.
+adapt_from, bounds, window, rates, ...), `cm-scale` (the ANFEKF's kernel with its proportional
+rule), `sage-husa` (`kernels.run_sage_husa_kernel`) and `iae` (`kernels.run_iae_kernel`) in every
+mode, the multiple-model banks `mmae` and `imm` with any of theirs (`kernels.run_bank_kernel`)
+and the fading-factor EKF (`kernels.run_fading_kernel`), on the bicycle motion model. Anything
+else (a user's own filter, the other adaptive baselines) is not implemented here: the caller
+runs it on filterpy.
 """
 
 from __future__ import annotations

@@ -1007,6 +1007,27 @@ from ..filters import adaptive as _adaptive  # noqa: E402
 from ..filters import sage_husa as _sage_husa  # noqa: E402
 
 if _NJIT is not None:
+    from numba.extending import overload
+
+    @overload(_adaptive.matmul)
+    def _matmul_loop(A, B):
+        """Compiled, the rules' A @ B is a plain loop (k ascending, as a dot product sums): for
+        3 x 3 matrices BLAS's call costs more than the product."""
+
+        def impl(A, B):
+            n, m = A.shape
+            p = B.shape[1]
+            out = np.zeros((n, p))
+            for i in range(n):
+                for j in range(p):
+                    t = 0.0
+                    for k in range(m):
+                        t += A[i, k] * B[k, j]
+                    out[i, j] = t
+            return out
+
+        return impl
+
     for _rule in (
         _adaptive.clip_to_bounds, _adaptive.propagate_interval, _adaptive.qu_least_squares,
         _sage_husa.next_beta, _sage_husa.fading_mean, _sage_husa.r_sample, _sage_husa.q_sample,
@@ -1014,6 +1035,7 @@ if _NJIT is not None:
         register_jitable(_rule)
 
 clip_to_bounds = _adaptive.clip_to_bounds
+matmul = _adaptive.matmul
 propagate_interval = _adaptive.propagate_interval
 qu_least_squares = _adaptive.qu_least_squares
 E_V = _adaptive.E_V
@@ -1043,7 +1065,9 @@ def as_diag(v):
 def interval_step(A_v, A_g, F_scan, x2, V, g, T, B):
     """AdaptiveEKF.predict's accumulators at a predict from heading x2 with controls (V, g)."""
     F, G = jacobian_arrays(x2, V, g, T, B)
-    return propagate_interval(A_v, A_g, F_scan, F, G @ E_V @ G.T, G @ E_G @ G.T)
+    return propagate_interval(
+        A_v, A_g, F_scan, F, matmul(matmul(G, E_V), G.T), matmul(matmul(G, E_G), G.T)
+    )
 
 
 @maybe_njit
@@ -1318,8 +1342,8 @@ def run_iae_kernel(
                     C = window_covariance(oldest_first(nus, pos))
                     P_post = as_matrix(P)
                     if q_full:
-                        F_scan_T = np.ascontiguousarray(F_scan.T)
-                        Q_hat = q_estimate(Ks[:n_K], C, P_post - F_scan @ P_scan_start @ F_scan_T)
+                        dP = P_post - matmul(matmul(F_scan, P_scan_start), F_scan.T)
+                        Q_hat = q_estimate(Ks[:n_K], C, dP)
                     else:
                         Q_hat = q_estimate(Ks[:n_K], C, np.zeros((3, 3)))
                     ok, q = qu_estimate(Q_hat, A_v, A_g, P)

@@ -22,6 +22,13 @@ _E_G = np.array([[0.0, 0.0], [0.0, 1.0]])
 E_V, E_G = _E_V, _E_G  # unit variance on V, on gamma (the fast engine's kernels read them)
 
 
+def matmul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A @ B. The rules below multiply their 3 x 3 and 3 x 2 matrices with it so that the fast
+    engine can compile it as a plain loop (engines/kernels.py), where BLAS's call costs more
+    than the product; numpy's `@` here."""
+    return A @ B
+
+
 def clip_to_bounds(value: np.ndarray, start: np.ndarray, bounds: tuple[float, float]) -> np.ndarray:
     """Variances clipped to [floor * start, ceiling * start] elementwise (SPEC 7)."""
     return np.clip(value, bounds[0] * start, bounds[1] * start)
@@ -35,14 +42,14 @@ def qu_least_squares(
     The normal equations M q = b with <X, Y>_W = tr(W X W Y); a singular M (an interval that
     excited one control only) falls back to the least-norm solution. Not yet clipped.
     """
-    WAv, WAg, WQ = W @ A_v, W @ A_g, W @ Q_hat
+    WAv, WAg, WQ = matmul(W, A_v), matmul(W, A_g), matmul(W, Q_hat)
     M = np.array(
         [
-            [np.trace(WAv @ WAv), np.trace(WAv @ WAg)],
-            [np.trace(WAg @ WAv), np.trace(WAg @ WAg)],
+            [np.trace(matmul(WAv, WAv)), np.trace(matmul(WAv, WAg))],
+            [np.trace(matmul(WAg, WAv)), np.trace(matmul(WAg, WAg))],
         ]
     )
-    b = np.array([np.trace(WAv @ WQ), np.trace(WAg @ WQ)])
+    b = np.array([np.trace(matmul(WAv, WQ)), np.trace(matmul(WAg, WQ))])
     # rcond spelled out as numpy's default for a 2 x 2 system (eps max(2, 2)): numba needs a number
     return np.linalg.lstsq(M, b, rcond=2.0 * np.finfo(np.float64).eps)[0]
 
@@ -50,7 +57,11 @@ def qu_least_squares(
 def propagate_interval(A_v, A_g, F_scan, F, Q_v, Q_g):
     """One predict of the interval's accumulators: A <- F A F^T + Q_e with Q_e the step's noise
     of a unit variance on one control (G e e^T G^T), and F_scan <- F F_scan."""
-    return F @ A_v @ F.T + Q_v, F @ A_g @ F.T + Q_g, F @ F_scan
+    return (
+        matmul(matmul(F, A_v), F.T) + Q_v,
+        matmul(matmul(F, A_g), F.T) + Q_g,
+        matmul(F, F_scan),
+    )
 
 
 class AdaptiveEKF(RobotEKF):

@@ -38,7 +38,7 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from .adaptive import AdaptiveEKF
+from .adaptive import AdaptiveEKF, matmul
 from .ekf import Innovation
 from .spec import AdaptiveSpec, FilterContext
 
@@ -46,7 +46,7 @@ from .spec import AdaptiveSpec, FilterContext
 def window_covariance(nus: np.ndarray) -> np.ndarray:
     """C = (1/N) sum nu_j nu_j^T over the window, nus (N, 2) (Mohamed & Schwarz; no mean
     removed)."""
-    return nus.T @ nus / len(nus)
+    return matmul(nus.T, nus) / len(nus)
 
 
 def window_mean(a: np.ndarray) -> np.ndarray:
@@ -69,7 +69,7 @@ def q_estimate(Ks, C: np.ndarray, dP: np.ndarray | None = None) -> np.ndarray:
     sequence of 3 x 2 gains (a list, or an (n, 3, 2) array)."""
     Q_hat = np.zeros((3, 3))
     for i in range(len(Ks)):  # indexed: numba's iteration would give arrays of any layout
-        Q_hat = Q_hat + Ks[i] @ C @ Ks[i].T
+        Q_hat = Q_hat + matmul(matmul(Ks[i], C), Ks[i].T)
     if dP is not None:
         Q_hat = Q_hat + dP
     return 0.5 * (Q_hat + Q_hat.T)
@@ -162,7 +162,7 @@ class IAEEKF(AdaptiveEKF):
             C = window_covariance(np.array(self.nus))
             dP = None
             if self.spec.q_form == "full":
-                dP = self.P - self.F_scan @ self.P_scan_start @ self.F_scan.T
+                dP = self.P - matmul(matmul(self.F_scan, self.P_scan_start), self.F_scan.T)
             Q_hat = q_estimate(self.Ks, C, dP)
             self.q_samples.append(self.qu_estimate(Q_hat))
             if len(self.q_samples) == self.q_samples.maxlen:

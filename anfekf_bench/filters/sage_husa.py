@@ -34,7 +34,7 @@ import numpy as np
 from pydantic import Field
 
 from ..models import wrap_scalar
-from .adaptive import AdaptiveEKF, clip_to_bounds
+from .adaptive import AdaptiveEKF, clip_to_bounds, matmul
 from .ekf import Innovation
 from .spec import AdaptiveSpec, FilterContext
 
@@ -73,7 +73,7 @@ def q_sample(
     """
     Q_hat = np.outer(dx, dx)
     if unbiased:
-        Q_hat = Q_hat + P_post - F_scan @ P_prev @ F_scan.T
+        Q_hat = Q_hat + P_post - matmul(matmul(F_scan, P_prev), F_scan.T)
     return 0.5 * (Q_hat + Q_hat.T)
 
 

@@ -150,3 +150,18 @@ def test_paper_scenarios(path, name, tol):
     ref, out = both(spec, ctx, data, world, scenario.record_every)
     assert not ref["diverged"]
     assert_same_run(ref, out, tol=tol, what=f"{path} {name}")
+
+
+def test_compiled_matmul_is_numpys_product():
+    """The one primitive compiled differently (a loop, not BLAS) multiplies as numpy does,
+    non-square shapes and transposed views included."""
+    numba = pytest.importorskip("numba")
+    from anfekf_bench.engines import kernels
+    from anfekf_bench.filters import adaptive
+
+    if not kernels.JIT:
+        pytest.skip("numba is switched off")
+    product = numba.njit(lambda A, B, C: adaptive.matmul(adaptive.matmul(A, B), C.T))
+    rng = np.random.default_rng(5)
+    A, B, C = rng.normal(size=(3, 2)), rng.normal(size=(2, 2)), rng.normal(size=(3, 2))
+    np.testing.assert_allclose(product(A, B, C), A @ B @ C.T, rtol=1e-14, atol=1e-15)

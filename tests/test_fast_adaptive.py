@@ -11,12 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from anfekf_bench.config import load_scenario, parse_scenario, resolve_world
+from anfekf_bench.config import parse_scenario, resolve_world
 from anfekf_bench.engines import fast
 from anfekf_bench.filters.akhlaghi import AkhlaghiSpec
 from anfekf_bench.filters.swvb import SWVBSpec
 from anfekf_bench.filters.vb import VBAKFSpec, VBRSpec
 from anfekf_bench.runner import simulate
+from anfekf_bench.scenarios import load_scenario
 
 from .conftest import small_scenario
 from .test_fast_engine import assert_same_run, both, ctx_of
@@ -167,7 +168,8 @@ def test_each_rule_is_written_once():
     from anfekf_bench.filters import adaptive, akhlaghi, swvb, vb
 
     rules = {
-        "clip_variance": adaptive, "qu_least_squares": adaptive, "clip_to_bounds": adaptive,
+        "qu_least_squares": adaptive, "clip_to_bounds": adaptive,
+        "propagate_interval": adaptive, "matmul": adaptive,
         "forget": akhlaghi, "residual_variance": akhlaghi, "vb_r_predict": vb, "vb_r_beta": vb,
         "vb_r_bounded_beta": vb, "vbakf_predict": vb, "vbakf_prior": vb, "inflation_cap": vb,
         "clip_covariance_2": vb, "interval_prior": swvb, "process_noise_moment": swvb,

@@ -86,11 +86,9 @@ class CMScaleEKF(CovarianceMatchingEKF):
 
     def _adapt_R(self, d: np.ndarray, dd: np.ndarray, HPH: np.ndarray, C: np.ndarray) -> None:
         """R_ii <- R_ii exp(o_i), o_i = -kappa d_ii clipped (the ANFEKF's eq. 33 form)."""
-        kappa, clip = self.spec.kappa, self.spec.output_clip
-        R_diag = np.diag(self.R)
-        self.set_R_diag(
-            [R_diag[i] * math.exp(proportional_step(float(d[i]), kappa, clip)) for i in (0, 1)]
-        )
+        # np.exp as on main (its last bit can differ from math.exp, which the kernel uses)
+        o = log_scale(d, self.spec.kappa, self.spec.output_clip)
+        self.set_R_diag(np.diag(self.R) * np.exp(o))
 
     def _adapt_Q(
         self, d: np.ndarray, H: np.ndarray, HPH: np.ndarray, S: np.ndarray, C: np.ndarray

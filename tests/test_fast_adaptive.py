@@ -168,7 +168,8 @@ def test_each_rule_is_written_once():
     from anfekf_bench.filters import adaptive, akhlaghi, swvb, vb
 
     rules = {
-        "clip_variance": adaptive, "qu_least_squares": adaptive, "clip_to_bounds": adaptive,
+        "qu_least_squares": adaptive, "clip_to_bounds": adaptive,
+        "propagate_interval": adaptive, "matmul": adaptive,
         "forget": akhlaghi, "residual_variance": akhlaghi, "vb_r_predict": vb, "vb_r_beta": vb,
         "vb_r_bounded_beta": vb, "vbakf_predict": vb, "vbakf_prior": vb, "inflation_cap": vb,
         "clip_covariance_2": vb, "interval_prior": swvb, "process_noise_moment": swvb,

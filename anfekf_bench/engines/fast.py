@@ -7,13 +7,14 @@ plain Python otherwise; `JIT` says which.
 
 What it runs (`supports`): the EKF, the oracle EKF, ekf-ml and ekf-tuned (fitted noise), the
 ANFEKF with any of its parameters (adapt R, Q or RQ, adaptation and learning on or off,
-adapt_from, bounds, window, rates, ...), the multiple-model banks `mmae` and `imm` with any of
-theirs (`kernels.run_bank_kernel`), the fading-factor EKF (`kernels.run_fading_kernel`),
-`akhlaghi`, `vb-r`, `vbakf` and `swvb` in every mode (`kernels.run_akhlaghi_kernel`,
-`run_vbr_kernel`, `run_vbakf_kernel`, `run_swvb_kernel`: each family's rules are the plain
-functions of its filter module, called by both engines), on the bicycle motion model. Anything
-else (a user's own filter, the adaptive baselines not yet ported) is not implemented here: the
-caller runs it on filterpy.
+adapt_from, bounds, window, rates, ...), `cm-scale` (the ANFEKF's kernel with its proportional
+rule), the multiple-model banks `mmae` and `imm` with any of theirs (`kernels.run_bank_kernel`),
+the fading-factor EKF (`kernels.run_fading_kernel`), and `akhlaghi`, `vb-r`, `vbakf`, `swvb`,
+`sage-husa` and `iae` in every mode (`kernels.run_akhlaghi_kernel`, `run_vbr_kernel`,
+`run_vbakf_kernel`, `run_swvb_kernel`, `run_sage_husa_kernel`, `run_iae_kernel`: each family's
+rules are the plain functions of its filter module, called by both engines), on the bicycle
+motion model. Anything else (a user's own filter) is not implemented here: the caller runs it
+on filterpy.
 """
 
 from __future__ import annotations
@@ -29,10 +30,13 @@ from ..filters import anfis
 from ..filters.akhlaghi import AkhlaghiSpec
 from ..filters.anfekf import ANFEKFSpec
 from ..filters.bank import IMMSpec, MMAESpec, hypotheses
+from ..filters.cm_scale import CMScaleSpec
 from ..filters.ekf import EKFSpec, OracleSpec
 from ..filters.fading import FadingSpec
 from ..filters.fitted import EKFMLSpec, EKFTunedSpec
+from ..filters.iae import IAESpec
 from ..filters.registry import register_engine
+from ..filters.sage_husa import SageHusaSpec
 from ..filters.spec import FilterContext, FilterSpec
 from ..filters.swvb import SWVBSpec
 from ..filters.vb import VBAKFSpec, VBRSpec
@@ -46,7 +50,7 @@ JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 # ekf-ml and ekf-tuned are the plain EKF with fitted noise (filters.fitted).
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
-    VBRSpec, AkhlaghiSpec, VBAKFSpec, SWVBSpec,
+    VBRSpec, AkhlaghiSpec, VBAKFSpec, SWVBSpec, CMScaleSpec, SageHusaSpec, IAESpec,
 )  # fmt: skip
 
 
@@ -207,19 +211,30 @@ def run_filter_fast(
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, FadingSpec):
         P_infl = np.full(n, np.nan)
-        has_gate = ctx.gate is not None
         diverged, j, nis_sum, n_updates, n_rejected = k.run_fading_kernel(
-            np.ascontiguousarray(data.u_odo, dtype=float), int(every),
-            flat.start, flat.landmarks, flat.z,
-            float(ctx.dt), float(ctx.model.B),
-            np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
-            _matrix(ctx.Qu, 2), _matrix(ctx.R, 2),
-            float(ctx.gate) if has_gate else math.inf, has_gate,
+            *_common_args(ctx, data, every, flat),
             bool(spec.adaptation), spec.adapt_from == "all", int(spec.window),
             float(spec.bounds[1]),
             int(max(record_every, 0)), x, P, R, Qu, P_infl,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl)
+    if isinstance(spec, SageHusaSpec):
+        diverged, j, nis_sum, n_updates, n_rejected = k.run_sage_husa_kernel(
+            *_common_args(ctx, data, every, flat),
+            bool(spec.adaptation), spec.adapt_from == "all", *(float(b) for b in spec.bounds),
+            "Q" in spec.adapt, float(spec.b), int(spec.warmup), spec.q_sample == "unbiased",
+            int(max(record_every, 0)), x, P, R, Qu,
+        )  # fmt: skip
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+    if isinstance(spec, IAESpec):
+        diverged, j, nis_sum, n_updates, n_rejected = k.run_iae_kernel(
+            *_common_args(ctx, data, every, flat),
+            bool(spec.adaptation), spec.adapt_from == "all", *(float(b) for b in spec.bounds),
+            spec.adapt == "Q", int(spec.window), spec.hph == "window",
+            spec.nonpositive == "hold", spec.q_form == "full", int(spec.q_window),
+            int(max(record_every, 0)), x, P, R, Qu,
+        )  # fmt: skip
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, ANFEKFSpec):
         adapt_R, adapt_Q = "R" in spec.adapt, "Q" in spec.adapt
         anf = _anfis_rows(spec)
@@ -227,22 +242,27 @@ def run_filter_fast(
         lo, hi = (float(b) for b in spec.bounds)
         adaptation, learning = bool(spec.adaptation), bool(spec.learning)
         from_all, window, clip = spec.adapt_from == "all", int(spec.window), float(spec.output_clip)
+    elif isinstance(spec, CMScaleSpec):  # the ANFEKF's supervisor with the proportional rule
+        adapt_R, adapt_Q = "R" in spec.adapt, "Q" in spec.adapt
+        adaptation, learning = bool(spec.adaptation), False
+        anf = np.zeros((3, _jit_kernels.N_ANFIS))
+        eta_m = eta_d = eta_w = 0.0
+        lo, hi = (float(b) for b in spec.bounds)
+        from_all, window, clip = spec.adapt_from == "all", int(spec.window), float(spec.output_clip)
     else:
         adapt_R = adapt_Q = adaptation = learning = False
         anf = np.zeros((3, _jit_kernels.N_ANFIS))
         eta_m = eta_d = eta_w = 0.0
         lo, hi = 1.0, 1.0
         from_all, window, clip = True, 1, 1.0
-    has_gate = ctx.gate is not None
+    if isinstance(spec, CMScaleSpec):
+        rule, kappa = _jit_kernels.RULE_PROPORTIONAL, float(spec.kappa)
+    else:
+        rule, kappa = _jit_kernels.RULE_ANFIS, 1.0
     diverged, j, nis_sum, n_updates, n_rejected = k.run_kernel(
-        np.ascontiguousarray(data.u_odo, dtype=float), int(every),
-        flat.start, flat.landmarks, flat.z,
-        float(ctx.dt), float(ctx.model.B),
-        np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
-        _matrix(ctx.Qu, 2), _matrix(ctx.R, 2),
-        float(ctx.gate) if has_gate else math.inf, has_gate,
+        *_common_args(ctx, data, every, flat),
         adapt_R, adapt_Q, adaptation, learning, from_all, lo, hi, window, clip,
-        eta_m, eta_d, eta_w, anf,
+        eta_m, eta_d, eta_w, anf, rule, kappa,
         int(max(record_every, 0)), x, P, R, Qu,
     )  # fmt: skip
     return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
@@ -334,7 +354,8 @@ def _anfis_start(
 
 def warm_up(jit: bool = True) -> float:
     """Compile (or load from numba's cache) every kernel signature the engine uses by running
-    a tiny EKF, ANFEKF, akhlaghi, vb-r, vbakf and swvb; returns the seconds it took."""
+    a tiny EKF, ANFEKF (and cm-scale: the same kernel), akhlaghi, vb-r, vbakf, swvb, Sage-Husa
+    and IAE; returns the seconds it took."""
     import time
 
     from ..sources.simulator import Scan, Truth
@@ -355,6 +376,8 @@ def warm_up(jit: bool = True) -> float:
         EKFSpec(name="ekf"), ANFEKFSpec(name="anfekf", kind="anfekf", adapt="RQ"),
         AkhlaghiSpec(name="akhlaghi", kind="akhlaghi"), VBRSpec(name="vb-r", kind="vb-r"),
         VBAKFSpec(name="vbakf", kind="vbakf"), SWVBSpec(name="swvb", kind="swvb"),
+        SageHusaSpec(name="sage-husa", kind="sage-husa", adapt="RQ"),
+        IAESpec(name="iae", kind="iae", adapt="Q"),
     )  # fmt: skip
     for spec in specs:
         run_filter_fast(spec, ctx, data, world, 1, jit=jit)

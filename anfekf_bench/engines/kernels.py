@@ -123,6 +123,19 @@ def jacobians(x2, V, g, T, B):
 
 
 @maybe_njit
+def jacobian_arrays(x2, V, g, T, B):
+    """`jacobians` as arrays: F (3 x 3) and G (3 x 2), for the rules written with numpy."""
+    f02, f12, G = jacobians(x2, V, g, T, B)
+    F = np.eye(3)
+    F[0, 2] = f02
+    F[1, 2] = f12
+    Ga = np.empty((3, 2))
+    for i in range(6):
+        Ga[i // 2, i % 2] = G[i]
+    return F, Ga
+
+
+@maybe_njit
 def predict(x, P, V, g, T, B, Qu):
     """RobotEKF.predict with the bicycle model: F and G at (x, u), x- = f(x, u),
     P- = F P F^T + G Qu G^T (eqs. 19-21). Returns (x-, P-, Q) with Q = G Qu G^T."""
@@ -234,11 +247,9 @@ def nis(HPHt, R, nu0, nu1):
 
 
 @maybe_njit
-def correct(x, P, H, zh, z0, z1, R):
-    """RobotEKF.correct: filterpy's update with the H and z_hat of the innovation, Joseph form
-    P = (I - K H) P (I - K H)^T + K R K^T, then heading wrapped and P symmetrised.
-    Returns (ok, x+, P+); ok is False for an exactly singular S (scipy's inv raises)."""
-    x0, x1, x2 = x
+def gain(P, H, R):
+    """filterpy's gain K = P H^T S^-1, S = H P H^T + R, S^-1 as scipy.linalg.inv computes it.
+    Returns (ok, K) with K (3 x 2) row-major; ok is False for an exactly singular S."""
     p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
     h00, h01, h10, h11 = H
     r00, r01, r10, r11 = R
@@ -258,7 +269,7 @@ def correct(x, P, H, zh, z0, z1, R):
     # with L (getri)
     swapped, u00, u01, l10, u11 = lu2(s00, s01, s10, s11)
     if u00 == 0.0 or u11 == 0.0:
-        return False, x, P
+        return False, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     v00 = 1.0 / u00
     v11 = 1.0 / u11
     v01 = (v00 * u01) * (-v11)
@@ -275,6 +286,22 @@ def correct(x, P, H, zh, z0, z1, R):
     k11 = t10 * i01 + t11 * i11
     k20 = t20 * i00 + t21 * i10
     k21 = t20 * i01 + t21 * i11
+    return True, (k00, k01, k10, k11, k20, k21)
+
+
+@maybe_njit
+def correct(x, P, H, zh, z0, z1, R):
+    """RobotEKF.correct: filterpy's update with the H and z_hat of the innovation, Joseph form
+    P = (I - K H) P (I - K H)^T + K R K^T, then heading wrapped and P symmetrised.
+    Returns (ok, x+, P+); ok is False for an exactly singular S (scipy's inv raises)."""
+    x0, x1, x2 = x
+    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
+    h00, h01, h10, h11 = H
+    r00, r01, r10, r11 = R
+    ok, K = gain(P, H, R)
+    if not ok:
+        return False, x, P
+    k00, k01, k10, k11, k20, k21 = K
     # y = residual_z(z, z_hat); x = x + K y
     y0 = z0 - zh[0]
     y1 = wrap(z1 - zh[1])
@@ -495,6 +522,28 @@ def hqh_diag(H, Qi, HPH0, HPH1):
 
 
 # ---------------------------------------------------------------------------------------------
+# The rules of the adaptive families, as written in their modules (filters/*.py) and registered
+# with numba so that compiled code calls them. numba's disk cache is keyed on THIS file: after
+# editing a rule there, touch this file (or delete its __pycache__/*.nbi) so that the kernels are
+# compiled again; the equivalence tests fail on a stale cache.
+
+from ..filters import cm_scale as _cm_scale  # noqa: E402
+
+if _NJIT is not None:
+    from numba.extending import register_jitable
+
+    for _rule in (_cm_scale.proportional_step, _cm_scale.mean_mismatch):
+        register_jitable(_rule)
+
+proportional_step = _cm_scale.proportional_step
+mean_mismatch = _cm_scale.mean_mismatch
+
+# run_kernel's supervisor rules: the ANFEKF's ANFIS, or cm-scale's proportional rule
+RULE_ANFIS = 0
+RULE_PROPORTIONAL = 1
+
+
+# ---------------------------------------------------------------------------------------------
 # One run
 
 
@@ -503,16 +552,17 @@ def run_kernel(
     u_odo, every, scan_start, scan_lm, scan_z,
     T, B, x0, P0, Qu0, R0, gate, has_gate,
     adapt_R, adapt_Q, adaptation, learning, from_all, lo, hi, window, clip,
-    eta_m, eta_d, eta_w, anf,
+    eta_m, eta_d, eta_w, anf, rule, kappa,
     record_every, out_x, out_P, out_R, out_Q,
 ):  # fmt: skip
-    """One filter over one run (filterpy_engine.run_filter with RobotEKF or ANFEKF).
+    """One filter over one run (filterpy_engine.run_filter with RobotEKF, ANFEKF or CMScaleEKF).
 
     u_odo (K, 2): odometry; scan i (0-based) is at control step (i + 1) * every and holds
     measurements scan_start[i] .. scan_start[i + 1] - 1 of scan_lm (M, 2, landmark positions)
     and scan_z (M, 2). x0 (3,), P0 (9,), Qu0 (4,), R0 (4,) row-major; gate is used when has_gate.
     adapt_R / adapt_Q select the ANFEKF supervisors (both False: the EKF); `anf` (3, 27) holds
     the ANFIS parameters (rows 0, 1: R of range and bearing; row 2: Qu) and is updated in place.
+    rule RULE_PROPORTIONAL replaces the ANFIS by cm-scale's proportional rule of gain kappa.
     Every record_every-th step (0: none) is written to row j of out_x (n, 3), out_P (n, 3, 3),
     out_R (n, 2), out_Q (n, 2); rows from the divergence on are left as they are (NaN).
 
@@ -604,21 +654,33 @@ def run_kernel(
                                 d_prev1 = d1
                                 have_d_prev = True
                                 if adapt_R:
-                                    r0 = r_step(
-                                        anf[0], d0, dd0, R[0], HPH0, c0, clip, learning,
-                                        eta_m, eta_d, eta_w, grad, ws,
-                                    )  # fmt: skip
-                                    r1 = r_step(
-                                        anf[1], d1, dd1, R[3], HPH1, c1, clip, learning,
-                                        eta_m, eta_d, eta_w, grad, ws,
-                                    )  # fmt: skip
+                                    if rule == RULE_PROPORTIONAL:
+                                        r0 = R[0] * math.exp(proportional_step(d0, kappa, clip))
+                                        r1 = R[3] * math.exp(proportional_step(d1, kappa, clip))
+                                    else:
+                                        r0 = r_step(
+                                            anf[0], d0, dd0, R[0], HPH0, c0, clip, learning,
+                                            eta_m, eta_d, eta_w, grad, ws,
+                                        )  # fmt: skip
+                                        r1 = r_step(
+                                            anf[1], d1, dd1, R[3], HPH1, c1, clip, learning,
+                                            eta_m, eta_d, eta_w, grad, ws,
+                                        )  # fmt: skip
                                     R = (
                                         clip_nan(r0, R_lo0, R_hi0), 0.0,
                                         0.0, clip_nan(r1, R_lo1, R_hi1),
                                     )  # fmt: skip
                                     S0 = HPH0 + R[0]
                                     S1 = HPH1 + R[3]
-                                if adapt_Q and first_of_scan:
+                                if adapt_Q and first_of_scan and rule == RULE_PROPORTIONAL:
+                                    scale = math.exp(
+                                        proportional_step(mean_mismatch(d0, d1), kappa, clip)
+                                    )
+                                    Qu = (
+                                        clip_nan(Qu[0] * scale, Q_lo0, Q_hi0), 0.0,
+                                        0.0, clip_nan(Qu[3] * scale, Q_lo1, Q_hi1),
+                                    )  # fmt: skip
+                                elif adapt_Q and first_of_scan:
                                     dS0, dS1 = hqh_diag(H, Qi, HPH0, HPH1)
                                     scale = q_step(
                                         anf[2], d0, d1, S0, S1, c0, c1, dS0, dS1, clip,
@@ -651,19 +713,8 @@ def run_kernel(
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
         if record_every > 0 and k % record_every == 0 and j < n_rows:
-            for i in range(3):
-                out_x[j, i] = x[i]
-                if not math.isfinite(x[i]):
-                    bad_record = True
-            for i in range(9):
-                out_P[j, i // 3, i % 3] = P[i]
-                if not math.isfinite(P[i]):
-                    bad_record = True
-            out_R[j, 0] = R[0]
-            out_R[j, 1] = R[3]
-            out_Q[j, 0] = Qu[0]
-            out_Q[j, 1] = Qu[3]
-            j += 1
+            j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
+            bad_record = bad_record or bad
     # health is checked at scans; a blow-up after the last one shows in the records
     return bad_record, j, nis_sum, n_updates, n_rejected
 
@@ -952,23 +1003,85 @@ def run_fading_kernel(
 
 
 # ---------------------------------------------------------------------------------------------
-# The variational-Bayes filters (filters.vb), their rules as written there: the VB iteration's
-# state update is `correct` above (the Joseph update of the filter itself), so only the noise
-# posterior's rules come from filters/vb.py and the bounds from filters/adaptive.py.
+# What the adaptive families share (filters.adaptive): the bounds, the interval's process-noise
+# accumulators A_v, A_g and the least-squares map of a state-space Q to Qu
 
 from ..filters import adaptive as _adaptive  # noqa: E402
-from ..filters import vb as _vb  # noqa: E402
+from ..filters import sage_husa as _sage_husa  # noqa: E402
 
 if _NJIT is not None:
+    from numba.extending import overload
+
+    @overload(_adaptive.matmul)
+    def _matmul_loop(A, B):
+        """Compiled, the rules' A @ B is a plain loop (k ascending, as a dot product sums): for
+        3 x 3 matrices BLAS's call costs more than the product."""
+
+        def impl(A, B):
+            n, m = A.shape
+            p = B.shape[1]
+            out = np.zeros((n, p))
+            for i in range(n):
+                for j in range(p):
+                    t = 0.0
+                    for k in range(m):
+                        t += A[i, k] * B[k, j]
+                    out[i, j] = t
+            return out
+
+        return impl
+
     for _rule in (
-        _adaptive.clip_variance, _vb.vb_r_predict, _vb.vb_r_beta, _vb.vb_r_bounded_beta,
+        _adaptive.clip_to_bounds, _adaptive.propagate_interval, _adaptive.qu_least_squares,
+        _sage_husa.next_beta, _sage_husa.fading_mean, _sage_husa.r_sample, _sage_husa.q_sample,
     ):  # fmt: skip
         register_jitable(_rule)
 
-clip_variance = _adaptive.clip_variance
-vb_r_predict = _vb.vb_r_predict
-vb_r_beta = _vb.vb_r_beta
-vb_r_bounded_beta = _vb.vb_r_bounded_beta
+clip_to_bounds = _adaptive.clip_to_bounds
+matmul = _adaptive.matmul
+propagate_interval = _adaptive.propagate_interval
+qu_least_squares = _adaptive.qu_least_squares
+E_V = _adaptive.E_V
+E_G = _adaptive.E_G
+next_beta = _sage_husa.next_beta
+fading_mean = _sage_husa.fading_mean
+r_sample = _sage_husa.r_sample
+q_sample = _sage_husa.q_sample
+
+
+@maybe_njit
+def as_matrix(P):
+    """A row-major 3 x 3 tuple as an array."""
+    A = np.empty((3, 3))
+    for i in range(9):
+        A[i // 3, i % 3] = P[i]
+    return A
+
+
+@maybe_njit
+def as_diag(v):
+    """A length-2 array as the row-major tuple of diag(v)."""
+    return (v[0], 0.0, 0.0, v[1])
+
+
+@maybe_njit
+def interval_step(A_v, A_g, F_scan, x2, V, g, T, B):
+    """AdaptiveEKF.predict's accumulators at a predict from heading x2 with controls (V, g)."""
+    F, G = jacobian_arrays(x2, V, g, T, B)
+    return propagate_interval(
+        A_v, A_g, F_scan, F, matmul(matmul(G, E_V), G.T), matmul(matmul(G, E_G), G.T)
+    )
+
+
+@maybe_njit
+def qu_estimate(Q_hat, A_v, A_g, P):
+    """AdaptiveEKF.qu_estimate: (ok, diag(Qu)) not clipped; ok is False when P is singular
+    (numpy's LinAlgError: the filter diverged)."""
+    try:
+        W = np.linalg.inv(as_matrix(P))
+    except Exception:  # numba catches no narrower class
+        return False, np.zeros(2)
+    return True, qu_least_squares(Q_hat, A_v, A_g, W)
 
 
 @maybe_njit
@@ -997,6 +1110,22 @@ def hph_diag(H, P):
     return hqh_diag(H, P, math.inf, math.inf)
 
 
+# ---------------------------------------------------------------------------------------------
+# The variational-Bayes filters (filters.vb), their rules as written there: the VB iteration's
+# state update is `correct` above (the Joseph update of the filter itself), so only the noise
+# posterior's rules come from filters/vb.py and the bounds from filters/adaptive.py.
+
+from ..filters import vb as _vb  # noqa: E402
+
+if _NJIT is not None:
+    for _rule in (_vb.vb_r_predict, _vb.vb_r_beta, _vb.vb_r_bounded_beta):
+        register_jitable(_rule)
+
+vb_r_predict = _vb.vb_r_predict
+vb_r_beta = _vb.vb_r_beta
+vb_r_bounded_beta = _vb.vb_r_bounded_beta
+
+
 @maybe_njit
 def run_vbr_kernel(
     u_odo, every, scan_start, scan_lm, scan_z,
@@ -1017,6 +1146,8 @@ def run_vbr_kernel(
     a1 = alpha0
     b0 = alpha0 * R0[0]
     b1 = alpha0 * R0[3]
+    R0_diag = np.array([R0[0], R0[3]])
+    bounds = (floor, ceiling)
     nis_sum = 0.0
     n_updates = 0
     n_rejected = 0
@@ -1054,10 +1185,11 @@ def run_vbr_kernel(
                             bn0 = b0
                             bn1 = b1
                             for _ in range(iterations):
-                                R = (
-                                    clip_variance(bn0 / ap0, R0[0], floor, ceiling), 0.0,
-                                    0.0, clip_variance(bn1 / ap1, R0[3], floor, ceiling),
-                                )  # fmt: skip
+                                R = as_diag(
+                                    clip_to_bounds(
+                                        np.array([bn0 / ap0, bn1 / ap1]), R0_diag, bounds
+                                    )
+                                )
                                 ok, xn, Pn = correct(x, P, H, zh, z0, z1, R)
                                 if not ok:
                                     return True, j, nis_sum, n_updates, n_rejected
@@ -1098,23 +1230,11 @@ def run_vbr_kernel(
 from ..filters import akhlaghi as _akhlaghi  # noqa: E402
 
 if _NJIT is not None:
-    for _rule in (
-        _akhlaghi.forget, _akhlaghi.residual_variance, _adaptive.qu_least_squares,
-    ):  # fmt: skip
+    for _rule in (_akhlaghi.forget, _akhlaghi.residual_variance):
         register_jitable(_rule)
 
 forget = _akhlaghi.forget
 residual_variance = _akhlaghi.residual_variance
-qu_least_squares = _adaptive.qu_least_squares
-
-
-@maybe_njit
-def square(P):
-    """A 9-tuple as a 3 x 3 array."""
-    A = np.empty((3, 3))
-    for i in range(9):
-        A[i // 3, i % 3] = P[i]
-    return A
 
 
 @maybe_njit
@@ -1134,9 +1254,12 @@ def run_akhlaghi_kernel(
     P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
     Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
     R = (R0[0], R0[1], R0[2], R0[3])
-    zero = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    A_v = zero  # the interval's accumulators (filters.adaptive), row-major
-    A_g = zero
+    R0_diag = np.array([R0[0], R0[3]])
+    Qu0_diag = np.array([Qu0[0], Qu0[3]])
+    bounds = (floor, ceiling)
+    A_v = np.zeros((3, 3))  # the interval's accumulators (filters.adaptive)
+    A_g = np.zeros((3, 3))
+    F_scan = np.eye(3)
     Q_hat = np.empty((3, 3))
     nis_sum = 0.0
     n_updates = 0
@@ -1147,15 +1270,8 @@ def run_akhlaghi_kernel(
     for k in range(1, K + 1):
         V = u_odo[k - 1, 0]
         g = u_odo[k - 1, 1]
-        if adapt_Q:  # AdaptiveEKF.predict (interval_step): F and G before the predict
-            f02, f12, G = jacobians(x[2], V, g, T, B)
-            g0, g1, g2, g3, g4, g5 = G
-            A_v = propagate(A_v, f02, f12, (
-                g0 * g0, g0 * g2, g0 * g4, g2 * g0, g2 * g2, g2 * g4, g4 * g0, g4 * g2, g4 * g4,
-            ))  # fmt: skip
-            A_g = propagate(A_g, f02, f12, (
-                g1 * g1, g1 * g3, g1 * g5, g3 * g1, g3 * g3, g3 * g5, g5 * g1, g5 * g3, g5 * g5,
-            ))  # fmt: skip
+        if adapt_Q:  # AdaptiveEKF.predict: F and G before the predict
+            A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], V, g, T, B)
         x, P, Q = predict(x, P, V, g, T, B, Qu)
         if k % every == 0:
             s = k // every - 1
@@ -1213,28 +1329,28 @@ def run_akhlaghi_kernel(
                     dx2 += wrap(xp[2] - x_prior[2])
                     dx_fed = True
                     if adapt_R:
-                        R = (
-                            clip_variance(forget(Rs0, sum0 / n_samples, alpha), R0[0], floor,
-                                          ceiling), 0.0,
-                            0.0, clip_variance(forget(Rs1, sum1 / n_samples, alpha), R0[3],
-                                               floor, ceiling),
-                        )  # fmt: skip
+                        R_raw = np.array(
+                            [
+                                forget(Rs0, sum0 / n_samples, alpha),
+                                forget(Rs1, sum1 / n_samples, alpha),
+                            ]
+                        )
+                        R = as_diag(clip_to_bounds(R_raw, R0_diag, bounds))
                 if adaptation and adapt_Q and dx_fed:
                     # eq. (15) on the interval, mapped to Qu (AdaptiveEKF.qu_estimate)
                     dx = (dx0, dx1, dx2)
                     for r in range(3):
                         for c in range(3):
-                            i = 3 * r + c
                             Q_hat[r, c] = forget(
-                                Qu[0] * A_v[i] + Qu[3] * A_g[i], dx[r] * dx[c], alpha
+                                Qu[0] * A_v[r, c] + Qu[3] * A_g[r, c], dx[r] * dx[c], alpha
                             )
-                    q = qu_least_squares(Q_hat, square(A_v), square(A_g), np.linalg.inv(square(P)))
-                    Qu = (
-                        clip_variance(q[0], Qu0[0], floor, ceiling), 0.0,
-                        0.0, clip_variance(q[1], Qu0[3], floor, ceiling),
-                    )  # fmt: skip
-                    A_v = zero
-                    A_g = zero
+                    ok, q = qu_estimate(Q_hat, A_v, A_g, P)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                    Qu = as_diag(clip_to_bounds(q, Qu0_diag, bounds))
+                    A_v = np.zeros((3, 3))
+                    A_g = np.zeros((3, 3))
+                    F_scan = np.eye(3)
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
         if record_every > 0 and k % record_every == 0 and j < n_rows:
@@ -1411,12 +1527,11 @@ def run_vbakf_kernel(
 from ..filters import swvb as _swvb  # noqa: E402
 
 if _NJIT is not None:
-    for _rule in (_swvb.interval_prior, _swvb.process_noise_moment, _adaptive.clip_to_bounds):
+    for _rule in (_swvb.interval_prior, _swvb.process_noise_moment):
         register_jitable(_rule)
 
 interval_prior = _swvb.interval_prior
 process_noise_moment = _swvb.process_noise_moment
-clip_to_bounds = _adaptive.clip_to_bounds
 
 
 @maybe_njit
@@ -1451,11 +1566,9 @@ def run_swvb_kernel(
     b_q = a0 * qu_start
     a_r = np.full(2, a0)
     b_r = a0 * r_start
-    zero = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    A_v = zero  # the interval's accumulators (filters.adaptive.AdaptiveEKF), row-major
-    A_g = zero
-    Fs02 = 0.0  # F_scan = [[1, 0, Fs02], [0, 1, Fs12], [0, 0, 1]]
-    Fs12 = 0.0
+    A_v = np.zeros((3, 3))  # the interval's accumulators (filters.adaptive.AdaptiveEKF)
+    A_g = np.zeros((3, 3))
+    F_scan = np.eye(3)
     P_s = P  # P+ at the previous Q event
     fed = np.zeros(max(scan_lm.shape[0], 1), np.bool_)
     dx = np.empty(3)
@@ -1468,16 +1581,7 @@ def run_swvb_kernel(
     for k in range(1, K + 1):
         V = u_odo[k - 1, 0]
         g = u_odo[k - 1, 1]
-        f02, f12, G = jacobians(x[2], V, g, T, B)
-        g0, g1, g2, g3, g4, g5 = G
-        A_v = propagate(A_v, f02, f12, (
-            g0 * g0, g0 * g2, g0 * g4, g2 * g0, g2 * g2, g2 * g4, g4 * g0, g4 * g2, g4 * g4,
-        ))  # fmt: skip
-        A_g = propagate(A_g, f02, f12, (
-            g1 * g1, g1 * g3, g1 * g5, g3 * g1, g3 * g3, g3 * g5, g5 * g1, g5 * g3, g5 * g5,
-        ))  # fmt: skip
-        Fs02 = Fs02 + f02  # F @ F_scan
-        Fs12 = Fs12 + f12
+        A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], V, g, T, B)
         x, P, Q = predict(x, P, V, g, T, B, Qu)
         if k % every == 0:
             s = k // every - 1
@@ -1495,12 +1599,10 @@ def run_swvb_kernel(
                 counts = (nis_sum, n_updates, n_rejected)
                 qu = np.array([Qu[0], Qu[3]])
                 r = np.array([R[0], R[3]])
-                F_s = np.eye(3)
-                F_s[0, 2] = Fs02
-                F_s[1, 2] = Fs12
-                P_s_a = square(P_s)
-                A_v_a = square(A_v)
-                A_g_a = square(A_g)
+                F_s = F_scan
+                P_s_a = as_matrix(P_s)
+                A_v_a = A_v
+                A_g_a = A_g
                 b_q_n = b_q
                 a_r_n = a_r
                 b_r_n = b_r
@@ -1533,8 +1635,8 @@ def run_swvb_kernel(
                     dx[0] = x[0] - x_m[0]
                     dx[1] = x[1] - x_m[1]
                     dx[2] = wrap(x[2] - x_m[2])
-                    P_m_a = square(P_m)
-                    W = process_noise_moment(dx, P_s_a, F_s, P_m_a, square(P))
+                    P_m_a = as_matrix(P_m)
+                    W = process_noise_moment(dx, P_s_a, F_s, P_m_a, as_matrix(P))
                     q = clip_to_bounds(
                         qu_least_squares(W, A_v_a, A_g_a, np.linalg.inv(P_m_a)), qu_start, bounds
                     )
@@ -1564,11 +1666,289 @@ def run_swvb_kernel(
                     b_r = b_r_n
                     Qu = (qu[0], 0.0, 0.0, qu[1])
                     R = (r[0], 0.0, 0.0, r[1])
-                    A_v = zero
-                    A_g = zero
-                    Fs02 = 0.0
-                    Fs12 = 0.0
+                    A_v = np.zeros((3, 3))
+                    A_g = np.zeros((3, 3))
+                    F_scan = np.eye(3)
                     P_s = P
+                if not healthy(x, P, R, Qu):
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
+            bad_record = bad_record or bad
+    return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# ---------------------------------------------------------------------------------------------
+# Fading-memory Sage-Husa (filters.sage_husa)
+
+
+@maybe_njit
+def run_sage_husa_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    adaptation, from_all, lo, hi, adapt_Q, b, warmup, unbiased,
+    record_every, out_x, out_P, out_R, out_Q,
+):  # fmt: skip
+    """filterpy_engine.run_filter with filters.sage_husa.SageHusaEKF: R per landmark before its
+    gain (the scan's samples pooled), Qu (adapt_Q) at the end of a scan, d_k once per scan that
+    fed adaptation, the estimates in force after `warmup` events. Arguments and returns as
+    `run_kernel`; lo, hi the bounds, b the fading factor, unbiased the Q sample's form."""
+    K = u_odo.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    R0_diag = np.array([R0[0], R0[3]])
+    Qu0_diag = np.array([Qu0[0], Qu0[3]])
+    bounds = (lo, hi)
+    R_min = lo * R0_diag
+    R_max = hi * R0_diag
+    beta = 1.0
+    n_events = 0
+    R_hat = R0_diag.copy()
+    Qu_hat = Qu0_diag.copy()
+    A_v = np.zeros((3, 3))
+    A_g = np.zeros((3, 3))
+    F_scan = np.eye(3)
+    P_scan_start = as_matrix(P)
+    nu_a = np.empty(2)
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_rows = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        V = u_odo[k - 1, 0]
+        g = u_odo[k - 1, 1]
+        if adapt_Q:
+            A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], V, g, T, B)
+        x, P, Q = predict(x, P, V, g, T, B, Qu)
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                # SageHusaEKF.begin_scan
+                d = beta
+                R_start = R_hat.copy()
+                x_prior = x
+                rho_sum = np.zeros(2)
+                n_fed = 0
+                n_accepted = 0
+                for m in range(first, last):
+                    z0 = scan_z[m, 0]
+                    z1 = scan_z[m, 1]
+                    H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                    if adaptation:
+                        feeds = True
+                        if not from_all and has_gate:
+                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                            if not ok:
+                                return True, j, nis_sum, n_updates, n_rejected
+                            feeds = nis_a <= gate
+                        if feeds:  # SageHusaEKF.before_gain
+                            nu_a[0] = nu[0]
+                            nu_a[1] = nu[1]
+                            HPH_a = np.array([[HPHt[0], HPHt[1]], [HPHt[2], HPHt[3]]])
+                            rho_sum = rho_sum + r_sample(nu_a, HPH_a, R_min, R_max)
+                            n_fed += 1
+                            R_hat = fading_mean(d, R_start, rho_sum, n_fed)
+                            if n_events >= warmup:
+                                R = as_diag(clip_to_bounds(R_hat, R0_diag, bounds))
+                    ok, v = nis(HPHt, R, nu[0], nu[1])
+                    if not ok or not math.isfinite(v):
+                        return True, j, nis_sum, n_updates, n_rejected
+                    if has_gate and not v <= gate:
+                        n_rejected += 1
+                        continue
+                    nis_sum += v
+                    n_updates += 1
+                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                    n_accepted += 1
+                # SageHusaEKF.end_scan
+                if adapt_Q:
+                    if adaptation and n_fed > 0 and n_accepted > 0:
+                        dx = np.array([x[0] - x_prior[0], x[1] - x_prior[1], x[2] - x_prior[2]])
+                        dx[2] = wrap(dx[2])
+                        Q_hat = q_sample(dx, as_matrix(P), P_scan_start, F_scan, unbiased)
+                        ok, q_hat = qu_estimate(Q_hat, A_v, A_g, P)
+                        if not ok:
+                            return True, j, nis_sum, n_updates, n_rejected
+                        q_hat = clip_to_bounds(q_hat, Qu0_diag, bounds)
+                        Qu_hat = fading_mean(d, Qu_hat, q_hat, 1)
+                        if n_events >= warmup:
+                            Qu = as_diag(clip_to_bounds(Qu_hat, Qu0_diag, bounds))
+                    A_v = np.zeros((3, 3))
+                    A_g = np.zeros((3, 3))
+                    F_scan = np.eye(3)
+                    P_scan_start = as_matrix(P)
+                if n_fed > 0:
+                    beta = next_beta(beta, b)
+                    n_events += 1
+                if not healthy(x, P, R, Qu):
+                    return True, j, nis_sum, n_updates, n_rejected
+        if record_every > 0 and k % record_every == 0 and j < n_rows:
+            j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
+            bad_record = bad_record or bad
+    return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# ---------------------------------------------------------------------------------------------
+# Innovation-based adaptive estimation (filters.iae)
+
+from ..filters import iae as _iae  # noqa: E402
+
+if _NJIT is not None:
+    for _rule in (
+        _iae.window_covariance, _iae.window_mean, _iae.r_estimate, _iae.hold_nonpositive,
+        _iae.q_estimate,
+    ):  # fmt: skip
+        register_jitable(_rule)
+
+window_covariance = _iae.window_covariance
+window_mean = _iae.window_mean
+r_estimate = _iae.r_estimate
+hold_nonpositive = _iae.hold_nonpositive
+q_estimate = _iae.q_estimate
+
+
+@maybe_njit
+def oldest_first(ring, pos):
+    """A full ring buffer (first axis) as an array, oldest first (a deque's order)."""
+    n = ring.shape[0]
+    out = np.empty_like(ring)
+    for i in range(n):
+        out[i] = ring[(pos + i) % n]
+    return out
+
+
+@maybe_njit
+def run_iae_kernel(
+    u_odo, every, scan_start, scan_lm, scan_z,
+    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    adaptation, from_all, lo, hi, adapt_Q, window, hph_window, hold, q_full, q_window,
+    record_every, out_x, out_P, out_R, out_Q,
+):  # fmt: skip
+    """filterpy_engine.run_filter with filters.iae.IAEEKF: a window of the last `window`
+    innovations (and their H P- H^T) that feed adaptation; adapt R (not adapt_Q) at every
+    landmark once it is full, or Qu (adapt_Q) at the end of a scan with fused landmarks, Qu the
+    mean of the last q_window samples. hph_window: subtract the window's mean H P- H^T (else the
+    current one); hold: `nonpositive: hold` (else floor); q_full: M&S's full Q form (else
+    steady). Arguments and returns as `run_kernel`."""
+    K = u_odo.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    R0_diag = np.array([R0[0], R0[3]])
+    Qu0_diag = np.array([Qu0[0], Qu0[3]])
+    bounds = (lo, hi)
+    nus = np.zeros((window, 2))
+    hphs = np.zeros((window, 2, 2))
+    n_win = 0
+    pos = 0
+    q_samples = np.zeros((q_window, 2))
+    n_q = 0
+    q_pos = 0
+    max_per_scan = 0
+    for s in range(scan_start.shape[0] - 1):
+        max_per_scan = max(max_per_scan, scan_start[s + 1] - scan_start[s])
+    Ks = np.zeros((max(max_per_scan, 1), 3, 2))
+    A_v = np.zeros((3, 3))
+    A_g = np.zeros((3, 3))
+    F_scan = np.eye(3)
+    P_scan_start = as_matrix(P)
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_rows = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for k in range(1, K + 1):
+        V = u_odo[k - 1, 0]
+        g = u_odo[k - 1, 1]
+        if adapt_Q:
+            A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], V, g, T, B)
+        x, P, Q = predict(x, P, V, g, T, B, Qu)
+        if k % every == 0:
+            s = k // every - 1
+            first = scan_start[s]
+            last = scan_start[s + 1]
+            if last > first:
+                n_K = 0  # IAEEKF.begin_scan
+                for m in range(first, last):
+                    z0 = scan_z[m, 0]
+                    z1 = scan_z[m, 1]
+                    H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                    feeds = True
+                    if not from_all and has_gate:
+                        ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                        if not ok:
+                            return True, j, nis_sum, n_updates, n_rejected
+                        feeds = nis_a <= gate
+                    if feeds:  # IAEEKF.before_gain
+                        nus[pos, 0] = nu[0]
+                        nus[pos, 1] = nu[1]
+                        for i in range(4):
+                            hphs[pos, i // 2, i % 2] = HPHt[i]
+                        pos = (pos + 1) % window
+                        if n_win < window:
+                            n_win += 1
+                        if not adapt_Q and n_win == window and adaptation:  # IAEEKF.adapt_R
+                            C = window_covariance(oldest_first(nus, pos))
+                            if hph_window:
+                                HPH_w = window_mean(oldest_first(hphs, pos))
+                            else:
+                                HPH_w = np.array([[HPHt[0], HPHt[1]], [HPHt[2], HPHt[3]]])
+                            R_hat = r_estimate(C, HPH_w)
+                            if hold:
+                                R_hat = hold_nonpositive(R_hat, np.array([R[0], R[3]]))
+                            R = as_diag(clip_to_bounds(R_hat, R0_diag, bounds))
+                    ok, v = nis(HPHt, R, nu[0], nu[1])
+                    if not ok or not math.isfinite(v):
+                        return True, j, nis_sum, n_updates, n_rejected
+                    if has_gate and not v <= gate:
+                        n_rejected += 1
+                        continue
+                    nis_sum += v
+                    n_updates += 1
+                    if adapt_Q:  # IAEEKF.after_update: the gain of each fused landmark
+                        ok, Kg = gain(P, H, R)
+                        for i in range(6):
+                            Ks[n_K, i // 2, i % 2] = Kg[i]
+                        n_K += 1
+                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                # IAEEKF.end_scan
+                if adapt_Q and adaptation and n_win == window and n_K > 0:
+                    C = window_covariance(oldest_first(nus, pos))
+                    P_post = as_matrix(P)
+                    if q_full:
+                        dP = P_post - matmul(matmul(F_scan, P_scan_start), F_scan.T)
+                        Q_hat = q_estimate(Ks[:n_K], C, dP)
+                    else:
+                        Q_hat = q_estimate(Ks[:n_K], C, np.zeros((3, 3)))
+                    ok, q = qu_estimate(Q_hat, A_v, A_g, P)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                    q_samples[q_pos] = q
+                    q_pos = (q_pos + 1) % q_window
+                    if n_q < q_window:
+                        n_q += 1
+                    if n_q == q_window:
+                        Qu = as_diag(
+                            clip_to_bounds(
+                                window_mean(oldest_first(q_samples, q_pos)), Qu0_diag, bounds
+                            )
+                        )
+                A_v = np.zeros((3, 3))
+                A_g = np.zeros((3, 3))
+                F_scan = np.eye(3)
+                P_scan_start = as_matrix(P)
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
         if record_every > 0 and k % record_every == 0 and j < n_rows:

@@ -19,26 +19,21 @@ from .spec import AdaptiveParams
 
 _E_V = np.array([[1.0, 0.0], [0.0, 0.0]])
 _E_G = np.array([[0.0, 0.0], [0.0, 1.0]])
+E_V, E_G = _E_V, _E_G  # unit variance on V, on gamma (the fast engine's kernels read them)
+
+
+def matmul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A @ B. The rules below multiply their 3 x 3 and 3 x 2 matrices with it so that the fast
+    engine can compile it as a plain loop (engines/kernels.py), where BLAS's call costs more
+    than the product; numpy's `@` here."""
+    return A @ B
 
 
 def clip_to_bounds(value: np.ndarray, start: np.ndarray, bounds: tuple[float, float]) -> np.ndarray:
-    """Variances clipped to [floor * start, ceiling * start] elementwise (SPEC 7)."""
+    """Variances clipped to [floor * start, ceiling * start] elementwise (SPEC 7); NaN stays
+    NaN. Arrays (numba's np.clip takes no scalars): a single variance goes in as a length-1 or
+    length-2 array."""
     return np.clip(value, bounds[0] * start, bounds[1] * start)
-
-
-def clip_variance(v, start, floor, ceiling):
-    """One variance clipped to [floor * start, ceiling * start] (SPEC 7), as `clip_to_bounds`
-    elementwise (np.clip: NaN stays NaN); plain floats, so that the fast engine's kernels call
-    it too."""
-    lo = floor * start
-    hi = ceiling * start
-    if v != v:
-        return v
-    if v < lo:
-        v = lo
-    if v > hi:
-        v = hi
-    return v
 
 
 # numpy's lstsq cutoff for rcond=None on a 2 x 2 system (eps * max(M, N)), given explicitly so
@@ -53,24 +48,25 @@ def qu_least_squares(Q_hat, A_v, A_g, W):
     excited one control only) falls back to the least-norm solution. Not yet clipped. 3 x 3
     float64 arrays in, a (2,) array out; numba compiles it as it is (the fast engine's kernels).
     """
-    WAv = W @ A_v
-    WAg = W @ A_g
-    WQ = W @ Q_hat
-    M = np.empty((2, 2))
-    M[0, 0] = np.trace(WAv @ WAv)
-    M[0, 1] = np.trace(WAv @ WAg)
-    M[1, 0] = np.trace(WAg @ WAv)
-    M[1, 1] = np.trace(WAg @ WAg)
-    b = np.empty(2)
-    b[0] = np.trace(WAv @ WQ)
-    b[1] = np.trace(WAg @ WQ)
+    WAv, WAg, WQ = matmul(W, A_v), matmul(W, A_g), matmul(W, Q_hat)
+    M = np.array(
+        [
+            [np.trace(matmul(WAv, WAv)), np.trace(matmul(WAv, WAg))],
+            [np.trace(matmul(WAg, WAv)), np.trace(matmul(WAg, WAg))],
+        ]
+    )
+    b = np.array([np.trace(matmul(WAv, WQ)), np.trace(matmul(WAg, WQ))])
     return np.linalg.lstsq(M, b, rcond=LSTSQ_RCOND)[0]
 
 
-def interval_step(A, F, Q_e):
-    """One predict of a process-noise accumulator: A <- F A F^T + Q_e, Q_e the step's state
-    noise from one control alone (G e e^T G^T for the bicycle)."""
-    return F @ A @ F.T + Q_e
+def propagate_interval(A_v, A_g, F_scan, F, Q_v, Q_g):
+    """One predict of the interval's accumulators: A <- F A F^T + Q_e with Q_e the step's noise
+    of a unit variance on one control (G e e^T G^T), and F_scan <- F F_scan."""
+    return (
+        matmul(matmul(F, A_v), F.T) + Q_v,
+        matmul(matmul(F, A_g), F.T) + Q_g,
+        matmul(F, F_scan),
+    )
 
 
 class AdaptiveEKF(RobotEKF):
@@ -99,10 +95,11 @@ class AdaptiveEKF(RobotEKF):
     def predict(self, u=0, dt: float | None = None):
         super().predict(u, dt)
         if "Q" in self.adapts:
-            F, G = self.F, self.G
-            self.A_v = interval_step(self.A_v, F, self.model.Q(G, _E_V, self.dt))
-            self.A_g = interval_step(self.A_g, F, self.model.Q(G, _E_G, self.dt))
-            self.F_scan = F @ self.F_scan
+            G = self.G
+            self.A_v, self.A_g, self.F_scan = propagate_interval(
+                self.A_v, self.A_g, self.F_scan, self.F,
+                self.model.Q(G, _E_V, self.dt), self.model.Q(G, _E_G, self.dt),
+            )  # fmt: skip
 
     @property
     def Q_scan(self) -> np.ndarray:

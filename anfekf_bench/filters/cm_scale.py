@@ -28,9 +28,30 @@ from .anfekf import CovarianceMatchingEKF
 from .spec import AdaptiveSpec, FilterContext
 
 
+def proportional_step(d, kappa, clip):
+    """The proportional rule's output for one mismatch: o = clip(-kappa d, -clip, clip), the
+    step in ln variance (NaN propagates). Plain float arithmetic: the fast engine compiles this
+    very function (engines/kernels.py)."""
+    o = -kappa * d
+    if o != o:
+        return o
+    if o < -clip:
+        o = -clip
+    if o > clip:
+        o = clip
+    return o
+
+
 def log_scale(d: np.ndarray | float, kappa: float, clip: float) -> np.ndarray:
-    """The proportional rule's output o = clip(-kappa d, -clip, clip): the step in ln variance."""
-    return np.clip(-kappa * np.asarray(d, dtype=float), -clip, clip)
+    """`proportional_step` elementwise."""
+    d = np.asarray(d, dtype=float)
+    o = [proportional_step(float(v), kappa, clip) for v in d.ravel()]
+    return np.array(o, dtype=float).reshape(d.shape)
+
+
+def mean_mismatch(d0, d1):
+    """The Q rule's input: mean(d) of the two channels, as np.mean sums two values."""
+    return (d0 + d1) / 2.0
 
 
 class CMScaleSpec(AdaptiveSpec):
@@ -65,6 +86,7 @@ class CMScaleEKF(CovarianceMatchingEKF):
 
     def _adapt_R(self, d: np.ndarray, dd: np.ndarray, HPH: np.ndarray, C: np.ndarray) -> None:
         """R_ii <- R_ii exp(o_i), o_i = -kappa d_ii clipped (the ANFEKF's eq. 33 form)."""
+        # np.exp as on main (its last bit can differ from math.exp, which the kernel uses)
         o = log_scale(d, self.spec.kappa, self.spec.output_clip)
         self.set_R_diag(np.diag(self.R) * np.exp(o))
 
@@ -72,5 +94,7 @@ class CMScaleEKF(CovarianceMatchingEKF):
         self, d: np.ndarray, H: np.ndarray, HPH: np.ndarray, S: np.ndarray, C: np.ndarray
     ) -> None:
         """Qu <- Qu exp(o), o = -kappa mean(d) clipped (the ANFEKF's eq. 44 form)."""
-        o = float(log_scale(float(np.mean(d)), self.spec.kappa, self.spec.output_clip))
+        o = proportional_step(
+            mean_mismatch(float(d[0]), float(d[1])), self.spec.kappa, self.spec.output_clip
+        )
         self.set_Qu_diag(np.diag(self.Qu) * math.exp(o))

@@ -38,15 +38,20 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from .adaptive import AdaptiveEKF
+from .adaptive import AdaptiveEKF, matmul
 from .ekf import Innovation
 from .spec import AdaptiveSpec, FilterContext
 
 
 def window_covariance(nus: np.ndarray) -> np.ndarray:
-    """C = (1/N) sum nu_j nu_j^T over the window (Mohamed & Schwarz; no mean removed)."""
-    nus = np.asarray(nus, dtype=float)
-    return nus.T @ nus / len(nus)
+    """C = (1/N) sum nu_j nu_j^T over the window, nus (N, 2) (Mohamed & Schwarz; no mean
+    removed)."""
+    return matmul(nus.T, nus) / len(nus)
+
+
+def window_mean(a: np.ndarray) -> np.ndarray:
+    """The mean over the first axis (a window of H P- H^T, or of Qu samples), as np.mean sums."""
+    return np.sum(a, axis=0) / len(a)
 
 
 def r_estimate(C: np.ndarray, HPHt: np.ndarray) -> np.ndarray:
@@ -54,9 +59,19 @@ def r_estimate(C: np.ndarray, HPHt: np.ndarray) -> np.ndarray:
     return np.diag(C) - np.diag(HPHt)
 
 
-def q_estimate(Ks: list[np.ndarray], C: np.ndarray, dP: np.ndarray | None = None) -> np.ndarray:
-    """Q_hat = sum_j K_j C K_j^T (+ dP = P+_k - F P+_(k-1) F^T for M&S's full form)."""
-    Q_hat = sum(K @ C @ K.T for K in Ks) + (0.0 if dP is None else dP)
+def hold_nonpositive(R_hat: np.ndarray, R_diag: np.ndarray) -> np.ndarray:
+    """`nonpositive: hold`: a channel whose R_hat <= 0 keeps its previous value."""
+    return np.where(R_hat > 0.0, R_hat, R_diag)
+
+
+def q_estimate(Ks, C: np.ndarray, dP: np.ndarray | None = None) -> np.ndarray:
+    """Q_hat = sum_j K_j C K_j^T (+ dP = P+_k - F P+_(k-1) F^T for M&S's full form); Ks a
+    sequence of 3 x 2 gains (a list, or an (n, 3, 2) array)."""
+    Q_hat = np.zeros((3, 3))
+    for i in range(len(Ks)):  # indexed: numba's iteration would give arrays of any layout
+        Q_hat = Q_hat + matmul(matmul(Ks[i], C), Ks[i].T)
+    if dP is not None:
+        Q_hat = Q_hat + dP
     return 0.5 * (Q_hat + Q_hat.T)
 
 
@@ -135,10 +150,10 @@ class IAEEKF(AdaptiveEKF):
     def adapt_R(self, inn: Innovation) -> None:
         """R_hat = diag(C - H P- H^T), clamped to the bounds (floor: the positivity fix)."""
         C = window_covariance(np.array(self.nus))
-        HPHt = np.mean(self.hphs, axis=0) if self.spec.hph == "window" else inn.HPHt
+        HPHt = window_mean(np.array(self.hphs)) if self.spec.hph == "window" else inn.HPHt
         R_hat = r_estimate(C, HPHt)
         if self.spec.nonpositive == "hold":
-            R_hat = np.where(R_hat > 0.0, R_hat, np.diag(self.R))
+            R_hat = hold_nonpositive(R_hat, np.diag(self.R))
         self.set_R_diag(R_hat)
 
     def end_scan(self) -> None:
@@ -147,10 +162,10 @@ class IAEEKF(AdaptiveEKF):
             C = window_covariance(np.array(self.nus))
             dP = None
             if self.spec.q_form == "full":
-                dP = self.P - self.F_scan @ self.P_scan_start @ self.F_scan.T
+                dP = self.P - matmul(matmul(self.F_scan, self.P_scan_start), self.F_scan.T)
             Q_hat = q_estimate(self.Ks, C, dP)
             self.q_samples.append(self.qu_estimate(Q_hat))
             if len(self.q_samples) == self.q_samples.maxlen:
-                self.set_Qu_diag(np.mean(self.q_samples, axis=0))
+                self.set_Qu_diag(window_mean(np.array(self.q_samples)))
         # The next Q event's A_v, A_g cover only its own interval.
         self.reset_interval()

@@ -34,7 +34,7 @@ import numpy as np
 from pydantic import Field
 
 from ..models import wrap_scalar
-from .adaptive import AdaptiveEKF, clip_to_bounds
+from .adaptive import AdaptiveEKF, clip_to_bounds, matmul
 from .ekf import Innovation
 from .spec import AdaptiveSpec, FilterContext
 
@@ -47,6 +47,12 @@ def next_beta(beta: float, b: float) -> float:
 def fading_weight(k: int, b: float) -> float:
     """d_k = (1 - b) / (1 - b^(k+1)), the closed form of `next_beta` from beta_0 = 1."""
     return (1.0 - b) / (1.0 - b ** (k + 1))
+
+
+def fading_mean(d, old, total, n):
+    """(1 - d) old + d total / n: the estimate after an event of weight d whose n samples sum to
+    `total` (eq. 1.2; n pools a scan's landmarks). Floats or arrays, elementwise."""
+    return (1.0 - d) * old + d * total / n
 
 
 def r_sample(nu: np.ndarray, HPHt: np.ndarray, R_min: np.ndarray, R_max: np.ndarray) -> np.ndarray:
@@ -67,7 +73,7 @@ def q_sample(
     """
     Q_hat = np.outer(dx, dx)
     if unbiased:
-        Q_hat = Q_hat + P_post - F_scan @ P_prev @ F_scan.T
+        Q_hat = Q_hat + P_post - matmul(matmul(F_scan, P_prev), F_scan.T)
     return 0.5 * (Q_hat + Q_hat.T)
 
 
@@ -153,7 +159,7 @@ class SageHusaEKF(AdaptiveEKF):
         self.rho_sum += r_sample(inn.nu, inn.HPHt, self.R_min, self.R_max)
         self.n_fed += 1
         # A convex combination of in-bound values: in bounds, positive.
-        self.R_hat = (1.0 - self.d) * self.R_start + self.d * self.rho_sum / self.n_fed
+        self.R_hat = fading_mean(self.d, self.R_start, self.rho_sum, self.n_fed)
         if self.warm:
             self.set_R_diag(self.R_hat)
 
@@ -179,6 +185,6 @@ class SageHusaEKF(AdaptiveEKF):
         )
         # PSINS's clamp, on the sample: the least squares of an indefinite Q_hat can be < 0.
         q_hat = clip_to_bounds(self.qu_estimate(Q_hat), np.diag(self.Qu0), self.bounds)
-        self.Qu_hat = (1.0 - self.d) * self.Qu_hat + self.d * q_hat
+        self.Qu_hat = fading_mean(self.d, self.Qu_hat, q_hat, 1)
         if self.warm:
             self.set_Qu_diag(self.Qu_hat)

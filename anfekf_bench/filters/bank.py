@@ -222,8 +222,8 @@ def hypotheses(spec: MMAESpec) -> np.ndarray:
 
 
 class MMAESpec(AdaptiveSpec):
-    """Static multiple-model adaptive estimation over a log grid of noise factors (research
-    notes 1): one EKF per hypothesis, likelihood weights, the moment-matched mixture."""
+    """Static multiple-model adaptive estimation over a log grid of noise factors (Magill 1965;
+    Maybeck 1982): one EKF per hypothesis, likelihood weights, the moment-matched mixture."""
 
     kind: Literal["mmae"]
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})

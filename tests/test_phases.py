@@ -193,7 +193,7 @@ def test_scheduled_batch_writes_phases_and_the_report(tmp_path):
     assert oracle["track_R_rr"] == pytest.approx(0.0, abs=1e-12)
     manifest = json.loads((target / "manifest.json").read_text())
     assert manifest["engines"] == {
-        "ekf": "fast", "anfekf": "fast", "sage-husa": "filterpy", "ekf-oracle": "filterpy",
+        "ekf": "fast", "anfekf": "fast", "sage-husa": "fast", "ekf-oracle": "filterpy",
     }  # fmt: skip
     report = write_report([tmp_path / "out"], tmp_path / "report", html=False)
     names = {p.name for p in report.files}

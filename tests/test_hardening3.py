@@ -9,6 +9,7 @@ resumes from (OUT/small/.runs) and the lock's holder pid may differ.
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -384,6 +385,19 @@ def test_check_recomputes_the_claims_and_agrees_with_a_fresh_run(claimed, tmp_pa
     result = cli("check", _copy(claimed, tmp_path).parent)
     assert result.exit_code == 0, result.output
     assert "1 claims hold" in result.output
+
+
+def test_check_decides_a_share_claim_on_its_point_estimate_as_the_run_does(tmp_path) -> None:
+    # A share (or a difference of shares) has no bootstrap interval: the run decides it on the
+    # point estimate, and check, deciding it again, must agree (not call it inconclusive).
+    share = {"filter": "anfekf", "vs": "ekf", "metric": "nees_in_bounds", "at_least": -1.0}
+    path = write_scenario(tmp_path / "s.yaml", small_scenario(**SMALL, claims=[share]))
+    _, target = execute(make_plan(*load_scenario(path), None, None, 1), tmp_path / "out")
+    stored = json.loads((target / "claims.json").read_text())
+    assert [r["verdict"] for r in stored] == ["holds"]
+    result = cli("check", target)
+    assert result.exit_code == 0, result.output
+    assert "1 claims hold" in result.output and "inconclusive" not in result.output
 
 
 def _edit_comparisons(folder: Path, edit) -> None:

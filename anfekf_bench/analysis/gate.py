@@ -718,7 +718,7 @@ def read_claims(folder: Path, scenario: str) -> list[ClaimResult]:
                                    "declared by the scenario, but no result for it"))  # fmt: skip
             continue
         estimate, lo, hi = (math.nan if v is None else v for v in found)
-        if claim.vs is None and claim.metric in SHARE_METRICS:
+        if claim.metric in SHARE_METRICS:  # a share (or a difference of shares): no interval
             verdict = point_verdict(estimate, claim.at_most, claim.at_least)
         else:
             verdict = interval_verdict(lo, hi, at_most=claim.at_most, at_least=claim.at_least)

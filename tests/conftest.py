@@ -91,7 +91,18 @@ SLOW_TESTS: dict[str, set[str]] = {
     "test_hardening": {"test_diverged_run_is_counted_and_kept_out_of_the_means"},
     "test_real_data": {"test_a_users_log_runs_end_to_end"},
     "test_fast_engine": {"test_paper_scenario", "test_runs_without_numba"},
-    "test_dask": {"test_dask_run_equals_local_run", "test_cluster_lost_mid_batch_is_reported"},
+    "test_dask": {
+        "test_dask_run_equals_local_run",
+        "test_cluster_lost_mid_batch_is_reported",
+        "test_unreachable_scheduler_is_one_line_within_timeout",
+        "test_dask_batch_reports_each_run_and_skips_done_ones",
+        "test_scheduler_without_workers_is_reported",
+    },
+    "test_hardening3": {
+        "test_ctrl_c_in_the_first_second_is_one_line",
+        "test_kill_9_during_a_forced_rerun_keeps_the_previous_result",
+    },
+    "test_fast_adaptive": {"test_paper_scenarios"},
     "test_mrclam": {"test_conversion_reproduces_the_shipped_tables"},
     "test_custom_filter": {"test_the_worked_example_runs_through_the_extension_point"},
     "test_bench": {

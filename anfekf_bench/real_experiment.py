@@ -40,6 +40,20 @@ from .filters.custom import CustomSpec, contained
 from .filters.ekf import gate_threshold
 from .filters.spec import FilterContext
 from .models import Unicycle
+from .outputs import (
+    PlanError,
+    ResultTables,
+    code_version,
+    finish_result,
+    machine_info,
+    package_versions,
+    prepare_output,
+    result_staging,
+    save_run,
+    scenario_folder,
+    survey_output,
+    write_result_tables,
+)
 from .sources import mrclam
 from .sources.recorded import (
     DriveSet,
@@ -89,7 +103,6 @@ class RealPlan:
 
     def fingerprint(self) -> str:
         """Hash of what determines a segment's bytes: the scenario, the log's content, the code."""
-        from .outputs import code_version
 
         doc = {
             "scenario": self.scenario.model_dump(mode="json", exclude={"jobs"}),
@@ -111,7 +124,6 @@ def make_real_plan(
     engine: str | None = None,
 ) -> RealPlan:
     """`experiment.make_plan` for a real-data scenario; PlanError for overrides it cannot take."""
-    from .outputs import PlanError
 
     if runs is not None:
         raise PlanError(
@@ -131,7 +143,6 @@ def make_real_plan(
 
 def check_real_plan(plan: RealPlan) -> int:
     """What can fail before the batch; returns the held-out evaluation times."""
-    from .outputs import PlanError
 
     problem = scenario_name_problem(plan.name)
     if problem:
@@ -589,7 +600,6 @@ def real_summary(records: list[dict], ordered: list[dict], scenario: RealScenari
 
 
 def real_result_tables(plan: RealPlan, ordered: list[dict]):
-    from .outputs import ResultTables
 
     names = plan.filter_names()
     ref = plan.scenario.reference()
@@ -633,17 +643,6 @@ def execute_real(
     on_result: Callable[[dict], None] | None = None,
 ) -> tuple[list[dict], Path]:
     """`experiment.execute` for a real-data scenario: same folder rules, run store and files."""
-    from .outputs import (
-        finish_result,
-        package_versions,
-        prepare_output,
-        result_staging,
-        save_run,
-        scenario_folder,
-        survey_output,
-        write_result_tables,
-    )
-    from .outputs import machine_info as _machine
 
     started = time.time()
     check_real_plan(plan)
@@ -670,75 +669,23 @@ def execute_real(
         n_steps = max(len(i.t) for i in inputs)
         if on_start is not None:
             on_start(action, len(done), plan.runs)
-        run_started = time.perf_counter()
-        todo = [i for i in inputs if i.segment.index not in done]
-        results = dict(done)
-        if todo:
-            calls = (delayed(_run_one)(scenario, i, tuned, n_steps) for i in todo)
-            jobs = min(plan.jobs, len(todo))
-            with local_workers():
-                chunks = Parallel(n_jobs=jobs, return_as="generator_unordered")(calls)
-            for chunk in chunks:
-                for result in chunk:
-                    save_run(target, result, fingerprint)
-                    results[result["run"]] = result
-                    if on_result is not None:
-                        on_result(result)
-        run_seconds = time.perf_counter() - run_started
-        ordered = [results[i] for i in range(plan.runs)]
-        tables = real_result_tables(plan, ordered)
-        staging = result_staging(target)
-        write_result_tables(
-            staging,
-            tables,
-            steps_table=scenario.steps_table,
-            metadata={"scenario": plan.name, "seed": str(plan.seed), "fingerprint": fingerprint},
-        )
-        manifest = {
-            "scenario": scenario.model_dump(mode="json"),
-            "kind": "recorded",
-            "format": RESULT_FORMAT,
-            "runs": plan.runs,
-            "seed": plan.seed,
-            "jobs": plan.jobs,
-            "backend": {"kind": "local"},
-            "engine": "filterpy",
-            "engines": {name: "filterpy" for name in plan.filter_names()},
-            "fingerprint": fingerprint,
-            "filters": [
-                {"name": n, "base": spec.name, "kind": spec.kind, "start": m}
-                for n, spec, m in scenario.instances()
-            ],
-            "world": {
-                "landmarks": rec.landmarks.tolist(),
-                "waypoints": [],
-                "control_steps": n_steps,
-            },
-            "data": rec.summary(),
-            "tuning": tuned,
-            "alignment": "step k of a run is the k-th odometry stamp of its segment; t is seconds"
+        calls = [
+            delayed(_run_one)(scenario, i, tuned, n_steps)
+            for i in inputs
+            if i.segment.index not in done
+        ]
+        results, run_seconds = _run_and_save(plan, target, fingerprint, done, calls, on_result)
+        summary = _write_result(
+            plan, target, fingerprint, results, done, started, run_seconds,
+            landmarks=rec.landmarks, n_steps=n_steps, data=rec.summary(), tuning=tuned,
+            alignment="step k of a run is the k-th odometry stamp of its segment; t is seconds"
             " since the segment's cold start; shorter segments are padded with NaN",
-            "resumed_runs": sorted(done),
-            "versions": package_versions(),
-            "machine": _machine(),
-            "run_seconds": round(run_seconds, 3),
-            "wall_time_s": round(time.time() - started, 3),
-        }
-        write_json(staging / MANIFEST_FILE, manifest)
-        finish_result(target, staging)
-    return tables.summary, target
+        )  # fmt: skip
+    return summary, target
 
 
 def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result, started):
     """`execute_real`'s body for protocol drives: tune per test dataset, run every drive whole."""
-    from .outputs import (
-        finish_result,
-        package_versions,
-        result_staging,
-        save_run,
-        write_result_tables,
-    )
-    from .outputs import machine_info as _machine
 
     world, scenario = plan.world, plan.scenario
     inputs = {d.id: segment_inputs(d, d.segment, scenario.eval_period_s) for d in world.drives}
@@ -749,15 +696,31 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
     n_steps = max(len(i.t) for i in inputs.values())
     if on_start is not None:
         on_start(action, len(done), plan.runs)
-    run_started = time.perf_counter()
-    todo = [d for d in world.drives if d.segment.index not in done]
+    calls = [
+        delayed(_run_one)(scenario, inputs[d.id], tuned_for.get(d.id), n_steps)
+        for d in world.drives
+        if d.segment.index not in done
+    ]
+    results, run_seconds = _run_and_save(plan, target, fingerprint, done, calls, on_result)
+    summary = _write_result(
+        plan, target, fingerprint, results, done, started, run_seconds,
+        landmarks=world.landmarks, n_steps=n_steps, data=world.summary(), tuning=tuning,
+        alignment="run r is drive r of data.drives, whole from its ground-truth start; step k is"
+        " its k-th evaluation time (odometry stamps at least eval_period_s apart); t is seconds"
+        " since the cold start; shorter drives are padded with NaN",
+        protocol="drives", tuning_seconds=tuning["seconds"] if tuning else 0.0,
+    )  # fmt: skip
+    return summary, target
+
+
+def _run_and_save(plan, target, fingerprint, done, calls, on_result) -> tuple[dict, float]:
+    """Run the delayed `calls` (one per run not saved yet) on local workers, saving each run as it
+    finishes; returns every run's result by index (the saved ones too) and the seconds taken."""
+    started = time.perf_counter()
     results = dict(done)
-    if todo:
-        calls = (
-            delayed(_run_one)(scenario, inputs[d.id], tuned_for.get(d.id), n_steps) for d in todo
-        )
+    if calls:
         with local_workers():
-            chunks = Parallel(n_jobs=min(plan.jobs, len(todo)), return_as="generator_unordered")(
+            chunks = Parallel(n_jobs=min(plan.jobs, len(calls)), return_as="generator_unordered")(
                 calls
             )
         for chunk in chunks:
@@ -766,9 +729,18 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
                 results[result["run"]] = result
                 if on_result is not None:
                     on_result(result)
-    run_seconds = time.perf_counter() - run_started
-    ordered = [results[i] for i in range(plan.runs)]
-    tables = real_result_tables(plan, ordered)
+    return results, time.perf_counter() - started
+
+
+def _write_result(
+    plan, target, fingerprint, results, done, started, run_seconds, *, landmarks, n_steps, data,
+    tuning, alignment, **extra,
+) -> list[dict]:  # fmt: skip
+    """The batch's tables and manifest, staged and then swapped in whole (outputs.finish_result),
+    the same for segments and drives (`extra`: what only one protocol records); returns the
+    summary records."""
+    scenario = plan.scenario
+    tables = real_result_tables(plan, [results[i] for i in range(plan.runs)])
     staging = result_staging(target)
     write_result_tables(
         staging,
@@ -780,7 +752,6 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
         "scenario": scenario.model_dump(mode="json"),
         "kind": "recorded",
         "format": RESULT_FORMAT,
-        "protocol": "drives",
         "runs": plan.runs,
         "seed": plan.seed,
         "jobs": plan.jobs,
@@ -792,23 +763,17 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
             {"name": n, "base": spec.name, "kind": spec.kind, "start": m}
             for n, spec, m in scenario.instances()
         ],
-        "world": {
-            "landmarks": world.landmarks.tolist(),
-            "waypoints": [],
-            "control_steps": n_steps,
-        },  # fmt: skip
-        "data": world.summary(),
+        "world": {"landmarks": landmarks.tolist(), "waypoints": [], "control_steps": n_steps},
+        "data": data,
         "tuning": tuning,
-        "alignment": "run r is drive r of data.drives, whole from its ground-truth start; step k"
-        " is its k-th evaluation time (odometry stamps at least eval_period_s apart); t is"
-        " seconds since the cold start; shorter drives are padded with NaN",
+        "alignment": alignment,
         "resumed_runs": sorted(done),
         "versions": package_versions(),
-        "machine": _machine(),
-        "tuning_seconds": tuning["seconds"] if tuning else 0.0,
+        "machine": machine_info(),
+        **extra,
         "run_seconds": round(run_seconds, 3),
         "wall_time_s": round(time.time() - started, 3),
     }
     write_json(staging / MANIFEST_FILE, manifest)
     finish_result(target, staging)
-    return tables.summary, target
+    return tables.summary

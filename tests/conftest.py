@@ -118,3 +118,21 @@ def pytest_collection_modifyitems(config, items) -> None:
         module = item.module.__name__.rsplit(".", 1)[-1] if item.module else ""
         if item.originalname in SLOW_TESTS.get(module, ()):
             item.add_marker(pytest.mark.slow)
+
+
+def small_world_noise_off(seed: int, runs: int):
+    """(scenario, world, runs) of the small world whose filters assume Qu about 10x too large
+    and R off (sigma_range 0.5 m): every adaptive rule has something to adapt; `runs` runs
+    simulated from `seed` (the fast engine's equivalence tests share it)."""
+    import numpy as np
+
+    from anfekf_bench.config import parse_scenario, resolve_world
+    from anfekf_bench.runner import simulate
+
+    doc = small_scenario(
+        record_every=1, filter_noise={"sigma_v": 3.0, "sigma_gamma_deg": 9.0, "sigma_range": 0.5}
+    )
+    scenario = parse_scenario(doc)
+    world = resolve_world(scenario.world, Path("small.yaml"))
+    data = [simulate(scenario, world, s) for s in np.random.SeedSequence(seed).spawn(runs)]
+    return scenario, world, data

@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from anfekf_bench.config import parse_scenario, resolve_world
 from anfekf_bench.engines import fast
 from anfekf_bench.filters.cm_scale import CMScaleSpec
 from anfekf_bench.filters.iae import IAESpec
@@ -19,7 +18,7 @@ from anfekf_bench.filters.sage_husa import SageHusaSpec
 from anfekf_bench.runner import simulate
 from anfekf_bench.scenarios import load_scenario
 
-from .conftest import small_scenario
+from .conftest import small_world_noise_off
 from .test_fast_engine import assert_same_run, both, ctx_of
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -64,13 +63,7 @@ VARIANTS = {**CM, **SH, **IAE}
 @pytest.fixture(scope="module")
 def small():
     """The small world with Qu and R both off: every rule has something to adapt."""
-    doc = small_scenario(
-        record_every=1, filter_noise={"sigma_v": 3.0, "sigma_gamma_deg": 9.0, "sigma_range": 0.5}
-    )
-    scenario = parse_scenario(doc)
-    world = resolve_world(scenario.world, Path("small.yaml"))
-    runs = [simulate(scenario, world, s) for s in np.random.SeedSequence(23).spawn(1)]
-    return scenario, world, runs
+    return small_world_noise_off(23, 1)
 
 
 def test_the_engine_supports_every_variant():

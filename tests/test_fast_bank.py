@@ -18,7 +18,7 @@ from anfekf_bench.filters.fading import FadingSpec
 from anfekf_bench.runner import simulate
 from anfekf_bench.scenarios import load_scenario
 
-from .conftest import small_scenario
+from .conftest import small_scenario, small_world_noise_off
 from .test_fast_engine import assert_same_run, both, ctx_of
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -43,13 +43,7 @@ VARIANTS = {
 @pytest.fixture(scope="module")
 def small():
     """The small world with Qu 10x too large and R off: the bank has something to identify."""
-    doc = small_scenario(
-        record_every=1, filter_noise={"sigma_v": 3.0, "sigma_gamma_deg": 9.0, "sigma_range": 0.5}
-    )
-    scenario = parse_scenario(doc)
-    world = resolve_world(scenario.world, Path("small.yaml"))
-    runs = [simulate(scenario, world, s) for s in np.random.SeedSequence(17).spawn(2)]
-    return scenario, world, runs
+    return small_world_noise_off(17, 2)
 
 
 def test_the_engine_supports_the_banks():

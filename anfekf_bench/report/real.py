@@ -747,7 +747,6 @@ def drives_markdown(rd: RealData, figures: dict[str, str]) -> str:
     m = rd.manifest
     tuning = m.get("tuning") or {}
     rm = drive_rmse(rd)
-    ref = rd.reference
     out = [f"## {rd.name} (real data, {m['runs']} drives)", ""]
     if rd.description:
         out += [rd.description, ""]
@@ -813,7 +812,6 @@ def drives_markdown(rd: RealData, figures: dict[str, str]) -> str:
     for key, caption in captions.items():
         if key in figures:
             out += [f"![{rd.name}: {caption}]({figures[key]})", ""]
-    del ref
     return "\n".join(out)
 
 

@@ -144,7 +144,12 @@ def test_supports_the_built_in_filters_only():
 
     assert not fast.supports(MySpec(name="mine"))
     assert fast.supports(VARIANTS["ekf"], Bicycle(0.025, 4.0))
-    assert not fast.supports(VARIANTS["ekf"], Unicycle())
+    assert fast.supports(VARIANTS["ekf"], Unicycle())
+    assert not fast.supports(VARIANTS["ekf"], MyModel())
+
+
+class MyModel(Unicycle):  # a user's model: the kernels do not know its maths
+    pass
 
 
 def test_refuses_what_it_does_not_implement(small):
@@ -156,9 +161,9 @@ def test_refuses_what_it_does_not_implement(small):
 
     with pytest.raises(ValueError, match="does not implement"):
         fast.run_filter_fast(MySpec(name="mine"), ctx, runs[0], world, 1)
-    uni = dataclasses.replace(ctx, model=Unicycle())
-    with pytest.raises(ValueError, match="bicycle"):
-        fast.run_filter_fast(VARIANTS["ekf"], uni, runs[0], world, 1)
+    mine = dataclasses.replace(ctx, model=MyModel())
+    with pytest.raises(ValueError, match="motion models"):
+        fast.run_filter_fast(VARIANTS["ekf"], mine, runs[0], world, 1)
 
 
 def test_kernels_are_compiled_when_numba_is_installed():
@@ -212,14 +217,21 @@ def test_runs_without_numba():
 # Kernels one by one, against the code they replace
 
 
-def _rng_filter(rng, cls=RobotEKF, **kw):
+def _rng_filter(rng, cls=RobotEKF, model=None, **kw):
     A = rng.standard_normal((3, 3))
     P0 = A @ A.T * 0.1 + np.eye(3) * 1e-3
     return cls(
         x0=np.array([rng.uniform(-20, 20), rng.uniform(-20, 20), rng.uniform(-3, 3)]), P0=P0,
         Qu=np.diag([0.3**2, math.radians(3) ** 2]), R=np.diag([0.1**2, math.radians(1) ** 2]),
-        model=Bicycle(0.025, 4.0), dt=0.025, gate=None, **kw,
+        model=Bicycle(0.025, 4.0) if model is None else model, dt=0.025, gate=None, **kw,
     )  # fmt: skip
+
+
+def _motion_args(k, model):
+    """The kernels' (motion, B, T0) for a model."""
+    if isinstance(model, Bicycle):
+        return k.MOTION_BICYCLE, model.B, 0.0
+    return k.MOTION_UNICYCLE, 0.0, model.T0
 
 
 def _close(a, b, tol=1e-12):
@@ -228,16 +240,25 @@ def _close(a, b, tol=1e-12):
     assert float(np.abs(a - b).max()) <= tol * scale, (a, b)
 
 
+@pytest.mark.parametrize(
+    "model", [Bicycle(0.025, 4.0), Unicycle(0.12)], ids=["bicycle", "unicycle"]
+)
 @pytest.mark.parametrize("mode", KERNELS)
-def test_predict_innovation_gate_and_joseph_update_kernels(mode):
+def test_predict_innovation_gate_and_joseph_update_kernels(mode, model):
     k = KERNELS[mode]
     rng = np.random.default_rng(5)
     for _ in range(50):
-        flt = _rng_filter(rng)
+        flt = _rng_filter(rng, model=model)
         u = np.array([rng.uniform(0, 5), rng.uniform(-0.5, 0.5)])
+        # the bicycle's step is its period; the unicycle's varies
+        dt = flt.dt if isinstance(model, Bicycle) else float(rng.uniform(0.01, 0.3))
         x, P = tuple(flt.x), tuple(flt.P.ravel())
-        xk, Pk, Qk = k.predict(x, P, u[0], u[1], flt.dt, flt.model.B, tuple(flt.Qu.ravel()))
-        flt.predict(u)
+        motion = _motion_args(k, model)
+        xk, Pk, Qk = k.predict(x, P, u[0], u[1], dt, *motion, tuple(flt.Qu.ravel()))
+        F, G = k.jacobian_arrays(x[2], u[0], u[1], dt, *motion)
+        flt.predict(u, dt=dt)
+        _close(F, flt.F)
+        _close(G, flt.G)
         _close(xk, flt.x)
         _close(Pk, flt.P.ravel())
         _close(Qk, flt.Q.ravel())

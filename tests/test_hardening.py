@@ -425,8 +425,8 @@ class PoisonedEKF(RobotEKF):
 class LateNaNEKF(RobotEKF):
     """NaN in a prediction after the last scan: only the end-of-run check can see it."""
 
-    def predict(self, u=0):
-        super().predict(u)
+    def predict(self, u=0, dt=None):
+        super().predict(u, dt)
         self.n_predict = getattr(self, "n_predict", 0) + 1
         if self.n_predict == self.last_step:
             self.x = np.full(3, np.nan)

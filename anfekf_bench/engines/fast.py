@@ -12,9 +12,14 @@ rule), the multiple-model banks `mmae` and `imm` with any of theirs (`kernels.ru
 the fading-factor EKF (`kernels.run_fading_kernel`), and `akhlaghi`, `vb-r`, `vbakf`, `swvb`,
 `sage-husa` and `iae` in every mode (`kernels.run_akhlaghi_kernel`, `run_vbr_kernel`,
 `run_vbakf_kernel`, `run_swvb_kernel`, `run_sage_husa_kernel`, `run_iae_kernel`: each family's
-rules are the plain functions of its filter module, called by both engines), on the bicycle
-motion model. Anything else (a user's own filter) is not implemented here: the caller runs it
-on filterpy.
+rules are the plain functions of its filter module, called by both engines), on both motion
+models (the bicycle of the simulated scenarios, the unicycle of recorded logs: a kernel
+argument). Anything else (a user's own filter) is not implemented here: the caller runs it on
+filterpy.
+
+Its input is the one contract of a run, a `timeline.Timeline` (a simulated run through
+`timeline.from_run`, a recorded span through `timeline.timeline`): every kernel loops over its
+stamps (predict with u[k] over dt[k]; the stamp's landmarks as one scan; record if record[k]).
 """
 
 from __future__ import annotations
@@ -40,8 +45,10 @@ from ..filters.sage_husa import SageHusaSpec
 from ..filters.spec import FilterContext, FilterSpec
 from ..filters.swvb import SWVBSpec
 from ..filters.vb import VBAKFSpec, VBRSpec
-from ..models import Bicycle
+from ..models import Bicycle, Unicycle
 from ..sources.simulator import RunData
+from ..timeline import Timeline, from_run
+from ..timeline import clear_cache as clear_timeline_cache
 from . import kernels as _jit_kernels
 
 JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
@@ -56,15 +63,25 @@ SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
 
 def supports(spec: FilterSpec, model: object | None = None) -> bool:
     """Whether the fast engine implements this filter (else run it on filterpy); with `model`,
-    also whether it implements that motion model (the bicycle only)."""
-    return type(spec) in SUPPORTED_SPECS and (model is None or isinstance(model, Bicycle))
+    also whether it implements that motion model (the bicycle and the unicycle)."""
+    return type(spec) in SUPPORTED_SPECS and (model is None or _motion(model) is not None)
+
+
+def _motion(model: object) -> tuple[int, float, float] | None:
+    """The kernels' (motion, B, T0) for a motion model; None for one they do not implement."""
+    if type(model) is Bicycle:  # exactly these (a subclass may change the maths)
+        return _jit_kernels.MOTION_BICYCLE, float(model.B), 0.0
+    if type(model) is Unicycle:
+        return _jit_kernels.MOTION_UNICYCLE, 0.0, float(model.T0)
+    return None
 
 
 register_engine("fast", supports)  # what `anfekf kinds` and the registry's capabilities report
 
 
 # ---------------------------------------------------------------------------------------------
-# A run's scans as flat arrays
+# A run's scans as flat arrays, per scan (the ekf-ml tuning grid reads them; the kernels read a
+# timeline: `timeline.from_run`)
 
 
 class FlatScans:
@@ -109,9 +126,10 @@ def flat_scans(data: RunData, world: World) -> FlatScans:
 
 
 def clear_cache() -> None:
-    """Forget the last run's flattened scans (the bench times the flattening too)."""
+    """Forget the last run's flattened scans and timeline (the bench times making them too)."""
     global _last_flat
     _last_flat = None
+    clear_timeline_cache()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -132,33 +150,34 @@ def _matrix(a: np.ndarray, n: int) -> np.ndarray:
 def run_filter_fast(
     spec: FilterSpec,
     ctx: FilterContext,
-    data: RunData,
-    world: World,
-    record_every: int,
+    tl: Timeline | RunData,
+    world: World | None = None,
+    record_every: int = 0,
     *,
     jit: bool = True,
 ) -> dict:
-    """Run one filter over one run's data like `filterpy_engine.run_filter(spec.build(ctx), ...)`.
+    """Run one filter over one run's timeline like `filterpy_engine.run_filter(spec.build(ctx),
+    tl)`, on the motion model of `ctx.model` (bicycle or unicycle).
 
-    Records every `record_every`-th control step (0: none; the per-run counts are still
-    returned). A filter that stops being finite and positive definite is marked diverged and its
-    remaining records stay NaN, as on filterpy. `jit=False` runs the plain-Python kernels even
-    when numba is installed.
+    A simulated run may be passed as (RunData, world, record_every): `timeline.from_run` makes
+    its timeline (record_every 0: no records; the per-run counts are still returned). A filter
+    that stops being finite and positive definite is marked diverged and its remaining records
+    stay NaN, as on filterpy. `jit=False` runs the plain-Python kernels even when numba is
+    installed.
     """
     if not supports(spec):
         raise ValueError(f"the fast engine does not implement filter kind {spec.kind!r}")
-    if not isinstance(ctx.model, Bicycle):
+    motion = _motion(ctx.model)
+    if motion is None:
         raise ValueError(
-            f"the fast engine implements the bicycle motion model only, not {type(ctx.model)}"
+            "the fast engine implements the bicycle and the unicycle motion models, "
+            f"not {type(ctx.model)}"
         )
-    K = len(data.u_odo)
-    every = world.sensor_every
-    if len(data.scans) < K // every:
-        raise ValueError(
-            f"{K} control steps need {K // every} scans; the run has {len(data.scans)}"
-        )
-    flat = flat_scans(data, world)
-    n = K // record_every if record_every > 0 else 0
+    if not isinstance(tl, Timeline):
+        tl = from_run(tl, world, record_every)
+    run = _run_args(tl, motion)
+    n = int(np.count_nonzero(tl.record))
+    record = run[-1]
     x = np.full((n, 3), np.nan)
     P = np.full((n, 3, 3), np.nan)
     R = np.full((n, 2), np.nan)
@@ -167,72 +186,70 @@ def run_filter_fast(
     k = _pure_kernels() if (JIT and not jit) else _jit_kernels
 
     if isinstance(spec, MMAESpec):
-        diverged, j, nis_sum, n_updates, n_rejected = _run_bank(
-            k, spec, ctx, data, every, flat, record_every, x, P, R, Qu
-        )
+        diverged, j, nis_sum, n_updates, n_rejected = _run_bank(k, spec, ctx, run, x, P, R, Qu)
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, AkhlaghiSpec):
         diverged, j, nis_sum, n_updates, n_rejected = k.run_akhlaghi_kernel(
-            *_common_args(ctx, data, every, flat),
+            *_common_args(ctx, run),
             "R" in spec.adapt, "Q" in spec.adapt, bool(spec.adaptation),
             spec.adapt_from == "all", float(spec.bounds[0]), float(spec.bounds[1]),
             float(spec.alpha),
-            int(max(record_every, 0)), x, P, R, Qu,
+            record, x, P, R, Qu,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, VBAKFSpec):
         P_infl = np.full(n, np.nan)
         diverged, j, nis_sum, n_updates, n_rejected = k.run_vbakf_kernel(
-            *_common_args(ctx, data, every, flat),
+            *_common_args(ctx, run),
             bool(spec.adaptation), spec.adapt_from == "all",
             float(spec.bounds[0]), float(spec.bounds[1]),
             float(spec.rho), int(spec.iterations), float(spec.tau), float(spec.tau_R),
             spec.R_structure == "diagonal",
-            int(max(record_every, 0)), x, P, R, Qu, P_infl,
+            record, x, P, R, Qu, P_infl,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl)
     if isinstance(spec, SWVBSpec):
         diverged, j, nis_sum, n_updates, n_rejected = k.run_swvb_kernel(
-            *_common_args(ctx, data, every, flat),
+            *_common_args(ctx, run),
             bool(spec.adaptation), spec.adapt_from == "all",
             float(spec.bounds[0]), float(spec.bounds[1]),
             float(spec.rho), int(spec.iterations), float(spec.a0),
-            int(max(record_every, 0)), x, P, R, Qu,
+            record, x, P, R, Qu,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, VBRSpec):
         diverged, j, nis_sum, n_updates, n_rejected = k.run_vbr_kernel(
-            *_common_args(ctx, data, every, flat),
+            *_common_args(ctx, run),
             bool(spec.adaptation), spec.adapt_from == "all",
             float(spec.bounds[0]), float(spec.bounds[1]),
             float(spec.rho), int(spec.iterations), float(spec.alpha0),
-            int(max(record_every, 0)), x, P, R, Qu,
+            record, x, P, R, Qu,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, FadingSpec):
         P_infl = np.full(n, np.nan)
         diverged, j, nis_sum, n_updates, n_rejected = k.run_fading_kernel(
-            *_common_args(ctx, data, every, flat),
+            *_common_args(ctx, run),
             bool(spec.adaptation), spec.adapt_from == "all", int(spec.window),
             float(spec.bounds[1]),
-            int(max(record_every, 0)), x, P, R, Qu, P_infl,
+            record, x, P, R, Qu, P_infl,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl)
     if isinstance(spec, SageHusaSpec):
         diverged, j, nis_sum, n_updates, n_rejected = k.run_sage_husa_kernel(
-            *_common_args(ctx, data, every, flat),
+            *_common_args(ctx, run),
             bool(spec.adaptation), spec.adapt_from == "all", *(float(b) for b in spec.bounds),
             "Q" in spec.adapt, float(spec.b), int(spec.warmup), spec.q_sample == "unbiased",
-            int(max(record_every, 0)), x, P, R, Qu,
+            record, x, P, R, Qu,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, IAESpec):
         diverged, j, nis_sum, n_updates, n_rejected = k.run_iae_kernel(
-            *_common_args(ctx, data, every, flat),
+            *_common_args(ctx, run),
             bool(spec.adaptation), spec.adapt_from == "all", *(float(b) for b in spec.bounds),
             spec.adapt == "Q", int(spec.window), spec.hph == "window",
             spec.nonpositive == "hold", spec.q_form == "full", int(spec.q_window),
-            int(max(record_every, 0)), x, P, R, Qu,
+            record, x, P, R, Qu,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, ANFEKFSpec):
@@ -260,22 +277,34 @@ def run_filter_fast(
     else:
         rule, kappa = _jit_kernels.RULE_ANFIS, 1.0
     diverged, j, nis_sum, n_updates, n_rejected = k.run_kernel(
-        *_common_args(ctx, data, every, flat),
+        *_common_args(ctx, run),
         adapt_R, adapt_Q, adaptation, learning, from_all, lo, hi, window, clip,
         eta_m, eta_d, eta_w, anf, rule, kappa,
-        int(max(record_every, 0)), x, P, R, Qu,
+        record, x, P, R, Qu,
     )  # fmt: skip
     return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
 
 
-def _common_args(ctx: FilterContext, data: RunData, every: int, flat: FlatScans) -> tuple:
-    """The arguments every kernel starts with: the run (odometry, scans), the model's T and B,
-    the start (x0, P0), the noise (Qu, R) and the gate."""
+def _run_args(tl: Timeline, motion: tuple[int, float, float]) -> tuple:
+    """The timeline and the model as the kernels read them: (u, dt, lm, xy, z, motion, B, T0,
+    record), contiguous, the dtypes the compiled signatures expect."""
+    return (
+        np.ascontiguousarray(tl.u, dtype=float).reshape(-1, 2),
+        np.ascontiguousarray(tl.dt, dtype=float),
+        np.ascontiguousarray(tl.lm, dtype=np.int64),
+        np.ascontiguousarray(tl.xy, dtype=float).reshape(-1, 2),
+        np.ascontiguousarray(tl.z, dtype=float).reshape(-1, 2),
+        *motion,
+        np.ascontiguousarray(tl.record, dtype=np.bool_),
+    )
+
+
+def _common_args(ctx: FilterContext, run: tuple) -> tuple:
+    """The arguments every kernel starts with: the run (controls, steps, scans), the model
+    (motion, B, T0), the start (x0, P0), the noise (Qu, R) and the gate."""
     has_gate = ctx.gate is not None
     return (
-        np.ascontiguousarray(data.u_odo, dtype=float), int(every),
-        flat.start, flat.landmarks, flat.z,
-        float(ctx.dt), float(ctx.model.B),
+        *run[:8],
         np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
         _matrix(ctx.Qu, 2), _matrix(ctx.R, 2),
         float(ctx.gate) if has_gate else math.inf, has_gate,
@@ -301,7 +330,7 @@ def _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl=
     }
 
 
-def _run_bank(k, spec: MMAESpec, ctx: FilterContext, data, every, flat, record_every, x, P, R, Qu):
+def _run_bank(k, spec: MMAESpec, ctx: FilterContext, run: tuple, x, P, R, Qu):
     """filters.bank.BankEKF on `kernels.run_bank_kernel`."""
     factors = hypotheses(spec)
     Qu_m = np.ascontiguousarray(factors[:, :2] * np.diag(ctx.Qu))
@@ -310,14 +339,12 @@ def _run_bank(k, spec: MMAESpec, ctx: FilterContext, data, every, flat, record_e
     censor_at = ctx.gate if (spec.adapt_from == "accepted" and has_gate) else math.inf
     imm = isinstance(spec, IMMSpec)
     return k.run_bank_kernel(
-        np.ascontiguousarray(data.u_odo, dtype=float), int(every),
-        flat.start, flat.landmarks, flat.z,
-        float(ctx.dt), float(ctx.model.B),
+        *run[:8],
         np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
         Qu_m, R_m, float(ctx.gate) if has_gate else math.inf, has_gate,
         float(censor_at), math.log(spec.weight_floor), float(spec.mixture_threshold), imm,
         float(spec.p_stay) if imm else 1.0,
-        int(max(record_every, 0)), x, P, R, Qu,
+        run[8], x, P, R, Qu,
     )  # fmt: skip
 
 

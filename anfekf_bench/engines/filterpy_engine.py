@@ -1,4 +1,5 @@
-"""The reference engine: each filter is a filterpy ExtendedKalmanFilter stepped over one run."""
+"""The reference engine: each filter is a filterpy ExtendedKalmanFilter stepped over one run's
+timeline (`timeline.Timeline`: a simulated run or a recorded span alike)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import numpy as np
 from ..config import World
 from ..filters import FilterDiverged, RobotEKF
 from ..sources.simulator import RunData
+from ..timeline import Timeline, from_run
 
 
 def _healthy(flt: RobotEKF) -> bool:
@@ -74,29 +76,34 @@ class StepRecorder:
         }
 
 
-def run_filter(flt: RobotEKF, data: RunData, world: World, record_every: int) -> dict:
-    """Run one filter over one run's data; record every `record_every`-th control step.
+def run_filter(
+    flt: RobotEKF, tl: Timeline | RunData, world: World | None = None, record_every: int = 0
+) -> dict:
+    """Run one filter over one run's timeline (`timeline.Timeline`, the one loop of both sources).
 
-    A filter that stops being finite and positive definite is marked diverged; its remaining
-    records stay NaN and the caller goes on with the next filter.
+    At each stamp: predict over dt[k] with u[k]; if the stamp has landmarks, one scan
+    (`update_scan`) and a health check; record if record[k]. A simulated run may be passed as
+    (RunData, world, record_every): `timeline.from_run` makes its timeline. A filter that stops
+    being finite and positive definite is marked diverged; its remaining records stay NaN and
+    the caller goes on with the next filter.
     """
-    K = len(data.u_odo)
-    trace = StepRecorder(K // record_every)
-    landmarks = world.landmarks
-    every = world.sensor_every
+    if not isinstance(tl, Timeline):
+        tl = from_run(tl, world, record_every)
+    record = tl.record.tolist()
+    trace = StepRecorder(sum(record))
+    dt, lm, u, z, xy = tl.dt.tolist(), tl.lm.tolist(), tl.u, tl.z, tl.xy
     diverged = False
     try:
-        for k in range(1, K + 1):
-            flt.predict(data.u_odo[k - 1])
-            if k % every == 0:
-                scan = data.scans[k // every - 1]
-                # Only updates (and the supervisor inside them) can break x, P, R or Qu: the
-                # predict of a healthy filter stays healthy, so empty scans need no check.
-                if len(scan.ids):
-                    flt.update_scan(scan.z, landmarks[scan.ids])
-                    if not _healthy(flt):
-                        raise FilterDiverged(f"step {k}")
-            if k % record_every == 0:
+        for k in range(len(dt)):
+            flt.predict(u[k], dt=dt[k])
+            a, b = lm[k], lm[k + 1]
+            # Only updates (and the supervisor inside them) can break x, P, R or Qu: the
+            # predict of a healthy filter stays healthy, so stamps without landmarks need no check.
+            if b > a:
+                flt.update_scan(z[a:b], xy[a:b])
+                if not _healthy(flt):
+                    raise FilterDiverged(f"stamp {k}, t = {float(tl.t[k]):.3f} s")
+            if record[k]:
                 trace.record(flt)
         trace.check_finite(flt.has_covariance)
     except (FilterDiverged, np.linalg.LinAlgError):

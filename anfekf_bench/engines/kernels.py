@@ -110,11 +110,25 @@ def min_nan(a, b):
 # EKF: predict, innovation, gate, Joseph update, health
 
 
+# The motion models (models.bicycle, models.unicycle), a kernel argument
+MOTION_BICYCLE = 0  # u = (V, gamma), B the wheelbase, Q = G Qu G^T (dt is the control period)
+MOTION_UNICYCLE = 1  # u = (v, w), midpoint Euler, Q = (T0 / dt) G Qu G^T (rate-consistent)
+
+
 @maybe_njit
-def jacobians(x2, V, g, T, B):
-    """The bicycle's F and G at heading x2 and controls (V, g): (f02, f12, G) with
-    F = [[1, 0, f02], [0, 1, f12], [0, 0, 1]] (bicycle.F_jacobian) and G = (g00, g01, g10,
-    g11, g20, g21) row-major (bicycle.G_jacobian)."""
+def jacobians(x2, u0, u1, dt, motion, B):
+    """F and G of one step of `motion` from heading x2 with controls (u0, u1) over dt:
+    (f02, f12, G) with F = [[1, 0, f02], [0, 1, f12], [0, 0, 1]] and G = (g00, g01, g10, g11,
+    g20, g21) row-major (bicycle.F_jacobian / G_jacobian, Unicycle.F / G, their products in
+    their order). Both models' position step is (f12, -f02), bit for bit: negation is exact."""
+    if motion == MOTION_UNICYCLE:
+        a = x2 + 0.5 * u1 * dt
+        ca = math.cos(a)
+        sa = math.sin(a)
+        half = 0.5 * u0 * dt * dt
+        vdt = u0 * dt
+        return -vdt * sa, vdt * ca, (dt * ca, -half * sa, dt * sa, half * ca, 0.0, dt)
+    T, V, g = dt, u0, u1
     a = x2 + g
     ca = math.cos(a)
     sa = math.sin(a)
@@ -123,9 +137,18 @@ def jacobians(x2, V, g, T, B):
 
 
 @maybe_njit
-def jacobian_arrays(x2, V, g, T, B):
+def noise_scale(dt, motion, T0):
+    """What `motion`'s Q multiplies G Qu G^T by: 1 (bicycle), T0 / dt (unicycle; 0 for a step
+    of no length, as Unicycle.Q)."""
+    if motion == MOTION_UNICYCLE:
+        return T0 / dt if dt > 0.0 else 0.0
+    return 1.0
+
+
+@maybe_njit
+def jacobian_arrays(x2, u0, u1, dt, motion, B, T0):
     """`jacobians` as arrays: F (3 x 3) and G (3 x 2), for the rules written with numpy."""
-    f02, f12, G = jacobians(x2, V, g, T, B)
+    f02, f12, G = jacobians(x2, u0, u1, dt, motion, B)
     F = np.eye(3)
     F[0, 2] = f02
     F[1, 2] = f12
@@ -136,12 +159,13 @@ def jacobian_arrays(x2, V, g, T, B):
 
 
 @maybe_njit
-def predict(x, P, V, g, T, B, Qu):
-    """RobotEKF.predict with the bicycle model: F and G at (x, u), x- = f(x, u),
-    P- = F P F^T + G Qu G^T (eqs. 19-21). Returns (x-, P-, Q) with Q = G Qu G^T."""
+def predict(x, P, u0, u1, dt, motion, B, T0, Qu):
+    """RobotEKF.predict with `motion`'s model: F and G at (x, u), x- = f(x, u),
+    P- = F P F^T + Q (eqs. 19-21). Returns (x-, P-, Q): Q = G Qu G^T (bicycle, eq. 20) or
+    (T0 / dt) G Qu G^T (unicycle, 0 for dt <= 0)."""
     x0, x1, x2 = x
     q00, q01, q10, q11 = Qu
-    f02, f12, G = jacobians(x2, V, g, T, B)
+    f02, f12, G = jacobians(x2, u0, u1, dt, motion, B)
     g00, g01, g10, g11, g20, g21 = G
     # Q = (G Qu) G^T
     a00 = g00 * q00 + g01 * q10
@@ -155,9 +179,17 @@ def predict(x, P, V, g, T, B, Qu):
         a10 * g00 + a11 * g01, a10 * g10 + a11 * g11, a10 * g20 + a11 * g21,
         a20 * g00 + a21 * g01, a20 * g10 + a21 * g11, a20 * g20 + a21 * g21,
     )  # fmt: skip
-    # x- = f(x, u) (bicycle.f)
-    # (f12 is T V cos(x2 + g) and -f02 is T V sin(x2 + g), bit for bit: negation is exact)
-    xn = (x0 + f12, x1 - f02, wrap(x2 + T * V * math.sin(g) / B))
+    if motion == MOTION_UNICYCLE:
+        c = noise_scale(dt, motion, T0)
+        Q = (
+            c * Q[0], c * Q[1], c * Q[2], c * Q[3], c * Q[4], c * Q[5], c * Q[6], c * Q[7],
+            c * Q[8],
+        )  # fmt: skip
+        # x- = f(x, u) (Unicycle.f)
+        xn = (x0 + f12, x1 - f02, wrap(x2 + u1 * dt))
+    else:
+        # x- = f(x, u) (bicycle.f)
+        xn = (x0 + f12, x1 - f02, wrap(x2 + dt * u0 * math.sin(u1) / B))
     return xn, propagate(P, f02, f12, Q), Q
 
 
@@ -549,22 +581,25 @@ RULE_PROPORTIONAL = 1
 
 @maybe_njit
 def run_kernel(
-    u_odo, every, scan_start, scan_lm, scan_z,
-    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    u_odo, dt, scan_start, scan_lm, scan_z,
+    motion, B, T0, x0, P0, Qu0, R0, gate, has_gate,
     adapt_R, adapt_Q, adaptation, learning, from_all, lo, hi, window, clip,
     eta_m, eta_d, eta_w, anf, rule, kappa,
-    record_every, out_x, out_P, out_R, out_Q,
+    record_at, out_x, out_P, out_R, out_Q,
 ):  # fmt: skip
     """One filter over one run (filterpy_engine.run_filter with RobotEKF, ANFEKF or CMScaleEKF).
 
-    u_odo (K, 2): odometry; scan i (0-based) is at control step (i + 1) * every and holds
-    measurements scan_start[i] .. scan_start[i + 1] - 1 of scan_lm (M, 2, landmark positions)
-    and scan_z (M, 2). x0 (3,), P0 (9,), Qu0 (4,), R0 (4,) row-major; gate is used when has_gate.
+    The run is a `timeline.Timeline` (the arguments every kernel starts with): stamp k
+    (0 .. K - 1) predicts with controls u_odo[k] (K, 2) over dt[k] (K,) on the model `motion`
+    (MOTION_BICYCLE with wheelbase B, MOTION_UNICYCLE with reference step T0), then runs its
+    landmarks scan_start[k] .. scan_start[k + 1] - 1 (scan_start (K + 1,)) of scan_lm (M, 2,
+    map positions) and scan_z (M, 2) as one scan, then records if record_at[k] (K,) bool.
+    x0 (3,), P0 (9,), Qu0 (4,), R0 (4,) row-major; gate is used when has_gate.
     adapt_R / adapt_Q select the ANFEKF supervisors (both False: the EKF); `anf` (3, 27) holds
     the ANFIS parameters (rows 0, 1: R of range and bearing; row 2: Qu) and is updated in place.
     rule RULE_PROPORTIONAL replaces the ANFIS by cm-scale's proportional rule of gain kappa.
-    Every record_every-th step (0: none) is written to row j of out_x (n, 3), out_P (n, 3, 3),
-    out_R (n, 2), out_Q (n, 2); rows from the divergence on are left as they are (NaN).
+    A recorded stamp is written to row j of out_x (n, 3), out_P (n, 3, 3), out_R (n, 2),
+    out_Q (n, 2); rows from the divergence on are left as they are (NaN).
 
     Returns (diverged, rows written, nis_sum, n_updates, n_rejected).
     """
@@ -595,8 +630,8 @@ def run_kernel(
     n_rejected = 0
     j = 0
     bad_record = False
-    for k in range(1, K + 1):
-        x, P, Q = predict(x, P, u_odo[k - 1, 0], u_odo[k - 1, 1], T, B, Qu)
+    for k in range(K):
+        x, P, Q = predict(x, P, u_odo[k, 0], u_odo[k, 1], dt[k], motion, B, T0, Qu)
         if adapt_Q:
             if updated_since_predict:
                 Qi = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -606,11 +641,10 @@ def run_kernel(
                 Qi[3] + Q[3], Qi[4] + Q[4], Qi[5] + Q[5],
                 Qi[6] + Q[6], Qi[7] + Q[7], Qi[8] + Q[8],
             )  # fmt: skip
-        if k % every == 0:
-            s = k // every - 1
-            first = scan_start[s]
-            last = scan_start[s + 1]
-            if last > first:
+        first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
+        last = scan_start[k + 1]
+        if last > first:
+            if True:  # (the scan's body keeps its indentation)
                 first_of_scan = True
                 for m in range(first, last):
                     z0 = scan_z[m, 0]
@@ -712,7 +746,7 @@ def run_kernel(
                         return True, j, nis_sum, n_updates, n_rejected
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
-        if record_every > 0 and k % record_every == 0 and j < n_rows:
+        if record_at[k] and j < n_rows:
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad
     # health is checked at scans; a blow-up after the last one shows in the records
@@ -749,10 +783,10 @@ imm_mix = _bank.imm_mix
 
 @maybe_njit
 def run_bank_kernel(
-    u_odo, every, scan_start, scan_lm, scan_z,
-    T, B, x0, P0, Qu_m, R_m, gate, has_gate,
+    u_odo, dt, scan_start, scan_lm, scan_z,
+    motion, B, T0, x0, P0, Qu_m, R_m, gate, has_gate,
     censor_at, log_floor, threshold, imm, p_stay,
-    record_every, out_x, out_P, out_R, out_Q,
+    record_at, out_x, out_P, out_R, out_Q,
 ):  # fmt: skip
     """A bank of M EKFs over one run (filterpy_engine.run_filter with filters.bank.BankEKF).
 
@@ -795,26 +829,26 @@ def run_bank_kernel(
     n_rows = out_x.shape[0]
     j = 0
     bad_record = False
-    for k in range(1, K + 1):
-        V = u_odo[k - 1, 0]
-        g = u_odo[k - 1, 1]
+    for k in range(K):
+        u0 = u_odo[k, 0]
+        u1 = u_odo[k, 1]
+        dt_k = dt[k]
         for i in range(M):
             x, P, _ = predict(
                 (X[i, 0], X[i, 1], X[i, 2]),
                 (Pm[i, 0], Pm[i, 1], Pm[i, 2], Pm[i, 3], Pm[i, 4], Pm[i, 5], Pm[i, 6], Pm[i, 7],
                  Pm[i, 8]),
-                V, g, T, B, (Qu_m[i, 0], 0.0, 0.0, Qu_m[i, 1]),
+                u0, u1, dt_k, motion, B, T0, (Qu_m[i, 0], 0.0, 0.0, Qu_m[i, 1]),
             )  # fmt: skip
             for c in range(3):
                 X[i, c] = x[c]
             for c in range(9):
                 Pm[i, c] = P[c]
         mix_moments(w, X, Pm, X[most_probable(logw), 2], xm, Pmix)
-        if k % every == 0:
-            s = k // every - 1
-            first = scan_start[s]
-            last = scan_start[s + 1]
-            if last > first:
+        first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
+        last = scan_start[k + 1]
+        if last > first:
+            if True:  # (the scan's body keeps its indentation)
                 best = most_probable(logw)
                 before_nis = nis_m[best]
                 before_upd = n_upd[best]
@@ -874,7 +908,7 @@ def run_bank_kernel(
                     (Rw[0], 0.0, 0.0, Rw[1]), (Qw[0], 0.0, 0.0, Qw[1]),
                 ):  # fmt: skip
                     return True, j, nis_sum, n_updates, n_rejected
-        if record_every > 0 and k % record_every == 0 and j < n_rows:
+        if record_at[k] and j < n_rows:
             for i in range(3):
                 out_x[j, i] = xm[i]
                 if not math.isfinite(xm[i]):
@@ -904,10 +938,10 @@ fading_factor = _fading.fading_factor
 
 @maybe_njit
 def run_fading_kernel(
-    u_odo, every, scan_start, scan_lm, scan_z,
-    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    u_odo, dt, scan_start, scan_lm, scan_z,
+    motion, B, T0, x0, P0, Qu0, R0, gate, has_gate,
     adaptation, from_all, window, ceiling,
-    record_every, out_x, out_P, out_R, out_Q, out_infl,
+    record_at, out_x, out_P, out_R, out_Q, out_infl,
 ):  # fmt: skip
     """filterpy_engine.run_filter with filters.fading.FadingEKF: the EKF of `run_kernel` with
     P- inflated by the fading factor at the first landmark of a scan that feeds adaptation.
@@ -928,13 +962,12 @@ def run_fading_kernel(
     n_rows = out_x.shape[0]
     j = 0
     bad_record = False
-    for k in range(1, K + 1):
-        x, P, Q = predict(x, P, u_odo[k - 1, 0], u_odo[k - 1, 1], T, B, Qu)
-        if k % every == 0:
-            s = k // every - 1
-            first = scan_start[s]
-            last = scan_start[s + 1]
-            if last > first:
+    for k in range(K):
+        x, P, Q = predict(x, P, u_odo[k, 0], u_odo[k, 1], dt[k], motion, B, T0, Qu)
+        first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
+        last = scan_start[k + 1]
+        if last > first:
+            if True:  # (the scan's body keeps its indentation)
                 first_of_scan = True
                 for m in range(first, last):
                     z0 = scan_z[m, 0]
@@ -984,7 +1017,7 @@ def run_fading_kernel(
                         return True, j, nis_sum, n_updates, n_rejected
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
-        if record_every > 0 and k % record_every == 0 and j < n_rows:
+        if record_at[k] and j < n_rows:
             for i in range(3):
                 out_x[j, i] = x[i]
                 if not math.isfinite(x[i]):
@@ -1065,12 +1098,17 @@ def as_diag(v):
 
 
 @maybe_njit
-def interval_step(A_v, A_g, F_scan, x2, V, g, T, B):
-    """AdaptiveEKF.predict's accumulators at a predict from heading x2 with controls (V, g)."""
-    F, G = jacobian_arrays(x2, V, g, T, B)
-    return propagate_interval(
-        A_v, A_g, F_scan, F, matmul(matmul(G, E_V), G.T), matmul(matmul(G, E_G), G.T)
-    )
+def interval_step(A_v, A_g, F_scan, x2, u0, u1, dt, motion, B, T0):
+    """AdaptiveEKF.predict's accumulators at a predict from heading x2 with controls (u0, u1)
+    over dt: the model's Q of the unit noises E_V and E_G (model.Q(G, E, dt))."""
+    F, G = jacobian_arrays(x2, u0, u1, dt, motion, B, T0)
+    Q_v = matmul(matmul(G, E_V), G.T)
+    Q_g = matmul(matmul(G, E_G), G.T)
+    if motion == MOTION_UNICYCLE:
+        c = noise_scale(dt, motion, T0)
+        Q_v = c * Q_v
+        Q_g = c * Q_g
+    return propagate_interval(A_v, A_g, F_scan, F, Q_v, Q_g)
 
 
 @maybe_njit
@@ -1128,10 +1166,10 @@ vb_r_bounded_beta = _vb.vb_r_bounded_beta
 
 @maybe_njit
 def run_vbr_kernel(
-    u_odo, every, scan_start, scan_lm, scan_z,
-    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    u_odo, dt, scan_start, scan_lm, scan_z,
+    motion, B, T0, x0, P0, Qu0, R0, gate, has_gate,
     adaptation, from_all, floor, ceiling, rho, iterations, alpha0,
-    record_every, out_x, out_P, out_R, out_Q,
+    record_at, out_x, out_P, out_R, out_Q,
 ):  # fmt: skip
     """filterpy_engine.run_filter with filters.vb.VBREKF (Sarkka & Nummenmaa's VB-AKF on
     diag R): per scan with a landmark the forgetting of (alpha, beta), per landmark that feeds
@@ -1154,13 +1192,12 @@ def run_vbr_kernel(
     n_rows = out_x.shape[0]
     j = 0
     bad_record = False
-    for k in range(1, K + 1):
-        x, P, Q = predict(x, P, u_odo[k - 1, 0], u_odo[k - 1, 1], T, B, Qu)
-        if k % every == 0:
-            s = k // every - 1
-            first = scan_start[s]
-            last = scan_start[s + 1]
-            if last > first:
+    for k in range(K):
+        x, P, Q = predict(x, P, u_odo[k, 0], u_odo[k, 1], dt[k], motion, B, T0, Qu)
+        first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
+        last = scan_start[k + 1]
+        if last > first:
+            if True:  # (the scan's body keeps its indentation)
                 if adaptation:
                     a0, b0 = vb_r_predict(a0, b0, rho)
                     a1, b1 = vb_r_predict(a1, b1, rho)
@@ -1217,7 +1254,7 @@ def run_vbr_kernel(
                     R = (b0 / a0, 0.0, 0.0, b1 / a1)
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
-        if record_every > 0 and k % record_every == 0 and j < n_rows:
+        if record_at[k] and j < n_rows:
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad
     return bad_record, j, nis_sum, n_updates, n_rejected
@@ -1239,10 +1276,10 @@ residual_variance = _akhlaghi.residual_variance
 
 @maybe_njit
 def run_akhlaghi_kernel(
-    u_odo, every, scan_start, scan_lm, scan_z,
-    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    u_odo, dt, scan_start, scan_lm, scan_z,
+    motion, B, T0, x0, P0, Qu0, R0, gate, has_gate,
     adapt_R, adapt_Q, adaptation, from_all, floor, ceiling, alpha,
-    record_every, out_x, out_P, out_R, out_Q,
+    record_at, out_x, out_P, out_R, out_Q,
 ):  # fmt: skip
     """filterpy_engine.run_filter with filters.akhlaghi.AkhlaghiEKF: after every landmark
     update (and, with from_all, the update a gate-rejected landmark would have made) the
@@ -1267,17 +1304,17 @@ def run_akhlaghi_kernel(
     n_rows = out_x.shape[0]
     j = 0
     bad_record = False
-    for k in range(1, K + 1):
-        V = u_odo[k - 1, 0]
-        g = u_odo[k - 1, 1]
+    for k in range(K):
+        u0 = u_odo[k, 0]
+        u1 = u_odo[k, 1]
+        dt_k = dt[k]
         if adapt_Q:  # AdaptiveEKF.predict: F and G before the predict
-            A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], V, g, T, B)
-        x, P, Q = predict(x, P, V, g, T, B, Qu)
-        if k % every == 0:
-            s = k // every - 1
-            first = scan_start[s]
-            last = scan_start[s + 1]
-            if last > first:
+            A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], u0, u1, dt_k, motion, B, T0)
+        x, P, Q = predict(x, P, u0, u1, dt_k, motion, B, T0, Qu)
+        first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
+        last = scan_start[k + 1]
+        if last > first:
+            if True:  # (the scan's body keeps its indentation)
                 Rs0 = R[0]  # R_(k-1) of eq. (11)
                 Rs1 = R[3]
                 sum0 = 0.0
@@ -1353,7 +1390,7 @@ def run_akhlaghi_kernel(
                     F_scan = np.eye(3)
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
-        if record_every > 0 and k % record_every == 0 and j < n_rows:
+        if record_at[k] and j < n_rows:
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad
     return bad_record, j, nis_sum, n_updates, n_rejected
@@ -1377,10 +1414,10 @@ clip_covariance_2 = _vb.clip_covariance_2
 
 @maybe_njit
 def run_vbakf_kernel(
-    u_odo, every, scan_start, scan_lm, scan_z,
-    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    u_odo, dt, scan_start, scan_lm, scan_z,
+    motion, B, T0, x0, P0, Qu0, R0, gate, has_gate,
     adaptation, from_all, floor, ceiling, rho, iterations, tau, tau_R, diagonal_R,
-    record_every, out_x, out_P, out_R, out_Q, out_infl,
+    record_at, out_x, out_P, out_R, out_Q, out_infl,
 ):  # fmt: skip
     """filterpy_engine.run_filter with filters.vb.VBAKF (Huang et al. 2018, Algorithm 1): per
     scan with a landmark the forgetting of (u, U); per landmark that feeds adaptation
@@ -1402,13 +1439,12 @@ def run_vbakf_kernel(
     n_rows = out_x.shape[0]
     j = 0
     bad_record = False
-    for k in range(1, K + 1):
-        x, P, Q = predict(x, P, u_odo[k - 1, 0], u_odo[k - 1, 1], T, B, Qu)
-        if k % every == 0:
-            s = k // every - 1
-            first = scan_start[s]
-            last = scan_start[s + 1]
-            if last > first:
+    for k in range(K):
+        x, P, Q = predict(x, P, u_odo[k, 0], u_odo[k, 1], dt[k], motion, B, T0, Qu)
+        first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
+        last = scan_start[k + 1]
+        if last > first:
+            if True:  # (the scan's body keeps its indentation)
                 if adaptation:
                     u_, U00 = vbakf_predict(u, U[0], rho, m2)
                     _, U01 = vbakf_predict(u, U[1], rho, m2)
@@ -1513,7 +1549,7 @@ def run_vbakf_kernel(
                         return True, j, nis_sum, n_updates, n_rejected
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
-        if record_every > 0 and k % record_every == 0 and j < n_rows:
+        if record_at[k] and j < n_rows:
             out_infl[j] = infl
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad
@@ -1544,10 +1580,10 @@ def flat9(A):
 
 @maybe_njit
 def run_swvb_kernel(
-    u_odo, every, scan_start, scan_lm, scan_z,
-    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    u_odo, dt, scan_start, scan_lm, scan_z,
+    motion, B, T0, x0, P0, Qu0, R0, gate, has_gate,
     adaptation, from_all, floor, ceiling, rho, iterations, a0,
-    record_every, out_x, out_P, out_R, out_Q,
+    record_at, out_x, out_P, out_R, out_Q,
 ):  # fmt: skip
     """filterpy_engine.run_filter with filters.swvb.SWVBEKF: per scan with a landmark and
     adaptation, `iterations` passes of the scan's sequential EKF updates from the same x-, the
@@ -1578,16 +1614,16 @@ def run_swvb_kernel(
     n_rows = out_x.shape[0]
     j = 0
     bad_record = False
-    for k in range(1, K + 1):
-        V = u_odo[k - 1, 0]
-        g = u_odo[k - 1, 1]
-        A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], V, g, T, B)
-        x, P, Q = predict(x, P, V, g, T, B, Qu)
-        if k % every == 0:
-            s = k // every - 1
-            first = scan_start[s]
-            last = scan_start[s + 1]
-            if last > first:
+    for k in range(K):
+        u0 = u_odo[k, 0]
+        u1 = u_odo[k, 1]
+        dt_k = dt[k]
+        A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], u0, u1, dt_k, motion, B, T0)
+        x, P, Q = predict(x, P, u0, u1, dt_k, motion, B, T0, Qu)
+        first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
+        last = scan_start[k + 1]
+        if last > first:
+            if True:  # (the scan's body keeps its indentation)
                 passes = iterations if adaptation else 1
                 if adaptation:
                     a_q = rho * a_q
@@ -1672,7 +1708,7 @@ def run_swvb_kernel(
                     P_s = P
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
-        if record_every > 0 and k % record_every == 0 and j < n_rows:
+        if record_at[k] and j < n_rows:
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad
     return bad_record, j, nis_sum, n_updates, n_rejected
@@ -1684,10 +1720,10 @@ def run_swvb_kernel(
 
 @maybe_njit
 def run_sage_husa_kernel(
-    u_odo, every, scan_start, scan_lm, scan_z,
-    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    u_odo, dt, scan_start, scan_lm, scan_z,
+    motion, B, T0, x0, P0, Qu0, R0, gate, has_gate,
     adaptation, from_all, lo, hi, adapt_Q, b, warmup, unbiased,
-    record_every, out_x, out_P, out_R, out_Q,
+    record_at, out_x, out_P, out_R, out_Q,
 ):  # fmt: skip
     """filterpy_engine.run_filter with filters.sage_husa.SageHusaEKF: R per landmark before its
     gain (the scan's samples pooled), Qu (adapt_Q) at the end of a scan, d_k once per scan that
@@ -1718,17 +1754,17 @@ def run_sage_husa_kernel(
     n_rows = out_x.shape[0]
     j = 0
     bad_record = False
-    for k in range(1, K + 1):
-        V = u_odo[k - 1, 0]
-        g = u_odo[k - 1, 1]
+    for k in range(K):
+        u0 = u_odo[k, 0]
+        u1 = u_odo[k, 1]
+        dt_k = dt[k]
         if adapt_Q:
-            A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], V, g, T, B)
-        x, P, Q = predict(x, P, V, g, T, B, Qu)
-        if k % every == 0:
-            s = k // every - 1
-            first = scan_start[s]
-            last = scan_start[s + 1]
-            if last > first:
+            A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], u0, u1, dt_k, motion, B, T0)
+        x, P, Q = predict(x, P, u0, u1, dt_k, motion, B, T0, Qu)
+        first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
+        last = scan_start[k + 1]
+        if last > first:
+            if True:  # (the scan's body keeps its indentation)
                 # SageHusaEKF.begin_scan
                 d = beta
                 R_start = R_hat.copy()
@@ -1790,7 +1826,7 @@ def run_sage_husa_kernel(
                     n_events += 1
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
-        if record_every > 0 and k % record_every == 0 and j < n_rows:
+        if record_at[k] and j < n_rows:
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad
     return bad_record, j, nis_sum, n_updates, n_rejected
@@ -1827,10 +1863,10 @@ def oldest_first(ring, pos):
 
 @maybe_njit
 def run_iae_kernel(
-    u_odo, every, scan_start, scan_lm, scan_z,
-    T, B, x0, P0, Qu0, R0, gate, has_gate,
+    u_odo, dt, scan_start, scan_lm, scan_z,
+    motion, B, T0, x0, P0, Qu0, R0, gate, has_gate,
     adaptation, from_all, lo, hi, adapt_Q, window, hph_window, hold, q_full, q_window,
-    record_every, out_x, out_P, out_R, out_Q,
+    record_at, out_x, out_P, out_R, out_Q,
 ):  # fmt: skip
     """filterpy_engine.run_filter with filters.iae.IAEEKF: a window of the last `window`
     innovations (and their H P- H^T) that feed adaptation; adapt R (not adapt_Q) at every
@@ -1867,17 +1903,17 @@ def run_iae_kernel(
     n_rows = out_x.shape[0]
     j = 0
     bad_record = False
-    for k in range(1, K + 1):
-        V = u_odo[k - 1, 0]
-        g = u_odo[k - 1, 1]
+    for k in range(K):
+        u0 = u_odo[k, 0]
+        u1 = u_odo[k, 1]
+        dt_k = dt[k]
         if adapt_Q:
-            A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], V, g, T, B)
-        x, P, Q = predict(x, P, V, g, T, B, Qu)
-        if k % every == 0:
-            s = k // every - 1
-            first = scan_start[s]
-            last = scan_start[s + 1]
-            if last > first:
+            A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], u0, u1, dt_k, motion, B, T0)
+        x, P, Q = predict(x, P, u0, u1, dt_k, motion, B, T0, Qu)
+        first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
+        last = scan_start[k + 1]
+        if last > first:
+            if True:  # (the scan's body keeps its indentation)
                 n_K = 0  # IAEEKF.begin_scan
                 for m in range(first, last):
                     z0 = scan_z[m, 0]
@@ -1951,7 +1987,7 @@ def run_iae_kernel(
                 P_scan_start = as_matrix(P)
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
-        if record_every > 0 and k % record_every == 0 and j < n_rows:
+        if record_at[k] and j < n_rows:
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad
     return bad_record, j, nis_sum, n_updates, n_rejected

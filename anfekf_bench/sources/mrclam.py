@@ -50,6 +50,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..models.angles import wrap_angle
+from ..timeline import LANDMARK, ODOMETRY  # the event kinds (the contract's)
 
 BUILTIN_NAME = "mrclam-dataset9-robot3"
 ROBOT_SUBJECTS = range(1, 6)  # MRCLAM: subjects 1-5 are the robots, 6-20 the landmarks
@@ -1135,10 +1136,6 @@ def cold_start(
         raise ValueError(f"no scorable ground truth at or after {t} s")
     t0 = float(later[ok[0]])
     return t0, np.array(interpolate_truth(log, t0))
-
-
-ODOMETRY = 0
-LANDMARK = 1
 
 
 @dataclass(frozen=True, eq=False)

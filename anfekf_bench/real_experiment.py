@@ -7,7 +7,8 @@
    over the scorable evaluation times of all training segments.
 2. **Run** (`run_segment`): each held-out segment is one Monte Carlo "run": every filter instance
    (each filter from each naive start, and ekf-tuned) is cold-started from ground truth at the
-   segment's start and stepped over its events (`engines.events.run_filter_events`).
+   segment's start and stepped over its timeline (`timeline.Timeline`) on the plan's engine
+   (`runner.run_spec`: the fast engine for the kinds it runs, filterpy for the rest).
 3. **Align**: a run's per-step arrays are indexed by the evaluation time's rank in its segment
    (step k = the segment's k-th odometry stamp; t = seconds since the segment's cold start).
    Segments differ by a few stamps, so shorter ones are padded with NaN up to the longest.
@@ -20,7 +21,6 @@
 
 from __future__ import annotations
 
-import copy
 import hashlib
 import json
 import math
@@ -35,8 +35,7 @@ from joblib import Parallel, delayed
 from .analysis.comparisons import comparisons_frame, evaluate_claims
 from .analysis.metrics import add_trace_metrics
 from .analysis.tables import runs_frame, steps_frame, summary_records, update_statistics
-from .engines.events import Timeline, run_ekf_grid, run_filter_events, timeline
-from .filters.custom import CustomSpec, contained
+from .engines.events import run_ekf_grid
 from .filters.ekf import gate_threshold
 from .filters.spec import FilterContext
 from .models import Unicycle
@@ -54,6 +53,7 @@ from .outputs import (
     survey_output,
     write_result_tables,
 )
+from .runner import engine_of, fast_compiled, run_spec
 from .sources import mrclam
 from .sources.recorded import (
     DriveSet,
@@ -70,6 +70,7 @@ from .storage import (
     scenario_name_problem,
     write_json,
 )
+from .timeline import Timeline, timeline
 from .workers import local_workers
 
 LOST_LOCK_M = 1.0  # a run whose position error exceeds this at a scored time has lost lock
@@ -526,9 +527,11 @@ def _pad(a: np.ndarray, n: int) -> np.ndarray:
 
 
 def run_segment(
-    scenario: RealScenario, inputs: SegmentInputs, tuned: dict | None, n_steps: int
-) -> dict:
-    """One held-out segment as a Monte Carlo run: every filter instance from ground truth."""
+    scenario: RealScenario, inputs: SegmentInputs, tuned: dict | None, n_steps: int,
+    engine: str = "filterpy",
+) -> dict:  # fmt: skip
+    """One held-out segment as a Monte Carlo run: every filter instance from ground truth, on
+    `engine` (`runner.run_spec`: the fast engine runs what it implements, the rest filterpy)."""
     seg = inputs.segment
     model = Unicycle(scenario.odometry_period_s)
     gate = gate_threshold(scenario.gate_probability)
@@ -544,12 +547,7 @@ def run_segment(
             x0=np.array(seg.pose, dtype=float), P0=p0(scenario), Qu=Qu, R=R, model=model,
             dt=scenario.odometry_period_s, gate=gate,
         )  # fmt: skip
-        if isinstance(spec, CustomSpec):  # its own copy of the events; one line if it raises
-            flt, events = spec.build(ctx), copy.deepcopy(inputs.timeline)
-            hook = "predict/update"
-            trace = contained(name, spec.class_path, hook, run_filter_events, flt, events)
-        else:
-            trace = run_filter_events(spec.build(ctx), inputs.timeline)
+        trace = run_spec(engine, spec, ctx, inputs.timeline, name=name)
         for key in ("x", "P", "R_diag", "Q_diag", "P_infl"):
             trace[key] = _pad(trace[key], n_steps)
         filters[name] = add_trace_metrics(trace, truth)
@@ -563,8 +561,8 @@ def run_segment(
     }
 
 
-def _run_one(scenario, inputs, tuned, n_steps) -> list[dict]:
-    return [run_segment(scenario, inputs, tuned, n_steps)]
+def _run_one(scenario, inputs, tuned, n_steps, engine="filterpy") -> list[dict]:
+    return [run_segment(scenario, inputs, tuned, n_steps, engine)]
 
 
 # --------------------------------------------------------------------------------------------
@@ -670,7 +668,7 @@ def execute_real(
         if on_start is not None:
             on_start(action, len(done), plan.runs)
         calls = [
-            delayed(_run_one)(scenario, i, tuned, n_steps)
+            delayed(_run_one)(scenario, i, tuned, n_steps, plan.engine)
             for i in inputs
             if i.segment.index not in done
         ]
@@ -697,7 +695,7 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
     if on_start is not None:
         on_start(action, len(done), plan.runs)
     calls = [
-        delayed(_run_one)(scenario, inputs[d.id], tuned_for.get(d.id), n_steps)
+        delayed(_run_one)(scenario, inputs[d.id], tuned_for.get(d.id), n_steps, plan.engine)
         for d in world.drives
         if d.segment.index not in done
     ]
@@ -756,8 +754,12 @@ def _write_result(
         "seed": plan.seed,
         "jobs": plan.jobs,
         "backend": {"kind": "local"},
-        "engine": "filterpy",
-        "engines": {name: "filterpy" for name in plan.filter_names()},
+        "engine": plan.engine,
+        "engines": {
+            name: engine_of(plan.engine, spec, model=Unicycle(scenario.odometry_period_s))
+            for name, spec, _ in scenario.instances()
+        },
+        "fast_compiled": fast_compiled(plan.engine),  # false: numba missing, plain Python
         "fingerprint": fingerprint,
         "filters": [
             {"name": n, "base": spec.name, "kind": spec.kind, "start": m}

@@ -27,10 +27,11 @@ from joblib import Parallel, delayed
 from .analysis.metrics import add_trace_metrics, recorded_steps
 from .config import Engine, Scenario, World
 from .engines.filterpy_engine import run_filter
-from .filters import FilterSpec
+from .filters import FilterContext, FilterSpec
 from .filters.custom import CustomSpec, contained
-from .filters.registry import build_filter, filter_context
+from .filters.registry import filter_context
 from .sources.simulator import RunData, WorldPath, simulate_run, world_path
+from .timeline import Timeline, from_run
 from .workers import local_workers
 
 
@@ -45,24 +46,32 @@ def simulate(
 
 
 def run_filter_on(engine: Engine, spec: FilterSpec, scenario, world: World, data: RunData) -> dict:
-    """One filter over one run's data on `engine`; the fast engine runs the filters it
-    implements, every other filter (a user's own, a zoo baseline) runs on filterpy."""
-    if engine == "fast":
+    """One filter over one run's data on `engine` (`run_spec` on the run's timeline)."""
+    tl = from_run(data, world, scenario.record_every)
+    ctx = filter_context(spec, scenario, world)
+    return run_spec(engine, spec, ctx, tl, fast_ok=not follows_schedule(spec, scenario))
+
+
+def run_spec(
+    engine: Engine, spec: FilterSpec, ctx: FilterContext, tl: Timeline, *, fast_ok: bool = True,
+    name: str | None = None,
+) -> dict:  # fmt: skip
+    """One filter over one timeline (a simulated run or a recorded span) on `engine`: the fast
+    engine runs the filters and motion models it implements (unless `fast_ok` is False), every
+    other filter (a user's own, a zoo baseline) runs on filterpy (`engine_of` says which).
+    `name`: the instance name a custom filter's errors are reported under."""
+    if engine == "fast" and fast_ok:
         from .engines import fast  # numba (when installed) is imported only for this engine
 
-        if fast.supports(spec) and not follows_schedule(spec, scenario):
-            ctx = filter_context(spec, scenario, world)
-            return fast.run_filter_fast(spec, ctx, data, world, scenario.record_every)
+        if fast.supports(spec, ctx.model):
+            return fast.run_filter_fast(spec, ctx, tl)
     if isinstance(spec, CustomSpec):
         # A user's filter gets its own copy of the run's arrays (it could write into the scans
         # every other filter reads), and anything it raises is one line naming it.
-        flt = build_filter(spec, scenario, world)
-        mine = copy.deepcopy(data)
+        flt, mine = spec.build(ctx), copy.deepcopy(tl)
         hook = "predict/update"
-        return contained(
-            spec.name, spec.class_path, hook, run_filter, flt, mine, world, scenario.record_every
-        )
-    return run_filter(build_filter(spec, scenario, world), data, world, scenario.record_every)
+        return contained(name or spec.name, spec.class_path, hook, run_filter, flt, mine)
+    return run_filter(spec.build(ctx), tl)
 
 
 def follows_schedule(spec: FilterSpec, scenario) -> bool:
@@ -72,12 +81,13 @@ def follows_schedule(spec: FilterSpec, scenario) -> bool:
     return spec.uses_true_noise and getattr(scenario, "noise_schedule", None) is not None
 
 
-def engine_of(engine: Engine, spec: FilterSpec, scenario=None) -> Engine:
-    """The engine that actually runs `spec` when `engine` is asked for (for the manifest)."""
+def engine_of(engine: Engine, spec: FilterSpec, scenario=None, model=None) -> Engine:
+    """The engine that actually runs `spec` (on `model`, when given) when `engine` is asked for
+    (for the manifest)."""
     if engine == "fast":
         from .engines import fast
 
-        runs_fast = fast.supports(spec) and not follows_schedule(spec, scenario)
+        runs_fast = fast.supports(spec, model) and not follows_schedule(spec, scenario)
         return "fast" if runs_fast else "filterpy"
     return "filterpy"
 

@@ -507,18 +507,17 @@ def test_covariance_stays_symmetric_and_positive_definite(kind: str, small_run) 
 @pytest.fixture
 def one_run_diverges(monkeypatch):
     """Filter `ekf` diverges in run 2 only (jobs 1: runs in order, in this process)."""
-    real_build = runner.build_filter
+    real_run = runner.run_filter
     calls = {"n": 0}
+    n_filters = len(small_scenario()["filters"])  # ekf first: runner runs them in order
 
-    def build(spec, *args):
-        flt = real_build(spec, *args)
-        if spec.name == "ekf":
-            calls["n"] += 1
-            if calls["n"] == 3:  # run 2's ekf
-                flt = _poisoned(flt, PoisonedEKF, mode="nan-P", after=20)
-        return flt
+    def run(flt, *args):
+        calls["n"] += 1
+        if calls["n"] == 2 * n_filters + 1:  # run 2's ekf
+            flt = _poisoned(flt, PoisonedEKF, mode="nan-P", after=20)
+        return real_run(flt, *args)
 
-    monkeypatch.setattr(runner, "build_filter", build)
+    monkeypatch.setattr(runner, "run_filter", run)
     return 2
 
 

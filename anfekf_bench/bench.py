@@ -350,8 +350,8 @@ def update_counts(setup: StepSetup) -> dict[str, dict[str, int]]:
 
 
 def _fast_passes(spec: FilterSpec, ctx: FilterContext, setup: StepSetup, n: int) -> None:
-    """`n` fast-engine passes over the run, its scans already flattened (a run's filters share
-    that; `time_scan_flattening` times it)."""
+    """`n` fast-engine passes over the run, its timeline already made (a run's filters share
+    it; `time_scan_flattening` times it)."""
     # Imported here: the scenario probes import this module, and numba would weigh on their
     # peak memory.
     from .engines import fast
@@ -379,7 +379,7 @@ def time_engine_costs(setup: StepSetup, repeats: int, inner: int) -> dict[str, d
                 _timed(partial(run_filter, flt, setup.data, setup.world, every))
             )
             ctx = setup.context(spec)
-            fast.flat_scans(setup.data, setup.world)  # kept for the passes (made once per run)
+            fast.from_run(setup.data, setup.world, every)  # kept for the passes (once per run)
             times[kind]["fast"].append(
                 _timed(partial(_fast_passes, spec, ctx, setup, inner)) / inner
             )
@@ -387,12 +387,13 @@ def time_engine_costs(setup: StepSetup, repeats: int, inner: int) -> dict[str, d
 
 
 def time_scan_flattening(setup: StepSetup, repeats: int) -> list[float]:
-    """Seconds the fast engine spends turning the run's scans into arrays, `repeats` times."""
+    """Seconds spent turning the run into its timeline (`timeline.from_run`, what both engines
+    read; made once per run), `repeats` times."""
     from .engines import fast
 
     def flatten() -> None:
         fast.clear_cache()
-        fast.flat_scans(setup.data, setup.world)
+        fast.from_run(setup.data, setup.world, setup.scenario.record_every)
 
     out = [_timed(flatten) for _ in range(repeats)]
     fast.clear_cache()

@@ -46,6 +46,7 @@ from ..filters.spec import FilterContext, FilterSpec
 from ..filters.swvb import SWVBSpec
 from ..filters.vb import VBAKFSpec, VBRSpec
 from ..models import Bicycle, Unicycle
+from ..sources.recorded import TunedEKFSpec
 from ..sources.simulator import RunData
 from ..timeline import Timeline, from_run
 from ..timeline import clear_cache as clear_timeline_cache
@@ -54,10 +55,12 @@ from . import kernels as _jit_kernels
 JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 
 # Exactly these spec classes (a subclass may build a different filter).
-# ekf-ml and ekf-tuned are the plain EKF with fitted noise (filters.fitted).
+# ekf-ml and ekf-tuned are the plain EKF with fitted noise (filters.fitted; a recorded
+# scenario's ekf-tuned, sources.recorded.TunedEKFSpec, with grid-searched noise).
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
     VBRSpec, AkhlaghiSpec, VBAKFSpec, SWVBSpec, CMScaleSpec, SageHusaSpec, IAESpec,
+    TunedEKFSpec,
 )  # fmt: skip
 
 

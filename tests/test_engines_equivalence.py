@@ -25,10 +25,12 @@ import pytest
 
 from anfekf_bench.engines import fast
 from anfekf_bench.engines.filterpy_engine import run_filter
-from anfekf_bench.filters import FilterContext
+from anfekf_bench.filters import FilterContext, RobotEKF
+from anfekf_bench.filters.custom import CustomFilterFailed, CustomSpec
 from anfekf_bench.filters.ekf import gate_threshold
 from anfekf_bench.filters.registry import SPEC_BY_KIND
 from anfekf_bench.models import Unicycle, h
+from anfekf_bench.runner import engine_of, run_spec
 from anfekf_bench.sources.recorded import TunedEKFSpec
 from anfekf_bench.timeline import Timeline, from_run
 
@@ -187,3 +189,28 @@ def test_fast_equals_filterpy(kind, params, motion, request):
     }
     assert any(moved[a] for a in adapts) or not adapts, (adapts, moved)
     assert_same_run(ref, out, what=f"{kind} {params} {motion}")
+
+
+class RaisingEKF(RobotEKF):
+    """A user's filter that fails in its predict: contained, named, on filterpy."""
+
+    def predict(self, u=0, dt=None):
+        raise RuntimeError("boom")
+
+
+def test_run_spec_picks_the_engine_per_filter(unicycle_run):
+    """`runner.run_spec`, the one place every pipeline (simulated, recorded) picks the engine:
+    a built-in kind runs on the fast engine under `fast` on the unicycle too, a user's class
+    on filterpy, contained (one line naming it), and `engine_of` says so for the manifest."""
+    ctx, tl = unicycle_run
+    spec = SPEC_BY_KIND["anfekf"](name="a", kind="anfekf", adapt="RQ")
+    assert engine_of("fast", spec, model=ctx.model) == "fast"
+    fast_out = run_spec("fast", spec, ctx, tl)
+    ref = run_spec("filterpy", spec, ctx, tl)
+    assert_same_run(ref, fast_out, what="run_spec")
+    mine = CustomSpec.model_validate(
+        {"name": "mine", "kind": "custom", "class": f"{__name__}:RaisingEKF"}
+    )
+    assert engine_of("fast", mine, model=ctx.model) == "filterpy"
+    with pytest.raises(CustomFilterFailed, match="'mine'.*predict/update raised.*boom"):
+        run_spec("fast", mine, ctx, tl, name="mine")

@@ -123,19 +123,6 @@ def jacobians(x2, V, g, T, B):
 
 
 @maybe_njit
-def jacobian_arrays(x2, V, g, T, B):
-    """`jacobians` as arrays: F (3 x 3) and G (3 x 2), for the rules written with numpy."""
-    f02, f12, G = jacobians(x2, V, g, T, B)
-    F = np.eye(3)
-    F[0, 2] = f02
-    F[1, 2] = f12
-    Ga = np.empty((3, 2))
-    for i in range(6):
-        Ga[i // 2, i % 2] = G[i]
-    return F, Ga
-
-
-@maybe_njit
 def predict(x, P, V, g, T, B, Qu):
     """RobotEKF.predict with the bicycle model: F and G at (x, u), x- = f(x, u),
     P- = F P F^T + G Qu G^T (eqs. 19-21). Returns (x-, P-, Q) with Q = G Qu G^T."""
@@ -1017,10 +1004,24 @@ if _NJIT is not None:
         """Compiled, the rules' A @ B is a plain loop (k ascending, as a dot product sums): for
         3 x 3 matrices BLAS's call costs more than the product."""
 
+        if B.ndim == 1:  # a matrix times a vector
+
+            def impl_vector(A, B):
+                n, m = A.shape
+                out = np.empty(n)
+                for i in range(n):
+                    t = 0.0
+                    for k in range(m):
+                        t += A[i, k] * B[k]
+                    out[i] = t
+                return out
+
+            return impl_vector
+
         def impl(A, B):
             n, m = A.shape
             p = B.shape[1]
-            out = np.zeros((n, p))
+            out = np.empty((n, p))
             for i in range(n):
                 for j in range(p):
                     t = 0.0
@@ -1031,18 +1032,129 @@ if _NJIT is not None:
 
         return impl
 
+    @overload(_adaptive.outer)
+    def _outer_loop(a, b):
+        """Compiled, np.outer as a plain loop (numba's np.outer costs ten times as much)."""
+
+        def impl(a, b):
+            n = a.shape[0]
+            p = b.shape[0]
+            out = np.empty((n, p))
+            for i in range(n):
+                for j in range(p):
+                    out[i, j] = a[i] * b[j]
+            return out
+
+        return impl
+
+    @overload(_adaptive.trace_of_product)
+    def _trace_of_product_loop(A, B):
+        """Compiled, tr(A B) from the product's diagonal only: each diagonal entry summed as
+        `matmul`'s loop sums it, then the entries in order as np.trace sums them."""
+
+        def impl(A, B):
+            n, m = A.shape
+            t = 0.0
+            for i in range(n):
+                d = 0.0
+                for k in range(m):
+                    d += A[i, k] * B[k, i]
+                t += d
+            return t
+
+        return impl
+
+    @overload(_adaptive.inv)
+    def _inv_loop(A):
+        """Compiled, the rules' inverse is Gauss-Jordan elimination with partial pivoting in
+        plain loops (LAPACK's call costs ten times the arithmetic of a 3 x 3); it raises
+        LinAlgError where numba's np.linalg.inv does: a matrix with a value that is not finite,
+        or an exactly singular one."""
+
+        def impl(A):
+            n = A.shape[0]
+            a = np.empty((n, n))
+            out = np.zeros((n, n))
+            for i in range(n):
+                out[i, i] = 1.0
+                for j in range(n):
+                    v = A[i, j]
+                    if not math.isfinite(v):
+                        raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+                    a[i, j] = v
+            for c in range(n):
+                p = c
+                for r in range(c + 1, n):
+                    if abs(a[r, c]) > abs(a[p, c]):
+                        p = r
+                if a[p, c] == 0.0:
+                    raise np.linalg.LinAlgError("Matrix is singular to machine precision.")
+                if p != c:
+                    for j in range(n):
+                        a[c, j], a[p, j] = a[p, j], a[c, j]
+                        out[c, j], out[p, j] = out[p, j], out[c, j]
+                for r in range(n):
+                    if r != c:
+                        f = a[r, c] / a[c, c]
+                        for j in range(n):
+                            a[r, j] -= f * a[c, j]
+                            out[r, j] -= f * out[c, j]
+            for i in range(n):
+                d = a[i, i]
+                for j in range(n):
+                    out[i, j] = out[i, j] / d
+            return out
+
+        return impl
+
+    @overload(_adaptive.lstsq)
+    def _lstsq_2x2(M, b):
+        """Compiled, the 2 x 2 least squares in closed form, the solution LAPACK's SVD gives to
+        round-off: singular values s1 >= s2 from the matrix's invariants; when s2 <= LSTSQ_RCOND
+        s1 (numerically rank one) the least-norm solution M^T b / ||M||_F^2, else M^-1 b by
+        LAPACK's LU (`lu2`). A value of M that is not finite raises LinAlgError, as numpy."""
+        rcond = _adaptive.LSTSQ_RCOND
+
+        def impl(M, b):
+            m00, m01, m10, m11 = M[0, 0], M[0, 1], M[1, 0], M[1, 1]
+            if not (
+                math.isfinite(m00) and math.isfinite(m01)
+                and math.isfinite(m10) and math.isfinite(m11)
+            ):  # fmt: skip
+                raise np.linalg.LinAlgError("SVD did not converge in Linear Least Squares")
+            b0, b1 = b[0], b[1]
+            out = np.zeros(2)
+            fro2 = m00 * m00 + m01 * m01 + m10 * m10 + m11 * m11
+            if fro2 == 0.0:
+                return out  # every singular value is 0: the least-norm solution is 0
+            # s1 = (|(m00 + m11, m10 - m01)| + |(m00 - m11, m10 + m01)|) / 2, s1 s2 = |det M|
+            s1 = 0.5 * (math.hypot(m00 + m11, m10 - m01) + math.hypot(m00 - m11, m10 + m01))
+            s2 = abs(m00 * m11 - m01 * m10) / s1
+            if s2 <= rcond * s1:
+                out[0] = (m00 * b0 + m10 * b1) / fro2
+                out[1] = (m01 * b0 + m11 * b1) / fro2
+                return out
+            swapped, u00, u01, l10, u11 = lu2(m00, m01, m10, m11)
+            c0, c1 = (b1, b0) if swapped else (b0, b1)
+            out[1] = (c1 - l10 * c0) / u11
+            out[0] = (c0 - u01 * out[1]) / u00
+            return out
+
+        return impl
+
     for _rule in (
-        _adaptive.clip_to_bounds, _adaptive.propagate_interval, _adaptive.qu_least_squares,
+        _adaptive.clip_to_bounds, _adaptive.qu_least_squares,
         _sage_husa.next_beta, _sage_husa.fading_mean, _sage_husa.r_sample, _sage_husa.q_sample,
     ):  # fmt: skip
         register_jitable(_rule)
 
 clip_to_bounds = _adaptive.clip_to_bounds
 matmul = _adaptive.matmul
-propagate_interval = _adaptive.propagate_interval
+outer = _adaptive.outer
+trace_of_product = _adaptive.trace_of_product
+inv = _adaptive.inv
+lstsq = _adaptive.lstsq
 qu_least_squares = _adaptive.qu_least_squares
-E_V = _adaptive.E_V
-E_G = _adaptive.E_G
 next_beta = _sage_husa.next_beta
 fading_mean = _sage_husa.fading_mean
 r_sample = _sage_husa.r_sample
@@ -1058,30 +1170,46 @@ def as_matrix(P):
     return A
 
 
-@maybe_njit
-def as_diag(v):
-    """A length-2 array as the row-major tuple of diag(v)."""
-    return (v[0], 0.0, 0.0, v[1])
+ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+EYE9 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 
 
 @maybe_njit
 def interval_step(A_v, A_g, F_scan, x2, V, g, T, B):
-    """AdaptiveEKF.predict's accumulators at a predict from heading x2 with controls (V, g)."""
-    F, G = jacobian_arrays(x2, V, g, T, B)
-    return propagate_interval(
-        A_v, A_g, F_scan, F, matmul(matmul(G, E_V), G.T), matmul(matmul(G, E_G), G.T)
-    )
+    """AdaptiveEKF.predict's accumulators (filters.adaptive.propagate_interval) at a predict
+    from heading x2 with controls (V, g), on row-major 9-tuples (no arrays: this runs at every
+    control step). A <- F A F^T + G e e^T G^T is the EKF's covariance predict with Qu = e e^T,
+    `propagate` above, and F_scan <- F F_scan; the same products, bit for bit, as the rule's
+    loops over F's zeros and ones (exact for finite values)."""
+    f02, f12, G = jacobians(x2, V, g, T, B)
+    g00, g01, g10, g11, g20, g21 = G
+    Q_v = (
+        g00 * g00, g00 * g10, g00 * g20, g10 * g00, g10 * g10, g10 * g20,
+        g20 * g00, g20 * g10, g20 * g20,
+    )  # fmt: skip
+    Q_g = (
+        g01 * g01, g01 * g11, g01 * g21, g11 * g01, g11 * g11, g11 * g21,
+        g21 * g01, g21 * g11, g21 * g21,
+    )  # fmt: skip
+    s00, s01, s02, s10, s11, s12, s20, s21, s22 = F_scan
+    F_scan = (
+        s00 + f02 * s20, s01 + f02 * s21, s02 + f02 * s22,
+        s10 + f12 * s20, s11 + f12 * s21, s12 + f12 * s22,
+        s20, s21, s22,
+    )  # fmt: skip
+    return propagate(A_v, f02, f12, Q_v), propagate(A_g, f02, f12, Q_g), F_scan
 
 
 @maybe_njit
 def qu_estimate(Q_hat, A_v, A_g, P):
-    """AdaptiveEKF.qu_estimate: (ok, diag(Qu)) not clipped; ok is False when P is singular
-    (numpy's LinAlgError: the filter diverged)."""
+    """AdaptiveEKF.qu_estimate: (ok, (qv, qg)) not clipped, A_v, A_g and P row-major 9-tuples;
+    ok is False when P is singular or not finite (LinAlgError: the filter diverged)."""
     try:
-        W = np.linalg.inv(as_matrix(P))
+        W = inv(as_matrix(P))
+        q = qu_least_squares(Q_hat, as_matrix(A_v), as_matrix(A_g), W)
     except Exception:  # numba catches no narrower class
-        return False, np.zeros(2)
-    return True, qu_least_squares(Q_hat, A_v, A_g, W)
+        return False, (0.0, 0.0)
+    return True, (q[0], q[1])
 
 
 @maybe_njit
@@ -1146,7 +1274,6 @@ def run_vbr_kernel(
     a1 = alpha0
     b0 = alpha0 * R0[0]
     b1 = alpha0 * R0[3]
-    R0_diag = np.array([R0[0], R0[3]])
     bounds = (floor, ceiling)
     nis_sum = 0.0
     n_updates = 0
@@ -1185,11 +1312,10 @@ def run_vbr_kernel(
                             bn0 = b0
                             bn1 = b1
                             for _ in range(iterations):
-                                R = as_diag(
-                                    clip_to_bounds(
-                                        np.array([bn0 / ap0, bn1 / ap1]), R0_diag, bounds
-                                    )
-                                )
+                                R = (
+                                    clip_to_bounds(bn0 / ap0, R0[0], bounds), 0.0,
+                                    0.0, clip_to_bounds(bn1 / ap1, R0[3], bounds),
+                                )  # fmt: skip
                                 ok, xn, Pn = correct(x, P, H, zh, z0, z1, R)
                                 if not ok:
                                     return True, j, nis_sum, n_updates, n_rejected
@@ -1230,11 +1356,21 @@ def run_vbr_kernel(
 from ..filters import akhlaghi as _akhlaghi  # noqa: E402
 
 if _NJIT is not None:
-    for _rule in (_akhlaghi.forget, _akhlaghi.residual_variance):
+    for _rule in (_akhlaghi.forget, _akhlaghi.residual_variance, _akhlaghi.state_noise_estimate):
         register_jitable(_rule)
 
 forget = _akhlaghi.forget
 residual_variance = _akhlaghi.residual_variance
+state_noise_estimate = _akhlaghi.state_noise_estimate
+
+
+@maybe_njit
+def akhlaghi_qu_sample(Qu, A_v, A_g, P, dx0, dx1, dx2, alpha):
+    """AkhlaghiEKF.adapt_Q before the bounds: eq. (15) on the interval (Q_scan = qv A_v + qg A_g,
+    the scan's correction dx) mapped to (qv, qg); (ok, (qv, qg)) as `qu_estimate`."""
+    Q_scan = Qu[0] * as_matrix(A_v) + Qu[3] * as_matrix(A_g)
+    Q_hat = state_noise_estimate(Q_scan, np.array([dx0, dx1, dx2]), alpha)
+    return qu_estimate(Q_hat, A_v, A_g, P)
 
 
 @maybe_njit
@@ -1254,13 +1390,10 @@ def run_akhlaghi_kernel(
     P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
     Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
     R = (R0[0], R0[1], R0[2], R0[3])
-    R0_diag = np.array([R0[0], R0[3]])
-    Qu0_diag = np.array([Qu0[0], Qu0[3]])
     bounds = (floor, ceiling)
-    A_v = np.zeros((3, 3))  # the interval's accumulators (filters.adaptive)
-    A_g = np.zeros((3, 3))
-    F_scan = np.eye(3)
-    Q_hat = np.empty((3, 3))
+    A_v = ZERO9  # the interval's accumulators (filters.adaptive), row-major
+    A_g = ZERO9
+    F_scan = EYE9
     nis_sum = 0.0
     n_updates = 0
     n_rejected = 0
@@ -1329,28 +1462,22 @@ def run_akhlaghi_kernel(
                     dx2 += wrap(xp[2] - x_prior[2])
                     dx_fed = True
                     if adapt_R:
-                        R_raw = np.array(
-                            [
-                                forget(Rs0, sum0 / n_samples, alpha),
-                                forget(Rs1, sum1 / n_samples, alpha),
-                            ]
-                        )
-                        R = as_diag(clip_to_bounds(R_raw, R0_diag, bounds))
+                        R = (
+                            clip_to_bounds(forget(Rs0, sum0 / n_samples, alpha), R0[0], bounds),
+                            0.0, 0.0,
+                            clip_to_bounds(forget(Rs1, sum1 / n_samples, alpha), R0[3], bounds),
+                        )  # fmt: skip
                 if adaptation and adapt_Q and dx_fed:
-                    # eq. (15) on the interval, mapped to Qu (AdaptiveEKF.qu_estimate)
-                    dx = (dx0, dx1, dx2)
-                    for r in range(3):
-                        for c in range(3):
-                            Q_hat[r, c] = forget(
-                                Qu[0] * A_v[r, c] + Qu[3] * A_g[r, c], dx[r] * dx[c], alpha
-                            )
-                    ok, q = qu_estimate(Q_hat, A_v, A_g, P)
+                    ok, q = akhlaghi_qu_sample(Qu, A_v, A_g, P, dx0, dx1, dx2, alpha)
                     if not ok:
                         return True, j, nis_sum, n_updates, n_rejected
-                    Qu = as_diag(clip_to_bounds(q, Qu0_diag, bounds))
-                    A_v = np.zeros((3, 3))
-                    A_g = np.zeros((3, 3))
-                    F_scan = np.eye(3)
+                    Qu = (
+                        clip_to_bounds(q[0], Qu0[0], bounds), 0.0,
+                        0.0, clip_to_bounds(q[1], Qu0[3], bounds),
+                    )  # fmt: skip
+                    A_v = ZERO9
+                    A_g = ZERO9
+                    F_scan = EYE9
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
         if record_every > 0 and k % record_every == 0 and j < n_rows:
@@ -1543,6 +1670,38 @@ def flat9(A):
 
 
 @maybe_njit
+def swvb_interval(P_s, F_s, A_v, A_g):
+    """The interval's P_s, F_s, A_v, A_g (row-major 9-tuples) as the 3 x 3 arrays the rules
+    take, once per scan (they stay the same over its passes)."""
+    return as_matrix(P_s), as_matrix(F_s), as_matrix(A_v), as_matrix(A_g)
+
+
+@maybe_njit
+def swvb_interval_prior(interval, qv, qg):
+    """`interval_prior` of the arrays of `swvb_interval`, as a row-major 9-tuple."""
+    P_s, F_s, A_v, A_g = interval
+    return flat9(interval_prior(P_s, F_s, A_v, A_g, qv, qg))
+
+
+@maybe_njit
+def swvb_qu_sample(x, x_m, P, P_m, interval):
+    """A pass's sample of diag(Qu) in SWVBEKF.update_scan, not clipped: the smoother's moment
+    (`process_noise_moment`, dx = x - x_m with its heading wrapped) mapped to (qv, qg) with the
+    weight P_m^-1; (ok, (qv, qg)), ok False where P_m is singular or not finite (LinAlgError:
+    the filter diverged). x, x_m 3-tuples, P, P_m row-major 9-tuples, `interval` the arrays of
+    `swvb_interval`."""
+    P_s, F_s, A_v, A_g = interval
+    dx = np.array([x[0] - x_m[0], x[1] - x_m[1], wrap(x[2] - x_m[2])])
+    P_m_a = as_matrix(P_m)
+    try:
+        W = process_noise_moment(dx, P_s, F_s, P_m_a, as_matrix(P))
+        q = qu_least_squares(W, A_v, A_g, inv(P_m_a))
+    except Exception:  # numba catches no narrower class
+        return False, (0.0, 0.0)
+    return True, (q[0], q[1])
+
+
+@maybe_njit
 def run_swvb_kernel(
     u_odo, every, scan_start, scan_lm, scan_z,
     T, B, x0, P0, Qu0, R0, gate, has_gate,
@@ -1560,18 +1719,20 @@ def run_swvb_kernel(
     Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
     R = (R0[0], R0[1], R0[2], R0[3])
     bounds = (floor, ceiling)
-    qu_start = np.array([Qu0[0], Qu0[3]])
-    r_start = np.array([R0[0], R0[3]])
-    a_q = np.full(2, a0)
-    b_q = a0 * qu_start
-    a_r = np.full(2, a0)
-    b_r = a0 * r_start
-    A_v = np.zeros((3, 3))  # the interval's accumulators (filters.adaptive.AdaptiveEKF)
-    A_g = np.zeros((3, 3))
-    F_scan = np.eye(3)
+    # the inverse-gamma posteriors (a, b) of qv, qg, R_range, R_bearing, each channel a float
+    a_q0 = a0
+    a_q1 = a0
+    b_q0 = a0 * Qu0[0]
+    b_q1 = a0 * Qu0[3]
+    a_r0 = a0
+    a_r1 = a0
+    b_r0 = a0 * R0[0]
+    b_r1 = a0 * R0[3]
+    A_v = ZERO9  # the interval's accumulators (filters.adaptive.AdaptiveEKF), row-major
+    A_g = ZERO9
+    F_scan = EYE9
     P_s = P  # P+ at the previous Q event
     fed = np.zeros(max(scan_lm.shape[0], 1), np.bool_)
-    dx = np.empty(3)
     nis_sum = 0.0
     n_updates = 0
     n_rejected = 0
@@ -1590,29 +1751,35 @@ def run_swvb_kernel(
             if last > first:
                 passes = iterations if adaptation else 1
                 if adaptation:
-                    a_q = rho * a_q
-                    b_q = rho * b_q
-                    a_r = rho * a_r
-                    b_r = rho * b_r
+                    a_q0 = rho * a_q0
+                    a_q1 = rho * a_q1
+                    b_q0 = rho * b_q0
+                    b_q1 = rho * b_q1
+                    a_r0 = rho * a_r0
+                    a_r1 = rho * a_r1
+                    b_r0 = rho * b_r0
+                    b_r1 = rho * b_r1
                 x_m = x
                 P_m = P
                 counts = (nis_sum, n_updates, n_rejected)
-                qu = np.array([Qu[0], Qu[3]])
-                r = np.array([R[0], R[3]])
-                F_s = F_scan
-                P_s_a = as_matrix(P_s)
-                A_v_a = A_v
-                A_g_a = A_g
-                b_q_n = b_q
-                a_r_n = a_r
-                b_r_n = b_r
+                qu0 = Qu[0]
+                qu1 = Qu[3]
+                r0 = R[0]
+                r1 = R[3]
+                b_q0_n = b_q0
+                b_q1_n = b_q1
+                a_r0_n = a_r0
+                a_r1_n = a_r1
+                b_r0_n = b_r0
+                b_r1_n = b_r1
+                interval = swvb_interval(P_s, F_scan, A_v, A_g)
                 for n in range(passes):
                     if n > 0:
-                        P_m = flat9(interval_prior(P_s_a, F_s, A_v_a, A_g_a, qu[0], qu[1]))
+                        P_m = swvb_interval_prior(interval, qu0, qu1)
                     x = x_m
                     P = P_m
                     if adaptation:
-                        R = (r[0], 0.0, 0.0, r[1])
+                        R = (r0, 0.0, 0.0, r1)
                     nis_sum, n_updates, n_rejected = counts
                     for m in range(first, last):
                         z0 = scan_z[m, 0]
@@ -1632,18 +1799,17 @@ def run_swvb_kernel(
                             return True, j, nis_sum, n_updates, n_rejected
                     if not adaptation:
                         break
-                    dx[0] = x[0] - x_m[0]
-                    dx[1] = x[1] - x_m[1]
-                    dx[2] = wrap(x[2] - x_m[2])
-                    P_m_a = as_matrix(P_m)
-                    W = process_noise_moment(dx, P_s_a, F_s, P_m_a, as_matrix(P))
-                    q = clip_to_bounds(
-                        qu_least_squares(W, A_v_a, A_g_a, np.linalg.inv(P_m_a)), qu_start, bounds
-                    )
-                    b_q_n = b_q + 0.5 * q
-                    qu = clip_to_bounds(b_q_n / (a_q + 0.5), qu_start, bounds)
-                    a_r_n = a_r
-                    b_r_n = b_r
+                    ok, q = swvb_qu_sample(x, x_m, P, P_m, interval)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                    b_q0_n = b_q0 + 0.5 * clip_to_bounds(q[0], Qu0[0], bounds)
+                    b_q1_n = b_q1 + 0.5 * clip_to_bounds(q[1], Qu0[3], bounds)
+                    qu0 = clip_to_bounds(b_q0_n / (a_q0 + 0.5), Qu0[0], bounds)
+                    qu1 = clip_to_bounds(b_q1_n / (a_q1 + 0.5), Qu0[3], bounds)
+                    a_r0_n = a_r0
+                    a_r1_n = a_r1
+                    b_r0_n = b_r0
+                    b_r1_n = b_r1
                     n_fed = 0
                     s0 = 0.0
                     s1 = 0.0
@@ -1656,19 +1822,26 @@ def run_swvb_kernel(
                             s0 = s0 + e[0] * e[0] + HPH[0]
                             s1 = s1 + e[1] * e[1] + HPH[3]
                     if n_fed > 0:
-                        a_r_n = a_r + 0.5 * n_fed
-                        b_r_n = b_r + 0.5 * np.array([s0, s1])
-                    r = clip_to_bounds(b_r_n / a_r_n, r_start, bounds)
+                        a_r0_n = a_r0 + 0.5 * n_fed
+                        a_r1_n = a_r1 + 0.5 * n_fed
+                        b_r0_n = b_r0 + 0.5 * s0
+                        b_r1_n = b_r1 + 0.5 * s1
+                    r0 = clip_to_bounds(b_r0_n / a_r0_n, R0[0], bounds)
+                    r1 = clip_to_bounds(b_r1_n / a_r1_n, R0[3], bounds)
                 if adaptation:
-                    a_q = a_q + 0.5
-                    b_q = b_q_n
-                    a_r = a_r_n
-                    b_r = b_r_n
-                    Qu = (qu[0], 0.0, 0.0, qu[1])
-                    R = (r[0], 0.0, 0.0, r[1])
-                    A_v = np.zeros((3, 3))
-                    A_g = np.zeros((3, 3))
-                    F_scan = np.eye(3)
+                    a_q0 = a_q0 + 0.5
+                    a_q1 = a_q1 + 0.5
+                    b_q0 = b_q0_n
+                    b_q1 = b_q1_n
+                    a_r0 = a_r0_n
+                    a_r1 = a_r1_n
+                    b_r0 = b_r0_n
+                    b_r1 = b_r1_n
+                    Qu = (qu0, 0.0, 0.0, qu1)
+                    R = (r0, 0.0, 0.0, r1)
+                    A_v = ZERO9
+                    A_g = ZERO9
+                    F_scan = EYE9
                     P_s = P
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
@@ -1680,6 +1853,16 @@ def run_swvb_kernel(
 
 # ---------------------------------------------------------------------------------------------
 # Fading-memory Sage-Husa (filters.sage_husa)
+
+
+@maybe_njit
+def sage_husa_qu_sample(x, x_prior, P, P_scan_start, F_scan, A_v, A_g, unbiased):
+    """SageHusaEKF._adapt_Qu's sample before the bounds: the scan's Q sample (`q_sample`, dx the
+    correction x - x_prior, heading wrapped) mapped to (qv, qg); (ok, (qv, qg)) as
+    `qu_estimate`. P, P_scan_start, F_scan, A_v, A_g row-major 9-tuples."""
+    dx = np.array([x[0] - x_prior[0], x[1] - x_prior[1], wrap(x[2] - x_prior[2])])
+    Q_hat = q_sample(dx, as_matrix(P), as_matrix(P_scan_start), as_matrix(F_scan), unbiased)
+    return qu_estimate(Q_hat, A_v, A_g, P)
 
 
 @maybe_njit
@@ -1698,20 +1881,21 @@ def run_sage_husa_kernel(
     P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
     Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
     R = (R0[0], R0[1], R0[2], R0[3])
-    R0_diag = np.array([R0[0], R0[3]])
-    Qu0_diag = np.array([Qu0[0], Qu0[3]])
     bounds = (lo, hi)
-    R_min = lo * R0_diag
-    R_max = hi * R0_diag
+    R_min0 = lo * R0[0]  # each channel as floats (the rules are elementwise)
+    R_min1 = lo * R0[3]
+    R_max0 = hi * R0[0]
+    R_max1 = hi * R0[3]
     beta = 1.0
     n_events = 0
-    R_hat = R0_diag.copy()
-    Qu_hat = Qu0_diag.copy()
-    A_v = np.zeros((3, 3))
-    A_g = np.zeros((3, 3))
-    F_scan = np.eye(3)
-    P_scan_start = as_matrix(P)
-    nu_a = np.empty(2)
+    R_hat0 = R0[0]
+    R_hat1 = R0[3]
+    Qu_hat0 = Qu0[0]
+    Qu_hat1 = Qu0[3]
+    A_v = ZERO9  # the interval's accumulators (filters.adaptive), row-major
+    A_g = ZERO9
+    F_scan = EYE9
+    P_scan_start = P
     nis_sum = 0.0
     n_updates = 0
     n_rejected = 0
@@ -1731,9 +1915,11 @@ def run_sage_husa_kernel(
             if last > first:
                 # SageHusaEKF.begin_scan
                 d = beta
-                R_start = R_hat.copy()
+                R_start0 = R_hat0
+                R_start1 = R_hat1
                 x_prior = x
-                rho_sum = np.zeros(2)
+                rho_sum0 = 0.0
+                rho_sum1 = 0.0
                 n_fed = 0
                 n_accepted = 0
                 for m in range(first, last):
@@ -1748,14 +1934,16 @@ def run_sage_husa_kernel(
                                 return True, j, nis_sum, n_updates, n_rejected
                             feeds = nis_a <= gate
                         if feeds:  # SageHusaEKF.before_gain
-                            nu_a[0] = nu[0]
-                            nu_a[1] = nu[1]
-                            HPH_a = np.array([[HPHt[0], HPHt[1]], [HPHt[2], HPHt[3]]])
-                            rho_sum = rho_sum + r_sample(nu_a, HPH_a, R_min, R_max)
+                            rho_sum0 = rho_sum0 + r_sample(nu[0], HPHt[0], R_min0, R_max0)
+                            rho_sum1 = rho_sum1 + r_sample(nu[1], HPHt[3], R_min1, R_max1)
                             n_fed += 1
-                            R_hat = fading_mean(d, R_start, rho_sum, n_fed)
+                            R_hat0 = fading_mean(d, R_start0, rho_sum0, n_fed)
+                            R_hat1 = fading_mean(d, R_start1, rho_sum1, n_fed)
                             if n_events >= warmup:
-                                R = as_diag(clip_to_bounds(R_hat, R0_diag, bounds))
+                                R = (
+                                    clip_to_bounds(R_hat0, R0[0], bounds), 0.0,
+                                    0.0, clip_to_bounds(R_hat1, R0[3], bounds),
+                                )  # fmt: skip
                     ok, v = nis(HPHt, R, nu[0], nu[1])
                     if not ok or not math.isfinite(v):
                         return True, j, nis_sum, n_updates, n_rejected
@@ -1771,20 +1959,22 @@ def run_sage_husa_kernel(
                 # SageHusaEKF.end_scan
                 if adapt_Q:
                     if adaptation and n_fed > 0 and n_accepted > 0:
-                        dx = np.array([x[0] - x_prior[0], x[1] - x_prior[1], x[2] - x_prior[2]])
-                        dx[2] = wrap(dx[2])
-                        Q_hat = q_sample(dx, as_matrix(P), P_scan_start, F_scan, unbiased)
-                        ok, q_hat = qu_estimate(Q_hat, A_v, A_g, P)
+                        ok, q = sage_husa_qu_sample(
+                            x, x_prior, P, P_scan_start, F_scan, A_v, A_g, unbiased
+                        )
                         if not ok:
                             return True, j, nis_sum, n_updates, n_rejected
-                        q_hat = clip_to_bounds(q_hat, Qu0_diag, bounds)
-                        Qu_hat = fading_mean(d, Qu_hat, q_hat, 1)
+                        Qu_hat0 = fading_mean(d, Qu_hat0, clip_to_bounds(q[0], Qu0[0], bounds), 1)
+                        Qu_hat1 = fading_mean(d, Qu_hat1, clip_to_bounds(q[1], Qu0[3], bounds), 1)
                         if n_events >= warmup:
-                            Qu = as_diag(clip_to_bounds(Qu_hat, Qu0_diag, bounds))
-                    A_v = np.zeros((3, 3))
-                    A_g = np.zeros((3, 3))
-                    F_scan = np.eye(3)
-                    P_scan_start = as_matrix(P)
+                            Qu = (
+                                clip_to_bounds(Qu_hat0, Qu0[0], bounds), 0.0,
+                                0.0, clip_to_bounds(Qu_hat1, Qu0[3], bounds),
+                            )  # fmt: skip
+                    A_v = ZERO9
+                    A_g = ZERO9
+                    F_scan = EYE9
+                    P_scan_start = P
                 if n_fed > 0:
                     beta = next_beta(beta, b)
                     n_events += 1
@@ -1816,13 +2006,62 @@ q_estimate = _iae.q_estimate
 
 
 @maybe_njit
-def oldest_first(ring, pos):
-    """A full ring buffer (first axis) as an array, oldest first (a deque's order)."""
-    n = ring.shape[0]
-    out = np.empty_like(ring)
-    for i in range(n):
-        out[i] = ring[(pos + i) % n]
-    return out
+def push_row(win, n, a, b):
+    """Append the row (a, b) to a window of rows kept oldest first (a deque's order) that holds
+    n rows: at row n while it is not full, else after moving the others up one (no copy of the
+    window when a rule reads it)."""
+    N = win.shape[0]
+    if n < N:
+        win[n, 0] = a
+        win[n, 1] = b
+        return
+    for i in range(N - 1):
+        win[i, 0] = win[i + 1, 0]
+        win[i, 1] = win[i + 1, 1]
+    win[N - 1, 0] = a
+    win[N - 1, 1] = b
+
+
+@maybe_njit
+def row_mean(win):
+    """`window_mean` of a full window of rows (a, b), as two floats."""
+    m = window_mean(win)
+    return m[0], m[1]
+
+
+@maybe_njit
+def iae_r_estimate(nus, hph_diags, hph_window, hph0, hph1, hold, R):
+    """IAEEKF.adapt_R before the bounds, from the full windows (oldest first): (r0, r1), the
+    diagonal of C - H P- H^T with the window's mean diag(H P- H^T) (hph_window) or the current
+    one (hph0, hph1); hold: a channel <= 0 keeps its value in R."""
+    C = window_covariance(nus)
+    if hph_window:
+        h0, h1 = row_mean(hph_diags)
+    else:
+        h0 = hph0
+        h1 = hph1
+    r0 = r_estimate(C[0, 0], h0)
+    r1 = r_estimate(C[1, 1], h1)
+    if hold:
+        held = hold_nonpositive(np.array([r0, r1]), np.array([R[0], R[3]]))
+        r0 = held[0]
+        r1 = held[1]
+    return r0, r1
+
+
+@maybe_njit
+def iae_qu_sample(nus, Ks, n_K, P, P_scan_start, F_scan, A_v, A_g, q_full):
+    """IAEEKF.end_scan's sample of diag(Qu), not clipped: Q_hat (`q_estimate`) from the full
+    window's C (oldest first), the gains of the scan's n_K fused landmarks and, q_full, P+ -
+    F_scan P_scan_start F_scan^T; mapped to (qv, qg). (ok, (qv, qg)) as `qu_estimate`."""
+    C = window_covariance(nus)
+    if q_full:
+        F = as_matrix(F_scan)
+        dP = as_matrix(P) - matmul(matmul(F, as_matrix(P_scan_start)), F.T)
+    else:
+        dP = np.zeros((3, 3))
+    Q_hat = q_estimate(Ks[:n_K], C, dP)
+    return qu_estimate(Q_hat, A_v, A_g, P)
 
 
 @maybe_njit
@@ -1843,24 +2082,21 @@ def run_iae_kernel(
     P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
     Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
     R = (R0[0], R0[1], R0[2], R0[3])
-    R0_diag = np.array([R0[0], R0[3]])
-    Qu0_diag = np.array([Qu0[0], Qu0[3]])
     bounds = (lo, hi)
+    # the windows, oldest first (`push_row`): innovations, diag(H P- H^T), diag(Qu) samples
     nus = np.zeros((window, 2))
-    hphs = np.zeros((window, 2, 2))
+    hph_diags = np.zeros((window, 2))
     n_win = 0
-    pos = 0
     q_samples = np.zeros((q_window, 2))
     n_q = 0
-    q_pos = 0
     max_per_scan = 0
     for s in range(scan_start.shape[0] - 1):
         max_per_scan = max(max_per_scan, scan_start[s + 1] - scan_start[s])
     Ks = np.zeros((max(max_per_scan, 1), 3, 2))
-    A_v = np.zeros((3, 3))
-    A_g = np.zeros((3, 3))
-    F_scan = np.eye(3)
-    P_scan_start = as_matrix(P)
+    A_v = ZERO9  # the interval's accumulators (filters.adaptive), row-major
+    A_g = ZERO9
+    F_scan = EYE9
+    P_scan_start = P
     nis_sum = 0.0
     n_updates = 0
     n_rejected = 0
@@ -1890,23 +2126,18 @@ def run_iae_kernel(
                             return True, j, nis_sum, n_updates, n_rejected
                         feeds = nis_a <= gate
                     if feeds:  # IAEEKF.before_gain
-                        nus[pos, 0] = nu[0]
-                        nus[pos, 1] = nu[1]
-                        for i in range(4):
-                            hphs[pos, i // 2, i % 2] = HPHt[i]
-                        pos = (pos + 1) % window
+                        push_row(nus, n_win, nu[0], nu[1])
+                        push_row(hph_diags, n_win, HPHt[0], HPHt[3])
                         if n_win < window:
                             n_win += 1
                         if not adapt_Q and n_win == window and adaptation:  # IAEEKF.adapt_R
-                            C = window_covariance(oldest_first(nus, pos))
-                            if hph_window:
-                                HPH_w = window_mean(oldest_first(hphs, pos))
-                            else:
-                                HPH_w = np.array([[HPHt[0], HPHt[1]], [HPHt[2], HPHt[3]]])
-                            R_hat = r_estimate(C, HPH_w)
-                            if hold:
-                                R_hat = hold_nonpositive(R_hat, np.array([R[0], R[3]]))
-                            R = as_diag(clip_to_bounds(R_hat, R0_diag, bounds))
+                            r0, r1 = iae_r_estimate(
+                                nus, hph_diags, hph_window, HPHt[0], HPHt[3], hold, R
+                            )
+                            R = (
+                                clip_to_bounds(r0, R0[0], bounds), 0.0,
+                                0.0, clip_to_bounds(r1, R0[3], bounds),
+                            )  # fmt: skip
                     ok, v = nis(HPHt, R, nu[0], nu[1])
                     if not ok or not math.isfinite(v):
                         return True, j, nis_sum, n_updates, n_rejected
@@ -1925,30 +2156,22 @@ def run_iae_kernel(
                         return True, j, nis_sum, n_updates, n_rejected
                 # IAEEKF.end_scan
                 if adapt_Q and adaptation and n_win == window and n_K > 0:
-                    C = window_covariance(oldest_first(nus, pos))
-                    P_post = as_matrix(P)
-                    if q_full:
-                        dP = P_post - matmul(matmul(F_scan, P_scan_start), F_scan.T)
-                        Q_hat = q_estimate(Ks[:n_K], C, dP)
-                    else:
-                        Q_hat = q_estimate(Ks[:n_K], C, np.zeros((3, 3)))
-                    ok, q = qu_estimate(Q_hat, A_v, A_g, P)
+                    ok, q = iae_qu_sample(nus, Ks, n_K, P, P_scan_start, F_scan, A_v, A_g, q_full)
                     if not ok:
                         return True, j, nis_sum, n_updates, n_rejected
-                    q_samples[q_pos] = q
-                    q_pos = (q_pos + 1) % q_window
+                    push_row(q_samples, n_q, q[0], q[1])
                     if n_q < q_window:
                         n_q += 1
                     if n_q == q_window:
-                        Qu = as_diag(
-                            clip_to_bounds(
-                                window_mean(oldest_first(q_samples, q_pos)), Qu0_diag, bounds
-                            )
-                        )
-                A_v = np.zeros((3, 3))
-                A_g = np.zeros((3, 3))
-                F_scan = np.eye(3)
-                P_scan_start = as_matrix(P)
+                        q0, q1 = row_mean(q_samples)
+                        Qu = (
+                            clip_to_bounds(q0, Qu0[0], bounds), 0.0,
+                            0.0, clip_to_bounds(q1, Qu0[3], bounds),
+                        )  # fmt: skip
+                A_v = ZERO9
+                A_g = ZERO9
+                F_scan = EYE9
+                P_scan_start = P
                 if not healthy(x, P, R, Qu):
                     return True, j, nis_sum, n_updates, n_rejected
         if record_every > 0 and k % record_every == 0 and j < n_rows:

@@ -36,7 +36,7 @@ from pydantic import Field
 from ..models import h, residual_z, wrap_scalar
 from ..models.range_bearing import H_jacobian
 from ..schema import PositiveFloat
-from .adaptive import AdaptiveEKF, clip_to_bounds, qu_least_squares
+from .adaptive import AdaptiveEKF, clip_to_bounds, inv, matmul, outer, qu_least_squares
 from .spec import AdaptiveSpec, FilterContext
 
 RHO = 1.0 - math.exp(-4.0)  # as vb-r and vbakf
@@ -44,17 +44,18 @@ RHO = 1.0 - math.exp(-4.0)  # as vb-r and vbakf
 
 def interval_prior(P_s, F_s, A_v, A_g, qv, qg):
     """P- of the interval for Qu = diag(qv, qg): F_s P_s F_s^T + qv A_v + qg A_g."""
-    return F_s @ P_s @ F_s.T + qv * A_v + qg * A_g
+    return matmul(matmul(F_s, P_s), F_s.T) + qv * A_v + qg * A_g
 
 
 def process_noise_moment(dx, P_s, F_s, P_prior, P_post):
     """E[w w^T] of the interval's process noise w = x_k - F_s x_s under the lag-one smoother
-    (S.2); dx = x+ - x- with its heading wrapped."""
-    J = P_s @ F_s.T @ np.linalg.inv(P_prior)
-    m = dx - F_s @ (J @ dx)
-    P_s_smooth = P_s + J @ (P_post - P_prior) @ J.T
-    C = P_post @ J.T @ F_s.T
-    W = np.outer(m, m) + P_post - C - C.T + F_s @ P_s_smooth @ F_s.T
+    (S.2); dx = x+ - x- with its heading wrapped. (`matmul` and `inv` are numpy's `@` and
+    np.linalg.inv, compiled as plain loops on the fast engine.)"""
+    J = matmul(matmul(P_s, F_s.T), inv(P_prior))
+    m = dx - matmul(F_s, matmul(J, dx))
+    P_s_smooth = P_s + matmul(matmul(J, P_post - P_prior), J.T)
+    C = matmul(matmul(P_post, J.T), F_s.T)
+    W = outer(m, m) + P_post - C - C.T + matmul(matmul(F_s, P_s_smooth), F_s.T)
     return 0.5 * (W + W.T)
 
 

@@ -1671,16 +1671,18 @@ def flat9(A):
 
 @maybe_njit
 def swvb_interval(P_s, F_s, A_v, A_g):
-    """The interval's P_s, F_s, A_v, A_g (row-major 9-tuples) as the 3 x 3 arrays the rules
-    take, once per scan (they stay the same over its passes)."""
-    return as_matrix(P_s), as_matrix(F_s), as_matrix(A_v), as_matrix(A_g)
+    """What the rules read of the interval, the same over a scan's passes, as 3 x 3 arrays:
+    (P_s, F_s, F_s P_s F_s^T, A_v, A_g) from row-major 9-tuples."""
+    P_s_a = as_matrix(P_s)
+    F = as_matrix(F_s)
+    return P_s_a, F, matmul(matmul(F, P_s_a), F.T), as_matrix(A_v), as_matrix(A_g)
 
 
 @maybe_njit
 def swvb_interval_prior(interval, qv, qg):
-    """`interval_prior` of the arrays of `swvb_interval`, as a row-major 9-tuple."""
-    P_s, F_s, A_v, A_g = interval
-    return flat9(interval_prior(P_s, F_s, A_v, A_g, qv, qg))
+    """`interval_prior` of `swvb_interval`'s arrays, as a row-major 9-tuple."""
+    _, _, FPF, A_v, A_g = interval
+    return flat9(interval_prior(FPF, A_v, A_g, qv, qg))
 
 
 @maybe_njit
@@ -1690,13 +1692,17 @@ def swvb_qu_sample(x, x_m, P, P_m, interval):
     weight P_m^-1; (ok, (qv, qg)), ok False where P_m is singular or not finite (LinAlgError:
     the filter diverged). x, x_m 3-tuples, P, P_m row-major 9-tuples, `interval` the arrays of
     `swvb_interval`."""
-    P_s, F_s, A_v, A_g = interval
+    P_s, F_s, _, A_v, A_g = interval
     dx = np.array([x[0] - x_m[0], x[1] - x_m[1], wrap(x[2] - x_m[2])])
     P_m_a = as_matrix(P_m)
     try:
-        W = process_noise_moment(dx, P_s, F_s, P_m_a, as_matrix(P))
-        q = qu_least_squares(W, A_v, A_g, inv(P_m_a))
+        P_m_inv = inv(P_m_a)
     except Exception:  # numba catches no narrower class
+        return False, (0.0, 0.0)
+    W = process_noise_moment(dx, P_s, F_s, P_m_a, P_m_inv, as_matrix(P))
+    try:
+        q = qu_least_squares(W, A_v, A_g, P_m_inv)
+    except Exception:
         return False, (0.0, 0.0)
     return True, (q[0], q[1])
 

@@ -510,9 +510,10 @@ def hqh_diag(H, Qi, HPH0, HPH1):
 
 # ---------------------------------------------------------------------------------------------
 # The rules of the adaptive families, as written in their modules (filters/*.py) and registered
-# with numba so that compiled code calls them. numba's disk cache is keyed on THIS file: after
-# editing a rule there, touch this file (or delete its __pycache__/*.nbi) so that the kernels are
-# compiled again; the equivalence tests fail on a stale cache.
+# with numba so that compiled code calls them. numba's disk cache is keyed on THIS file's
+# contents (numba >= 0.59 hashes them: touching it is not enough): after editing a rule there,
+# delete __pycache__/kernels.*.nbi so that the kernels are compiled again; the equivalence tests
+# fail on a stale cache.
 
 from ..filters import cm_scale as _cm_scale  # noqa: E402
 
@@ -709,9 +710,9 @@ def run_kernel(
 # ---------------------------------------------------------------------------------------------
 # Multiple-model banks (filters.bank): M EKFs on the kernels above, the bank's rules as written
 # in filters/bank.py (registered with numba so that compiled code calls them). numba's disk cache
-# is keyed on THIS file: after editing a rule in filters/bank.py or filters/fading.py, touch this
-# file (or delete its __pycache__/*.nbi) so that the kernels are compiled again; the equivalence
-# tests (tests/test_fast_bank.py) fail on a stale cache.
+# is keyed on THIS file's contents: after editing a rule in filters/bank.py or filters/fading.py,
+# delete __pycache__/kernels.*.nbi so that the kernels are compiled again; the equivalence tests
+# (tests/test_fast_bank.py) fail on a stale cache.
 
 from ..filters import bank as _bank  # noqa: E402
 
@@ -1697,12 +1698,9 @@ def swvb_qu_sample(x, x_m, P, P_m, interval):
     P_m_a = as_matrix(P_m)
     try:
         P_m_inv = inv(P_m_a)
-    except Exception:  # numba catches no narrower class
-        return False, (0.0, 0.0)
-    W = process_noise_moment(dx, P_s, F_s, P_m_a, P_m_inv, as_matrix(P))
-    try:
+        W = process_noise_moment(dx, P_s, F_s, P_m_a, P_m_inv, as_matrix(P))
         q = qu_least_squares(W, A_v, A_g, P_m_inv)
-    except Exception:
+    except Exception:  # numba catches no narrower class
         return False, (0.0, 0.0)
     return True, (q[0], q[1])
 

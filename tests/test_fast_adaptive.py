@@ -163,16 +163,25 @@ def test_paper_scenarios(path, name):
 
 
 def test_each_rule_is_written_once():
-    """The kernels call the filter modules' own rule functions (no copies in kernels.py)."""
+    """The kernels call the filter modules' own rule functions (no copies in kernels.py).
+
+    The interval's accumulators A_v, A_g are the one exception: their step is the EKF's own
+    covariance predict (`kernels.propagate`, the EKF core that both engines have on purpose),
+    on tuples because it runs at every control step; the equivalence tests hold it to the rule.
+    """
     from anfekf_bench.engines import kernels
-    from anfekf_bench.filters import adaptive, akhlaghi, swvb, vb
+    from anfekf_bench.filters import adaptive, akhlaghi, iae, sage_husa, swvb, vb
 
     rules = {
-        "qu_least_squares": adaptive, "clip_to_bounds": adaptive,
-        "propagate_interval": adaptive, "matmul": adaptive,
-        "forget": akhlaghi, "residual_variance": akhlaghi, "vb_r_predict": vb, "vb_r_beta": vb,
+        "qu_least_squares": adaptive, "clip_to_bounds": adaptive, "matmul": adaptive,
+        "inv": adaptive, "lstsq": adaptive,
+        "forget": akhlaghi, "residual_variance": akhlaghi, "state_noise_estimate": akhlaghi,
+        "vb_r_predict": vb, "vb_r_beta": vb,
         "vb_r_bounded_beta": vb, "vbakf_predict": vb, "vbakf_prior": vb, "inflation_cap": vb,
         "clip_covariance_2": vb, "interval_prior": swvb, "process_noise_moment": swvb,
+        "next_beta": sage_husa, "fading_mean": sage_husa, "r_sample": sage_husa,
+        "q_sample": sage_husa, "window_covariance": iae, "window_mean": iae, "r_estimate": iae,
+        "hold_nonpositive": iae, "q_estimate": iae,
     }  # fmt: skip
     for mod in (kernels, kernels.pure_module()):
         for name, home in rules.items():

@@ -76,8 +76,9 @@ def test_nonpositive_hold_keeps_the_previous_value_of_that_channel():
 
 
 def test_r_estimate_is_not_clamped_itself():
-    np.testing.assert_allclose(r_estimate(np.diag([0.01, 0.5]), np.diag([0.02, 0.1])),
+    np.testing.assert_allclose(r_estimate(np.array([0.01, 0.5]), np.array([0.02, 0.1])),
                                [-0.01, 0.4])  # fmt: skip
+    assert r_estimate(0.01, 0.02) == pytest.approx(-0.01)  # one channel (the fast engine's)
 
 
 def _q_case(q_form: str, q_window: int = 1) -> IAEEKF:

@@ -64,11 +64,14 @@ def test_fading_weight_recursion_and_closed_form_agree():
 def test_r_sample_is_clamped_per_channel():
     lo, hi = np.array([0.01, 1e-4]), np.array([100.0, 1.0])
     # nu^2 - HPH = (4 - 0.5, 0.09 - 0.04) = (3.5, 0.05): inside
-    np.testing.assert_allclose(r_sample(np.array([2.0, 0.3]), np.diag([0.5, 0.04]), lo, hi),
+    np.testing.assert_allclose(r_sample(np.array([2.0, 0.3]), np.array([0.5, 0.04]), lo, hi),
                                [3.5, 0.05])  # fmt: skip
     # (1 - 2, 4 - 0) = (-1, 4): floor on range, ceiling on bearing
-    np.testing.assert_allclose(r_sample(np.array([1.0, 2.0]), np.diag([2.0, 0.0]), lo, hi),
+    np.testing.assert_allclose(r_sample(np.array([1.0, 2.0]), np.array([2.0, 0.0]), lo, hi),
                                [0.01, 1.0])  # fmt: skip
+    # one channel as floats (the fast engine's kernel): the same clamp
+    assert r_sample(1.0, 2.0, 0.01, 100.0) == 0.01
+    assert r_sample(2.0, 0.5, 0.01, 100.0) == 3.5
 
 
 def test_r_steps_by_hand_two_scans_one_pooled():

@@ -146,19 +146,6 @@ def noise_scale(dt, motion, T0):
 
 
 @maybe_njit
-def jacobian_arrays(x2, u0, u1, dt, motion, B, T0):
-    """`jacobians` as arrays: F (3 x 3) and G (3 x 2), for the rules written with numpy."""
-    f02, f12, G = jacobians(x2, u0, u1, dt, motion, B)
-    F = np.eye(3)
-    F[0, 2] = f02
-    F[1, 2] = f12
-    Ga = np.empty((3, 2))
-    for i in range(6):
-        Ga[i // 2, i % 2] = G[i]
-    return F, Ga
-
-
-@maybe_njit
 def predict(x, P, u0, u1, dt, motion, B, T0, Qu):
     """RobotEKF.predict with `motion`'s model: F and G at (x, u), x- = f(x, u),
     P- = F P F^T + Q (eqs. 19-21). Returns (x-, P-, Q): Q = G Qu G^T (bicycle, eq. 20) or
@@ -555,9 +542,10 @@ def hqh_diag(H, Qi, HPH0, HPH1):
 
 # ---------------------------------------------------------------------------------------------
 # The rules of the adaptive families, as written in their modules (filters/*.py) and registered
-# with numba so that compiled code calls them. numba's disk cache is keyed on THIS file: after
-# editing a rule there, touch this file (or delete its __pycache__/*.nbi) so that the kernels are
-# compiled again; the equivalence tests fail on a stale cache.
+# with numba so that compiled code calls them. numba's disk cache is keyed on THIS file's
+# contents (numba >= 0.59 hashes them: touching it is not enough): after editing a rule there,
+# delete __pycache__/kernels.*.nbi so that the kernels are compiled again; the equivalence tests
+# fail on a stale cache.
 
 from ..filters import cm_scale as _cm_scale  # noqa: E402
 
@@ -644,108 +632,107 @@ def run_kernel(
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
         if last > first:
-            if True:  # (the scan's body keeps its indentation)
-                first_of_scan = True
-                for m in range(first, last):
-                    z0 = scan_z[m, 0]
-                    z1 = scan_z[m, 1]
-                    H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
-                    if adaptive:
-                        feeds = True
-                        if not from_all and has_gate:
-                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
-                            if not ok:
-                                return True, j, nis_sum, n_updates, n_rejected
-                            feeds = nis_a <= gate
-                        if feeds:
-                            # ANFEKF.supervise: window of squared innovations, then adapt
-                            updated_since_predict = True
-                            win[pos, 0] = nu[0] * nu[0]
-                            win[pos, 1] = nu[1] * nu[1]
-                            pos = (pos + 1) % window
-                            if n_win < window:
-                                n_win += 1
-                            if n_win == window and adaptation:
-                                c0 = 0.0
-                                c1 = 0.0
-                                for i in range(window):  # oldest first, as np.mean sums
-                                    c0 += win[(pos + i) % window, 0]
-                                    c1 += win[(pos + i) % window, 1]
-                                c0 = c0 / window
-                                c1 = c1 / window
-                                HPH0 = HPHt[0]
-                                HPH1 = HPHt[3]
+            first_of_scan = True
+            for m in range(first, last):
+                z0 = scan_z[m, 0]
+                z1 = scan_z[m, 1]
+                H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                if adaptive:
+                    feeds = True
+                    if not from_all and has_gate:
+                        ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                        if not ok:
+                            return True, j, nis_sum, n_updates, n_rejected
+                        feeds = nis_a <= gate
+                    if feeds:
+                        # ANFEKF.supervise: window of squared innovations, then adapt
+                        updated_since_predict = True
+                        win[pos, 0] = nu[0] * nu[0]
+                        win[pos, 1] = nu[1] * nu[1]
+                        pos = (pos + 1) % window
+                        if n_win < window:
+                            n_win += 1
+                        if n_win == window and adaptation:
+                            c0 = 0.0
+                            c1 = 0.0
+                            for i in range(window):  # oldest first, as np.mean sums
+                                c0 += win[(pos + i) % window, 0]
+                                c1 += win[(pos + i) % window, 1]
+                            c0 = c0 / window
+                            c1 = c1 / window
+                            HPH0 = HPHt[0]
+                            HPH1 = HPHt[3]
+                            S0 = HPH0 + R[0]
+                            S1 = HPH1 + R[3]
+                            d0 = (S0 - c0) / (S0 + c0)
+                            d1 = (S1 - c1) / (S1 + c1)
+                            dd0 = 0.0
+                            dd1 = 0.0
+                            if have_d_prev:
+                                dd0 = d0 - d_prev0
+                                dd1 = d1 - d_prev1
+                            d_prev0 = d0
+                            d_prev1 = d1
+                            have_d_prev = True
+                            if adapt_R:
+                                if rule == RULE_PROPORTIONAL:
+                                    r0 = R[0] * math.exp(proportional_step(d0, kappa, clip))
+                                    r1 = R[3] * math.exp(proportional_step(d1, kappa, clip))
+                                else:
+                                    r0 = r_step(
+                                        anf[0], d0, dd0, R[0], HPH0, c0, clip, learning,
+                                        eta_m, eta_d, eta_w, grad, ws,
+                                    )  # fmt: skip
+                                    r1 = r_step(
+                                        anf[1], d1, dd1, R[3], HPH1, c1, clip, learning,
+                                        eta_m, eta_d, eta_w, grad, ws,
+                                    )  # fmt: skip
+                                R = (
+                                    clip_nan(r0, R_lo0, R_hi0), 0.0,
+                                    0.0, clip_nan(r1, R_lo1, R_hi1),
+                                )  # fmt: skip
                                 S0 = HPH0 + R[0]
                                 S1 = HPH1 + R[3]
-                                d0 = (S0 - c0) / (S0 + c0)
-                                d1 = (S1 - c1) / (S1 + c1)
-                                dd0 = 0.0
-                                dd1 = 0.0
-                                if have_d_prev:
-                                    dd0 = d0 - d_prev0
-                                    dd1 = d1 - d_prev1
-                                d_prev0 = d0
-                                d_prev1 = d1
-                                have_d_prev = True
-                                if adapt_R:
-                                    if rule == RULE_PROPORTIONAL:
-                                        r0 = R[0] * math.exp(proportional_step(d0, kappa, clip))
-                                        r1 = R[3] * math.exp(proportional_step(d1, kappa, clip))
-                                    else:
-                                        r0 = r_step(
-                                            anf[0], d0, dd0, R[0], HPH0, c0, clip, learning,
-                                            eta_m, eta_d, eta_w, grad, ws,
-                                        )  # fmt: skip
-                                        r1 = r_step(
-                                            anf[1], d1, dd1, R[3], HPH1, c1, clip, learning,
-                                            eta_m, eta_d, eta_w, grad, ws,
-                                        )  # fmt: skip
-                                    R = (
-                                        clip_nan(r0, R_lo0, R_hi0), 0.0,
-                                        0.0, clip_nan(r1, R_lo1, R_hi1),
-                                    )  # fmt: skip
-                                    S0 = HPH0 + R[0]
-                                    S1 = HPH1 + R[3]
-                                if adapt_Q and first_of_scan and rule == RULE_PROPORTIONAL:
-                                    scale = math.exp(
-                                        proportional_step(mean_mismatch(d0, d1), kappa, clip)
-                                    )
-                                    Qu = (
-                                        clip_nan(Qu[0] * scale, Q_lo0, Q_hi0), 0.0,
-                                        0.0, clip_nan(Qu[3] * scale, Q_lo1, Q_hi1),
-                                    )  # fmt: skip
-                                elif adapt_Q and first_of_scan:
-                                    dS0, dS1 = hqh_diag(H, Qi, HPH0, HPH1)
-                                    scale = q_step(
-                                        anf[2], d0, d1, S0, S1, c0, c1, dS0, dS1, clip,
-                                        learning, eta_m, eta_d, eta_w, grad, ws,
-                                    )  # fmt: skip
-                                    b0 = Qu[0]
-                                    Qu = (
-                                        clip_nan(b0 * scale, Q_lo0, Q_hi0), 0.0,
-                                        0.0, clip_nan(Qu[3] * scale, Q_lo1, Q_hi1),
-                                    )  # fmt: skip
-                                    f = Qu[0] / b0
-                                    Qi = (
-                                        Qi[0] * f, Qi[1] * f, Qi[2] * f,
-                                        Qi[3] * f, Qi[4] * f, Qi[5] * f,
-                                        Qi[6] * f, Qi[7] * f, Qi[8] * f,
-                                    )  # fmt: skip
-                        first_of_scan = False
-                    # RobotEKF.update_landmark: NIS, gate, Joseph update
-                    ok, v = nis(HPHt, R, nu[0], nu[1])
-                    if not ok or not math.isfinite(v):
-                        return True, j, nis_sum, n_updates, n_rejected
-                    if has_gate and not v <= gate:
-                        n_rejected += 1
-                        continue
-                    nis_sum += v
-                    n_updates += 1
-                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
-                    if not ok:
-                        return True, j, nis_sum, n_updates, n_rejected
-                if not healthy(x, P, R, Qu):
+                            if adapt_Q and first_of_scan and rule == RULE_PROPORTIONAL:
+                                scale = math.exp(
+                                    proportional_step(mean_mismatch(d0, d1), kappa, clip)
+                                )
+                                Qu = (
+                                    clip_nan(Qu[0] * scale, Q_lo0, Q_hi0), 0.0,
+                                    0.0, clip_nan(Qu[3] * scale, Q_lo1, Q_hi1),
+                                )  # fmt: skip
+                            elif adapt_Q and first_of_scan:
+                                dS0, dS1 = hqh_diag(H, Qi, HPH0, HPH1)
+                                scale = q_step(
+                                    anf[2], d0, d1, S0, S1, c0, c1, dS0, dS1, clip,
+                                    learning, eta_m, eta_d, eta_w, grad, ws,
+                                )  # fmt: skip
+                                b0 = Qu[0]
+                                Qu = (
+                                    clip_nan(b0 * scale, Q_lo0, Q_hi0), 0.0,
+                                    0.0, clip_nan(Qu[3] * scale, Q_lo1, Q_hi1),
+                                )  # fmt: skip
+                                f = Qu[0] / b0
+                                Qi = (
+                                    Qi[0] * f, Qi[1] * f, Qi[2] * f,
+                                    Qi[3] * f, Qi[4] * f, Qi[5] * f,
+                                    Qi[6] * f, Qi[7] * f, Qi[8] * f,
+                                )  # fmt: skip
+                    first_of_scan = False
+                # RobotEKF.update_landmark: NIS, gate, Joseph update
+                ok, v = nis(HPHt, R, nu[0], nu[1])
+                if not ok or not math.isfinite(v):
                     return True, j, nis_sum, n_updates, n_rejected
+                if has_gate and not v <= gate:
+                    n_rejected += 1
+                    continue
+                nis_sum += v
+                n_updates += 1
+                ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                if not ok:
+                    return True, j, nis_sum, n_updates, n_rejected
+            if not healthy(x, P, R, Qu):
+                return True, j, nis_sum, n_updates, n_rejected
         if record_at[k] and j < n_rows:
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad
@@ -756,9 +743,9 @@ def run_kernel(
 # ---------------------------------------------------------------------------------------------
 # Multiple-model banks (filters.bank): M EKFs on the kernels above, the bank's rules as written
 # in filters/bank.py (registered with numba so that compiled code calls them). numba's disk cache
-# is keyed on THIS file: after editing a rule in filters/bank.py or filters/fading.py, touch this
-# file (or delete its __pycache__/*.nbi) so that the kernels are compiled again; the equivalence
-# tests (tests/test_fast_bank.py) fail on a stale cache.
+# is keyed on THIS file's contents: after editing a rule in filters/bank.py or filters/fading.py,
+# delete __pycache__/kernels.*.nbi so that the kernels are compiled again; the equivalence tests
+# (tests/test_fast_bank.py) fail on a stale cache.
 
 from ..filters import bank as _bank  # noqa: E402
 
@@ -848,66 +835,65 @@ def run_bank_kernel(
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
         if last > first:
-            if True:  # (the scan's body keeps its indentation)
-                best = most_probable(logw)
-                before_nis = nis_m[best]
-                before_upd = n_upd[best]
-                before_rej = n_rej[best]
-                for m in range(first, last):
-                    z0 = scan_z[m, 0]
-                    z1 = scan_z[m, 1]
-                    for i in range(M):
-                        x = (X[i, 0], X[i, 1], X[i, 2])
-                        P = (
-                            Pm[i, 0], Pm[i, 1], Pm[i, 2], Pm[i, 3], Pm[i, 4], Pm[i, 5], Pm[i, 6],
-                            Pm[i, 7], Pm[i, 8],
-                        )  # fmt: skip
-                        R = (R_m[i, 0], 0.0, 0.0, R_m[i, 1])
-                        H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
-                        ok, v = nis(HPHt, R, nu[0], nu[1])
-                        if not ok or not math.isfinite(v):
+            best = most_probable(logw)
+            before_nis = nis_m[best]
+            before_upd = n_upd[best]
+            before_rej = n_rej[best]
+            for m in range(first, last):
+                z0 = scan_z[m, 0]
+                z1 = scan_z[m, 1]
+                for i in range(M):
+                    x = (X[i, 0], X[i, 1], X[i, 2])
+                    P = (
+                        Pm[i, 0], Pm[i, 1], Pm[i, 2], Pm[i, 3], Pm[i, 4], Pm[i, 5], Pm[i, 6],
+                        Pm[i, 7], Pm[i, 8],
+                    )  # fmt: skip
+                    R = (R_m[i, 0], 0.0, 0.0, R_m[i, 1])
+                    H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                    ok, v = nis(HPHt, R, nu[0], nu[1])
+                    if not ok or not math.isfinite(v):
+                        return True, j, nis_sum, n_updates, n_rejected
+                    if has_gate and not v <= gate:
+                        n_rej[i] += 1
+                    else:
+                        nis_m[i] += v
+                        n_upd[i] += 1
+                        ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                        if not ok:
                             return True, j, nis_sum, n_updates, n_rejected
-                        if has_gate and not v <= gate:
-                            n_rej[i] += 1
-                        else:
-                            nis_m[i] += v
-                            n_upd[i] += 1
-                            ok, x, P = correct(x, P, H, zh, z0, z1, R)
-                            if not ok:
-                                return True, j, nis_sum, n_updates, n_rejected
-                            for c in range(3):
-                                X[i, c] = x[c]
-                            for c in range(9):
-                                Pm[i, c] = P[c]
-                        logw[i] += innovation_loglik(
-                            v, HPHt[0] + R[0], HPHt[1] + R[1], HPHt[2] + R[2], HPHt[3] + R[3],
-                            censor_at,
-                        )  # fmt: skip
-                nis_sum += nis_m[best] - before_nis
-                n_updates += n_upd[best] - before_upd
-                n_rejected += n_rej[best] - before_rej
-                normalise_log_weights(logw, log_floor)
+                        for c in range(3):
+                            X[i, c] = x[c]
+                        for c in range(9):
+                            Pm[i, c] = P[c]
+                    logw[i] += innovation_loglik(
+                        v, HPHt[0] + R[0], HPHt[1] + R[1], HPHt[2] + R[2], HPHt[3] + R[3],
+                        censor_at,
+                    )  # fmt: skip
+            nis_sum += nis_m[best] - before_nis
+            n_updates += n_upd[best] - before_upd
+            n_rejected += n_rej[best] - before_rej
+            normalise_log_weights(logw, log_floor)
+            mixture_weights(logw, threshold, w)
+            weighted_noise(w, R_m, Rw)
+            weighted_noise(w, Qu_m, Qw)
+            mix_moments(w, X, Pm, X[most_probable(logw), 2], xm, Pmix)
+            if imm:
+                imm_mix(logw, p_stay, threshold, X, Pm, X0, P0m, s_w, s_logc, s_mu, s_x, s_P)
+                for i in range(M):
+                    for c in range(3):
+                        X[i, c] = X0[i, c]
+                    for c in range(9):
+                        Pm[i, c] = P0m[i, c]
                 mixture_weights(logw, threshold, w)
                 weighted_noise(w, R_m, Rw)
                 weighted_noise(w, Qu_m, Qw)
-                mix_moments(w, X, Pm, X[most_probable(logw), 2], xm, Pmix)
-                if imm:
-                    imm_mix(logw, p_stay, threshold, X, Pm, X0, P0m, s_w, s_logc, s_mu, s_x, s_P)
-                    for i in range(M):
-                        for c in range(3):
-                            X[i, c] = X0[i, c]
-                        for c in range(9):
-                            Pm[i, c] = P0m[i, c]
-                    mixture_weights(logw, threshold, w)
-                    weighted_noise(w, R_m, Rw)
-                    weighted_noise(w, Qu_m, Qw)
-                if not healthy(
-                    (xm[0], xm[1], xm[2]),
-                    (Pmix[0], Pmix[1], Pmix[2], Pmix[3], Pmix[4], Pmix[5], Pmix[6], Pmix[7],
-                     Pmix[8]),
-                    (Rw[0], 0.0, 0.0, Rw[1]), (Qw[0], 0.0, 0.0, Qw[1]),
-                ):  # fmt: skip
-                    return True, j, nis_sum, n_updates, n_rejected
+            if not healthy(
+                (xm[0], xm[1], xm[2]),
+                (Pmix[0], Pmix[1], Pmix[2], Pmix[3], Pmix[4], Pmix[5], Pmix[6], Pmix[7],
+                 Pmix[8]),
+                (Rw[0], 0.0, 0.0, Rw[1]), (Qw[0], 0.0, 0.0, Qw[1]),
+            ):  # fmt: skip
+                return True, j, nis_sum, n_updates, n_rejected
         if record_at[k] and j < n_rows:
             for i in range(3):
                 out_x[j, i] = xm[i]
@@ -967,56 +953,53 @@ def run_fading_kernel(
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
         if last > first:
-            if True:  # (the scan's body keeps its indentation)
-                first_of_scan = True
-                for m in range(first, last):
-                    z0 = scan_z[m, 0]
-                    z1 = scan_z[m, 1]
+            first_of_scan = True
+            for m in range(first, last):
+                z0 = scan_z[m, 0]
+                z1 = scan_z[m, 1]
+                H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                if adaptation:
+                    feeds = True
+                    if not from_all and has_gate:
+                        ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                        if not ok:
+                            return True, j, nis_sum, n_updates, n_rejected
+                        feeds = nis_a <= gate
+                    if feeds:
+                        nu2[pos] = nu[0] * nu[0] + nu[1] * nu[1]
+                        pos = (pos + 1) % window
+                        if n_window < window:
+                            n_window += 1
+                        was_first = first_of_scan
+                        first_of_scan = False
+                        if was_first and n_window == window:
+                            trace_C = 0.0
+                            for i in range(window):  # oldest first, as the class sums
+                                trace_C += nu2[(pos + i) % window]
+                            trace_C = trace_C / window
+                            lam = fading_factor(trace_C, R[0] + R[3], HPHt[0] + HPHt[3], ceiling)
+                            if math.isfinite(lam):
+                                infl = lam
+                                P = (
+                                    lam * P[0], lam * P[1], lam * P[2],
+                                    lam * P[3], lam * P[4], lam * P[5],
+                                    lam * P[6], lam * P[7], lam * P[8],
+                                )  # fmt: skip
+                if infl != 1.0:  # RobotEKF.update_landmark: H P- H^T follows the scaled P-
                     H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
-                    if adaptation:
-                        feeds = True
-                        if not from_all and has_gate:
-                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
-                            if not ok:
-                                return True, j, nis_sum, n_updates, n_rejected
-                            feeds = nis_a <= gate
-                        if feeds:
-                            nu2[pos] = nu[0] * nu[0] + nu[1] * nu[1]
-                            pos = (pos + 1) % window
-                            if n_window < window:
-                                n_window += 1
-                            was_first = first_of_scan
-                            first_of_scan = False
-                            if was_first and n_window == window:
-                                trace_C = 0.0
-                                for i in range(window):  # oldest first, as the class sums
-                                    trace_C += nu2[(pos + i) % window]
-                                trace_C = trace_C / window
-                                lam = fading_factor(
-                                    trace_C, R[0] + R[3], HPHt[0] + HPHt[3], ceiling
-                                )
-                                if math.isfinite(lam):
-                                    infl = lam
-                                    P = (
-                                        lam * P[0], lam * P[1], lam * P[2],
-                                        lam * P[3], lam * P[4], lam * P[5],
-                                        lam * P[6], lam * P[7], lam * P[8],
-                                    )  # fmt: skip
-                    if infl != 1.0:  # RobotEKF.update_landmark: H P- H^T follows the scaled P-
-                        H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
-                    ok, v = nis(HPHt, R, nu[0], nu[1])
-                    if not ok or not math.isfinite(v):
-                        return True, j, nis_sum, n_updates, n_rejected
-                    if has_gate and not v <= gate:
-                        n_rejected += 1
-                        continue
-                    nis_sum += v
-                    n_updates += 1
-                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
-                    if not ok:
-                        return True, j, nis_sum, n_updates, n_rejected
-                if not healthy(x, P, R, Qu):
+                ok, v = nis(HPHt, R, nu[0], nu[1])
+                if not ok or not math.isfinite(v):
                     return True, j, nis_sum, n_updates, n_rejected
+                if has_gate and not v <= gate:
+                    n_rejected += 1
+                    continue
+                nis_sum += v
+                n_updates += 1
+                ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                if not ok:
+                    return True, j, nis_sum, n_updates, n_rejected
+            if not healthy(x, P, R, Qu):
+                return True, j, nis_sum, n_updates, n_rejected
         if record_at[k] and j < n_rows:
             for i in range(3):
                 out_x[j, i] = x[i]
@@ -1050,10 +1033,24 @@ if _NJIT is not None:
         """Compiled, the rules' A @ B is a plain loop (k ascending, as a dot product sums): for
         3 x 3 matrices BLAS's call costs more than the product."""
 
+        if B.ndim == 1:  # a matrix times a vector
+
+            def impl_vector(A, B):
+                n, m = A.shape
+                out = np.empty(n)
+                for i in range(n):
+                    t = 0.0
+                    for k in range(m):
+                        t += A[i, k] * B[k]
+                    out[i] = t
+                return out
+
+            return impl_vector
+
         def impl(A, B):
             n, m = A.shape
             p = B.shape[1]
-            out = np.zeros((n, p))
+            out = np.empty((n, p))
             for i in range(n):
                 for j in range(p):
                     t = 0.0
@@ -1064,18 +1061,129 @@ if _NJIT is not None:
 
         return impl
 
+    @overload(_adaptive.outer)
+    def _outer_loop(a, b):
+        """Compiled, np.outer as a plain loop (numba's np.outer costs ten times as much)."""
+
+        def impl(a, b):
+            n = a.shape[0]
+            p = b.shape[0]
+            out = np.empty((n, p))
+            for i in range(n):
+                for j in range(p):
+                    out[i, j] = a[i] * b[j]
+            return out
+
+        return impl
+
+    @overload(_adaptive.trace_of_product)
+    def _trace_of_product_loop(A, B):
+        """Compiled, tr(A B) from the product's diagonal only: each diagonal entry summed as
+        `matmul`'s loop sums it, then the entries in order as np.trace sums them."""
+
+        def impl(A, B):
+            n, m = A.shape
+            t = 0.0
+            for i in range(n):
+                d = 0.0
+                for k in range(m):
+                    d += A[i, k] * B[k, i]
+                t += d
+            return t
+
+        return impl
+
+    @overload(_adaptive.inv)
+    def _inv_loop(A):
+        """Compiled, the rules' inverse is Gauss-Jordan elimination with partial pivoting in
+        plain loops (LAPACK's call costs ten times the arithmetic of a 3 x 3); it raises
+        LinAlgError where numba's np.linalg.inv does: a matrix with a value that is not finite,
+        or an exactly singular one."""
+
+        def impl(A):
+            n = A.shape[0]
+            a = np.empty((n, n))
+            out = np.zeros((n, n))
+            for i in range(n):
+                out[i, i] = 1.0
+                for j in range(n):
+                    v = A[i, j]
+                    if not math.isfinite(v):
+                        raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+                    a[i, j] = v
+            for c in range(n):
+                p = c
+                for r in range(c + 1, n):
+                    if abs(a[r, c]) > abs(a[p, c]):
+                        p = r
+                if a[p, c] == 0.0:
+                    raise np.linalg.LinAlgError("Matrix is singular to machine precision.")
+                if p != c:
+                    for j in range(n):
+                        a[c, j], a[p, j] = a[p, j], a[c, j]
+                        out[c, j], out[p, j] = out[p, j], out[c, j]
+                for r in range(n):
+                    if r != c:
+                        f = a[r, c] / a[c, c]
+                        for j in range(n):
+                            a[r, j] -= f * a[c, j]
+                            out[r, j] -= f * out[c, j]
+            for i in range(n):
+                d = a[i, i]
+                for j in range(n):
+                    out[i, j] = out[i, j] / d
+            return out
+
+        return impl
+
+    @overload(_adaptive.lstsq)
+    def _lstsq_2x2(M, b):
+        """Compiled, the 2 x 2 least squares in closed form, the solution LAPACK's SVD gives to
+        round-off: singular values s1 >= s2 from the matrix's invariants; when s2 <= LSTSQ_RCOND
+        s1 (numerically rank one) the least-norm solution M^T b / ||M||_F^2, else M^-1 b by
+        LAPACK's LU (`lu2`). A value of M that is not finite raises LinAlgError, as numpy."""
+        rcond = _adaptive.LSTSQ_RCOND
+
+        def impl(M, b):
+            m00, m01, m10, m11 = M[0, 0], M[0, 1], M[1, 0], M[1, 1]
+            if not (
+                math.isfinite(m00) and math.isfinite(m01)
+                and math.isfinite(m10) and math.isfinite(m11)
+            ):  # fmt: skip
+                raise np.linalg.LinAlgError("SVD did not converge in Linear Least Squares")
+            b0, b1 = b[0], b[1]
+            out = np.zeros(2)
+            fro2 = m00 * m00 + m01 * m01 + m10 * m10 + m11 * m11
+            if fro2 == 0.0:
+                return out  # every singular value is 0: the least-norm solution is 0
+            # s1 = (|(m00 + m11, m10 - m01)| + |(m00 - m11, m10 + m01)|) / 2, s1 s2 = |det M|
+            s1 = 0.5 * (math.hypot(m00 + m11, m10 - m01) + math.hypot(m00 - m11, m10 + m01))
+            s2 = abs(m00 * m11 - m01 * m10) / s1
+            if s2 <= rcond * s1:
+                out[0] = (m00 * b0 + m10 * b1) / fro2
+                out[1] = (m01 * b0 + m11 * b1) / fro2
+                return out
+            swapped, u00, u01, l10, u11 = lu2(m00, m01, m10, m11)
+            c0, c1 = (b1, b0) if swapped else (b0, b1)
+            out[1] = (c1 - l10 * c0) / u11
+            out[0] = (c0 - u01 * out[1]) / u00
+            return out
+
+        return impl
+
     for _rule in (
-        _adaptive.clip_to_bounds, _adaptive.propagate_interval, _adaptive.qu_least_squares,
+        _adaptive.clip_to_bounds, _adaptive.qu_least_squares,
         _sage_husa.next_beta, _sage_husa.fading_mean, _sage_husa.r_sample, _sage_husa.q_sample,
     ):  # fmt: skip
         register_jitable(_rule)
 
 clip_to_bounds = _adaptive.clip_to_bounds
 matmul = _adaptive.matmul
-propagate_interval = _adaptive.propagate_interval
+outer = _adaptive.outer
+trace_of_product = _adaptive.trace_of_product
+inv = _adaptive.inv
+lstsq = _adaptive.lstsq
 qu_least_squares = _adaptive.qu_least_squares
-E_V = _adaptive.E_V
-E_G = _adaptive.E_G
 next_beta = _sage_husa.next_beta
 fading_mean = _sage_husa.fading_mean
 r_sample = _sage_husa.r_sample
@@ -1091,35 +1199,50 @@ def as_matrix(P):
     return A
 
 
-@maybe_njit
-def as_diag(v):
-    """A length-2 array as the row-major tuple of diag(v)."""
-    return (v[0], 0.0, 0.0, v[1])
+ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+EYE9 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 
 
 @maybe_njit
 def interval_step(A_v, A_g, F_scan, x2, u0, u1, dt, motion, B, T0):
-    """AdaptiveEKF.predict's accumulators at a predict from heading x2 with controls (u0, u1)
-    over dt: the model's Q of the unit noises E_V and E_G (model.Q(G, E, dt))."""
-    F, G = jacobian_arrays(x2, u0, u1, dt, motion, B, T0)
-    Q_v = matmul(matmul(G, E_V), G.T)
-    Q_g = matmul(matmul(G, E_G), G.T)
-    if motion == MOTION_UNICYCLE:
-        c = noise_scale(dt, motion, T0)
-        Q_v = c * Q_v
-        Q_g = c * Q_g
-    return propagate_interval(A_v, A_g, F_scan, F, Q_v, Q_g)
+    """AdaptiveEKF.predict's accumulators (filters.adaptive.propagate_interval) at a predict
+    from heading x2 with controls (u0, u1) over dt, on row-major 9-tuples (no arrays: this
+    runs at every step). A <- F A F^T + G e e^T G^T is the EKF's covariance predict with Qu = e e^T,
+    `propagate` above, and F_scan <- F F_scan; the same products, bit for bit, as the rule's
+    loops over F's zeros and ones (exact for finite values)."""
+    f02, f12, G = jacobians(x2, u0, u1, dt, motion, B)
+    g00, g01, g10, g11, g20, g21 = G
+    # the model's Q of a unit noise e: c G e e^T G^T (c = 1 for the bicycle: exact)
+    c = noise_scale(dt, motion, T0)
+    Q_v = (
+        c * (g00 * g00), c * (g00 * g10), c * (g00 * g20),
+        c * (g10 * g00), c * (g10 * g10), c * (g10 * g20),
+        c * (g20 * g00), c * (g20 * g10), c * (g20 * g20),
+    )  # fmt: skip
+    Q_g = (
+        c * (g01 * g01), c * (g01 * g11), c * (g01 * g21),
+        c * (g11 * g01), c * (g11 * g11), c * (g11 * g21),
+        c * (g21 * g01), c * (g21 * g11), c * (g21 * g21),
+    )  # fmt: skip
+    s00, s01, s02, s10, s11, s12, s20, s21, s22 = F_scan
+    F_scan = (
+        s00 + f02 * s20, s01 + f02 * s21, s02 + f02 * s22,
+        s10 + f12 * s20, s11 + f12 * s21, s12 + f12 * s22,
+        s20, s21, s22,
+    )  # fmt: skip
+    return propagate(A_v, f02, f12, Q_v), propagate(A_g, f02, f12, Q_g), F_scan
 
 
 @maybe_njit
 def qu_estimate(Q_hat, A_v, A_g, P):
-    """AdaptiveEKF.qu_estimate: (ok, diag(Qu)) not clipped; ok is False when P is singular
-    (numpy's LinAlgError: the filter diverged)."""
+    """AdaptiveEKF.qu_estimate: (ok, (qv, qg)) not clipped, A_v, A_g and P row-major 9-tuples;
+    ok is False when P is singular or not finite (LinAlgError: the filter diverged)."""
     try:
-        W = np.linalg.inv(as_matrix(P))
+        W = inv(as_matrix(P))
+        q = qu_least_squares(Q_hat, as_matrix(A_v), as_matrix(A_g), W)
     except Exception:  # numba catches no narrower class
-        return False, np.zeros(2)
-    return True, qu_least_squares(Q_hat, A_v, A_g, W)
+        return False, (0.0, 0.0)
+    return True, (q[0], q[1])
 
 
 @maybe_njit
@@ -1184,7 +1307,6 @@ def run_vbr_kernel(
     a1 = alpha0
     b0 = alpha0 * R0[0]
     b1 = alpha0 * R0[3]
-    R0_diag = np.array([R0[0], R0[3]])
     bounds = (floor, ceiling)
     nis_sum = 0.0
     n_updates = 0
@@ -1197,63 +1319,59 @@ def run_vbr_kernel(
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
         if last > first:
-            if True:  # (the scan's body keeps its indentation)
+            if adaptation:
+                a0, b0 = vb_r_predict(a0, b0, rho)
+                a1, b1 = vb_r_predict(a1, b1, rho)
+            for m in range(first, last):
+                z0 = scan_z[m, 0]
+                z1 = scan_z[m, 1]
+                lx = scan_lm[m, 0]
+                ly = scan_lm[m, 1]
+                H, zh, nu, HPHt = innovation(x, P, lx, ly, z0, z1)
                 if adaptation:
-                    a0, b0 = vb_r_predict(a0, b0, rho)
-                    a1, b1 = vb_r_predict(a1, b1, rho)
-                for m in range(first, last):
-                    z0 = scan_z[m, 0]
-                    z1 = scan_z[m, 1]
-                    lx = scan_lm[m, 0]
-                    ly = scan_lm[m, 1]
-                    H, zh, nu, HPHt = innovation(x, P, lx, ly, z0, z1)
-                    if adaptation:
-                        R = (b0 / a0, 0.0, 0.0, b1 / a1)  # the posterior estimate
-                        feeds = True
-                        if not from_all and has_gate:
-                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                    R = (b0 / a0, 0.0, 0.0, b1 / a1)  # the posterior estimate
+                    feeds = True
+                    if not from_all and has_gate:
+                        ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                        if not ok:
+                            return True, j, nis_sum, n_updates, n_rejected
+                        feeds = nis_a <= gate
+                    if feeds:
+                        # filters.vb.vb_r_update
+                        ap0 = a0 + 0.5
+                        ap1 = a1 + 0.5
+                        bn0 = b0
+                        bn1 = b1
+                        for _ in range(iterations):
+                            R = (
+                                clip_to_bounds(bn0 / ap0, R0[0], bounds), 0.0,
+                                0.0, clip_to_bounds(bn1 / ap1, R0[3], bounds),
+                            )  # fmt: skip
+                            ok, xn, Pn = correct(x, P, H, zh, z0, z1, R)
                             if not ok:
                                 return True, j, nis_sum, n_updates, n_rejected
-                            feeds = nis_a <= gate
-                        if feeds:
-                            # filters.vb.vb_r_update
-                            ap0 = a0 + 0.5
-                            ap1 = a1 + 0.5
-                            bn0 = b0
-                            bn1 = b1
-                            for _ in range(iterations):
-                                R = as_diag(
-                                    clip_to_bounds(
-                                        np.array([bn0 / ap0, bn1 / ap1]), R0_diag, bounds
-                                    )
-                                )
-                                ok, xn, Pn = correct(x, P, H, zh, z0, z1, R)
-                                if not ok:
-                                    return True, j, nis_sum, n_updates, n_rejected
-                                _, _, e, _ = innovation(xn, Pn, lx, ly, z0, z1)
-                                hph0, hph1 = hph_diag(H, Pn)
-                                bn0 = vb_r_beta(b0, e[0], hph0)
-                                bn1 = vb_r_beta(b1, e[1], hph1)
-                            a0 = ap0
-                            a1 = ap1
-                            b0, b1 = vb_r_bounded_beta(
-                                a0, a1, bn0, bn1, R0[0], R0[3], floor, ceiling
-                            )
-                    ok, v = nis(HPHt, R, nu[0], nu[1])
-                    if not ok or not math.isfinite(v):
-                        return True, j, nis_sum, n_updates, n_rejected
-                    if has_gate and not v <= gate:
-                        n_rejected += 1
-                        continue
-                    nis_sum += v
-                    n_updates += 1
-                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
-                    if not ok:
-                        return True, j, nis_sum, n_updates, n_rejected
-                if adaptation:
-                    R = (b0 / a0, 0.0, 0.0, b1 / a1)
-                if not healthy(x, P, R, Qu):
+                            _, _, e, _ = innovation(xn, Pn, lx, ly, z0, z1)
+                            hph0, hph1 = hph_diag(H, Pn)
+                            bn0 = vb_r_beta(b0, e[0], hph0)
+                            bn1 = vb_r_beta(b1, e[1], hph1)
+                        a0 = ap0
+                        a1 = ap1
+                        b0, b1 = vb_r_bounded_beta(a0, a1, bn0, bn1, R0[0], R0[3], floor, ceiling)
+                ok, v = nis(HPHt, R, nu[0], nu[1])
+                if not ok or not math.isfinite(v):
                     return True, j, nis_sum, n_updates, n_rejected
+                if has_gate and not v <= gate:
+                    n_rejected += 1
+                    continue
+                nis_sum += v
+                n_updates += 1
+                ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                if not ok:
+                    return True, j, nis_sum, n_updates, n_rejected
+            if adaptation:
+                R = (b0 / a0, 0.0, 0.0, b1 / a1)
+            if not healthy(x, P, R, Qu):
+                return True, j, nis_sum, n_updates, n_rejected
         if record_at[k] and j < n_rows:
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad
@@ -1267,11 +1385,21 @@ def run_vbr_kernel(
 from ..filters import akhlaghi as _akhlaghi  # noqa: E402
 
 if _NJIT is not None:
-    for _rule in (_akhlaghi.forget, _akhlaghi.residual_variance):
+    for _rule in (_akhlaghi.forget, _akhlaghi.residual_variance, _akhlaghi.state_noise_estimate):
         register_jitable(_rule)
 
 forget = _akhlaghi.forget
 residual_variance = _akhlaghi.residual_variance
+state_noise_estimate = _akhlaghi.state_noise_estimate
+
+
+@maybe_njit
+def akhlaghi_qu_sample(Qu, A_v, A_g, P, dx0, dx1, dx2, alpha):
+    """AkhlaghiEKF.adapt_Q before the bounds: eq. (15) on the interval (Q_scan = qv A_v + qg A_g,
+    the scan's correction dx) mapped to (qv, qg); (ok, (qv, qg)) as `qu_estimate`."""
+    Q_scan = Qu[0] * as_matrix(A_v) + Qu[3] * as_matrix(A_g)
+    Q_hat = state_noise_estimate(Q_scan, np.array([dx0, dx1, dx2]), alpha)
+    return qu_estimate(Q_hat, A_v, A_g, P)
 
 
 @maybe_njit
@@ -1291,13 +1419,10 @@ def run_akhlaghi_kernel(
     P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
     Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
     R = (R0[0], R0[1], R0[2], R0[3])
-    R0_diag = np.array([R0[0], R0[3]])
-    Qu0_diag = np.array([Qu0[0], Qu0[3]])
     bounds = (floor, ceiling)
-    A_v = np.zeros((3, 3))  # the interval's accumulators (filters.adaptive)
-    A_g = np.zeros((3, 3))
-    F_scan = np.eye(3)
-    Q_hat = np.empty((3, 3))
+    A_v = ZERO9  # the interval's accumulators (filters.adaptive), row-major
+    A_g = ZERO9
+    F_scan = EYE9
     nis_sum = 0.0
     n_updates = 0
     n_rejected = 0
@@ -1314,82 +1439,75 @@ def run_akhlaghi_kernel(
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
         if last > first:
-            if True:  # (the scan's body keeps its indentation)
-                Rs0 = R[0]  # R_(k-1) of eq. (11)
-                Rs1 = R[3]
-                sum0 = 0.0
-                sum1 = 0.0
-                n_samples = 0
-                dx0 = 0.0
-                dx1 = 0.0
-                dx2 = 0.0
-                dx_fed = False
-                for m in range(first, last):
-                    z0 = scan_z[m, 0]
-                    z1 = scan_z[m, 1]
-                    lx = scan_lm[m, 0]
-                    ly = scan_lm[m, 1]
-                    H, zh, nu, HPHt = innovation(x, P, lx, ly, z0, z1)
-                    ok, v = nis(HPHt, R, nu[0], nu[1])
-                    if not ok or not math.isfinite(v):
-                        return True, j, nis_sum, n_updates, n_rejected
-                    accepted = not (has_gate and not v <= gate)
-                    if accepted:
-                        nis_sum += v
-                        n_updates += 1
-                    else:
-                        n_rejected += 1
-                    # a rejected landmark feeds through the update it would have made (nothing
-                    # changes x, P or R before the class settles it at the next landmark)
-                    feeds = adaptation and (accepted or from_all)
-                    if not (accepted or feeds):
-                        continue
-                    ok, xp, Pp = correct(x, P, H, zh, z0, z1, R)
-                    if not ok:
-                        return True, j, nis_sum, n_updates, n_rejected
-                    if accepted:
-                        x_prior = x
-                        x = xp
-                        P = Pp
-                    if not feeds:
-                        continue
-                    if not accepted:
-                        x_prior = x
-                    _, _, e, _ = innovation(xp, Pp, lx, ly, z0, z1)
-                    hph0, hph1 = hph_diag(H, Pp)
-                    if adapt_R:
-                        sum0 += residual_variance(e[0], hph0)
-                        sum1 += residual_variance(e[1], hph1)
-                        n_samples += 1
-                    dx0 += xp[0] - x_prior[0]
-                    dx1 += xp[1] - x_prior[1]
-                    dx2 += wrap(xp[2] - x_prior[2])
-                    dx_fed = True
-                    if adapt_R:
-                        R_raw = np.array(
-                            [
-                                forget(Rs0, sum0 / n_samples, alpha),
-                                forget(Rs1, sum1 / n_samples, alpha),
-                            ]
-                        )
-                        R = as_diag(clip_to_bounds(R_raw, R0_diag, bounds))
-                if adaptation and adapt_Q and dx_fed:
-                    # eq. (15) on the interval, mapped to Qu (AdaptiveEKF.qu_estimate)
-                    dx = (dx0, dx1, dx2)
-                    for r in range(3):
-                        for c in range(3):
-                            Q_hat[r, c] = forget(
-                                Qu[0] * A_v[r, c] + Qu[3] * A_g[r, c], dx[r] * dx[c], alpha
-                            )
-                    ok, q = qu_estimate(Q_hat, A_v, A_g, P)
-                    if not ok:
-                        return True, j, nis_sum, n_updates, n_rejected
-                    Qu = as_diag(clip_to_bounds(q, Qu0_diag, bounds))
-                    A_v = np.zeros((3, 3))
-                    A_g = np.zeros((3, 3))
-                    F_scan = np.eye(3)
-                if not healthy(x, P, R, Qu):
+            Rs0 = R[0]  # R_(k-1) of eq. (11)
+            Rs1 = R[3]
+            sum0 = 0.0
+            sum1 = 0.0
+            n_samples = 0
+            dx0 = 0.0
+            dx1 = 0.0
+            dx2 = 0.0
+            dx_fed = False
+            for m in range(first, last):
+                z0 = scan_z[m, 0]
+                z1 = scan_z[m, 1]
+                lx = scan_lm[m, 0]
+                ly = scan_lm[m, 1]
+                H, zh, nu, HPHt = innovation(x, P, lx, ly, z0, z1)
+                ok, v = nis(HPHt, R, nu[0], nu[1])
+                if not ok or not math.isfinite(v):
                     return True, j, nis_sum, n_updates, n_rejected
+                accepted = not (has_gate and not v <= gate)
+                if accepted:
+                    nis_sum += v
+                    n_updates += 1
+                else:
+                    n_rejected += 1
+                # a rejected landmark feeds through the update it would have made (nothing
+                # changes x, P or R before the class settles it at the next landmark)
+                feeds = adaptation and (accepted or from_all)
+                if not (accepted or feeds):
+                    continue
+                ok, xp, Pp = correct(x, P, H, zh, z0, z1, R)
+                if not ok:
+                    return True, j, nis_sum, n_updates, n_rejected
+                if accepted:
+                    x_prior = x
+                    x = xp
+                    P = Pp
+                if not feeds:
+                    continue
+                if not accepted:
+                    x_prior = x
+                _, _, e, _ = innovation(xp, Pp, lx, ly, z0, z1)
+                hph0, hph1 = hph_diag(H, Pp)
+                if adapt_R:
+                    sum0 += residual_variance(e[0], hph0)
+                    sum1 += residual_variance(e[1], hph1)
+                    n_samples += 1
+                dx0 += xp[0] - x_prior[0]
+                dx1 += xp[1] - x_prior[1]
+                dx2 += wrap(xp[2] - x_prior[2])
+                dx_fed = True
+                if adapt_R:
+                    R = (
+                        clip_to_bounds(forget(Rs0, sum0 / n_samples, alpha), R0[0], bounds),
+                        0.0, 0.0,
+                        clip_to_bounds(forget(Rs1, sum1 / n_samples, alpha), R0[3], bounds),
+                    )  # fmt: skip
+            if adaptation and adapt_Q and dx_fed:
+                ok, q = akhlaghi_qu_sample(Qu, A_v, A_g, P, dx0, dx1, dx2, alpha)
+                if not ok:
+                    return True, j, nis_sum, n_updates, n_rejected
+                Qu = (
+                    clip_to_bounds(q[0], Qu0[0], bounds), 0.0,
+                    0.0, clip_to_bounds(q[1], Qu0[3], bounds),
+                )  # fmt: skip
+                A_v = ZERO9
+                A_g = ZERO9
+                F_scan = EYE9
+            if not healthy(x, P, R, Qu):
+                return True, j, nis_sum, n_updates, n_rejected
         if record_at[k] and j < n_rows:
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad
@@ -1444,111 +1562,108 @@ def run_vbakf_kernel(
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
         if last > first:
-            if True:  # (the scan's body keeps its indentation)
+            if adaptation:
+                u_, U00 = vbakf_predict(u, U[0], rho, m2)
+                _, U01 = vbakf_predict(u, U[1], rho, m2)
+                _, U10 = vbakf_predict(u, U[2], rho, m2)
+                _, U11 = vbakf_predict(u, U[3], rho, m2)
+                u = u_
+                U = (U00, U01, U10, U11)
+            for m in range(first, last):
+                z0 = scan_z[m, 0]
+                z1 = scan_z[m, 1]
+                lx = scan_lm[m, 0]
+                ly = scan_lm[m, 1]
+                H, zh, nu, HPHt = innovation(x, P, lx, ly, z0, z1)
+                adapted_P = False
+                P_predicted = P
                 if adaptation:
-                    u_, U00 = vbakf_predict(u, U[0], rho, m2)
-                    _, U01 = vbakf_predict(u, U[1], rho, m2)
-                    _, U10 = vbakf_predict(u, U[2], rho, m2)
-                    _, U11 = vbakf_predict(u, U[3], rho, m2)
-                    u = u_
-                    U = (U00, U01, U10, U11)
-                for m in range(first, last):
-                    z0 = scan_z[m, 0]
-                    z1 = scan_z[m, 1]
-                    lx = scan_lm[m, 0]
-                    ly = scan_lm[m, 1]
-                    H, zh, nu, HPHt = innovation(x, P, lx, ly, z0, z1)
-                    adapted_P = False
-                    P_predicted = P
-                    if adaptation:
-                        infl = 1.0
-                        d = u - m2 - 1.0
-                        R = (U[0] / d, U[1] / d, U[2] / d, U[3] / d)
-                        feeds = True
-                        if not from_all and has_gate:
-                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                    infl = 1.0
+                    d = u - m2 - 1.0
+                    R = (U[0] / d, U[1] / d, U[2] / d, U[3] / d)
+                    feeds = True
+                    if not from_all and has_gate:
+                        ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                        if not ok:
+                            return True, j, nis_sum, n_updates, n_rejected
+                        feeds = nis_a <= gate
+                    if feeds:
+                        # filters.vb.vbakf_update
+                        adapt_P = m == first
+                        u_post = u + 1.0
+                        d = u_post - m2 - 1.0
+                        xi = x
+                        Pi = P
+                        P_hat = P
+                        tr_P = P[0] + P[4] + P[8]
+                        U_post = U
+                        clipped = False
+                        for _ in range(iterations):
+                            if adapt_P:
+                                dx = (xi[0] - x[0], xi[1] - x[1], wrap(xi[2] - x[2]))
+                                P_hat = (
+                                    vbakf_prior(Pi[0], dx[0] * dx[0], P[0], tau),
+                                    vbakf_prior(Pi[1], dx[0] * dx[1], P[1], tau),
+                                    vbakf_prior(Pi[2], dx[0] * dx[2], P[2], tau),
+                                    vbakf_prior(Pi[3], dx[1] * dx[0], P[3], tau),
+                                    vbakf_prior(Pi[4], dx[1] * dx[1], P[4], tau),
+                                    vbakf_prior(Pi[5], dx[1] * dx[2], P[5], tau),
+                                    vbakf_prior(Pi[6], dx[2] * dx[0], P[6], tau),
+                                    vbakf_prior(Pi[7], dx[2] * dx[1], P[7], tau),
+                                    vbakf_prior(Pi[8], dx[2] * dx[2], P[8], tau),
+                                )  # fmt: skip
+                                cap = inflation_cap(P_hat[0] + P_hat[4] + P_hat[8], tr_P, ceiling)
+                                if cap != 1.0:
+                                    P_hat = (
+                                        P_hat[0] * cap, P_hat[1] * cap, P_hat[2] * cap,
+                                        P_hat[3] * cap, P_hat[4] * cap, P_hat[5] * cap,
+                                        P_hat[6] * cap, P_hat[7] * cap, P_hat[8] * cap,
+                                    )  # fmt: skip
+                            _, _, e, _ = innovation(xi, Pi, lx, ly, z0, z1)
+                            HPiHt = hph(H, Pi)
+                            b00 = e[0] * e[0] + HPiHt[0]
+                            b11 = e[1] * e[1] + HPiHt[3]
+                            if diagonal_R:
+                                U_post = (U[0] + b00, U[1], U[2], U[3] + b11)
+                            else:
+                                b01 = e[0] * e[1] + HPiHt[1]
+                                b10 = e[1] * e[0] + HPiHt[2]
+                                U_post = (
+                                    U[0] + 0.5 * (b00 + b00), U[1] + 0.5 * (b01 + b10),
+                                    U[2] + 0.5 * (b10 + b01), U[3] + 0.5 * (b11 + b11),
+                                )  # fmt: skip
+                            R_raw = (U_post[0] / d, U_post[1] / d, U_post[2] / d,
+                                     U_post[3] / d)  # fmt: skip
+                            clipped, R = clip_covariance_2(R_raw, R0[0], R0[3], floor, ceiling)
+                            ok, xi, Pi = correct(x, P_hat, H, zh, z0, z1, R)
                             if not ok:
                                 return True, j, nis_sum, n_updates, n_rejected
-                            feeds = nis_a <= gate
-                        if feeds:
-                            # filters.vb.vbakf_update
-                            adapt_P = m == first
-                            u_post = u + 1.0
-                            d = u_post - m2 - 1.0
-                            xi = x
-                            Pi = P
-                            P_hat = P
-                            tr_P = P[0] + P[4] + P[8]
-                            U_post = U
-                            clipped = False
-                            for _ in range(iterations):
-                                if adapt_P:
-                                    dx = (xi[0] - x[0], xi[1] - x[1], wrap(xi[2] - x[2]))
-                                    P_hat = (
-                                        vbakf_prior(Pi[0], dx[0] * dx[0], P[0], tau),
-                                        vbakf_prior(Pi[1], dx[0] * dx[1], P[1], tau),
-                                        vbakf_prior(Pi[2], dx[0] * dx[2], P[2], tau),
-                                        vbakf_prior(Pi[3], dx[1] * dx[0], P[3], tau),
-                                        vbakf_prior(Pi[4], dx[1] * dx[1], P[4], tau),
-                                        vbakf_prior(Pi[5], dx[1] * dx[2], P[5], tau),
-                                        vbakf_prior(Pi[6], dx[2] * dx[0], P[6], tau),
-                                        vbakf_prior(Pi[7], dx[2] * dx[1], P[7], tau),
-                                        vbakf_prior(Pi[8], dx[2] * dx[2], P[8], tau),
-                                    )  # fmt: skip
-                                    cap = inflation_cap(
-                                        P_hat[0] + P_hat[4] + P_hat[8], tr_P, ceiling
-                                    )
-                                    if cap != 1.0:
-                                        P_hat = (
-                                            P_hat[0] * cap, P_hat[1] * cap, P_hat[2] * cap,
-                                            P_hat[3] * cap, P_hat[4] * cap, P_hat[5] * cap,
-                                            P_hat[6] * cap, P_hat[7] * cap, P_hat[8] * cap,
-                                        )  # fmt: skip
-                                _, _, e, _ = innovation(xi, Pi, lx, ly, z0, z1)
-                                HPiHt = hph(H, Pi)
-                                b00 = e[0] * e[0] + HPiHt[0]
-                                b11 = e[1] * e[1] + HPiHt[3]
-                                if diagonal_R:
-                                    U_post = (U[0] + b00, U[1], U[2], U[3] + b11)
-                                else:
-                                    b01 = e[0] * e[1] + HPiHt[1]
-                                    b10 = e[1] * e[0] + HPiHt[2]
-                                    U_post = (
-                                        U[0] + 0.5 * (b00 + b00), U[1] + 0.5 * (b01 + b10),
-                                        U[2] + 0.5 * (b10 + b01), U[3] + 0.5 * (b11 + b11),
-                                    )  # fmt: skip
-                                R_raw = (U_post[0] / d, U_post[1] / d, U_post[2] / d,
-                                         U_post[3] / d)  # fmt: skip
-                                clipped, R = clip_covariance_2(R_raw, R0[0], R0[3], floor, ceiling)
-                                ok, xi, Pi = correct(x, P_hat, H, zh, z0, z1, R)
-                                if not ok:
-                                    return True, j, nis_sum, n_updates, n_rejected
-                            if clipped:  # keep the posterior consistent with the R in force
-                                U_post = (d * R[0], d * R[1], d * R[2], d * R[3])
-                            u = u_post
-                            U = U_post
-                            if adapt_P:
-                                adapted_P = True
-                                infl = (P_hat[0] + P_hat[4] + P_hat[8]) / (P[0] + P[4] + P[8])
-                                P = P_hat
-                    if infl != 1.0:  # RobotEKF.update_landmark: H P- H^T follows the new P-
-                        HPHt = hph(H, P)
-                    ok, v = nis(HPHt, R, nu[0], nu[1])
-                    if not ok or not math.isfinite(v):
-                        return True, j, nis_sum, n_updates, n_rejected
-                    if has_gate and not v <= gate:
-                        n_rejected += 1
-                        if adapted_P:  # VBAKF.update_landmark: back to the prediction
-                            P = P_predicted
-                            infl = 1.0
-                        continue
-                    nis_sum += v
-                    n_updates += 1
-                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
-                    if not ok:
-                        return True, j, nis_sum, n_updates, n_rejected
-                if not healthy(x, P, R, Qu):
+                        if clipped:  # keep the posterior consistent with the R in force
+                            U_post = (d * R[0], d * R[1], d * R[2], d * R[3])
+                        u = u_post
+                        U = U_post
+                        if adapt_P:
+                            adapted_P = True
+                            infl = (P_hat[0] + P_hat[4] + P_hat[8]) / (P[0] + P[4] + P[8])
+                            P = P_hat
+                if infl != 1.0:  # RobotEKF.update_landmark: H P- H^T follows the new P-
+                    HPHt = hph(H, P)
+                ok, v = nis(HPHt, R, nu[0], nu[1])
+                if not ok or not math.isfinite(v):
                     return True, j, nis_sum, n_updates, n_rejected
+                if has_gate and not v <= gate:
+                    n_rejected += 1
+                    if adapted_P:  # VBAKF.update_landmark: back to the prediction
+                        P = P_predicted
+                        infl = 1.0
+                    continue
+                nis_sum += v
+                n_updates += 1
+                ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                if not ok:
+                    return True, j, nis_sum, n_updates, n_rejected
+            if not healthy(x, P, R, Qu):
+                return True, j, nis_sum, n_updates, n_rejected
         if record_at[k] and j < n_rows:
             out_infl[j] = infl
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
@@ -1579,6 +1694,41 @@ def flat9(A):
 
 
 @maybe_njit
+def swvb_interval(P_s, F_s, A_v, A_g):
+    """What the rules read of the interval, the same over a scan's passes, as 3 x 3 arrays:
+    (P_s, F_s, F_s P_s F_s^T, A_v, A_g) from row-major 9-tuples."""
+    P_s_a = as_matrix(P_s)
+    F = as_matrix(F_s)
+    return P_s_a, F, matmul(matmul(F, P_s_a), F.T), as_matrix(A_v), as_matrix(A_g)
+
+
+@maybe_njit
+def swvb_interval_prior(interval, qv, qg):
+    """`interval_prior` of `swvb_interval`'s arrays, as a row-major 9-tuple."""
+    _, _, FPF, A_v, A_g = interval
+    return flat9(interval_prior(FPF, A_v, A_g, qv, qg))
+
+
+@maybe_njit
+def swvb_qu_sample(x, x_m, P, P_m, interval):
+    """A pass's sample of diag(Qu) in SWVBEKF.update_scan, not clipped: the smoother's moment
+    (`process_noise_moment`, dx = x - x_m with its heading wrapped) mapped to (qv, qg) with the
+    weight P_m^-1; (ok, (qv, qg)), ok False where P_m is singular or not finite (LinAlgError:
+    the filter diverged). x, x_m 3-tuples, P, P_m row-major 9-tuples, `interval` the arrays of
+    `swvb_interval`."""
+    P_s, F_s, _, A_v, A_g = interval
+    dx = np.array([x[0] - x_m[0], x[1] - x_m[1], wrap(x[2] - x_m[2])])
+    P_m_a = as_matrix(P_m)
+    try:
+        P_m_inv = inv(P_m_a)
+        W = process_noise_moment(dx, P_s, F_s, P_m_a, P_m_inv, as_matrix(P))
+        q = qu_least_squares(W, A_v, A_g, P_m_inv)
+    except Exception:  # numba catches no narrower class
+        return False, (0.0, 0.0)
+    return True, (q[0], q[1])
+
+
+@maybe_njit
 def run_swvb_kernel(
     u_odo, dt, scan_start, scan_lm, scan_z,
     motion, B, T0, x0, P0, Qu0, R0, gate, has_gate,
@@ -1596,18 +1746,20 @@ def run_swvb_kernel(
     Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
     R = (R0[0], R0[1], R0[2], R0[3])
     bounds = (floor, ceiling)
-    qu_start = np.array([Qu0[0], Qu0[3]])
-    r_start = np.array([R0[0], R0[3]])
-    a_q = np.full(2, a0)
-    b_q = a0 * qu_start
-    a_r = np.full(2, a0)
-    b_r = a0 * r_start
-    A_v = np.zeros((3, 3))  # the interval's accumulators (filters.adaptive.AdaptiveEKF)
-    A_g = np.zeros((3, 3))
-    F_scan = np.eye(3)
+    # the inverse-gamma posteriors (a, b) of qv, qg, R_range, R_bearing, each channel a float
+    a_q0 = a0
+    a_q1 = a0
+    b_q0 = a0 * Qu0[0]
+    b_q1 = a0 * Qu0[3]
+    a_r0 = a0
+    a_r1 = a0
+    b_r0 = a0 * R0[0]
+    b_r1 = a0 * R0[3]
+    A_v = ZERO9  # the interval's accumulators (filters.adaptive.AdaptiveEKF), row-major
+    A_g = ZERO9
+    F_scan = EYE9
     P_s = P  # P+ at the previous Q event
     fed = np.zeros(max(scan_lm.shape[0], 1), np.bool_)
-    dx = np.empty(3)
     nis_sum = 0.0
     n_updates = 0
     n_rejected = 0
@@ -1623,91 +1775,102 @@ def run_swvb_kernel(
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
         if last > first:
-            if True:  # (the scan's body keeps its indentation)
-                passes = iterations if adaptation else 1
+            passes = iterations if adaptation else 1
+            if adaptation:
+                a_q0 = rho * a_q0
+                a_q1 = rho * a_q1
+                b_q0 = rho * b_q0
+                b_q1 = rho * b_q1
+                a_r0 = rho * a_r0
+                a_r1 = rho * a_r1
+                b_r0 = rho * b_r0
+                b_r1 = rho * b_r1
+            x_m = x
+            P_m = P
+            counts = (nis_sum, n_updates, n_rejected)
+            qu0 = Qu[0]
+            qu1 = Qu[3]
+            r0 = R[0]
+            r1 = R[3]
+            b_q0_n = b_q0
+            b_q1_n = b_q1
+            a_r0_n = a_r0
+            a_r1_n = a_r1
+            b_r0_n = b_r0
+            b_r1_n = b_r1
+            interval = swvb_interval(P_s, F_scan, A_v, A_g)
+            for n in range(passes):
+                if n > 0:
+                    P_m = swvb_interval_prior(interval, qu0, qu1)
+                x = x_m
+                P = P_m
                 if adaptation:
-                    a_q = rho * a_q
-                    b_q = rho * b_q
-                    a_r = rho * a_r
-                    b_r = rho * b_r
-                x_m = x
-                P_m = P
-                counts = (nis_sum, n_updates, n_rejected)
-                qu = np.array([Qu[0], Qu[3]])
-                r = np.array([R[0], R[3]])
-                F_s = F_scan
-                P_s_a = as_matrix(P_s)
-                A_v_a = A_v
-                A_g_a = A_g
-                b_q_n = b_q
-                a_r_n = a_r
-                b_r_n = b_r
-                for n in range(passes):
-                    if n > 0:
-                        P_m = flat9(interval_prior(P_s_a, F_s, A_v_a, A_g_a, qu[0], qu[1]))
-                    x = x_m
-                    P = P_m
-                    if adaptation:
-                        R = (r[0], 0.0, 0.0, r[1])
-                    nis_sum, n_updates, n_rejected = counts
-                    for m in range(first, last):
-                        z0 = scan_z[m, 0]
-                        z1 = scan_z[m, 1]
-                        H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
-                        ok, v = nis(HPHt, R, nu[0], nu[1])
-                        if not ok or not math.isfinite(v):
-                            return True, j, nis_sum, n_updates, n_rejected
-                        fed[m - first] = from_all or not has_gate or v <= gate
-                        if has_gate and not v <= gate:
-                            n_rejected += 1
-                            continue
-                        nis_sum += v
-                        n_updates += 1
-                        ok, x, P = correct(x, P, H, zh, z0, z1, R)
-                        if not ok:
-                            return True, j, nis_sum, n_updates, n_rejected
-                    if not adaptation:
-                        break
-                    dx[0] = x[0] - x_m[0]
-                    dx[1] = x[1] - x_m[1]
-                    dx[2] = wrap(x[2] - x_m[2])
-                    P_m_a = as_matrix(P_m)
-                    W = process_noise_moment(dx, P_s_a, F_s, P_m_a, as_matrix(P))
-                    q = clip_to_bounds(
-                        qu_least_squares(W, A_v_a, A_g_a, np.linalg.inv(P_m_a)), qu_start, bounds
-                    )
-                    b_q_n = b_q + 0.5 * q
-                    qu = clip_to_bounds(b_q_n / (a_q + 0.5), qu_start, bounds)
-                    a_r_n = a_r
-                    b_r_n = b_r
-                    n_fed = 0
-                    s0 = 0.0
-                    s1 = 0.0
-                    for m in range(first, last):  # swvb.r_moment at the posterior
-                        if fed[m - first]:
-                            n_fed += 1
-                            _, _, e, HPH = innovation(
-                                x, P, scan_lm[m, 0], scan_lm[m, 1], scan_z[m, 0], scan_z[m, 1]
-                            )  # fmt: skip
-                            s0 = s0 + e[0] * e[0] + HPH[0]
-                            s1 = s1 + e[1] * e[1] + HPH[3]
-                    if n_fed > 0:
-                        a_r_n = a_r + 0.5 * n_fed
-                        b_r_n = b_r + 0.5 * np.array([s0, s1])
-                    r = clip_to_bounds(b_r_n / a_r_n, r_start, bounds)
-                if adaptation:
-                    a_q = a_q + 0.5
-                    b_q = b_q_n
-                    a_r = a_r_n
-                    b_r = b_r_n
-                    Qu = (qu[0], 0.0, 0.0, qu[1])
-                    R = (r[0], 0.0, 0.0, r[1])
-                    A_v = np.zeros((3, 3))
-                    A_g = np.zeros((3, 3))
-                    F_scan = np.eye(3)
-                    P_s = P
-                if not healthy(x, P, R, Qu):
+                    R = (r0, 0.0, 0.0, r1)
+                nis_sum, n_updates, n_rejected = counts
+                for m in range(first, last):
+                    z0 = scan_z[m, 0]
+                    z1 = scan_z[m, 1]
+                    H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                    ok, v = nis(HPHt, R, nu[0], nu[1])
+                    if not ok or not math.isfinite(v):
+                        return True, j, nis_sum, n_updates, n_rejected
+                    fed[m - first] = from_all or not has_gate or v <= gate
+                    if has_gate and not v <= gate:
+                        n_rejected += 1
+                        continue
+                    nis_sum += v
+                    n_updates += 1
+                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                if not adaptation:
+                    break
+                ok, q = swvb_qu_sample(x, x_m, P, P_m, interval)
+                if not ok:
                     return True, j, nis_sum, n_updates, n_rejected
+                b_q0_n = b_q0 + 0.5 * clip_to_bounds(q[0], Qu0[0], bounds)
+                b_q1_n = b_q1 + 0.5 * clip_to_bounds(q[1], Qu0[3], bounds)
+                qu0 = clip_to_bounds(b_q0_n / (a_q0 + 0.5), Qu0[0], bounds)
+                qu1 = clip_to_bounds(b_q1_n / (a_q1 + 0.5), Qu0[3], bounds)
+                a_r0_n = a_r0
+                a_r1_n = a_r1
+                b_r0_n = b_r0
+                b_r1_n = b_r1
+                n_fed = 0
+                s0 = 0.0
+                s1 = 0.0
+                for m in range(first, last):  # swvb.r_moment at the posterior
+                    if fed[m - first]:
+                        n_fed += 1
+                        _, _, e, HPH = innovation(
+                            x, P, scan_lm[m, 0], scan_lm[m, 1], scan_z[m, 0], scan_z[m, 1]
+                        )  # fmt: skip
+                        s0 = s0 + e[0] * e[0] + HPH[0]
+                        s1 = s1 + e[1] * e[1] + HPH[3]
+                if n_fed > 0:
+                    a_r0_n = a_r0 + 0.5 * n_fed
+                    a_r1_n = a_r1 + 0.5 * n_fed
+                    b_r0_n = b_r0 + 0.5 * s0
+                    b_r1_n = b_r1 + 0.5 * s1
+                r0 = clip_to_bounds(b_r0_n / a_r0_n, R0[0], bounds)
+                r1 = clip_to_bounds(b_r1_n / a_r1_n, R0[3], bounds)
+            if adaptation:
+                a_q0 = a_q0 + 0.5
+                a_q1 = a_q1 + 0.5
+                b_q0 = b_q0_n
+                b_q1 = b_q1_n
+                a_r0 = a_r0_n
+                a_r1 = a_r1_n
+                b_r0 = b_r0_n
+                b_r1 = b_r1_n
+                Qu = (qu0, 0.0, 0.0, qu1)
+                R = (r0, 0.0, 0.0, r1)
+                A_v = ZERO9
+                A_g = ZERO9
+                F_scan = EYE9
+                P_s = P
+            if not healthy(x, P, R, Qu):
+                return True, j, nis_sum, n_updates, n_rejected
         if record_at[k] and j < n_rows:
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad
@@ -1716,6 +1879,16 @@ def run_swvb_kernel(
 
 # ---------------------------------------------------------------------------------------------
 # Fading-memory Sage-Husa (filters.sage_husa)
+
+
+@maybe_njit
+def sage_husa_qu_sample(x, x_prior, P, P_scan_start, F_scan, A_v, A_g, unbiased):
+    """SageHusaEKF._adapt_Qu's sample before the bounds: the scan's Q sample (`q_sample`, dx the
+    correction x - x_prior, heading wrapped) mapped to (qv, qg); (ok, (qv, qg)) as
+    `qu_estimate`. P, P_scan_start, F_scan, A_v, A_g row-major 9-tuples."""
+    dx = np.array([x[0] - x_prior[0], x[1] - x_prior[1], wrap(x[2] - x_prior[2])])
+    Q_hat = q_sample(dx, as_matrix(P), as_matrix(P_scan_start), as_matrix(F_scan), unbiased)
+    return qu_estimate(Q_hat, A_v, A_g, P)
 
 
 @maybe_njit
@@ -1734,20 +1907,21 @@ def run_sage_husa_kernel(
     P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
     Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
     R = (R0[0], R0[1], R0[2], R0[3])
-    R0_diag = np.array([R0[0], R0[3]])
-    Qu0_diag = np.array([Qu0[0], Qu0[3]])
     bounds = (lo, hi)
-    R_min = lo * R0_diag
-    R_max = hi * R0_diag
+    R_min0 = lo * R0[0]  # each channel as floats (the rules are elementwise)
+    R_min1 = lo * R0[3]
+    R_max0 = hi * R0[0]
+    R_max1 = hi * R0[3]
     beta = 1.0
     n_events = 0
-    R_hat = R0_diag.copy()
-    Qu_hat = Qu0_diag.copy()
-    A_v = np.zeros((3, 3))
-    A_g = np.zeros((3, 3))
-    F_scan = np.eye(3)
-    P_scan_start = as_matrix(P)
-    nu_a = np.empty(2)
+    R_hat0 = R0[0]
+    R_hat1 = R0[3]
+    Qu_hat0 = Qu0[0]
+    Qu_hat1 = Qu0[3]
+    A_v = ZERO9  # the interval's accumulators (filters.adaptive), row-major
+    A_g = ZERO9
+    F_scan = EYE9
+    P_scan_start = P
     nis_sum = 0.0
     n_updates = 0
     n_rejected = 0
@@ -1764,68 +1938,73 @@ def run_sage_husa_kernel(
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
         if last > first:
-            if True:  # (the scan's body keeps its indentation)
-                # SageHusaEKF.begin_scan
-                d = beta
-                R_start = R_hat.copy()
-                x_prior = x
-                rho_sum = np.zeros(2)
-                n_fed = 0
-                n_accepted = 0
-                for m in range(first, last):
-                    z0 = scan_z[m, 0]
-                    z1 = scan_z[m, 1]
-                    H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
-                    if adaptation:
-                        feeds = True
-                        if not from_all and has_gate:
-                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
-                            if not ok:
-                                return True, j, nis_sum, n_updates, n_rejected
-                            feeds = nis_a <= gate
-                        if feeds:  # SageHusaEKF.before_gain
-                            nu_a[0] = nu[0]
-                            nu_a[1] = nu[1]
-                            HPH_a = np.array([[HPHt[0], HPHt[1]], [HPHt[2], HPHt[3]]])
-                            rho_sum = rho_sum + r_sample(nu_a, HPH_a, R_min, R_max)
-                            n_fed += 1
-                            R_hat = fading_mean(d, R_start, rho_sum, n_fed)
-                            if n_events >= warmup:
-                                R = as_diag(clip_to_bounds(R_hat, R0_diag, bounds))
-                    ok, v = nis(HPHt, R, nu[0], nu[1])
-                    if not ok or not math.isfinite(v):
-                        return True, j, nis_sum, n_updates, n_rejected
-                    if has_gate and not v <= gate:
-                        n_rejected += 1
-                        continue
-                    nis_sum += v
-                    n_updates += 1
-                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
-                    if not ok:
-                        return True, j, nis_sum, n_updates, n_rejected
-                    n_accepted += 1
-                # SageHusaEKF.end_scan
-                if adapt_Q:
-                    if adaptation and n_fed > 0 and n_accepted > 0:
-                        dx = np.array([x[0] - x_prior[0], x[1] - x_prior[1], x[2] - x_prior[2]])
-                        dx[2] = wrap(dx[2])
-                        Q_hat = q_sample(dx, as_matrix(P), P_scan_start, F_scan, unbiased)
-                        ok, q_hat = qu_estimate(Q_hat, A_v, A_g, P)
+            # SageHusaEKF.begin_scan
+            d = beta
+            R_start0 = R_hat0
+            R_start1 = R_hat1
+            x_prior = x
+            rho_sum0 = 0.0
+            rho_sum1 = 0.0
+            n_fed = 0
+            n_accepted = 0
+            for m in range(first, last):
+                z0 = scan_z[m, 0]
+                z1 = scan_z[m, 1]
+                H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                if adaptation:
+                    feeds = True
+                    if not from_all and has_gate:
+                        ok, nis_a = nis(HPHt, R, nu[0], nu[1])
                         if not ok:
                             return True, j, nis_sum, n_updates, n_rejected
-                        q_hat = clip_to_bounds(q_hat, Qu0_diag, bounds)
-                        Qu_hat = fading_mean(d, Qu_hat, q_hat, 1)
+                        feeds = nis_a <= gate
+                    if feeds:  # SageHusaEKF.before_gain
+                        rho_sum0 = rho_sum0 + r_sample(nu[0], HPHt[0], R_min0, R_max0)
+                        rho_sum1 = rho_sum1 + r_sample(nu[1], HPHt[3], R_min1, R_max1)
+                        n_fed += 1
+                        R_hat0 = fading_mean(d, R_start0, rho_sum0, n_fed)
+                        R_hat1 = fading_mean(d, R_start1, rho_sum1, n_fed)
                         if n_events >= warmup:
-                            Qu = as_diag(clip_to_bounds(Qu_hat, Qu0_diag, bounds))
-                    A_v = np.zeros((3, 3))
-                    A_g = np.zeros((3, 3))
-                    F_scan = np.eye(3)
-                    P_scan_start = as_matrix(P)
-                if n_fed > 0:
-                    beta = next_beta(beta, b)
-                    n_events += 1
-                if not healthy(x, P, R, Qu):
+                            R = (
+                                clip_to_bounds(R_hat0, R0[0], bounds), 0.0,
+                                0.0, clip_to_bounds(R_hat1, R0[3], bounds),
+                            )  # fmt: skip
+                ok, v = nis(HPHt, R, nu[0], nu[1])
+                if not ok or not math.isfinite(v):
                     return True, j, nis_sum, n_updates, n_rejected
+                if has_gate and not v <= gate:
+                    n_rejected += 1
+                    continue
+                nis_sum += v
+                n_updates += 1
+                ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                if not ok:
+                    return True, j, nis_sum, n_updates, n_rejected
+                n_accepted += 1
+            # SageHusaEKF.end_scan
+            if adapt_Q:
+                if adaptation and n_fed > 0 and n_accepted > 0:
+                    ok, q = sage_husa_qu_sample(
+                        x, x_prior, P, P_scan_start, F_scan, A_v, A_g, unbiased
+                    )
+                    if not ok:
+                        return True, j, nis_sum, n_updates, n_rejected
+                    Qu_hat0 = fading_mean(d, Qu_hat0, clip_to_bounds(q[0], Qu0[0], bounds), 1)
+                    Qu_hat1 = fading_mean(d, Qu_hat1, clip_to_bounds(q[1], Qu0[3], bounds), 1)
+                    if n_events >= warmup:
+                        Qu = (
+                            clip_to_bounds(Qu_hat0, Qu0[0], bounds), 0.0,
+                            0.0, clip_to_bounds(Qu_hat1, Qu0[3], bounds),
+                        )  # fmt: skip
+                A_v = ZERO9
+                A_g = ZERO9
+                F_scan = EYE9
+                P_scan_start = P
+            if n_fed > 0:
+                beta = next_beta(beta, b)
+                n_events += 1
+            if not healthy(x, P, R, Qu):
+                return True, j, nis_sum, n_updates, n_rejected
         if record_at[k] and j < n_rows:
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad
@@ -1852,13 +2031,62 @@ q_estimate = _iae.q_estimate
 
 
 @maybe_njit
-def oldest_first(ring, pos):
-    """A full ring buffer (first axis) as an array, oldest first (a deque's order)."""
-    n = ring.shape[0]
-    out = np.empty_like(ring)
-    for i in range(n):
-        out[i] = ring[(pos + i) % n]
-    return out
+def push_row(win, n, a, b):
+    """Append the row (a, b) to a window of rows kept oldest first (a deque's order) that holds
+    n rows: at row n while it is not full, else after moving the others up one (no copy of the
+    window when a rule reads it)."""
+    N = win.shape[0]
+    if n < N:
+        win[n, 0] = a
+        win[n, 1] = b
+        return
+    for i in range(N - 1):
+        win[i, 0] = win[i + 1, 0]
+        win[i, 1] = win[i + 1, 1]
+    win[N - 1, 0] = a
+    win[N - 1, 1] = b
+
+
+@maybe_njit
+def row_mean(win):
+    """`window_mean` of a full window of rows (a, b), as two floats."""
+    m = window_mean(win)
+    return m[0], m[1]
+
+
+@maybe_njit
+def iae_r_estimate(nus, hph_diags, hph_window, hph0, hph1, hold, R):
+    """IAEEKF.adapt_R before the bounds, from the full windows (oldest first): (r0, r1), the
+    diagonal of C - H P- H^T with the window's mean diag(H P- H^T) (hph_window) or the current
+    one (hph0, hph1); hold: a channel <= 0 keeps its value in R."""
+    C = window_covariance(nus)
+    if hph_window:
+        h0, h1 = row_mean(hph_diags)
+    else:
+        h0 = hph0
+        h1 = hph1
+    r0 = r_estimate(C[0, 0], h0)
+    r1 = r_estimate(C[1, 1], h1)
+    if hold:
+        held = hold_nonpositive(np.array([r0, r1]), np.array([R[0], R[3]]))
+        r0 = held[0]
+        r1 = held[1]
+    return r0, r1
+
+
+@maybe_njit
+def iae_qu_sample(nus, Ks, n_K, P, P_scan_start, F_scan, A_v, A_g, q_full):
+    """IAEEKF.end_scan's sample of diag(Qu), not clipped: Q_hat (`q_estimate`) from the full
+    window's C (oldest first), the gains of the scan's n_K fused landmarks and, q_full, P+ -
+    F_scan P_scan_start F_scan^T; mapped to (qv, qg). (ok, (qv, qg)) as `qu_estimate`."""
+    C = window_covariance(nus)
+    if q_full:
+        F = as_matrix(F_scan)
+        dP = as_matrix(P) - matmul(matmul(F, as_matrix(P_scan_start)), F.T)
+    else:
+        dP = np.zeros((3, 3))
+    Q_hat = q_estimate(Ks[:n_K], C, dP)
+    return qu_estimate(Q_hat, A_v, A_g, P)
 
 
 @maybe_njit
@@ -1879,24 +2107,21 @@ def run_iae_kernel(
     P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
     Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
     R = (R0[0], R0[1], R0[2], R0[3])
-    R0_diag = np.array([R0[0], R0[3]])
-    Qu0_diag = np.array([Qu0[0], Qu0[3]])
     bounds = (lo, hi)
+    # the windows, oldest first (`push_row`): innovations, diag(H P- H^T), diag(Qu) samples
     nus = np.zeros((window, 2))
-    hphs = np.zeros((window, 2, 2))
+    hph_diags = np.zeros((window, 2))
     n_win = 0
-    pos = 0
     q_samples = np.zeros((q_window, 2))
     n_q = 0
-    q_pos = 0
     max_per_scan = 0
     for s in range(scan_start.shape[0] - 1):
         max_per_scan = max(max_per_scan, scan_start[s + 1] - scan_start[s])
     Ks = np.zeros((max(max_per_scan, 1), 3, 2))
-    A_v = np.zeros((3, 3))
-    A_g = np.zeros((3, 3))
-    F_scan = np.eye(3)
-    P_scan_start = as_matrix(P)
+    A_v = ZERO9  # the interval's accumulators (filters.adaptive), row-major
+    A_g = ZERO9
+    F_scan = EYE9
+    P_scan_start = P
     nis_sum = 0.0
     n_updates = 0
     n_rejected = 0
@@ -1913,80 +2138,66 @@ def run_iae_kernel(
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
         if last > first:
-            if True:  # (the scan's body keeps its indentation)
-                n_K = 0  # IAEEKF.begin_scan
-                for m in range(first, last):
-                    z0 = scan_z[m, 0]
-                    z1 = scan_z[m, 1]
-                    H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
-                    feeds = True
-                    if not from_all and has_gate:
-                        ok, nis_a = nis(HPHt, R, nu[0], nu[1])
-                        if not ok:
-                            return True, j, nis_sum, n_updates, n_rejected
-                        feeds = nis_a <= gate
-                    if feeds:  # IAEEKF.before_gain
-                        nus[pos, 0] = nu[0]
-                        nus[pos, 1] = nu[1]
-                        for i in range(4):
-                            hphs[pos, i // 2, i % 2] = HPHt[i]
-                        pos = (pos + 1) % window
-                        if n_win < window:
-                            n_win += 1
-                        if not adapt_Q and n_win == window and adaptation:  # IAEEKF.adapt_R
-                            C = window_covariance(oldest_first(nus, pos))
-                            if hph_window:
-                                HPH_w = window_mean(oldest_first(hphs, pos))
-                            else:
-                                HPH_w = np.array([[HPHt[0], HPHt[1]], [HPHt[2], HPHt[3]]])
-                            R_hat = r_estimate(C, HPH_w)
-                            if hold:
-                                R_hat = hold_nonpositive(R_hat, np.array([R[0], R[3]]))
-                            R = as_diag(clip_to_bounds(R_hat, R0_diag, bounds))
-                    ok, v = nis(HPHt, R, nu[0], nu[1])
-                    if not ok or not math.isfinite(v):
-                        return True, j, nis_sum, n_updates, n_rejected
-                    if has_gate and not v <= gate:
-                        n_rejected += 1
-                        continue
-                    nis_sum += v
-                    n_updates += 1
-                    if adapt_Q:  # IAEEKF.after_update: the gain of each fused landmark
-                        ok, Kg = gain(P, H, R)
-                        for i in range(6):
-                            Ks[n_K, i // 2, i % 2] = Kg[i]
-                        n_K += 1
-                    ok, x, P = correct(x, P, H, zh, z0, z1, R)
+            n_K = 0  # IAEEKF.begin_scan
+            for m in range(first, last):
+                z0 = scan_z[m, 0]
+                z1 = scan_z[m, 1]
+                H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                feeds = True
+                if not from_all and has_gate:
+                    ok, nis_a = nis(HPHt, R, nu[0], nu[1])
                     if not ok:
                         return True, j, nis_sum, n_updates, n_rejected
-                # IAEEKF.end_scan
-                if adapt_Q and adaptation and n_win == window and n_K > 0:
-                    C = window_covariance(oldest_first(nus, pos))
-                    P_post = as_matrix(P)
-                    if q_full:
-                        dP = P_post - matmul(matmul(F_scan, P_scan_start), F_scan.T)
-                        Q_hat = q_estimate(Ks[:n_K], C, dP)
-                    else:
-                        Q_hat = q_estimate(Ks[:n_K], C, np.zeros((3, 3)))
-                    ok, q = qu_estimate(Q_hat, A_v, A_g, P)
-                    if not ok:
-                        return True, j, nis_sum, n_updates, n_rejected
-                    q_samples[q_pos] = q
-                    q_pos = (q_pos + 1) % q_window
-                    if n_q < q_window:
-                        n_q += 1
-                    if n_q == q_window:
-                        Qu = as_diag(
-                            clip_to_bounds(
-                                window_mean(oldest_first(q_samples, q_pos)), Qu0_diag, bounds
-                            )
+                    feeds = nis_a <= gate
+                if feeds:  # IAEEKF.before_gain
+                    push_row(nus, n_win, nu[0], nu[1])
+                    push_row(hph_diags, n_win, HPHt[0], HPHt[3])
+                    if n_win < window:
+                        n_win += 1
+                    if not adapt_Q and n_win == window and adaptation:  # IAEEKF.adapt_R
+                        r0, r1 = iae_r_estimate(
+                            nus, hph_diags, hph_window, HPHt[0], HPHt[3], hold, R
                         )
-                A_v = np.zeros((3, 3))
-                A_g = np.zeros((3, 3))
-                F_scan = np.eye(3)
-                P_scan_start = as_matrix(P)
-                if not healthy(x, P, R, Qu):
+                        R = (
+                            clip_to_bounds(r0, R0[0], bounds), 0.0,
+                            0.0, clip_to_bounds(r1, R0[3], bounds),
+                        )  # fmt: skip
+                ok, v = nis(HPHt, R, nu[0], nu[1])
+                if not ok or not math.isfinite(v):
                     return True, j, nis_sum, n_updates, n_rejected
+                if has_gate and not v <= gate:
+                    n_rejected += 1
+                    continue
+                nis_sum += v
+                n_updates += 1
+                if adapt_Q:  # IAEEKF.after_update: the gain of each fused landmark
+                    ok, Kg = gain(P, H, R)
+                    for i in range(6):
+                        Ks[n_K, i // 2, i % 2] = Kg[i]
+                    n_K += 1
+                ok, x, P = correct(x, P, H, zh, z0, z1, R)
+                if not ok:
+                    return True, j, nis_sum, n_updates, n_rejected
+            # IAEEKF.end_scan
+            if adapt_Q and adaptation and n_win == window and n_K > 0:
+                ok, q = iae_qu_sample(nus, Ks, n_K, P, P_scan_start, F_scan, A_v, A_g, q_full)
+                if not ok:
+                    return True, j, nis_sum, n_updates, n_rejected
+                push_row(q_samples, n_q, q[0], q[1])
+                if n_q < q_window:
+                    n_q += 1
+                if n_q == q_window:
+                    q0, q1 = row_mean(q_samples)
+                    Qu = (
+                        clip_to_bounds(q0, Qu0[0], bounds), 0.0,
+                        0.0, clip_to_bounds(q1, Qu0[3], bounds),
+                    )  # fmt: skip
+            A_v = ZERO9
+            A_g = ZERO9
+            F_scan = EYE9
+            P_scan_start = P
+            if not healthy(x, P, R, Qu):
+                return True, j, nis_sum, n_updates, n_rejected
         if record_at[k] and j < n_rows:
             j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad

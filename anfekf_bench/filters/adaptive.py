@@ -19,7 +19,6 @@ from .spec import AdaptiveParams
 
 _E_V = np.array([[1.0, 0.0], [0.0, 0.0]])
 _E_G = np.array([[0.0, 0.0], [0.0, 1.0]])
-E_V, E_G = _E_V, _E_G  # unit variance on V, on gamma (the fast engine's kernels read them)
 
 
 def matmul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -29,16 +28,43 @@ def matmul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return A @ B
 
 
-def clip_to_bounds(value: np.ndarray, start: np.ndarray, bounds: tuple[float, float]) -> np.ndarray:
-    """Variances clipped to [floor * start, ceiling * start] elementwise (SPEC 7); NaN stays
-    NaN. Arrays (numba's np.clip takes no scalars): a single variance goes in as a length-1 or
-    length-2 array."""
-    return np.clip(value, bounds[0] * start, bounds[1] * start)
+def outer(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.outer(a, b). Compiled (engines/kernels.py), a plain loop: numba's np.outer costs ten
+    times that for three-vectors."""
+    return np.outer(a, b)
+
+
+def trace_of_product(A: np.ndarray, B: np.ndarray) -> float:
+    """tr(A B) = np.trace(A @ B). Compiled (engines/kernels.py), the product's diagonal only, each
+    entry summed as `matmul`'s loop sums it."""
+    return np.trace(A @ B)
 
 
 # numpy's lstsq cutoff for rcond=None on a 2 x 2 system (eps * max(M, N)), given explicitly so
-# that numba's lstsq (whose default differs) cuts the same singular values.
+# that the compiled `lstsq` cuts the same singular values.
 LSTSQ_RCOND = 2.0 * float(np.finfo(float).eps)
+
+
+def inv(A: np.ndarray) -> np.ndarray:
+    """np.linalg.inv(A). Compiled (engines/kernels.py), a 3 x 3 inverse by Gaussian elimination
+    with partial pivoting in plain loops, where LAPACK's call costs more than the inverse; it
+    raises np.linalg.LinAlgError for an exactly singular matrix, as numpy does."""
+    return np.linalg.inv(A)
+
+
+def lstsq(M: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.linalg.lstsq(M, b, rcond=LSTSQ_RCOND)[0]: the least-squares solution of a 2 x 2 system,
+    the least-norm one when M is singular. Compiled (engines/kernels.py), in closed form: LAPACK's
+    SVD costs about a microsecond there."""
+    return np.linalg.lstsq(M, b, rcond=LSTSQ_RCOND)[0]
+
+
+def clip_to_bounds(value, start, bounds: tuple[float, float]):
+    """Variances clipped to [floor * start, ceiling * start] elementwise (SPEC 7); NaN stays
+    NaN. Floats or arrays: np.clip's result, written with np.maximum and np.minimum because
+    numba's np.clip takes no scalars (the fast engine's kernels clip each channel as a float,
+    without building an array)."""
+    return np.minimum(np.maximum(value, bounds[0] * start), bounds[1] * start)
 
 
 def qu_least_squares(Q_hat, A_v, A_g, W):
@@ -50,13 +76,13 @@ def qu_least_squares(Q_hat, A_v, A_g, W):
     """
     WAv, WAg, WQ = matmul(W, A_v), matmul(W, A_g), matmul(W, Q_hat)
     M = np.array(
-        [
-            [np.trace(matmul(WAv, WAv)), np.trace(matmul(WAv, WAg))],
-            [np.trace(matmul(WAg, WAv)), np.trace(matmul(WAg, WAg))],
-        ]
+        (
+            (trace_of_product(WAv, WAv), trace_of_product(WAv, WAg)),
+            (trace_of_product(WAg, WAv), trace_of_product(WAg, WAg)),
+        )
     )
-    b = np.array([np.trace(matmul(WAv, WQ)), np.trace(matmul(WAg, WQ))])
-    return np.linalg.lstsq(M, b, rcond=LSTSQ_RCOND)[0]
+    b = np.array((trace_of_product(WAv, WQ), trace_of_product(WAg, WQ)))
+    return lstsq(M, b)
 
 
 def propagate_interval(A_v, A_g, F_scan, F, Q_v, Q_g):

@@ -23,7 +23,7 @@ import numpy as np
 from pydantic import Field
 
 from ..models import h, residual_z, wrap_scalar
-from .adaptive import AdaptiveEKF
+from .adaptive import AdaptiveEKF, outer
 from .ekf import Innovation
 from .spec import AdaptiveSpec, FilterContext
 
@@ -49,7 +49,7 @@ def forget(previous: np.ndarray, sample: np.ndarray, alpha: float) -> np.ndarray
 
 def state_noise_estimate(Q_prev: np.ndarray, dx: np.ndarray, alpha: float) -> np.ndarray:
     """Eq. (15) with K d = dx, the correction: alpha Q_(k-1) + (1 - alpha) dx dx^T."""
-    return forget(Q_prev, np.outer(dx, dx), alpha)
+    return forget(Q_prev, outer(dx, dx), alpha)
 
 
 def kalman_posterior(

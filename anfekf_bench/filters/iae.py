@@ -54,9 +54,10 @@ def window_mean(a: np.ndarray) -> np.ndarray:
     return np.sum(a, axis=0) / len(a)
 
 
-def r_estimate(C: np.ndarray, HPHt: np.ndarray) -> np.ndarray:
-    """The diagonal of R_hat = C - H P- H^T (not yet clamped: may be <= 0)."""
-    return np.diag(C) - np.diag(HPHt)
+def r_estimate(c, hph):
+    """The diagonal of R_hat = C - H P- H^T from c = diag(C) and hph = diag(H P- H^T) (not yet
+    clamped: may be <= 0). Floats or arrays, elementwise."""
+    return c - hph
 
 
 def hold_nonpositive(R_hat: np.ndarray, R_diag: np.ndarray) -> np.ndarray:
@@ -151,7 +152,7 @@ class IAEEKF(AdaptiveEKF):
         """R_hat = diag(C - H P- H^T), clamped to the bounds (floor: the positivity fix)."""
         C = window_covariance(np.array(self.nus))
         HPHt = window_mean(np.array(self.hphs)) if self.spec.hph == "window" else inn.HPHt
-        R_hat = r_estimate(C, HPHt)
+        R_hat = r_estimate(np.diag(C), np.diag(HPHt))
         if self.spec.nonpositive == "hold":
             R_hat = hold_nonpositive(R_hat, np.diag(self.R))
         self.set_R_diag(R_hat)

@@ -34,7 +34,7 @@ import numpy as np
 from pydantic import Field
 
 from ..models import wrap_scalar
-from .adaptive import AdaptiveEKF, clip_to_bounds, matmul
+from .adaptive import AdaptiveEKF, clip_to_bounds, matmul, outer
 from .ekf import Innovation
 from .spec import AdaptiveSpec, FilterContext
 
@@ -55,10 +55,11 @@ def fading_mean(d, old, total, n):
     return (1.0 - d) * old + d * total / n
 
 
-def r_sample(nu: np.ndarray, HPHt: np.ndarray, R_min: np.ndarray, R_max: np.ndarray) -> np.ndarray:
+def r_sample(nu, hph, R_min, R_max):
     """rho_c = nu_c^2 - (H P- H^T)_cc per channel, clamped to [R_min, R_max] (PSINS's fix of the
-    positivity problem: the unclamped sample is negative whenever nu_c^2 < (H P- H^T)_cc)."""
-    return np.clip(nu * nu - np.diag(HPHt), R_min, R_max)
+    positivity problem: the unclamped sample is negative whenever nu_c^2 < (H P- H^T)_cc); hph
+    is diag(H P- H^T). Floats or arrays, elementwise (np.clip's result)."""
+    return np.minimum(np.maximum(nu * nu - hph, R_min), R_max)
 
 
 def q_sample(
@@ -71,7 +72,7 @@ def q_sample(
     expectation is the interval's Q_scan: E[dx dx^T] = P- - P+ and P- = F_scan P_prev F_scan^T +
     Q_scan. The biased form drops P+ - F P_prev F^T (usually negative semidefinite) and stays PSD.
     """
-    Q_hat = np.outer(dx, dx)
+    Q_hat = outer(dx, dx)
     if unbiased:
         Q_hat = Q_hat + P_post - matmul(matmul(F_scan, P_prev), F_scan.T)
     return 0.5 * (Q_hat + Q_hat.T)
@@ -156,7 +157,7 @@ class SageHusaEKF(AdaptiveEKF):
     def before_gain(self, inn: Innovation) -> None:
         if not self.params.adaptation or not self.feeds_adaptation(inn):
             return
-        self.rho_sum += r_sample(inn.nu, inn.HPHt, self.R_min, self.R_max)
+        self.rho_sum += r_sample(inn.nu, np.diag(inn.HPHt), self.R_min, self.R_max)
         self.n_fed += 1
         # A convex combination of in-bound values: in bounds, positive.
         self.R_hat = fading_mean(self.d, self.R_start, self.rho_sum, self.n_fed)

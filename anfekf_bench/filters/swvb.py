@@ -36,25 +36,28 @@ from pydantic import Field
 from ..models import h, residual_z, wrap_scalar
 from ..models.range_bearing import H_jacobian
 from ..schema import PositiveFloat
-from .adaptive import AdaptiveEKF, clip_to_bounds, qu_least_squares
+from .adaptive import AdaptiveEKF, clip_to_bounds, matmul, outer, qu_least_squares
 from .spec import AdaptiveSpec, FilterContext
 
 RHO = 1.0 - math.exp(-4.0)  # as vb-r and vbakf
 
 
-def interval_prior(P_s, F_s, A_v, A_g, qv, qg):
-    """P- of the interval for Qu = diag(qv, qg): F_s P_s F_s^T + qv A_v + qg A_g."""
-    return F_s @ P_s @ F_s.T + qv * A_v + qg * A_g
+def interval_prior(FPF, A_v, A_g, qv, qg):
+    """P- of the interval for Qu = diag(qv, qg): F_s P_s F_s^T + qv A_v + qg A_g, with
+    FPF = F_s P_s F_s^T (the same over a scan's iterations)."""
+    return FPF + qv * A_v + qg * A_g
 
 
-def process_noise_moment(dx, P_s, F_s, P_prior, P_post):
+def process_noise_moment(dx, P_s, F_s, P_prior, P_prior_inv, P_post):
     """E[w w^T] of the interval's process noise w = x_k - F_s x_s under the lag-one smoother
-    (S.2); dx = x+ - x- with its heading wrapped."""
-    J = P_s @ F_s.T @ np.linalg.inv(P_prior)
-    m = dx - F_s @ (J @ dx)
-    P_s_smooth = P_s + J @ (P_post - P_prior) @ J.T
-    C = P_post @ J.T @ F_s.T
-    W = np.outer(m, m) + P_post - C - C.T + F_s @ P_s_smooth @ F_s.T
+    (S.2); dx = x+ - x- with its heading wrapped, P_prior_inv = P_prior^-1 (the caller's: it
+    also weighs the least squares). (`matmul` and `outer` are numpy's, compiled as plain loops
+    on the fast engine.)"""
+    J = matmul(matmul(P_s, F_s.T), P_prior_inv)
+    m = dx - matmul(F_s, matmul(J, dx))
+    P_s_smooth = P_s + matmul(matmul(J, P_post - P_prior), J.T)
+    C = matmul(matmul(P_post, J.T), F_s.T)
+    W = outer(m, m) + P_post - C - C.T + matmul(matmul(F_s, P_s_smooth), F_s.T)
     return 0.5 * (W + W.T)
 
 
@@ -112,10 +115,9 @@ class SWVBEKF(AdaptiveEKF):
         counts = (self.nis_sum, self.n_updates, self.n_rejected)
         qu, r = np.diag(self.Qu).copy(), np.diag(self.R).copy()
         qu0, r0 = np.diag(self.Qu0), np.diag(self.R0)
+        FPF = matmul(matmul(self.F_scan, self.P_scan_start), self.F_scan.T)
         for n in range(self.params.iterations):
-            P_m = P_m1 if n == 0 else interval_prior(
-                self.P_scan_start, self.F_scan, self.A_v, self.A_g, qu[0], qu[1]
-            )  # fmt: skip
+            P_m = P_m1 if n == 0 else interval_prior(FPF, self.A_v, self.A_g, qu[0], qu[1])
             self.x, self.P, self.R = x_m.copy(), P_m, np.diag(r)
             self.nis_sum, self.n_updates, self.n_rejected = counts
             fed = []
@@ -126,10 +128,9 @@ class SWVBEKF(AdaptiveEKF):
                 self.update_landmark(z, lm)
             dx = self.x - x_m
             dx[2] = wrap_scalar(dx[2])
-            W = process_noise_moment(dx, self.P_scan_start, self.F_scan, P_m, self.P)
-            q = clip_to_bounds(
-                qu_least_squares(W, self.A_v, self.A_g, np.linalg.inv(P_m)), qu0, self.bounds
-            )
+            P_m_inv = np.linalg.inv(P_m)
+            W = process_noise_moment(dx, self.P_scan_start, self.F_scan, P_m, P_m_inv, self.P)
+            q = clip_to_bounds(qu_least_squares(W, self.A_v, self.A_g, P_m_inv), qu0, self.bounds)
             b_q_n = b_q + 0.5 * q
             qu = clip_to_bounds(b_q_n / (a_q + 0.5), qu0, self.bounds)
             a_r_n, b_r_n = a_r, b_r

@@ -71,9 +71,8 @@ def clip_covariance_2(R, start0, start1, floor, ceiling):
     starting values (SPEC 7) and its correlations kept: R' = D R D with
     D = diag(sqrt(clipped / raw)), so that R' stays positive definite. Returns (whether a
     variance was clipped, R')."""
-    c = clip_to_bounds(np.array([R[0], R[3]]), np.array([start0, start1]), (floor, ceiling))
-    c0 = c[0]
-    c1 = c[1]
+    c0 = clip_to_bounds(R[0], start0, (floor, ceiling))
+    c1 = clip_to_bounds(R[3], start1, (floor, ceiling))
     if c0 == R[0] and c1 == R[3]:
         return False, R
     s0 = np.sqrt(c0 / R[0])  # np: NaN (not an error) for a negative variance
@@ -132,9 +131,8 @@ def vb_r_bounded_beta(alpha0, alpha1, beta0, beta1, R00, R11, floor, ceiling):
     clip(beta_i / alpha_i) alpha_i, so that beta / alpha is the R in force."""
     r0 = beta0 / alpha0
     r1 = beta1 / alpha1
-    c = clip_to_bounds(np.array([r0, r1]), np.array([R00, R11]), (floor, ceiling))
-    c0 = c[0]
-    c1 = c[1]
+    c0 = clip_to_bounds(r0, R00, (floor, ceiling))
+    c1 = clip_to_bounds(r1, R11, (floor, ceiling))
     if c0 == r0 and c1 == r1:
         return beta0, beta1
     return c0 * alpha0, c1 * alpha1

@@ -11,7 +11,11 @@ from anfekf_bench.engines.filterpy_engine import run_filter
 from anfekf_bench.filters.als import (
     innovation_rows,
     predict_sensitivities,
+    push_past,
+    ring_slot,
+    rows_per_innovation,
     solve_variances,
+    stack_rows,
     update_sensitivities,
 )
 from anfekf_bench.filters.ekf import RobotEKF
@@ -23,26 +27,54 @@ from anfekf_bench.runner import simulate
 from .conftest import small_scenario
 
 
+def _rows(nu, H, M, R_basis, past_nu, past_D, n_past, S):
+    """`innovation_rows` into fresh arrays: (A, b) of the rows written."""
+    m = len(nu)
+    A = np.full((rows_per_innovation(m, len(past_nu)), M.shape[0]), np.nan)
+    b = np.full(len(A), np.nan)
+    n = innovation_rows(nu, H, M, R_basis, past_nu, past_D, n_past, S, A, b)
+    return A[:n], b[:n]
+
+
 def test_rows_of_a_scalar_random_walk_by_hand():
     # x' = x + w (var q), z = x + v (var r), fixed gain k; unknowns theta = (q, r)
     k, S = 0.4, np.eye(1)
     Q_basis = np.array([[[1.0]], [[0.0]]])
     R_basis = np.array([[[0.0]], [[1.0]]])
     one = np.eye(1)
-    M = predict_sensitivities(np.zeros((2, 1, 1)), [], one, Q_basis)
-    A1, b1 = innovation_rows(np.array([0.5]), one, M, R_basis, [], S)
+    past_nu, past_D = np.zeros((1, 1)), np.zeros((2, 1, 1))  # lags = 1
+    M = predict_sensitivities(np.zeros((2, 1, 1)), past_D, 0, one, Q_basis)
+    A1, b1 = _rows(np.array([0.5]), one, M, R_basis, past_nu, past_D, 0, S)
     np.testing.assert_allclose(A1, [[1.0, 1.0]])  # var nu1 = q + r
     np.testing.assert_allclose(b1, [0.25])
-    D: list = []
-    M, C = update_sensitivities(M, D, one, np.array([[k]]), R_basis)
+    M, C = update_sensitivities(M, past_D, 0, one, np.array([[k]]), R_basis)
     np.testing.assert_allclose(C[:, 0, 0], [1 - k, -k])  # E[e1+ nu1] = (1-k) q - k r
     np.testing.assert_allclose(M[:, 0, 0], [(1 - k) ** 2, k**2])
-    D = [C]
-    M = predict_sensitivities(M, D, one, Q_basis)
-    A2, b2 = innovation_rows(np.array([2.0]), one, M, R_basis, [(np.array([0.5]), D[0])], S)
+    n_past = push_past(past_nu, past_D, 0, np.array([0.5]), C)
+    assert n_past == 1
+    M = predict_sensitivities(M, past_D, n_past, one, Q_basis)
+    A2, b2 = _rows(np.array([2.0]), one, M, R_basis, past_nu, past_D, n_past, S)
     # var nu2 = ((1-k)^2 + 1) q + (k^2 + 1) r; E[nu2 nu1] = (1-k) q - k r
     np.testing.assert_allclose(A2, [[(1 - k) ** 2 + 1, k**2 + 1], [1 - k, -k]])
     np.testing.assert_allclose(b2, [4.0, 1.0])
+    # a second push with lags = 1 replaces the first
+    assert push_past(past_nu, past_D, n_past, np.array([2.0]), 2 * C) == 1
+    np.testing.assert_allclose(past_nu, [[2.0]])
+    np.testing.assert_allclose(past_D, 2 * C)
+
+
+def test_ring_of_rows_keeps_the_last_window_oldest_first():
+    A_ring, b_ring = np.zeros((3, 2, 1)), np.zeros((3, 2))
+    n_rows = np.zeros(3, dtype=np.int64)
+    head = count = 0
+    for i in range(5):  # innovation i has i % 2 + 1 rows, of value i
+        slot, head, count = ring_slot(head, count, 3)
+        n_rows[slot] = i % 2 + 1
+        A_ring[slot] = i
+        b_ring[slot] = -i
+    A, b = stack_rows(A_ring, b_ring, n_rows, head, count)
+    np.testing.assert_array_equal(A[:, 0], [2, 3, 3, 4])
+    np.testing.assert_array_equal(b, [-2, -3, -3, -4])
 
 
 def _cv_model(dt=0.1):
@@ -62,25 +94,22 @@ def _linear_run_rows(seed: int, steps: int, q: float, r: float, qf: float, rf: f
     x = np.zeros(2)
     xh, P = np.zeros(2), np.eye(2) * 1e-9
     M = np.zeros((2, 2, 2))
-    past: list = []
+    past_nu, past_D, n_past = np.zeros((lags, 1)), np.zeros((lags * 2, 2, 1)), 0
     A_rows, b_rows = [], []
     for _ in range(steps):
         x = F @ x + G[:, 0] * rng.normal(0, np.sqrt(q))
         z = H @ x + rng.normal(0, np.sqrt(r), 1)
         xh, P = F @ xh, F @ P @ F.T + qf * G @ G.T
-        D = [d for _, d in past]
-        M = predict_sensitivities(M, D, F, Q_basis)
-        past = [(n, d) for (n, _), d in zip(past, D, strict=True)]
+        M = predict_sensitivities(M, past_D, n_past, F, Q_basis)
         nu = z - H @ xh
         S = H @ P @ H.T + rf
-        a, b = innovation_rows(nu, H, M, R_basis, past, S)
+        a, b = _rows(nu, H, M, R_basis, past_nu, past_D, n_past, S)
         A_rows.append(a)
         b_rows.append(b)
         K = P @ H.T / S
         xh, P = xh + K @ nu, (np.eye(2) - K @ H) @ P
-        D = [d for _, d in past]
-        M, C = update_sensitivities(M, D, H, K, R_basis)
-        past = ([(n, d) for (n, _), d in zip(past, D, strict=True)] + [(nu, C)])[-lags:]
+        M, C = update_sensitivities(M, past_D, n_past, H, K, R_basis)
+        n_past = push_past(past_nu, past_D, n_past, nu, C)
     return np.vstack(A_rows), np.concatenate(b_rows)
 
 

@@ -34,35 +34,54 @@ the answer is known; `ALSEKF` calls them from the EKF's hooks.
 
 from __future__ import annotations
 
-from collections import deque
+import math
 from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
-from scipy.optimize import nnls
 
-from .adaptive import AdaptiveEKF
-from .ekf import Innovation
+from .adaptive import E_G, E_V, AdaptiveEKF, matmul
+from .ekf import FilterDiverged, Innovation
 from .spec import AdaptiveSpec, FilterContext
 
 # ---------------------------------------------------------------------------------------------
-# The rule, as plain functions (any state and measurement dimension)
+# Batched products: numpy's broadcasting matmul here; the fast engine compiles them as plain
+# loops (engines/kernels_als.py), where a small array's allocation costs more than the product.
+
+
+def batch_left(L: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """L X_i for every matrix X_i of the stack X (q, b, c): (q, a, c)."""
+    return L @ X
+
+
+def batch_sandwich(L: np.ndarray, X: np.ndarray, Rm: np.ndarray) -> np.ndarray:
+    """L X_i Rm^T for every matrix X_i of the stack X (q, b, c): (q, a, d)."""
+    return (L @ X) @ Rm.T
+
+
+# ---------------------------------------------------------------------------------------------
+# The rule, as plain functions (any state and measurement dimension; numba compiles them as
+# they are). The last `lags` innovations are kept oldest first: their nu in `past_nu` (lags, m)
+# and their cross terms D_l (p, n, m) stacked in `past_D` (lags * p, n, m), the first `n_past`
+# of each in use.
 
 
 def predict_sensitivities(
-    M: np.ndarray, D: list[np.ndarray], F: np.ndarray, Q_basis: np.ndarray
+    M: np.ndarray, past_D: np.ndarray, n_past: int, F: np.ndarray, Q_basis: np.ndarray
 ) -> np.ndarray:
     """One prediction: M_i <- F M_i F^T + Q_basis_i (Q_basis (p, n, n): the state-space noise
     of a unit value of unknown i; zero for the measurement unknowns); every stored cross term
-    D_l (p, n, m) <- F D_l in place. Returns the new M (p, n, n)."""
-    for j, d in enumerate(D):
-        D[j] = np.einsum("ab,pbc->pac", F, d)
-    return np.einsum("ab,pbc,dc->pad", F, M, F) + Q_basis
+    D_l <- F D_l in place. Returns the new M (p, n, n)."""
+    used = n_past * M.shape[0]
+    if used:
+        past_D[:used] = batch_left(F, past_D[:used])
+    return batch_sandwich(F, M, F) + Q_basis
 
 
 def update_sensitivities(
     M: np.ndarray,
-    D: list[np.ndarray],
+    past_D: np.ndarray,
+    n_past: int,
     H: np.ndarray,
     K: np.ndarray,
     R_basis: np.ndarray,
@@ -70,12 +89,35 @@ def update_sensitivities(
     """One measurement (gain K, zero for a rejected one): the innovation's cross term
     C_i = A M_i H^T - K R_basis_i (A = I - K H), every stored D_l <- A D_l in place, and
     M_i <- A M_i A^T + K R_basis_i K^T. Returns (new M, C)."""
-    A = np.eye(M.shape[1]) - K @ H
-    C = np.einsum("ab,pbc,dc->pad", A, M, H) - np.einsum("ab,pbc->pac", K, R_basis)
-    for j, d in enumerate(D):
-        D[j] = np.einsum("ab,pbc->pac", A, d)
-    M_new = np.einsum("ab,pbc,dc->pad", A, M, A) + np.einsum("ab,pbc,dc->pad", K, R_basis, K)
-    return M_new, C
+    A = np.eye(M.shape[1]) - matmul(K, H)
+    C = batch_sandwich(A, M, H) - batch_left(K, R_basis)
+    used = n_past * M.shape[0]
+    if used:
+        past_D[:used] = batch_left(A, past_D[:used])
+    return batch_sandwich(A, M, A) + batch_sandwich(K, R_basis, K), C
+
+
+def push_past(
+    past_nu: np.ndarray, past_D: np.ndarray, n_past: int, nu: np.ndarray, C: np.ndarray
+) -> int:
+    """Keep (nu, C) as the newest of the last `lags` innovations (the oldest dropped when they
+    are all in use); returns the new count."""
+    lags = past_nu.shape[0]
+    if lags == 0:
+        return 0
+    p = C.shape[0]
+    if n_past == lags:
+        past_nu[:-1] = past_nu[1:].copy()
+        past_D[:-p] = past_D[p:].copy()
+        n_past -= 1
+    past_nu[n_past] = nu
+    past_D[n_past * p : (n_past + 1) * p] = C
+    return n_past + 1
+
+
+def rows_per_innovation(m: int, lags: int) -> int:
+    """Rows of one innovation with `lags` past ones: m (m + 1) / 2 at lag 0, m^2 per lag."""
+    return m * (m + 1) // 2 + lags * m * m
 
 
 def innovation_rows(
@@ -83,28 +125,152 @@ def innovation_rows(
     H: np.ndarray,
     M: np.ndarray,
     R_basis: np.ndarray,
-    past: list[tuple[np.ndarray, np.ndarray]],
+    past_nu: np.ndarray,
+    past_D: np.ndarray,
+    n_past: int,
     S: np.ndarray,
+    A_out: np.ndarray,
+    b_out: np.ndarray,
+) -> int:
+    """The rows of one innovation nu (before its update) into A_out (rows, p) and b_out: lag 0
+    (the upper triangle of nu nu^T, row by row) and, for each stored (nu_l, D_l), oldest first,
+    the entries of nu nu_l^T (row-major), every row divided by sqrt(S_aa S_bb). Returns how
+    many rows it wrote."""
+    m, p = len(nu), M.shape[0]
+    lag0 = batch_sandwich(H, M, H) + R_basis  # (p, m, m)
+    r = 0
+    for a in range(m):
+        for b in range(a, m):
+            scale = math.sqrt(S[a, a] * S[b, b])
+            A_out[r] = lag0[:, a, b] / scale
+            b_out[r] = nu[a] * nu[b] / scale
+            r += 1
+    for j in range(n_past):
+        cross = batch_left(H, past_D[j * p : (j + 1) * p])  # (p, m, m)
+        for a in range(m):
+            for b in range(m):
+                scale = math.sqrt(S[a, a] * S[b, b])
+                A_out[r] = cross[:, a, b] / scale
+                b_out[r] = nu[a] * past_nu[j, b] / scale
+                r += 1
+    return r
+
+
+def ring_slot(head: int, count: int, size: int) -> tuple[int, int, int]:
+    """Where the next entry of a ring buffer of `size` goes: (slot, new head, new count); when
+    full it overwrites the oldest."""
+    if count < size:
+        return (head + count) % size, head, count + 1
+    return head, (head + 1) % size, count
+
+
+def stack_rows(
+    A_ring: np.ndarray, b_ring: np.ndarray, n_rows: np.ndarray, head: int, count: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The rows of one innovation nu (before its update): lag 0 (the upper triangle of nu nu^T)
-    and, for each (nu_l, D_l) in `past` (D_l propagated to now), the entries of nu nu_l^T.
-    Returns (A (rows, p), b (rows,)), every row divided by sqrt(S_aa S_bb)."""
-    m = len(nu)
-    lag0 = np.einsum("ab,pbc,dc->pad", H, M, H) + R_basis  # (p, m, m)
-    scale = np.sqrt(np.outer(np.diag(S), np.diag(S)))
-    iu = np.triu_indices(m)
-    A_rows = [lag0[:, iu[0], iu[1]].T / scale[iu][:, None]]
-    b_rows = [np.outer(nu, nu)[iu] / scale[iu]]
-    for nu_l, D_l in past:
-        cross = np.einsum("ab,pbc->pac", H, D_l)  # (p, m, m)
-        A_rows.append(cross.reshape(len(cross), -1).T / scale.reshape(-1, 1))
-        b_rows.append(np.outer(nu, nu_l).ravel() / scale.ravel())
-    return np.vstack(A_rows), np.concatenate(b_rows)
+    """The rows of the `count` innovations in the ring, oldest first: (A (rows, p), b)."""
+    size = A_ring.shape[0]
+    total = 0
+    for i in range(count):
+        total += n_rows[(head + i) % size]
+    A = np.empty((total, A_ring.shape[2]))
+    b = np.empty(total)
+    r = 0
+    for i in range(count):
+        s = (head + i) % size
+        k = n_rows[s]
+        A[r : r + k] = A_ring[s, :k]
+        b[r : r + k] = b_ring[s, :k]
+        r += k
+    return A, b
+
+
+# numpy's lstsq cutoff (eps * max(M, N)) given explicitly, as numba's default differs.
+_EPS = float(np.finfo(float).eps)
+
+
+def _passive_solution(Rt: np.ndarray, c: np.ndarray, passive: np.ndarray) -> np.ndarray:
+    """The least-squares solution over the passive columns, zero on the others."""
+    idx = np.flatnonzero(passive)
+    z = np.zeros(Rt.shape[1])
+    if len(idx):
+        sub = np.ascontiguousarray(Rt[:, idx])
+        rcond = _EPS * max(sub.shape[0], sub.shape[1])
+        sol = np.linalg.lstsq(sub, c, rcond=rcond)[0]
+        for i in range(len(idx)):
+            z[idx[i]] = sol[i]
+    return z
+
+
+def nnls(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The non-negative x minimising ||A x - b||: Lawson & Hanson's active-set algorithm
+    (Solving Least Squares Problems, 1974, ch. 23), as scipy.optimize.nnls, on the triangular
+    factor of A (A = Q R: ||A x - b||^2 = ||R x - Q^T b||^2 + const), so that every pass costs
+    p x p whatever the number of rows. NaN or infinite input gives NaN."""
+    n = A.shape[1]
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+        return np.full(n, np.nan)
+    Q, Rt = np.linalg.qr(A)
+    c = b @ Q
+    # Lawson & Hanson's tolerance on the dual and on zeroed variables
+    tol = 10.0 * _EPS * max(A.shape[0], n) * max(np.abs(Rt).max(), 1e-300)
+    x = np.zeros(n)
+    passive = np.zeros(n, dtype=np.bool_)
+    w = (c - Rt @ x) @ Rt  # the dual: minus the gradient, Rt^T (c - Rt x)
+    skip = np.zeros(n, dtype=np.bool_)  # variables whose entry made no progress (w ~ 0)
+    for _ in range(3 * n + 1):
+        best, t = tol, -1
+        for i in range(n):
+            if not passive[i] and not skip[i] and w[i] > best:
+                best, t = w[i], i
+        if t < 0:
+            break
+        passive[t] = True
+        z = _passive_solution(Rt, c, passive)
+        if z[t] <= 0.0:  # rounding: the entering variable cannot move; try the next one
+            passive[t] = False
+            skip[t] = True
+            continue
+        skip[:] = False
+        for _inner in range(3 * n):
+            alpha, blocked = 2.0, False
+            for i in range(n):
+                if passive[i] and z[i] <= 0.0:
+                    blocked = True
+                    step = x[i] / (x[i] - z[i])
+                    alpha = min(alpha, step)
+            if not blocked:
+                break
+            x = x + alpha * (z - x)
+            for i in range(n):
+                if passive[i] and x[i] <= tol:
+                    passive[i] = False
+                    x[i] = 0.0
+            z = _passive_solution(Rt, c, passive)
+        x = z
+        w = (c - Rt @ x) @ Rt
+    return x
 
 
 def solve_variances(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The non-negative theta minimising ||A theta - b|| (scipy.optimize.nnls)."""
-    return nnls(A, b)[0]
+    """The non-negative theta minimising ||A theta - b|| (`nnls`)."""
+    return nnls(A, b)
+
+
+def q_basis(G: np.ndarray, model, dt: float) -> np.ndarray:
+    """Q_basis of `predict_sensitivities` for (qv, qg, rr, rb): the step's state-space noise
+    of a unit variance on V, on gamma (the motion model's Q), zero for rr and rb."""
+    out = np.zeros((4, G.shape[0], G.shape[0]))
+    out[0] = model.Q(G, E_V, dt)
+    out[1] = model.Q(G, E_G, dt)
+    return out
+
+
+def r_basis() -> np.ndarray:
+    """R_basis of (qv, qg, rr, rb): a unit variance on range, on bearing (zero for qv, qg)."""
+    out = np.zeros((4, 2, 2))
+    out[2, 0, 0] = 1.0
+    out[3, 1, 1] = 1.0
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -132,10 +298,6 @@ class ALSSpec(AdaptiveSpec):
         return ALSEKF(**ctx.kwargs(), params=self)
 
 
-_E_V = np.array([[1.0, 0.0], [0.0, 0.0]])
-_E_G = np.array([[0.0, 0.0], [0.0, 1.0]])
-
-
 class ALSEKF(AdaptiveEKF):
     """EKF plus online ALS (module doc)."""
 
@@ -144,13 +306,18 @@ class ALSEKF(AdaptiveEKF):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        p = 4
-        self.M = np.zeros((p, 3, 3))
-        self.R_basis = np.zeros((p, 2, 2))
-        self.R_basis[2, 0, 0] = 1.0
-        self.R_basis[3, 1, 1] = 1.0
-        self.past: deque = deque(maxlen=self.params.lags)  # (nu_l, D_l) of recent innovations
-        self.rows: deque = deque(maxlen=self.params.window)  # (A, b) per innovation
+        lags, window = self.params.lags, self.params.window
+        self.M = np.zeros((4, 3, 3))
+        self.R_basis = r_basis()
+        self.past_nu = np.zeros((lags, 2))  # the last `lags` innovations, oldest first
+        self.past_D = np.zeros((lags * 4, 3, 2))  # and their cross terms
+        self.n_past = 0
+        # the rows of the last `window` innovations (a ring; np.empty: pages are only touched
+        # as it fills)
+        self.A_ring = np.empty((window, rows_per_innovation(2, lags), 4))
+        self.b_ring = np.empty((window, rows_per_innovation(2, lags)))
+        self.n_rows = np.zeros(window, dtype=np.int64)
+        self.head = self.count = 0
         self.pending: tuple | None = None  # the innovation before its update
         self.scans = 0
         self.theta = np.full(4, np.nan)  # the last identification (qv, qg, rr, rb)
@@ -163,32 +330,25 @@ class ALSEKF(AdaptiveEKF):
         nu, H = self.pending
         self.pending = None
         gain = np.zeros((3, 2)) if K is None else K
-        D = [d for _, d in self.past]
-        self.M, C = update_sensitivities(self.M, D, H, gain, self.R_basis)
-        self.past = deque(
-            ((n, d) for (n, _), d in zip(self.past, D, strict=True)), maxlen=self.params.lags
-        )
-        if self.params.lags:
-            self.past.append((nu, C))
+        self.M, C = update_sensitivities(self.M, self.past_D, self.n_past, H, gain, self.R_basis)
+        self.n_past = push_past(self.past_nu, self.past_D, self.n_past, nu, C)
 
     def predict(self, u=0, dt: float | None = None):
         self._finish_pending(None)
         super().predict(u, dt)
-        Q_basis = np.zeros((4, 3, 3))
-        Q_basis[0] = self.model.Q(self.G, _E_V, self.dt)
-        Q_basis[1] = self.model.Q(self.G, _E_G, self.dt)
-        D = [d for _, d in self.past]
-        self.M = predict_sensitivities(self.M, D, self.F, Q_basis)
-        self.past = deque(
-            ((n, d) for (n, _), d in zip(self.past, D, strict=True)), maxlen=self.params.lags
-        )
+        Q_basis = q_basis(self.G, self.model, self.dt)
+        self.M = predict_sensitivities(self.M, self.past_D, self.n_past, self.F, Q_basis)
 
     def before_gain(self, inn: Innovation) -> None:
         self._finish_pending(None)  # the previous landmark of this scan, if the gate refused it
         if not self.feeds_adaptation(inn):
             return
         S = inn.HPHt + self.R
-        self.rows.append(innovation_rows(inn.nu, inn.H, self.M, self.R_basis, list(self.past), S))
+        slot, self.head, self.count = ring_slot(self.head, self.count, self.params.window)
+        self.n_rows[slot] = innovation_rows(
+            inn.nu, inn.H, self.M, self.R_basis, self.past_nu, self.past_D, self.n_past, S,
+            self.A_ring[slot], self.b_ring[slot],
+        )  # fmt: skip
         self.pending = (inn.nu.copy(), inn.H.copy())
 
     def after_update(self, inn: Innovation) -> None:
@@ -199,11 +359,12 @@ class ALSEKF(AdaptiveEKF):
         self.scans += 1
         if not self.params.adaptation or self.scans % self.params.every:
             return
-        if len(self.rows) < min(self.params.warmup, self.params.window):
+        if self.count < min(self.params.warmup, self.params.window):
             return
-        A = np.vstack([a for a, _ in self.rows])
-        b = np.concatenate([b for _, b in self.rows])
+        A, b = stack_rows(self.A_ring, self.b_ring, self.n_rows, self.head, self.count)
         self.theta = solve_variances(A, b)
+        if not np.all(np.isfinite(self.theta)):
+            raise FilterDiverged("the ALS rows are not finite")
         if "Q" in self.params.adapt:
             self.set_Qu_diag(self.theta[:2])
         if "R" in self.params.adapt:

@@ -28,6 +28,7 @@ import numpy as np
 from ..config import World
 from ..filters import anfis
 from ..filters.akhlaghi import AkhlaghiSpec
+from ..filters.als import ALSSpec
 from ..filters.anfekf import ANFEKFSpec
 from ..filters.bank import IMMSpec, MMAESpec, hypotheses
 from ..filters.cm_scale import CMScaleSpec
@@ -43,6 +44,7 @@ from ..filters.vb import VBAKFSpec, VBRSpec
 from ..models import Bicycle
 from ..sources.simulator import RunData
 from . import kernels as _jit_kernels
+from . import kernels_als as _jit_kernels_als
 
 JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 
@@ -50,7 +52,7 @@ JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 # ekf-ml and ekf-tuned are the plain EKF with fitted noise (filters.fitted).
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
-    VBRSpec, AkhlaghiSpec, VBAKFSpec, SWVBSpec, CMScaleSpec, SageHusaSpec, IAESpec,
+    VBRSpec, AkhlaghiSpec, VBAKFSpec, SWVBSpec, CMScaleSpec, SageHusaSpec, IAESpec, ALSSpec,
 )  # fmt: skip
 
 
@@ -166,6 +168,16 @@ def run_filter_fast(
     # Without numba the module's own kernels are already plain Python.
     k = _pure_kernels() if (JIT and not jit) else _jit_kernels
 
+    if isinstance(spec, ALSSpec):
+        ka = _jit_kernels_als.pure_module() if (JIT and not jit) else _jit_kernels_als
+        diverged, j, nis_sum, n_updates, n_rejected = ka.run_als_kernel(
+            *_stamp_args(ctx, data, every, flat, record_every),
+            "R" in spec.adapt, "Q" in spec.adapt, bool(spec.adaptation),
+            spec.adapt_from == "all", float(spec.bounds[0]), float(spec.bounds[1]),
+            int(spec.lags), int(spec.window), int(spec.every), int(spec.warmup),
+            x, P, R, Qu,
+        )  # fmt: skip
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, MMAESpec):
         diverged, j, nis_sum, n_updates, n_rejected = _run_bank(
             k, spec, ctx, data, every, flat, record_every, x, P, R, Qu
@@ -276,6 +288,31 @@ def _common_args(ctx: FilterContext, data: RunData, every: int, flat: FlatScans)
         np.ascontiguousarray(data.u_odo, dtype=float), int(every),
         flat.start, flat.landmarks, flat.z,
         float(ctx.dt), float(ctx.model.B),
+        np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
+        _matrix(ctx.Qu, 2), _matrix(ctx.R, 2),
+        float(ctx.gate) if has_gate else math.inf, has_gate,
+    )  # fmt: skip
+
+
+def _stamp_args(
+    ctx: FilterContext, data: RunData, every: int, flat: FlatScans, record_every: int
+) -> tuple:
+    """The arguments of a per-stamp kernel (`kernels_als.run_als_kernel`) up to its own
+    parameters: per control step i the controls u[i] and step dt[i], the landmarks
+    lm[i] .. lm[i + 1] - 1 of `flat` (the scan of step i + 1 when every-th, as
+    filterpy_engine.run_filter fuses it), whether to record after it; the motion model, the
+    start, the noise and the gate."""
+    K = len(data.u_odo)
+    stamps = np.arange(K + 1)
+    lm = np.ascontiguousarray(flat.start[stamps // every])  # scans before stamp i: i // every
+    record_at = (
+        (stamps[1:] % record_every == 0) if record_every > 0 else np.zeros(K, dtype=np.bool_)
+    )
+    has_gate = ctx.gate is not None
+    return (
+        np.ascontiguousarray(data.u_odo, dtype=float), np.full(K, float(ctx.dt)), lm,
+        flat.landmarks, flat.z, record_at, _jit_kernels_als.MOTION_BICYCLE,
+        float(ctx.model.B), float(ctx.dt),
         np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
         _matrix(ctx.Qu, 2), _matrix(ctx.R, 2),
         float(ctx.gate) if has_gate else math.inf, has_gate,

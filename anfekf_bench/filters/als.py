@@ -210,6 +210,7 @@ def nnls(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
         return np.full(n, np.nan)
     Q, Rt = np.linalg.qr(A)
+    Q, Rt = np.ascontiguousarray(Q), np.ascontiguousarray(Rt)
     c = b @ Q
     # Lawson & Hanson's tolerance on the dual and on zeroed variables
     tol = 10.0 * _EPS * max(A.shape[0], n) * max(np.abs(Rt).max(), 1e-300)

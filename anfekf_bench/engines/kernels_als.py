@@ -142,6 +142,12 @@ def _jacobians(x2, u0, u1, dt, motion, B, T0):
 
 
 @maybe_njit
+def nnls(A, b):
+    """filters.als.nnls as the kernel runs it (compiled when numba is in use): for tests."""
+    return solve_variances(A, b)
+
+
+@maybe_njit
 def _fill(out, Q):
     """A row-major 3 x 3 tuple into the 3 x 3 array `out`."""
     for i in range(9):

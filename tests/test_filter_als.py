@@ -7,16 +7,18 @@ import numpy as np
 import pytest
 
 from anfekf_bench.config import parse_scenario, resolve_world
+from anfekf_bench.engines import kernels_als
 from anfekf_bench.engines.filterpy_engine import run_filter
 from anfekf_bench.filters.als import (
     innovation_rows,
+    nnls,
     predict_sensitivities,
     push_past,
-    ring_slot,
     rows_per_innovation,
-    solve_variances,
-    stack_rows,
+    triangularise,
     update_sensitivities,
+    window_factor,
+    window_push,
 )
 from anfekf_bench.filters.ekf import RobotEKF
 from anfekf_bench.filters.registry import build_filter
@@ -29,11 +31,9 @@ from .conftest import small_scenario
 
 def _rows(nu, H, M, R_basis, past_nu, past_D, n_past, S):
     """`innovation_rows` into fresh arrays: (A, b) of the rows written."""
-    m = len(nu)
-    A = np.full((rows_per_innovation(m, len(past_nu)), M.shape[0]), np.nan)
-    b = np.full(len(A), np.nan)
-    n = innovation_rows(nu, H, M, R_basis, past_nu, past_D, n_past, S, A, b)
-    return A[:n], b[:n]
+    out = np.full((rows_per_innovation(len(nu), len(past_nu)), M.shape[0] + 1), np.nan)
+    n = innovation_rows(nu, H, M, R_basis, past_nu, past_D, n_past, S, out)
+    return out[:n, :-1], out[:n, -1]
 
 
 def test_rows_of_a_scalar_random_walk_by_hand():
@@ -63,18 +63,23 @@ def test_rows_of_a_scalar_random_walk_by_hand():
     np.testing.assert_allclose(past_D, 2 * C)
 
 
-def test_ring_of_rows_keeps_the_last_window_oldest_first():
-    A_ring, b_ring = np.zeros((3, 2, 1)), np.zeros((3, 2))
-    n_rows = np.zeros(3, dtype=np.int64)
-    head = count = 0
-    for i in range(5):  # innovation i has i % 2 + 1 rows, of value i
-        slot, head, count = ring_slot(head, count, 3)
-        n_rows[slot] = i % 2 + 1
-        A_ring[slot] = i
-        b_ring[slot] = -i
-    A, b = stack_rows(A_ring, b_ring, n_rows, head, count)
-    np.testing.assert_array_equal(A[:, 0], [2, 3, 3, 4])
-    np.testing.assert_array_equal(b, [-2, -3, -3, -4])
+@pytest.mark.parametrize("size", [1, 3, 7])
+def test_window_factor_is_the_factor_of_the_last_window_rows(size):
+    """The two-stack window: after every push its factor T has T^T T = Z^T Z for the rows Z of
+    the last `size` innovations (T is Z's triangular factor up to the signs of its rows)."""
+    rng = np.random.default_rng(size)
+    fac, suf, back = np.empty((size, 5, 5)), np.empty((size, 5, 5)), np.zeros((5, 5))
+    head = count = n_front = 0
+    rows = []
+    for i in range(25):
+        Z = rng.normal(size=(int(rng.integers(1, 12)), 5))
+        rows.append(Z)
+        head, count, n_front = window_push(fac, suf, back, head, count, n_front, triangularise(Z))
+        assert count == min(i + 1, size)
+        T = window_factor(fac, suf, back, head, count, n_front)
+        Z_all = np.vstack(rows[-size:])
+        np.testing.assert_allclose(T.T @ T, Z_all.T @ Z_all, rtol=1e-12, atol=1e-12)
+        assert np.allclose(np.tril(T, -1), 0.0)
 
 
 def _cv_model(dt=0.1):
@@ -125,7 +130,8 @@ def test_recovers_a_known_Q_and_R_on_a_linear_model():
     rows = [_linear_run_rows(seed, 8_000, q, r, 0.1 * q, 10.0 * r, 3) for seed in range(3)]
     A = np.vstack([a for a, _ in rows])
     b = np.concatenate([b for _, b in rows])
-    np.testing.assert_allclose(solve_variances(A, b), [q, r], rtol=0.10)
+    np.testing.assert_allclose(nnls(A, b), [q, r], rtol=0.10)
+    np.testing.assert_allclose(kernels_als.nnls(A, b), [q, r], rtol=0.10)  # compiled
 
 
 def test_als_on_the_robot_identifies_Q_toward_the_truth():

@@ -11,10 +11,11 @@ adapt_from, bounds, window, rates, ...), `cm-scale` (the ANFEKF's kernel with it
 rule), the multiple-model banks `mmae` and `imm` with any of theirs (`kernels.run_bank_kernel`),
 the fading-factor EKF (`kernels.run_fading_kernel`), and `akhlaghi`, `vb-r`, `vbakf`, `swvb`,
 `sage-husa` and `iae` in every mode (`kernels.run_akhlaghi_kernel`, `run_vbr_kernel`,
-`run_vbakf_kernel`, `run_swvb_kernel`, `run_sage_husa_kernel`, `run_iae_kernel`: each family's
-rules are the plain functions of its filter module, called by both engines), on the bicycle
-motion model. Anything else (a user's own filter) is not implemented here: the caller runs it
-on filterpy.
+`run_vbakf_kernel`, `run_swvb_kernel`, `run_sage_husa_kernel`, `run_iae_kernel`), and `als`
+in every mode (`kernels_als.run_als_kernel`, a loop over the run's stamps: `_stamp_args`); each
+family's rules are the plain functions of its filter module, called by both engines; on the
+bicycle motion model. Anything else (a user's own filter) is not implemented here: the caller
+runs it on filterpy.
 """
 
 from __future__ import annotations
@@ -391,8 +392,8 @@ def _anfis_start(
 
 def warm_up(jit: bool = True) -> float:
     """Compile (or load from numba's cache) every kernel signature the engine uses by running
-    a tiny EKF, ANFEKF (and cm-scale: the same kernel), akhlaghi, vb-r, vbakf, swvb, Sage-Husa
-    and IAE; returns the seconds it took."""
+    a tiny EKF, ANFEKF (and cm-scale: the same kernel), akhlaghi, vb-r, vbakf, swvb, Sage-Husa,
+    IAE and ALS; returns the seconds it took."""
     import time
 
     from ..sources.simulator import Scan, Truth
@@ -414,7 +415,7 @@ def warm_up(jit: bool = True) -> float:
         AkhlaghiSpec(name="akhlaghi", kind="akhlaghi"), VBRSpec(name="vb-r", kind="vb-r"),
         VBAKFSpec(name="vbakf", kind="vbakf"), SWVBSpec(name="swvb", kind="swvb"),
         SageHusaSpec(name="sage-husa", kind="sage-husa", adapt="RQ"),
-        IAESpec(name="iae", kind="iae", adapt="Q"),
+        IAESpec(name="iae", kind="iae", adapt="Q"), ALSSpec(name="als", kind="als"),
     )  # fmt: skip
     for spec in specs:
         run_filter_fast(spec, ctx, data, world, 1, jit=jit)

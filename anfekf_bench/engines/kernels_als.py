@@ -29,7 +29,7 @@ _PURE_COPY: bool = globals().get("_PURE", False)
 _k = _kernels.pure_module() if _PURE_COPY else _kernels
 JIT: bool = _k.JIT  # True: the kernel below is numba-compiled
 maybe_njit = _k.maybe_njit
-predict, jacobian_arrays = _k.predict, _k.jacobian_arrays
+predict, jacobians = _k.predict, _k.jacobians
 innovation, nis, gain, correct = _k.innovation, _k.nis, _k.gain, _k.correct
 healthy, record, as_diag, clip_to_bounds = _k.healthy, _k.record, _k.as_diag, _k.clip_to_bounds
 
@@ -99,10 +99,52 @@ if JIT and not _PURE_COPY:
 
         return impl
 
+    @overload(_als.triangularise)
+    def _triangularise_loop(Z):
+        """Compiled, the factor is Householder's QR as LAPACK's dgeqr2 runs it (dlarfg's sign
+        convention: T's diagonal is -sign(z_jj) times the column's norm), in plain loops."""
+
+        def impl(Z):
+            r, k = Z.shape
+            W = np.empty((r, k))
+            for i in range(r):
+                for c in range(k):
+                    W[i, c] = Z[i, c]
+            for j in range(min(r, k)):
+                s = 0.0
+                for i in range(j + 1, r):
+                    s += W[i, j] * W[i, j]
+                alpha = W[j, j]
+                if s == 0.0:  # nothing below the diagonal: H = I
+                    continue
+                norm = math.sqrt(alpha * alpha + s)
+                beta = -norm if alpha >= 0.0 else norm
+                tau = (beta - alpha) / beta
+                v0 = alpha - beta
+                for i in range(j + 1, r):
+                    W[i, j] /= v0
+                W[j, j] = beta
+                for c in range(j + 1, k):
+                    t = W[j, c]
+                    for i in range(j + 1, r):
+                        t += W[i, j] * W[i, c]
+                    t *= tau
+                    W[j, c] -= t
+                    for i in range(j + 1, r):
+                        W[i, c] -= t * W[i, j]
+            T = np.zeros((k, k))
+            for i in range(min(r, k)):
+                for c in range(i, k):
+                    T[i, c] = W[i, c]
+            return T
+
+        return impl
+
     for _rule in (
         _als.predict_sensitivities, _als.update_sensitivities, _als.push_past,
-        _als.rows_per_innovation, _als.innovation_rows, _als.ring_slot, _als.stack_rows,
-        _als._passive_solution, _als.nnls, _als.solve_variances, _als.r_basis,
+        _als.rows_per_innovation, _als.innovation_rows, _als.merge_factors, _als.window_push,
+        _als.window_factor, _als._passive_solution, _als.nnls, _als.nnls_triangular,
+        _als.r_basis,
     ):  # fmt: skip
         register_jitable(_rule)
 
@@ -111,14 +153,17 @@ update_sensitivities = _als.update_sensitivities
 push_past = _als.push_past
 rows_per_innovation = _als.rows_per_innovation
 innovation_rows = _als.innovation_rows
-ring_slot = _als.ring_slot
-stack_rows = _als.stack_rows
-solve_variances = _als.solve_variances
+triangularise = _als.triangularise
+window_push = _als.window_push
+window_factor = _als.window_factor
+nnls_triangular = _als.nnls_triangular
 r_basis = _als.r_basis
 
 # a unit variance on V, on gamma, as the Qu of `_predict` (row-major 2 x 2)
 _UNIT_V = (1.0, 0.0, 0.0, 0.0)
 _UNIT_G = (0.0, 0.0, 0.0, 1.0)
+_ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+_EYE9 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -134,17 +179,30 @@ def _predict(x, P, u0, u1, dt, motion, B, T0, Qu):
 
 
 @maybe_njit
-def _jacobians(x2, u0, u1, dt, motion, B, T0):
-    """The motion model's F (3 x 3) and G (3 x 2) at heading x2 and controls (u0, u1)."""
+def _jacobian_F(x2, u0, u1, dt, motion, B, T0):
+    """The motion model's F at heading x2 and controls (u0, u1), a row-major 9-tuple."""
     if motion != MOTION_BICYCLE:
         raise ValueError("the als kernel implements the bicycle motion model only")
-    return jacobian_arrays(x2, u0, u1, dt, B)
+    f02, f12, _ = jacobians(x2, u0, u1, dt, B)
+    return (1.0, 0.0, f02, 0.0, 1.0, f12, 0.0, 0.0, 1.0)
+
+
+@maybe_njit
+def _mat3(A, B):
+    """A B for row-major 3 x 3 tuples (k ascending)."""
+    return (
+        A[0] * B[0] + A[1] * B[3] + A[2] * B[6], A[0] * B[1] + A[1] * B[4] + A[2] * B[7],
+        A[0] * B[2] + A[1] * B[5] + A[2] * B[8], A[3] * B[0] + A[4] * B[3] + A[5] * B[6],
+        A[3] * B[1] + A[4] * B[4] + A[5] * B[7], A[3] * B[2] + A[4] * B[5] + A[5] * B[8],
+        A[6] * B[0] + A[7] * B[3] + A[8] * B[6], A[6] * B[1] + A[7] * B[4] + A[8] * B[7],
+        A[6] * B[2] + A[7] * B[5] + A[8] * B[8],
+    )  # fmt: skip
 
 
 @maybe_njit
 def nnls(A, b):
     """filters.als.nnls as the kernel runs it (compiled when numba is in use): for tests."""
-    return solve_variances(A, b)
+    return _als.nnls(A, b)
 
 
 @maybe_njit
@@ -173,11 +231,12 @@ def run_als_kernel(
     out_x, out_P, out_R, out_Q,
 ):  # fmt: skip
     """filterpy_engine.run_filter with filters.als.ALSEKF: per stamp the predict and the
-    sensitivities' prediction; per landmark the rows of an innovation that feeds adaptation
-    (before its gain), the gate, the update and the sensitivities through it; per scan with a
-    landmark, every `every`-th, the non-negative least squares over the last `window`
-    innovations' rows (from min(warmup, window) of them on) and Qu, R from it within bounds.
-    Returns (diverged, records written, nis_sum, n_updates, n_rejected) as the other kernels."""
+    interval's transition and unit noises; per landmark that feeds adaptation the
+    sensitivities brought up to date and the innovation's rows (before its gain), reduced to
+    their factor in the window; the gate, the update and the sensitivities through it; per
+    scan with a landmark, every `every`-th, the non-negative least squares of the window (from
+    min(warmup, window) innovations on) and Qu, R from it within bounds. Returns (diverged,
+    records written, nis_sum, n_updates, n_rejected) as the other kernels."""
     n_stamps = u.shape[0]
     x = (x0[0], x0[1], x0[2])
     P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
@@ -189,19 +248,26 @@ def run_als_kernel(
     M = np.zeros((4, 3, 3))
     R_basis = r_basis()
     Q_basis = np.zeros((4, 3, 3))
+    F_scan_a = np.empty((3, 3))
     past_nu = np.zeros((lags, 2))
     past_D = np.zeros((lags * 4, 3, 2))
     n_past = 0
-    # A ring of `window` innovations' rows; no more than the run's measurements can fill it
-    # (a smaller ring that never wraps holds the same rows).
+    rows = np.empty((rows_per_innovation(2, lags), 5))
+    # The window's factors; no more than the run's measurements can fill it (a smaller ring
+    # that never wraps holds the same innovations).
     size = max(1, min(window, z.shape[0]))
-    n_cols = rows_per_innovation(2, lags)
-    A_ring = np.empty((size, n_cols, 4))
-    b_ring = np.empty((size, n_cols))
-    n_rows = np.zeros(size, dtype=np.int64)
+    fac = np.empty((size, 5, 5))
+    suf = np.empty((size, 5, 5))
+    back = np.zeros((5, 5))
     head = 0
     count = 0
-    min_rows = min(warmup, window)
+    n_front = 0
+    min_count = min(warmup, window)
+    # the interval since the sensitivities were last brought up to date (AdaptiveEKF's)
+    steps = 0
+    A_v = _ZERO9
+    A_g = _ZERO9
+    F_scan = _EYE9
     pending = False
     pend_nu = np.zeros(2)
     pend_H = np.zeros((2, 3))
@@ -217,12 +283,13 @@ def run_als_kernel(
         u0 = u[i, 0]
         u1 = u[i, 1]
         h = dt[i]
-        # ALSEKF.predict: F, G and the unit noises at the estimate before the step
-        F, _ = _jacobians(x[2], u0, u1, h, motion, B, T0)
-        _fill(Q_basis[0], _predict(x, P, u0, u1, h, motion, B, T0, _UNIT_V)[2])
-        _fill(Q_basis[1], _predict(x, P, u0, u1, h, motion, B, T0, _UNIT_G)[2])
+        # AdaptiveEKF.predict's interval: A <- F A F^T + G E G^T is the predict of a covariance
+        # A with a unit control variance E, and F_scan <- F F_scan
+        A_v = _predict(x, A_v, u0, u1, h, motion, B, T0, _UNIT_V)[1]
+        A_g = _predict(x, A_g, u0, u1, h, motion, B, T0, _UNIT_G)[1]
+        F_scan = _mat3(_jacobian_F(x[2], u0, u1, h, motion, B, T0), F_scan)
+        steps += 1
         x, P, _ = _predict(x, P, u0, u1, h, motion, B, T0, Qu)
-        M = predict_sensitivities(M, past_D, n_past, F, Q_basis)
         first = lm[i]
         last = lm[i + 1]
         if last == first:
@@ -245,16 +312,26 @@ def run_als_kernel(
                     return True, j, nis_sum, n_updates, n_rejected
                 feeds = v <= gate
             if feeds:
+                if steps:  # ALSEKF._catch_up
+                    _fill(F_scan_a, F_scan)
+                    _fill(Q_basis[0], A_v)
+                    _fill(Q_basis[1], A_g)
+                    M = predict_sensitivities(M, past_D, n_past, F_scan_a, Q_basis)
+                    steps = 0
+                    A_v = _ZERO9
+                    A_g = _ZERO9
+                    F_scan = _EYE9
                 S = np.empty((2, 2))
                 for a in range(4):
                     S[a // 2, a % 2] = HPHt[a] + R[a]
                 pend_nu = np.array([nu[0], nu[1]])
                 pend_H = np.array([[H[0], H[1], 0.0], [H[2], H[3], -1.0]])
-                slot, head, count = ring_slot(head, count, size)
-                n_rows[slot] = innovation_rows(
-                    pend_nu, pend_H, M, R_basis, past_nu, past_D, n_past, S,
-                    A_ring[slot], b_ring[slot],
+                n = innovation_rows(
+                    pend_nu, pend_H, M, R_basis, past_nu, past_D, n_past, S, rows
                 )  # fmt: skip
+                head, count, n_front = window_push(
+                    fac, suf, back, head, count, n_front, triangularise(rows[:n])
+                )
                 pending = True
             ok, v = nis(HPHt, R, nu[0], nu[1])
             if not ok or not math.isfinite(v):
@@ -280,9 +357,9 @@ def run_als_kernel(
             M, n_past = _finish(M, past_nu, past_D, n_past, pend_nu, pend_H, no_gain, R_basis)
             pending = False
         scans += 1
-        if adaptation and scans % every == 0 and count >= min_rows:
-            A, b = stack_rows(A_ring, b_ring, n_rows, head, count)
-            theta = solve_variances(A, b)
+        if adaptation and scans % every == 0 and count >= min_count:
+            T = window_factor(fac, suf, back, head, count, n_front)
+            theta = nnls_triangular(T[:4, :4], T[:4, 4])
             for a in range(4):
                 if not math.isfinite(theta[a]):
                     return True, j, nis_sum, n_updates, n_rejected

@@ -40,7 +40,7 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from .adaptive import E_G, E_V, AdaptiveEKF, matmul
+from .adaptive import AdaptiveEKF, matmul
 from .ekf import FilterDiverged, Innovation
 from .spec import AdaptiveSpec, FilterContext
 
@@ -129,10 +129,9 @@ def innovation_rows(
     past_D: np.ndarray,
     n_past: int,
     S: np.ndarray,
-    A_out: np.ndarray,
-    b_out: np.ndarray,
+    out: np.ndarray,
 ) -> int:
-    """The rows of one innovation nu (before its update) into A_out (rows, p) and b_out: lag 0
+    """The rows [A | b] of one innovation nu (before its update) into `out` (rows, p + 1): lag 0
     (the upper triangle of nu nu^T, row by row) and, for each stored (nu_l, D_l), oldest first,
     the entries of nu nu_l^T (row-major), every row divided by sqrt(S_aa S_bb). Returns how
     many rows it wrote."""
@@ -142,46 +141,87 @@ def innovation_rows(
     for a in range(m):
         for b in range(a, m):
             scale = math.sqrt(S[a, a] * S[b, b])
-            A_out[r] = lag0[:, a, b] / scale
-            b_out[r] = nu[a] * nu[b] / scale
+            for i in range(p):
+                out[r, i] = lag0[i, a, b] / scale
+            out[r, p] = nu[a] * nu[b] / scale
             r += 1
     for j in range(n_past):
         cross = batch_left(H, past_D[j * p : (j + 1) * p])  # (p, m, m)
         for a in range(m):
             for b in range(m):
                 scale = math.sqrt(S[a, a] * S[b, b])
-                A_out[r] = cross[:, a, b] / scale
-                b_out[r] = nu[a] * past_nu[j, b] / scale
+                for i in range(p):
+                    out[r, i] = cross[i, a, b] / scale
+                out[r, p] = nu[a] * past_nu[j, b] / scale
                 r += 1
     return r
 
 
-def ring_slot(head: int, count: int, size: int) -> tuple[int, int, int]:
-    """Where the next entry of a ring buffer of `size` goes: (slot, new head, new count); when
-    full it overwrites the oldest."""
-    if count < size:
-        return (head + count) % size, head, count + 1
-    return head, (head + 1) % size, count
+# ---------------------------------------------------------------------------------------------
+# The window's least squares. ||A x - b||^2 over the rows of the last `window` innovations
+# depends on them only through the triangular factor of [A | b] (Z = Q T: T^T T = Z^T Z), and
+# the factor of stacked rows is the factor of their stacked factors. So each innovation's rows
+# are reduced to their (p + 1) x (p + 1) factor once, and the window's factor is kept by a
+# two-stack queue (sliding-window aggregation): the oldest innovations' suffix factors, the
+# newest's running factor; a push or a pop merges one or two factors (amortised), a query one.
 
 
-def stack_rows(
-    A_ring: np.ndarray, b_ring: np.ndarray, n_rows: np.ndarray, head: int, count: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """The rows of the `count` innovations in the ring, oldest first: (A (rows, p), b)."""
-    size = A_ring.shape[0]
-    total = 0
-    for i in range(count):
-        total += n_rows[(head + i) % size]
-    A = np.empty((total, A_ring.shape[2]))
-    b = np.empty(total)
-    r = 0
-    for i in range(count):
-        s = (head + i) % size
-        k = n_rows[s]
-        A[r : r + k] = A_ring[s, :k]
-        b[r : r + k] = b_ring[s, :k]
-        r += k
-    return A, b
+def triangularise(Z: np.ndarray) -> np.ndarray:
+    """The upper-triangular factor T (k x k) of Z (r x k): Z = Q T (Householder; rows of zeros
+    below when r < k); numpy's QR here, a plain loop in the fast engine."""
+    T = np.zeros((Z.shape[1], Z.shape[1]))
+    R = np.linalg.qr(Z, mode="r")
+    T[: R.shape[0]] = R
+    return T
+
+
+def merge_factors(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """The factor of the rows of X and of Y together (the factor of [X; Y])."""
+    return triangularise(np.vstack((X, Y)))
+
+
+def window_push(
+    fac: np.ndarray,
+    suf: np.ndarray,
+    back: np.ndarray,
+    head: int,
+    count: int,
+    n_front: int,
+    new: np.ndarray,
+) -> tuple[int, int, int]:
+    """Add one innovation's factor `new` to the window (a ring of len(fac) innovations: their
+    factors `fac`, slot `head` the oldest, `count` held), dropping the oldest when it is full.
+    The oldest `n_front` have suffix factors `suf` (slot s: the factor of s and every newer one
+    of them); `back` is the factor of the others. Returns (head, count, n_front)."""
+    size = fac.shape[0]
+    if count == size:
+        if n_front == 0:  # every held innovation becomes the front: its suffix factors
+            last = (head + count - 1) % size
+            suf[last] = fac[last]
+            for i in range(count - 2, -1, -1):
+                s = (head + i) % size
+                suf[s] = merge_factors(fac[s], suf[(s + 1) % size])
+            n_front = count
+        head = (head + 1) % size
+        count -= 1
+        n_front -= 1
+    fac[(head + count) % size] = new
+    if count == n_front:
+        back[:] = new
+    else:
+        back[:] = merge_factors(back, new)
+    return head, count + 1, n_front
+
+
+def window_factor(
+    fac: np.ndarray, suf: np.ndarray, back: np.ndarray, head: int, count: int, n_front: int
+) -> np.ndarray:
+    """The factor of every innovation's rows in the window (`window_push`)."""
+    if n_front == 0:
+        return back.copy()
+    if n_front == count:
+        return suf[head].copy()
+    return merge_factors(suf[head], back)
 
 
 # numpy's lstsq cutoff (eps * max(M, N)) given explicitly, as numba's default differs.
@@ -202,18 +242,30 @@ def _passive_solution(Rt: np.ndarray, c: np.ndarray, passive: np.ndarray) -> np.
 
 
 def nnls(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The non-negative x minimising ||A x - b||: Lawson & Hanson's active-set algorithm
-    (Solving Least Squares Problems, 1974, ch. 23), as scipy.optimize.nnls, on the triangular
-    factor of A (A = Q R: ||A x - b||^2 = ||R x - Q^T b||^2 + const), so that every pass costs
-    p x p whatever the number of rows. NaN or infinite input gives NaN."""
+    """The non-negative x minimising ||A x - b|| (as scipy.optimize.nnls): `nnls_triangular`
+    on the factor of [A | b]. NaN or infinite input gives NaN."""
     n = A.shape[1]
     if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
         return np.full(n, np.nan)
-    Q, Rt = np.linalg.qr(A)
-    Q, Rt = np.ascontiguousarray(Q), np.ascontiguousarray(Rt)
-    c = b @ Q
+    Z = np.empty((A.shape[0], n + 1))
+    Z[:, :n] = A
+    Z[:, n] = b
+    T = triangularise(Z)
+    return nnls_triangular(T[:n, :n], T[:n, n])
+
+
+def nnls_triangular(R: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The non-negative x minimising ||R x - c|| for a square R (the factor of the rows: then
+    ||A x - b||^2 = ||R x - c||^2 + const): Lawson & Hanson's active-set algorithm (Solving
+    Least Squares Problems, 1974, ch. 23), as scipy.optimize.nnls runs it on A; every pass costs
+    p x p whatever the number of rows. NaN or infinite input gives NaN."""
+    n = R.shape[1]
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(c))):
+        return np.full(n, np.nan)
+    Rt = np.ascontiguousarray(R)
+    c = np.ascontiguousarray(c)
     # Lawson & Hanson's tolerance on the dual and on zeroed variables
-    tol = 10.0 * _EPS * max(A.shape[0], n) * max(np.abs(Rt).max(), 1e-300)
+    tol = 10.0 * _EPS * n * max(np.abs(Rt).max(), 1e-300)
     x = np.zeros(n)
     passive = np.zeros(n, dtype=np.bool_)
     w = (c - Rt @ x) @ Rt  # the dual: minus the gradient, Rt^T (c - Rt x)
@@ -250,20 +302,6 @@ def nnls(A: np.ndarray, b: np.ndarray) -> np.ndarray:
         x = z
         w = (c - Rt @ x) @ Rt
     return x
-
-
-def solve_variances(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The non-negative theta minimising ||A theta - b|| (`nnls`)."""
-    return nnls(A, b)
-
-
-def q_basis(G: np.ndarray, model, dt: float) -> np.ndarray:
-    """Q_basis of `predict_sensitivities` for (qv, qg, rr, rb): the step's state-space noise
-    of a unit variance on V, on gamma (the motion model's Q), zero for rr and rb."""
-    out = np.zeros((4, G.shape[0], G.shape[0]))
-    out[0] = model.Q(G, E_V, dt)
-    out[1] = model.Q(G, E_G, dt)
-    return out
 
 
 def r_basis() -> np.ndarray:
@@ -313,15 +351,27 @@ class ALSEKF(AdaptiveEKF):
         self.past_nu = np.zeros((lags, 2))  # the last `lags` innovations, oldest first
         self.past_D = np.zeros((lags * 4, 3, 2))  # and their cross terms
         self.n_past = 0
-        # the rows of the last `window` innovations (a ring; np.empty: pages are only touched
-        # as it fills)
-        self.A_ring = np.empty((window, rows_per_innovation(2, lags), 4))
-        self.b_ring = np.empty((window, rows_per_innovation(2, lags)))
-        self.n_rows = np.zeros(window, dtype=np.int64)
-        self.head = self.count = 0
+        self.rows = np.empty((rows_per_innovation(2, lags), 5))  # one innovation's [A | b]
+        # the window's factors (`window_push`; np.empty: pages are touched only as it fills)
+        self.fac = np.empty((window, 5, 5))
+        self.suf = np.empty((window, 5, 5))
+        self.back = np.zeros((5, 5))
+        self.head = self.count = self.n_front = 0
+        self.steps = 0  # predicts since the sensitivities were last brought up to date
         self.pending: tuple | None = None  # the innovation before its update
         self.scans = 0
         self.theta = np.full(4, np.nan)  # the last identification (qv, qg, rr, rb)
+
+    def _catch_up(self) -> None:
+        """The sensitivities through the predicts since they were last brought up to date, at
+        once: the interval's transition F_scan and unit noises A_v, A_g (AdaptiveEKF)."""
+        if not self.steps:
+            return
+        Q_basis = np.zeros((4, 3, 3))
+        Q_basis[0], Q_basis[1] = self.A_v, self.A_g
+        self.M = predict_sensitivities(self.M, self.past_D, self.n_past, self.F_scan, Q_basis)
+        self.reset_interval()
+        self.steps = 0
 
     def _finish_pending(self, K: np.ndarray | None) -> None:
         """Propagate the sensitivities through the pending innovation's update (K None:
@@ -335,20 +385,22 @@ class ALSEKF(AdaptiveEKF):
         self.n_past = push_past(self.past_nu, self.past_D, self.n_past, nu, C)
 
     def predict(self, u=0, dt: float | None = None):
-        self._finish_pending(None)
         super().predict(u, dt)
-        Q_basis = q_basis(self.G, self.model, self.dt)
-        self.M = predict_sensitivities(self.M, self.past_D, self.n_past, self.F, Q_basis)
+        self.steps += 1
 
     def before_gain(self, inn: Innovation) -> None:
         self._finish_pending(None)  # the previous landmark of this scan, if the gate refused it
         if not self.feeds_adaptation(inn):
             return
+        self._catch_up()
         S = inn.HPHt + self.R
-        slot, self.head, self.count = ring_slot(self.head, self.count, self.params.window)
-        self.n_rows[slot] = innovation_rows(
+        n = innovation_rows(
             inn.nu, inn.H, self.M, self.R_basis, self.past_nu, self.past_D, self.n_past, S,
-            self.A_ring[slot], self.b_ring[slot],
+            self.rows,
+        )  # fmt: skip
+        self.head, self.count, self.n_front = window_push(
+            self.fac, self.suf, self.back, self.head, self.count, self.n_front,
+            triangularise(self.rows[:n]),
         )  # fmt: skip
         self.pending = (inn.nu.copy(), inn.H.copy())
 
@@ -362,8 +414,8 @@ class ALSEKF(AdaptiveEKF):
             return
         if self.count < min(self.params.warmup, self.params.window):
             return
-        A, b = stack_rows(self.A_ring, self.b_ring, self.n_rows, self.head, self.count)
-        self.theta = solve_variances(A, b)
+        T = window_factor(self.fac, self.suf, self.back, self.head, self.count, self.n_front)
+        self.theta = nnls_triangular(T[:4, :4], T[:4, 4])
         if not np.all(np.isfinite(self.theta)):
             raise FilterDiverged("the ALS rows are not finite")
         if "Q" in self.params.adapt:

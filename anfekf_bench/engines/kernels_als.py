@@ -29,7 +29,7 @@ _PURE_COPY: bool = globals().get("_PURE", False)
 _k = _kernels.pure_module() if _PURE_COPY else _kernels
 JIT: bool = _k.JIT  # True: the kernel below is numba-compiled
 maybe_njit = _k.maybe_njit
-predict, jacobians = _k.predict, _k.jacobians
+predict, jacobians, propagate = _k.predict, _k.jacobians, _k.propagate
 innovation, nis, gain, correct = _k.innovation, _k.nis, _k.gain, _k.correct
 healthy, record, as_diag, clip_to_bounds = _k.healthy, _k.record, _k.as_diag, _k.clip_to_bounds
 
@@ -53,21 +53,54 @@ def pure_module():
 if JIT and not _PURE_COPY:
     from numba.extending import overload, register_jitable
 
-    @overload(_als.batch_left)
-    def _batch_left_loop(L, X):
-        """Compiled, L X_i over a stack is a plain loop (one allocation, k ascending)."""
-
-        def impl(L, X):
-            q, b, c = X.shape
-            a = L.shape[0]
-            out = np.empty((q, a, c))
-            for i in range(q):
-                for r in range(a):
-                    for s in range(c):
+    @register_jitable
+    def _left_into(out, L, X):
+        """out[i] = L X[i] (k ascending; the 2- and 3-term sums written out, which LLVM can
+        schedule: these stacks are 3 x 3, 3 x 2 and 2 x 2)."""
+        q, b, c = X.shape
+        a = L.shape[0]
+        for i in range(q):
+            for r in range(a):
+                for s in range(c):
+                    if b == 3:
+                        out[i, r, s] = (
+                            L[r, 0] * X[i, 0, s] + L[r, 1] * X[i, 1, s] + (L[r, 2] * X[i, 2, s])
+                        )
+                    elif b == 2:
+                        out[i, r, s] = L[r, 0] * X[i, 0, s] + L[r, 1] * X[i, 1, s]
+                    else:
                         t = 0.0
                         for k in range(b):
                             t += L[r, k] * X[i, k, s]
                         out[i, r, s] = t
+
+    @register_jitable
+    def _right_into(out, Y, Rm):
+        """out[i] = Y[i] Rm^T (k ascending, as `_left_into`)."""
+        q, a, c = Y.shape
+        d = Rm.shape[0]
+        for i in range(q):
+            for r in range(a):
+                for s in range(d):
+                    if c == 3:
+                        out[i, r, s] = (
+                            Y[i, r, 0] * Rm[s, 0] + Y[i, r, 1] * Rm[s, 1] + (Y[i, r, 2] * Rm[s, 2])
+                        )
+                    elif c == 2:
+                        out[i, r, s] = Y[i, r, 0] * Rm[s, 0] + Y[i, r, 1] * Rm[s, 1]
+                    else:
+                        t = 0.0
+                        for k in range(c):
+                            t += Y[i, r, k] * Rm[s, k]
+                        out[i, r, s] = t
+
+    @overload(_als.batch_left)
+    def _batch_left_loop(L, X):
+        """Compiled, L X_i over a stack is a plain loop (one allocation)."""
+
+        def impl(L, X):
+            out = np.empty((X.shape[0], L.shape[0], X.shape[2]))
+            _left_into(out, L, X)
             return out
 
         return impl
@@ -77,24 +110,10 @@ if JIT and not _PURE_COPY:
         """Compiled, (L X_i) Rm^T over a stack is a plain loop (two allocations)."""
 
         def impl(L, X, Rm):
-            q, b, c = X.shape
-            a = L.shape[0]
-            d = Rm.shape[0]
-            out = np.empty((q, a, d))
-            tmp = np.empty((a, c))
-            for i in range(q):
-                for r in range(a):
-                    for s in range(c):
-                        t = 0.0
-                        for k in range(b):
-                            t += L[r, k] * X[i, k, s]
-                        tmp[r, s] = t
-                for r in range(a):
-                    for s in range(d):
-                        t = 0.0
-                        for k in range(c):
-                            t += tmp[r, k] * Rm[s, k]
-                        out[i, r, s] = t
+            tmp = np.empty((X.shape[0], L.shape[0], X.shape[2]))
+            _left_into(tmp, L, X)
+            out = np.empty((X.shape[0], L.shape[0], Rm.shape[0]))
+            _right_into(out, tmp, Rm)
             return out
 
         return impl
@@ -159,9 +178,6 @@ window_factor = _als.window_factor
 nnls_triangular = _als.nnls_triangular
 r_basis = _als.r_basis
 
-# a unit variance on V, on gamma, as the Qu of `_predict` (row-major 2 x 2)
-_UNIT_V = (1.0, 0.0, 0.0, 0.0)
-_UNIT_G = (0.0, 0.0, 0.0, 1.0)
 _ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 _EYE9 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 
@@ -179,12 +195,24 @@ def _predict(x, P, u0, u1, dt, motion, B, T0, Qu):
 
 
 @maybe_njit
-def _jacobian_F(x2, u0, u1, dt, motion, B, T0):
-    """The motion model's F at heading x2 and controls (u0, u1), a row-major 9-tuple."""
+def _interval(x2, A_v, A_g, F_scan, u0, u1, dt, motion, B, T0):
+    """AdaptiveEKF.predict's interval accumulators through one predict from heading x2 with
+    controls (u0, u1): A <- F A F^T + G E G^T (the predict of a covariance A with a unit
+    control variance E on V, on gamma: the motion model's Q) and F_scan <- F F_scan."""
     if motion != MOTION_BICYCLE:
         raise ValueError("the als kernel implements the bicycle motion model only")
-    f02, f12, _ = jacobians(x2, u0, u1, dt, B)
-    return (1.0, 0.0, f02, 0.0, 1.0, f12, 0.0, 0.0, 1.0)
+    f02, f12, G = jacobians(x2, u0, u1, dt, B)
+    g00, g01, g10, g11, g20, g21 = G
+    Q_v = (
+        g00 * g00, g00 * g10, g00 * g20, g10 * g00, g10 * g10, g10 * g20,
+        g20 * g00, g20 * g10, g20 * g20,
+    )  # fmt: skip
+    Q_g = (
+        g01 * g01, g01 * g11, g01 * g21, g11 * g01, g11 * g11, g11 * g21,
+        g21 * g01, g21 * g11, g21 * g21,
+    )  # fmt: skip
+    F = (1.0, 0.0, f02, 0.0, 1.0, f12, 0.0, 0.0, 1.0)
+    return propagate(A_v, f02, f12, Q_v), propagate(A_g, f02, f12, Q_g), _mat3(F, F_scan)
 
 
 @maybe_njit
@@ -283,11 +311,7 @@ def run_als_kernel(
         u0 = u[i, 0]
         u1 = u[i, 1]
         h = dt[i]
-        # AdaptiveEKF.predict's interval: A <- F A F^T + G E G^T is the predict of a covariance
-        # A with a unit control variance E, and F_scan <- F F_scan
-        A_v = _predict(x, A_v, u0, u1, h, motion, B, T0, _UNIT_V)[1]
-        A_g = _predict(x, A_g, u0, u1, h, motion, B, T0, _UNIT_G)[1]
-        F_scan = _mat3(_jacobian_F(x[2], u0, u1, h, motion, B, T0), F_scan)
+        A_v, A_g, F_scan = _interval(x[2], A_v, A_g, F_scan, u0, u1, h, motion, B, T0)
         steps += 1
         x, P, _ = _predict(x, P, u0, u1, h, motion, B, T0, Qu)
         first = lm[i]

@@ -2,14 +2,15 @@
 
 The rule is filters/als.py's plain functions, called here as the filterpy engine's `ALSEKF`
 calls them from its hooks (numba compiles them with `register_jitable`; their two batched
-products, numpy's broadcasting matmul there, are plain loops here); the EKF steps are
+products and the QR's factor, numpy's there, are plain loops here); the EKF steps are
 kernels.py's primitives. The loop runs over one run's stamps: stamp i predicts with the controls
 u[i] over dt[i], then fuses the landmarks lm[i] .. lm[i + 1] - 1 (their map positions xy and
-measurements z), then records when record[i].
+measurements z), then records when record_at[i].
 
-The motion model is reached only through `_predict` and `_jacobians` (the bicycle today); the
-Q basis of the sensitivities is the motion model's own Q of a unit control variance (what
-`_predict` returns with Qu = E_V or E_G), as `ALSEKF.predict` takes `model.Q(G, E, dt)`.
+The motion model is reached only through `_predict` and `_interval` (the bicycle today):
+`_interval` is AdaptiveEKF.predict's interval accumulators, A <- F A F^T + G E G^T (the
+covariance predict of A with a unit control variance E: the motion model's Q) and
+F_scan <- F F_scan, from one Jacobian per step.
 
 `pure_module()` gives a never-compiled copy (plain Python, kernels.py's pure copy underneath).
 """

@@ -23,13 +23,19 @@ Every innovation gives the three distinct entries of its lag-0 product and the f
 its products with the `lags` innovations before it: rows linear in theta, each divided by
 sqrt(S_aa S_bb) (the filter's S at the time) so that metres and radians weigh alike. The rows of
 the last `window` innovations (once `warmup` of them exist) are solved by non-negative least
-squares (scipy.optimize.nnls) every `every` scans (end of scan, a Q event); then
-Qu = diag(qv, qg), R = diag(rr, rb), within the common bounds. Which innovations feed it:
-`adapt_from` (all, with K = 0 for a rejected one; or only those the gate accepted).
+squares (`nnls_triangular`: Lawson & Hanson, as scipy.optimize.nnls) every `every` scans (end
+of scan, a Q event); then Qu = diag(qv, qg), R = diag(rr, rb), within the common bounds. Which
+innovations feed it: `adapt_from` (all, with K = 0 for a rejected one; or only those the gate
+accepted). Each innovation's rows are kept only as the triangular factor of [A | b], the
+window's factor by a two-stack queue (`window_push`), so a solve costs 4 x 4 whatever the
+window; the sensitivities are brought up to date when an innovation feeds the rows, through the
+interval's transition and unit noises (AdaptiveEKF's F_scan, A_v, A_g).
 
-The rule is written once as plain functions on arrays (`predict_sensitivities`,
-`update_sensitivities`, `innovation_rows`, `solve_variances`), tested on a linear model where
-the answer is known; `ALSEKF` calls them from the EKF's hooks.
+The rule is written once as plain functions on small arrays (`predict_sensitivities`,
+`update_sensitivities`, `push_past`, `innovation_rows`, `triangularise`, `window_push`,
+`window_factor`, `nnls_triangular`), tested on a linear model where the answer is known;
+`ALSEKF` calls them from the EKF's hooks, and numba compiles them as they are into the fast
+engine's kernel (engines/kernels_als.py).
 """
 
 from __future__ import annotations

@@ -106,6 +106,17 @@ if JIT and not _PURE_COPY:
 
         return impl
 
+    @overload(_als.batch_right)
+    def _batch_right_loop(X, Rm):
+        """Compiled, X_i Rm^T over a stack is a plain loop (one allocation)."""
+
+        def impl(X, Rm):
+            out = np.empty((X.shape[0], X.shape[1], Rm.shape[0]))
+            _right_into(out, X, Rm)
+            return out
+
+        return impl
+
     @overload(_als.batch_sandwich)
     def _batch_sandwich_loop(L, X, Rm):
         """Compiled, (L X_i) Rm^T over a stack is a plain loop (two allocations)."""
@@ -301,6 +312,8 @@ def run_als_kernel(
     pend_nu = np.zeros(2)
     pend_H = np.zeros((2, 3))
     no_gain = np.zeros((3, 2))
+    K = np.empty((3, 2))
+    S = np.empty((2, 2))
     scans = 0
     nis_sum = 0.0
     n_updates = 0
@@ -346,11 +359,16 @@ def run_als_kernel(
                     A_v = _ZERO9
                     A_g = _ZERO9
                     F_scan = _EYE9
-                S = np.empty((2, 2))
                 for a in range(4):
                     S[a // 2, a % 2] = HPHt[a] + R[a]
-                pend_nu = np.array([nu[0], nu[1]])
-                pend_H = np.array([[H[0], H[1], 0.0], [H[2], H[3], -1.0]])
+                # (the buffers of the previous innovation are free: it was finished above)
+                pend_nu[0] = nu[0]
+                pend_nu[1] = nu[1]
+                pend_H[0, 0] = H[0]
+                pend_H[0, 1] = H[1]
+                pend_H[1, 0] = H[2]
+                pend_H[1, 1] = H[3]
+                pend_H[1, 2] = -1.0
                 n = innovation_rows(
                     pend_nu, pend_H, M, R_basis, past_nu, past_D, n_past, S, rows
                 )  # fmt: skip
@@ -372,7 +390,6 @@ def run_als_kernel(
             ok, x, P = correct(x, P, H, zh, z0, z1, R)
             # after_update
             if pending:
-                K = np.empty((3, 2))
                 for a in range(6):
                     K[a // 2, a % 2] = Kt[a]
                 M, n_past = _finish(M, past_nu, past_D, n_past, pend_nu, pend_H, K, R_basis)

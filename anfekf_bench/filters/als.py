@@ -60,6 +60,11 @@ def batch_left(L: np.ndarray, X: np.ndarray) -> np.ndarray:
     return L @ X
 
 
+def batch_right(X: np.ndarray, Rm: np.ndarray) -> np.ndarray:
+    """X_i Rm^T for every matrix X_i of the stack X (q, a, c): (q, a, d)."""
+    return X @ Rm.T
+
+
 def batch_sandwich(L: np.ndarray, X: np.ndarray, Rm: np.ndarray) -> np.ndarray:
     """L X_i Rm^T for every matrix X_i of the stack X (q, b, c): (q, a, d)."""
     return (L @ X) @ Rm.T
@@ -96,11 +101,12 @@ def update_sensitivities(
     C_i = A M_i H^T - K R_basis_i (A = I - K H), every stored D_l <- A D_l in place, and
     M_i <- A M_i A^T + K R_basis_i K^T. Returns (new M, C)."""
     A = np.eye(M.shape[1]) - matmul(K, H)
-    C = batch_sandwich(A, M, H) - batch_left(K, R_basis)
+    AM = batch_left(A, M)
+    C = batch_right(AM, H) - batch_left(K, R_basis)
     used = n_past * M.shape[0]
     if used:
         past_D[:used] = batch_left(A, past_D[:used])
-    return batch_sandwich(A, M, A) + batch_sandwich(K, R_basis, K), C
+    return batch_right(AM, A) + batch_sandwich(K, R_basis, K), C
 
 
 def push_past(

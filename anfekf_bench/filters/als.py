@@ -236,20 +236,42 @@ def window_factor(
     return merge_factors(suf[head], back)
 
 
-# numpy's lstsq cutoff (eps * max(M, N)) given explicitly, as numba's default differs.
 _EPS = float(np.finfo(float).eps)
 
 
 def _passive_solution(Rt: np.ndarray, c: np.ndarray, passive: np.ndarray) -> np.ndarray:
-    """The least-squares solution over the passive columns, zero on the others."""
-    idx = np.flatnonzero(passive)
-    z = np.zeros(Rt.shape[1])
-    if len(idx):
-        sub = np.ascontiguousarray(Rt[:, idx])
-        rcond = _EPS * max(sub.shape[0], sub.shape[1])
-        sol = np.linalg.lstsq(sub, c, rcond=rcond)[0]
-        for i in range(len(idx)):
-            z[idx[i]] = sol[i]
+    """The least-squares solution over the passive columns, zero on the others: the factor of
+    [Rt_passive | c] and back substitution; a column that adds nothing to the span of the
+    earlier ones (|T_jj| at rounding level) gets zero."""
+    n = Rt.shape[1]
+    z = np.zeros(n)
+    k = 0
+    for i in range(n):
+        if passive[i]:
+            k += 1
+    if k == 0:
+        return z
+    Z = np.empty((Rt.shape[0], k + 1))
+    j = 0
+    for i in range(n):
+        if passive[i]:
+            Z[:, j] = Rt[:, i]
+            j += 1
+    Z[:, k] = c
+    T = triangularise(Z)
+    tol = 10.0 * _EPS * max(Z.shape[0], k) * max(np.abs(Z[:, :k]).max(), 1e-300)
+    sol = np.zeros(k)
+    for j in range(k - 1, -1, -1):
+        if abs(T[j, j]) > tol:
+            t = T[j, k]
+            for m in range(j + 1, k):
+                t -= T[j, m] * sol[m]
+            sol[j] = t / T[j, j]
+    j = 0
+    for i in range(n):
+        if passive[i]:
+            z[i] = sol[j]
+            j += 1
     return z
 
 

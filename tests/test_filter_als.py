@@ -7,12 +7,18 @@ import numpy as np
 import pytest
 
 from anfekf_bench.config import parse_scenario, resolve_world
+from anfekf_bench.engines import kernels_als
 from anfekf_bench.engines.filterpy_engine import run_filter
 from anfekf_bench.filters.als import (
     innovation_rows,
+    nnls,
     predict_sensitivities,
-    solve_variances,
+    push_past,
+    rows_per_innovation,
+    triangularise,
     update_sensitivities,
+    window_factor,
+    window_push,
 )
 from anfekf_bench.filters.ekf import RobotEKF
 from anfekf_bench.filters.registry import build_filter
@@ -23,26 +29,57 @@ from anfekf_bench.runner import simulate
 from .conftest import small_scenario
 
 
+def _rows(nu, H, M, R_basis, past_nu, past_D, n_past, S):
+    """`innovation_rows` into fresh arrays: (A, b) of the rows written."""
+    out = np.full((rows_per_innovation(len(nu), len(past_nu)), M.shape[0] + 1), np.nan)
+    n = innovation_rows(nu, H, M, R_basis, past_nu, past_D, n_past, S, out)
+    return out[:n, :-1], out[:n, -1]
+
+
 def test_rows_of_a_scalar_random_walk_by_hand():
     # x' = x + w (var q), z = x + v (var r), fixed gain k; unknowns theta = (q, r)
     k, S = 0.4, np.eye(1)
     Q_basis = np.array([[[1.0]], [[0.0]]])
     R_basis = np.array([[[0.0]], [[1.0]]])
     one = np.eye(1)
-    M = predict_sensitivities(np.zeros((2, 1, 1)), [], one, Q_basis)
-    A1, b1 = innovation_rows(np.array([0.5]), one, M, R_basis, [], S)
+    past_nu, past_D = np.zeros((1, 1)), np.zeros((2, 1, 1))  # lags = 1
+    M = predict_sensitivities(np.zeros((2, 1, 1)), past_D, 0, one, Q_basis)
+    A1, b1 = _rows(np.array([0.5]), one, M, R_basis, past_nu, past_D, 0, S)
     np.testing.assert_allclose(A1, [[1.0, 1.0]])  # var nu1 = q + r
     np.testing.assert_allclose(b1, [0.25])
-    D: list = []
-    M, C = update_sensitivities(M, D, one, np.array([[k]]), R_basis)
+    M, C = update_sensitivities(M, past_D, 0, one, np.array([[k]]), R_basis)
     np.testing.assert_allclose(C[:, 0, 0], [1 - k, -k])  # E[e1+ nu1] = (1-k) q - k r
     np.testing.assert_allclose(M[:, 0, 0], [(1 - k) ** 2, k**2])
-    D = [C]
-    M = predict_sensitivities(M, D, one, Q_basis)
-    A2, b2 = innovation_rows(np.array([2.0]), one, M, R_basis, [(np.array([0.5]), D[0])], S)
+    n_past = push_past(past_nu, past_D, 0, np.array([0.5]), C)
+    assert n_past == 1
+    M = predict_sensitivities(M, past_D, n_past, one, Q_basis)
+    A2, b2 = _rows(np.array([2.0]), one, M, R_basis, past_nu, past_D, n_past, S)
     # var nu2 = ((1-k)^2 + 1) q + (k^2 + 1) r; E[nu2 nu1] = (1-k) q - k r
     np.testing.assert_allclose(A2, [[(1 - k) ** 2 + 1, k**2 + 1], [1 - k, -k]])
     np.testing.assert_allclose(b2, [4.0, 1.0])
+    # a second push with lags = 1 replaces the first
+    assert push_past(past_nu, past_D, n_past, np.array([2.0]), 2 * C) == 1
+    np.testing.assert_allclose(past_nu, [[2.0]])
+    np.testing.assert_allclose(past_D, 2 * C)
+
+
+@pytest.mark.parametrize("size", [1, 3, 7])
+def test_window_factor_is_the_factor_of_the_last_window_rows(size):
+    """The two-stack window: after every push its factor T has T^T T = Z^T Z for the rows Z of
+    the last `size` innovations (T is Z's triangular factor up to the signs of its rows)."""
+    rng = np.random.default_rng(size)
+    fac, suf, back = np.empty((size, 5, 5)), np.empty((size, 5, 5)), np.zeros((5, 5))
+    head = count = n_front = 0
+    rows = []
+    for i in range(25):
+        Z = rng.normal(size=(int(rng.integers(1, 12)), 5))
+        rows.append(Z)
+        head, count, n_front = window_push(fac, suf, back, head, count, n_front, triangularise(Z))
+        assert count == min(i + 1, size)
+        T = window_factor(fac, suf, back, head, count, n_front)
+        Z_all = np.vstack(rows[-size:])
+        np.testing.assert_allclose(T.T @ T, Z_all.T @ Z_all, rtol=1e-12, atol=1e-12)
+        assert np.allclose(np.tril(T, -1), 0.0)
 
 
 def _cv_model(dt=0.1):
@@ -62,25 +99,22 @@ def _linear_run_rows(seed: int, steps: int, q: float, r: float, qf: float, rf: f
     x = np.zeros(2)
     xh, P = np.zeros(2), np.eye(2) * 1e-9
     M = np.zeros((2, 2, 2))
-    past: list = []
+    past_nu, past_D, n_past = np.zeros((lags, 1)), np.zeros((lags * 2, 2, 1)), 0
     A_rows, b_rows = [], []
     for _ in range(steps):
         x = F @ x + G[:, 0] * rng.normal(0, np.sqrt(q))
         z = H @ x + rng.normal(0, np.sqrt(r), 1)
         xh, P = F @ xh, F @ P @ F.T + qf * G @ G.T
-        D = [d for _, d in past]
-        M = predict_sensitivities(M, D, F, Q_basis)
-        past = [(n, d) for (n, _), d in zip(past, D, strict=True)]
+        M = predict_sensitivities(M, past_D, n_past, F, Q_basis)
         nu = z - H @ xh
         S = H @ P @ H.T + rf
-        a, b = innovation_rows(nu, H, M, R_basis, past, S)
+        a, b = _rows(nu, H, M, R_basis, past_nu, past_D, n_past, S)
         A_rows.append(a)
         b_rows.append(b)
         K = P @ H.T / S
         xh, P = xh + K @ nu, (np.eye(2) - K @ H) @ P
-        D = [d for _, d in past]
-        M, C = update_sensitivities(M, D, H, K, R_basis)
-        past = ([(n, d) for (n, _), d in zip(past, D, strict=True)] + [(nu, C)])[-lags:]
+        M, C = update_sensitivities(M, past_D, n_past, H, K, R_basis)
+        n_past = push_past(past_nu, past_D, n_past, nu, C)
     return np.vstack(A_rows), np.concatenate(b_rows)
 
 
@@ -96,7 +130,8 @@ def test_recovers_a_known_Q_and_R_on_a_linear_model():
     rows = [_linear_run_rows(seed, 8_000, q, r, 0.1 * q, 10.0 * r, 3) for seed in range(3)]
     A = np.vstack([a for a, _ in rows])
     b = np.concatenate([b for _, b in rows])
-    np.testing.assert_allclose(solve_variances(A, b), [q, r], rtol=0.10)
+    np.testing.assert_allclose(nnls(A, b), [q, r], rtol=0.10)
+    np.testing.assert_allclose(kernels_als.nnls(A, b), [q, r], rtol=0.10)  # compiled
 
 
 def test_als_on_the_robot_identifies_Q_toward_the_truth():

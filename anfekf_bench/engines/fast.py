@@ -11,11 +11,11 @@ adapt_from, bounds, window, rates, ...), `cm-scale` (the ANFEKF's kernel with it
 rule), the multiple-model banks `mmae` and `imm` with any of theirs (`kernels.run_bank_kernel`),
 the fading-factor EKF (`kernels.run_fading_kernel`), and `akhlaghi`, `vb-r`, `vbakf`, `swvb`,
 `sage-husa` and `iae` in every mode (`kernels.run_akhlaghi_kernel`, `run_vbr_kernel`,
-`run_vbakf_kernel`, `run_swvb_kernel`, `run_sage_husa_kernel`, `run_iae_kernel`: each family's
-rules are the plain functions of its filter module, called by both engines), on both motion
-models (the bicycle of the simulated scenarios, the unicycle of recorded logs: a kernel
-argument). Anything else (a user's own filter) is not implemented here: the caller runs it on
-filterpy.
+`run_vbakf_kernel`, `run_swvb_kernel`, `run_sage_husa_kernel`, `run_iae_kernel`), and `als`
+in every mode (`kernels_als.run_als_kernel`); each family's rules are the plain functions of its
+filter module, called by both engines; on both motion models (the bicycle of the simulated
+scenarios, the unicycle of recorded logs: a kernel argument). Anything else (a user's own
+filter) is not implemented here: the caller runs it on filterpy.
 
 Its input is the one contract of a run, a `timeline.Timeline` (a simulated run through
 `timeline.from_run`, a recorded span through `timeline.timeline`): every kernel loops over its
@@ -34,6 +34,7 @@ import numpy as np
 from ..config import World
 from ..filters import anfis
 from ..filters.akhlaghi import AkhlaghiSpec
+from ..filters.als import ALSSpec
 from ..filters.anfekf import ANFEKFSpec
 from ..filters.bank import IMMSpec, MMAESpec, hypotheses
 from ..filters.cm_scale import CMScaleSpec
@@ -51,6 +52,7 @@ from ..sources.simulator import RunData
 from ..timeline import Timeline, from_run
 from ..timeline import clear_cache as clear_timeline_cache
 from . import kernels as _jit_kernels
+from . import kernels_als as _jit_kernels_als
 
 JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 
@@ -59,7 +61,7 @@ JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 # scenario's ekf-tuned, sources.recorded.TunedEKFSpec, with grid-searched noise).
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
-    VBRSpec, AkhlaghiSpec, VBAKFSpec, SWVBSpec, CMScaleSpec, SageHusaSpec, IAESpec,
+    VBRSpec, AkhlaghiSpec, VBAKFSpec, SWVBSpec, CMScaleSpec, SageHusaSpec, IAESpec, ALSSpec,
 )  # fmt: skip
 RECORDED_SOURCE = "anfekf_bench.sources.recorded"  # its TunedEKFSpec: the plain EKF too
 
@@ -198,6 +200,16 @@ def run_filter_fast(
     # Without numba the module's own kernels are already plain Python.
     k = _pure_kernels() if (JIT and not jit) else _jit_kernels
 
+    if isinstance(spec, ALSSpec):
+        ka = _jit_kernels_als.pure_module() if (JIT and not jit) else _jit_kernels_als
+        diverged, j, nis_sum, n_updates, n_rejected = ka.run_als_kernel(
+            *_common_args(ctx, run),
+            "R" in spec.adapt, "Q" in spec.adapt, bool(spec.adaptation),
+            spec.adapt_from == "all", float(spec.bounds[0]), float(spec.bounds[1]),
+            int(spec.lags), int(spec.window), int(spec.every), int(spec.warmup),
+            record, x, P, R, Qu,
+        )  # fmt: skip
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, MMAESpec):
         diverged, j, nis_sum, n_updates, n_rejected = _run_bank(k, spec, ctx, run, x, P, R, Qu)
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
@@ -394,8 +406,8 @@ def _anfis_start(
 
 def warm_up(jit: bool = True) -> float:
     """Compile (or load from numba's cache) every kernel signature the engine uses by running
-    a tiny EKF, ANFEKF (and cm-scale: the same kernel), akhlaghi, vb-r, vbakf, swvb, Sage-Husa
-    and IAE; returns the seconds it took."""
+    a tiny EKF, ANFEKF (and cm-scale: the same kernel), akhlaghi, vb-r, vbakf, swvb, Sage-Husa,
+    IAE and ALS; returns the seconds it took."""
     import time
 
     from ..sources.simulator import Scan, Truth
@@ -417,7 +429,7 @@ def warm_up(jit: bool = True) -> float:
         AkhlaghiSpec(name="akhlaghi", kind="akhlaghi"), VBRSpec(name="vb-r", kind="vb-r"),
         VBAKFSpec(name="vbakf", kind="vbakf"), SWVBSpec(name="swvb", kind="swvb"),
         SageHusaSpec(name="sage-husa", kind="sage-husa", adapt="RQ"),
-        IAESpec(name="iae", kind="iae", adapt="Q"),
+        IAESpec(name="iae", kind="iae", adapt="Q"), ALSSpec(name="als", kind="als"),
     )  # fmt: skip
     for spec in specs:
         run_filter_fast(spec, ctx, data, world, 1, jit=jit)

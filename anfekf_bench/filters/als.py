@@ -23,46 +23,76 @@ Every innovation gives the three distinct entries of its lag-0 product and the f
 its products with the `lags` innovations before it: rows linear in theta, each divided by
 sqrt(S_aa S_bb) (the filter's S at the time) so that metres and radians weigh alike. The rows of
 the last `window` innovations (once `warmup` of them exist) are solved by non-negative least
-squares (scipy.optimize.nnls) every `every` scans (end of scan, a Q event); then
-Qu = diag(qv, qg), R = diag(rr, rb), within the common bounds. Which innovations feed it:
-`adapt_from` (all, with K = 0 for a rejected one; or only those the gate accepted).
+squares (`nnls_triangular`: Lawson & Hanson, as scipy.optimize.nnls) every `every` scans (end
+of scan, a Q event); then Qu = diag(qv, qg), R = diag(rr, rb), within the common bounds. Which
+innovations feed it: `adapt_from` (all, with K = 0 for a rejected one; or only those the gate
+accepted). Each innovation's rows are kept only as the triangular factor of [A | b], the
+window's factor by a two-stack queue (`window_push`), so a solve costs 4 x 4 whatever the
+window; the sensitivities are brought up to date when an innovation feeds the rows, through the
+interval's transition and unit noises (AdaptiveEKF's F_scan, A_v, A_g).
 
-The rule is written once as plain functions on arrays (`predict_sensitivities`,
-`update_sensitivities`, `innovation_rows`, `solve_variances`), tested on a linear model where
-the answer is known; `ALSEKF` calls them from the EKF's hooks.
+The rule is written once as plain functions on small arrays (`predict_sensitivities`,
+`update_sensitivities`, `push_past`, `innovation_rows`, `triangularise`, `window_push`,
+`window_factor`, `nnls_triangular`), tested on a linear model where the answer is known;
+`ALSEKF` calls them from the EKF's hooks, and numba compiles them as they are into the fast
+engine's kernel (engines/kernels_als.py).
 """
 
 from __future__ import annotations
 
-from collections import deque
+import math
 from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
-from scipy.optimize import nnls
 
-from .adaptive import AdaptiveEKF
-from .ekf import Innovation
+from .adaptive import AdaptiveEKF, matmul
+from .ekf import FilterDiverged, Innovation
 from .spec import AdaptiveSpec, FilterContext
 
 # ---------------------------------------------------------------------------------------------
-# The rule, as plain functions (any state and measurement dimension)
+# Batched products: numpy's broadcasting matmul here; the fast engine compiles them as plain
+# loops (engines/kernels_als.py), where a small array's allocation costs more than the product.
+
+
+def batch_left(L: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """L X_i for every matrix X_i of the stack X (q, b, c): (q, a, c)."""
+    return L @ X
+
+
+def batch_right(X: np.ndarray, Rm: np.ndarray) -> np.ndarray:
+    """X_i Rm^T for every matrix X_i of the stack X (q, a, c): (q, a, d)."""
+    return X @ Rm.T
+
+
+def batch_sandwich(L: np.ndarray, X: np.ndarray, Rm: np.ndarray) -> np.ndarray:
+    """L X_i Rm^T for every matrix X_i of the stack X (q, b, c): (q, a, d)."""
+    return (L @ X) @ Rm.T
+
+
+# ---------------------------------------------------------------------------------------------
+# The rule, as plain functions (any state and measurement dimension; numba compiles them as
+# they are). The last `lags` innovations are kept oldest first: their nu in `past_nu` (lags, m)
+# and their cross terms D_l (p, n, m) stacked in `past_D` (lags * p, n, m), the first `n_past`
+# of each in use.
 
 
 def predict_sensitivities(
-    M: np.ndarray, D: list[np.ndarray], F: np.ndarray, Q_basis: np.ndarray
+    M: np.ndarray, past_D: np.ndarray, n_past: int, F: np.ndarray, Q_basis: np.ndarray
 ) -> np.ndarray:
     """One prediction: M_i <- F M_i F^T + Q_basis_i (Q_basis (p, n, n): the state-space noise
     of a unit value of unknown i; zero for the measurement unknowns); every stored cross term
-    D_l (p, n, m) <- F D_l in place. Returns the new M (p, n, n)."""
-    for j, d in enumerate(D):
-        D[j] = np.einsum("ab,pbc->pac", F, d)
-    return np.einsum("ab,pbc,dc->pad", F, M, F) + Q_basis
+    D_l <- F D_l in place. Returns the new M (p, n, n)."""
+    used = n_past * M.shape[0]
+    if used:
+        past_D[:used] = batch_left(F, past_D[:used])
+    return batch_sandwich(F, M, F) + Q_basis
 
 
 def update_sensitivities(
     M: np.ndarray,
-    D: list[np.ndarray],
+    past_D: np.ndarray,
+    n_past: int,
     H: np.ndarray,
     K: np.ndarray,
     R_basis: np.ndarray,
@@ -70,12 +100,36 @@ def update_sensitivities(
     """One measurement (gain K, zero for a rejected one): the innovation's cross term
     C_i = A M_i H^T - K R_basis_i (A = I - K H), every stored D_l <- A D_l in place, and
     M_i <- A M_i A^T + K R_basis_i K^T. Returns (new M, C)."""
-    A = np.eye(M.shape[1]) - K @ H
-    C = np.einsum("ab,pbc,dc->pad", A, M, H) - np.einsum("ab,pbc->pac", K, R_basis)
-    for j, d in enumerate(D):
-        D[j] = np.einsum("ab,pbc->pac", A, d)
-    M_new = np.einsum("ab,pbc,dc->pad", A, M, A) + np.einsum("ab,pbc,dc->pad", K, R_basis, K)
-    return M_new, C
+    A = np.eye(M.shape[1]) - matmul(K, H)
+    AM = batch_left(A, M)
+    C = batch_right(AM, H) - batch_left(K, R_basis)
+    used = n_past * M.shape[0]
+    if used:
+        past_D[:used] = batch_left(A, past_D[:used])
+    return batch_right(AM, A) + batch_sandwich(K, R_basis, K), C
+
+
+def push_past(
+    past_nu: np.ndarray, past_D: np.ndarray, n_past: int, nu: np.ndarray, C: np.ndarray
+) -> int:
+    """Keep (nu, C) as the newest of the last `lags` innovations (the oldest dropped when they
+    are all in use); returns the new count."""
+    lags = past_nu.shape[0]
+    if lags == 0:
+        return 0
+    p = C.shape[0]
+    if n_past == lags:
+        past_nu[:-1] = past_nu[1:].copy()
+        past_D[:-p] = past_D[p:].copy()
+        n_past -= 1
+    past_nu[n_past] = nu
+    past_D[n_past * p : (n_past + 1) * p] = C
+    return n_past + 1
+
+
+def rows_per_innovation(m: int, lags: int) -> int:
+    """Rows of one innovation with `lags` past ones: m (m + 1) / 2 at lag 0, m^2 per lag."""
+    return m * (m + 1) // 2 + lags * m * m
 
 
 def innovation_rows(
@@ -83,28 +137,213 @@ def innovation_rows(
     H: np.ndarray,
     M: np.ndarray,
     R_basis: np.ndarray,
-    past: list[tuple[np.ndarray, np.ndarray]],
+    past_nu: np.ndarray,
+    past_D: np.ndarray,
+    n_past: int,
     S: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The rows of one innovation nu (before its update): lag 0 (the upper triangle of nu nu^T)
-    and, for each (nu_l, D_l) in `past` (D_l propagated to now), the entries of nu nu_l^T.
-    Returns (A (rows, p), b (rows,)), every row divided by sqrt(S_aa S_bb)."""
-    m = len(nu)
-    lag0 = np.einsum("ab,pbc,dc->pad", H, M, H) + R_basis  # (p, m, m)
-    scale = np.sqrt(np.outer(np.diag(S), np.diag(S)))
-    iu = np.triu_indices(m)
-    A_rows = [lag0[:, iu[0], iu[1]].T / scale[iu][:, None]]
-    b_rows = [np.outer(nu, nu)[iu] / scale[iu]]
-    for nu_l, D_l in past:
-        cross = np.einsum("ab,pbc->pac", H, D_l)  # (p, m, m)
-        A_rows.append(cross.reshape(len(cross), -1).T / scale.reshape(-1, 1))
-        b_rows.append(np.outer(nu, nu_l).ravel() / scale.ravel())
-    return np.vstack(A_rows), np.concatenate(b_rows)
+    out: np.ndarray,
+) -> int:
+    """The rows [A | b] of one innovation nu (before its update) into `out` (rows, p + 1): lag 0
+    (the upper triangle of nu nu^T, row by row) and, for each stored (nu_l, D_l), oldest first,
+    the entries of nu nu_l^T (row-major), every row divided by sqrt(S_aa S_bb). Returns how
+    many rows it wrote."""
+    m, p = len(nu), M.shape[0]
+    lag0 = batch_sandwich(H, M, H) + R_basis  # (p, m, m)
+    r = 0
+    for a in range(m):
+        for b in range(a, m):
+            scale = math.sqrt(S[a, a] * S[b, b])
+            for i in range(p):
+                out[r, i] = lag0[i, a, b] / scale
+            out[r, p] = nu[a] * nu[b] / scale
+            r += 1
+    for j in range(n_past):
+        cross = batch_left(H, past_D[j * p : (j + 1) * p])  # (p, m, m)
+        for a in range(m):
+            for b in range(m):
+                scale = math.sqrt(S[a, a] * S[b, b])
+                for i in range(p):
+                    out[r, i] = cross[i, a, b] / scale
+                out[r, p] = nu[a] * past_nu[j, b] / scale
+                r += 1
+    return r
 
 
-def solve_variances(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The non-negative theta minimising ||A theta - b|| (scipy.optimize.nnls)."""
-    return nnls(A, b)[0]
+# ---------------------------------------------------------------------------------------------
+# The window's least squares. ||A x - b||^2 over the rows of the last `window` innovations
+# depends on them only through the triangular factor of [A | b] (Z = Q T: T^T T = Z^T Z), and
+# the factor of stacked rows is the factor of their stacked factors. So each innovation's rows
+# are reduced to their (p + 1) x (p + 1) factor once, and the window's factor is kept by a
+# two-stack queue (sliding-window aggregation): the oldest innovations' suffix factors, the
+# newest's running factor; a push or a pop merges one or two factors (amortised), a query one.
+
+
+def triangularise(Z: np.ndarray) -> np.ndarray:
+    """The upper-triangular factor T (k x k) of Z (r x k): Z = Q T (Householder; rows of zeros
+    below when r < k); numpy's QR here, a plain loop in the fast engine."""
+    T = np.zeros((Z.shape[1], Z.shape[1]))
+    R = np.linalg.qr(Z, mode="r")
+    T[: R.shape[0]] = R
+    return T
+
+
+def merge_factors(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """The factor of the rows of X and of Y together (the factor of [X; Y])."""
+    return triangularise(np.vstack((X, Y)))
+
+
+def window_push(
+    fac: np.ndarray,
+    suf: np.ndarray,
+    back: np.ndarray,
+    head: int,
+    count: int,
+    n_front: int,
+    new: np.ndarray,
+) -> tuple[int, int, int]:
+    """Add one innovation's factor `new` to the window (a ring of len(fac) innovations: their
+    factors `fac`, slot `head` the oldest, `count` held), dropping the oldest when it is full.
+    The oldest `n_front` have suffix factors `suf` (slot s: the factor of s and every newer one
+    of them); `back` is the factor of the others. Returns (head, count, n_front)."""
+    size = fac.shape[0]
+    if count == size:
+        if n_front == 0:  # every held innovation becomes the front: its suffix factors
+            last = (head + count - 1) % size
+            suf[last] = fac[last]
+            for i in range(count - 2, -1, -1):
+                s = (head + i) % size
+                suf[s] = merge_factors(fac[s], suf[(s + 1) % size])
+            n_front = count
+        head = (head + 1) % size
+        count -= 1
+        n_front -= 1
+    fac[(head + count) % size] = new
+    if count == n_front:
+        back[:] = new
+    else:
+        back[:] = merge_factors(back, new)
+    return head, count + 1, n_front
+
+
+def window_factor(
+    fac: np.ndarray, suf: np.ndarray, back: np.ndarray, head: int, count: int, n_front: int
+) -> np.ndarray:
+    """The factor of every innovation's rows in the window (`window_push`)."""
+    if n_front == 0:
+        return back.copy()
+    if n_front == count:
+        return suf[head].copy()
+    return merge_factors(suf[head], back)
+
+
+_EPS = float(np.finfo(float).eps)
+
+
+def _passive_solution(Rt: np.ndarray, c: np.ndarray, passive: np.ndarray) -> np.ndarray:
+    """The least-squares solution over the passive columns, zero on the others: the factor of
+    [Rt_passive | c] and back substitution; a column that adds nothing to the span of the
+    earlier ones (|T_jj| at rounding level) gets zero."""
+    n = Rt.shape[1]
+    z = np.zeros(n)
+    k = 0
+    for i in range(n):
+        if passive[i]:
+            k += 1
+    if k == 0:
+        return z
+    Z = np.empty((Rt.shape[0], k + 1))
+    j = 0
+    for i in range(n):
+        if passive[i]:
+            Z[:, j] = Rt[:, i]
+            j += 1
+    Z[:, k] = c
+    T = triangularise(Z)
+    tol = 10.0 * _EPS * max(Z.shape[0], k) * max(np.abs(Z[:, :k]).max(), 1e-300)
+    sol = np.zeros(k)
+    for j in range(k - 1, -1, -1):
+        if abs(T[j, j]) > tol:
+            t = T[j, k]
+            for m in range(j + 1, k):
+                t -= T[j, m] * sol[m]
+            sol[j] = t / T[j, j]
+    j = 0
+    for i in range(n):
+        if passive[i]:
+            z[i] = sol[j]
+            j += 1
+    return z
+
+
+def nnls(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The non-negative x minimising ||A x - b|| (as scipy.optimize.nnls): `nnls_triangular`
+    on the factor of [A | b]. NaN or infinite input gives NaN."""
+    n = A.shape[1]
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+        return np.full(n, np.nan)
+    Z = np.empty((A.shape[0], n + 1))
+    Z[:, :n] = A
+    Z[:, n] = b
+    T = triangularise(Z)
+    return nnls_triangular(T[:n, :n], T[:n, n])
+
+
+def nnls_triangular(R: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The non-negative x minimising ||R x - c|| for a square R (the factor of the rows: then
+    ||A x - b||^2 = ||R x - c||^2 + const): Lawson & Hanson's active-set algorithm (Solving
+    Least Squares Problems, 1974, ch. 23), as scipy.optimize.nnls runs it on A; every pass costs
+    p x p whatever the number of rows. NaN or infinite input gives NaN."""
+    n = R.shape[1]
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(c))):
+        return np.full(n, np.nan)
+    Rt = np.ascontiguousarray(R)
+    c = np.ascontiguousarray(c)
+    # Lawson & Hanson's tolerance on the dual and on zeroed variables
+    tol = 10.0 * _EPS * n * max(np.abs(Rt).max(), 1e-300)
+    x = np.zeros(n)
+    passive = np.zeros(n, dtype=np.bool_)
+    w = (c - Rt @ x) @ Rt  # the dual: minus the gradient, Rt^T (c - Rt x)
+    skip = np.zeros(n, dtype=np.bool_)  # variables whose entry made no progress (w ~ 0)
+    for _ in range(3 * n + 1):
+        best, t = tol, -1
+        for i in range(n):
+            if not passive[i] and not skip[i] and w[i] > best:
+                best, t = w[i], i
+        if t < 0:
+            break
+        passive[t] = True
+        z = _passive_solution(Rt, c, passive)
+        if z[t] <= 0.0:  # rounding: the entering variable cannot move; try the next one
+            passive[t] = False
+            skip[t] = True
+            continue
+        skip[:] = False
+        for _inner in range(3 * n):
+            alpha, blocked = 2.0, False
+            for i in range(n):
+                if passive[i] and z[i] <= 0.0:
+                    blocked = True
+                    step = x[i] / (x[i] - z[i])
+                    alpha = min(alpha, step)
+            if not blocked:
+                break
+            x = x + alpha * (z - x)
+            for i in range(n):
+                if passive[i] and x[i] <= tol:
+                    passive[i] = False
+                    x[i] = 0.0
+            z = _passive_solution(Rt, c, passive)
+        x = z
+        w = (c - Rt @ x) @ Rt
+    return x
+
+
+def r_basis() -> np.ndarray:
+    """R_basis of (qv, qg, rr, rb): a unit variance on range, on bearing (zero for qv, qg)."""
+    out = np.zeros((4, 2, 2))
+    out[2, 0, 0] = 1.0
+    out[3, 1, 1] = 1.0
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -132,10 +371,6 @@ class ALSSpec(AdaptiveSpec):
         return ALSEKF(**ctx.kwargs(), params=self)
 
 
-_E_V = np.array([[1.0, 0.0], [0.0, 0.0]])
-_E_G = np.array([[0.0, 0.0], [0.0, 1.0]])
-
-
 class ALSEKF(AdaptiveEKF):
     """EKF plus online ALS (module doc)."""
 
@@ -144,16 +379,33 @@ class ALSEKF(AdaptiveEKF):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        p = 4
-        self.M = np.zeros((p, 3, 3))
-        self.R_basis = np.zeros((p, 2, 2))
-        self.R_basis[2, 0, 0] = 1.0
-        self.R_basis[3, 1, 1] = 1.0
-        self.past: deque = deque(maxlen=self.params.lags)  # (nu_l, D_l) of recent innovations
-        self.rows: deque = deque(maxlen=self.params.window)  # (A, b) per innovation
+        lags, window = self.params.lags, self.params.window
+        self.M = np.zeros((4, 3, 3))
+        self.R_basis = r_basis()
+        self.past_nu = np.zeros((lags, 2))  # the last `lags` innovations, oldest first
+        self.past_D = np.zeros((lags * 4, 3, 2))  # and their cross terms
+        self.n_past = 0
+        self.rows = np.empty((rows_per_innovation(2, lags), 5))  # one innovation's [A | b]
+        # the window's factors (`window_push`; np.empty: pages are touched only as it fills)
+        self.fac = np.empty((window, 5, 5))
+        self.suf = np.empty((window, 5, 5))
+        self.back = np.zeros((5, 5))
+        self.head = self.count = self.n_front = 0
+        self.steps = 0  # predicts since the sensitivities were last brought up to date
         self.pending: tuple | None = None  # the innovation before its update
         self.scans = 0
         self.theta = np.full(4, np.nan)  # the last identification (qv, qg, rr, rb)
+
+    def _catch_up(self) -> None:
+        """The sensitivities through the predicts since they were last brought up to date, at
+        once: the interval's transition F_scan and unit noises A_v, A_g (AdaptiveEKF)."""
+        if not self.steps:
+            return
+        Q_basis = np.zeros((4, 3, 3))
+        Q_basis[0], Q_basis[1] = self.A_v, self.A_g
+        self.M = predict_sensitivities(self.M, self.past_D, self.n_past, self.F_scan, Q_basis)
+        self.reset_interval()
+        self.steps = 0
 
     def _finish_pending(self, K: np.ndarray | None) -> None:
         """Propagate the sensitivities through the pending innovation's update (K None:
@@ -163,32 +415,27 @@ class ALSEKF(AdaptiveEKF):
         nu, H = self.pending
         self.pending = None
         gain = np.zeros((3, 2)) if K is None else K
-        D = [d for _, d in self.past]
-        self.M, C = update_sensitivities(self.M, D, H, gain, self.R_basis)
-        self.past = deque(
-            ((n, d) for (n, _), d in zip(self.past, D, strict=True)), maxlen=self.params.lags
-        )
-        if self.params.lags:
-            self.past.append((nu, C))
+        self.M, C = update_sensitivities(self.M, self.past_D, self.n_past, H, gain, self.R_basis)
+        self.n_past = push_past(self.past_nu, self.past_D, self.n_past, nu, C)
 
     def predict(self, u=0, dt: float | None = None):
-        self._finish_pending(None)
         super().predict(u, dt)
-        Q_basis = np.zeros((4, 3, 3))
-        Q_basis[0] = self.model.Q(self.G, _E_V, self.dt)
-        Q_basis[1] = self.model.Q(self.G, _E_G, self.dt)
-        D = [d for _, d in self.past]
-        self.M = predict_sensitivities(self.M, D, self.F, Q_basis)
-        self.past = deque(
-            ((n, d) for (n, _), d in zip(self.past, D, strict=True)), maxlen=self.params.lags
-        )
+        self.steps += 1
 
     def before_gain(self, inn: Innovation) -> None:
         self._finish_pending(None)  # the previous landmark of this scan, if the gate refused it
         if not self.feeds_adaptation(inn):
             return
+        self._catch_up()
         S = inn.HPHt + self.R
-        self.rows.append(innovation_rows(inn.nu, inn.H, self.M, self.R_basis, list(self.past), S))
+        n = innovation_rows(
+            inn.nu, inn.H, self.M, self.R_basis, self.past_nu, self.past_D, self.n_past, S,
+            self.rows,
+        )  # fmt: skip
+        self.head, self.count, self.n_front = window_push(
+            self.fac, self.suf, self.back, self.head, self.count, self.n_front,
+            triangularise(self.rows[:n]),
+        )  # fmt: skip
         self.pending = (inn.nu.copy(), inn.H.copy())
 
     def after_update(self, inn: Innovation) -> None:
@@ -199,11 +446,12 @@ class ALSEKF(AdaptiveEKF):
         self.scans += 1
         if not self.params.adaptation or self.scans % self.params.every:
             return
-        if len(self.rows) < min(self.params.warmup, self.params.window):
+        if self.count < min(self.params.warmup, self.params.window):
             return
-        A = np.vstack([a for a, _ in self.rows])
-        b = np.concatenate([b for _, b in self.rows])
-        self.theta = solve_variances(A, b)
+        T = window_factor(self.fac, self.suf, self.back, self.head, self.count, self.n_front)
+        self.theta = nnls_triangular(T[:4, :4], T[:4, 4])
+        if not np.all(np.isfinite(self.theta)):
+            raise FilterDiverged("the ALS rows are not finite")
         if "Q" in self.params.adapt:
             self.set_Qu_diag(self.theta[:2])
         if "R" in self.params.adapt:

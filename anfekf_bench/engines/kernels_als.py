@@ -1,0 +1,376 @@
+"""The fast engine's kernel of `als` (filters/als.py): online autocovariance least squares.
+
+The rule is filters/als.py's plain functions, called here as the filterpy engine's `ALSEKF`
+calls them from its hooks (numba compiles them with `register_jitable`; their two batched
+products and the QR's factor, numpy's there, are plain loops here); the EKF steps are
+kernels.py's primitives. The loop runs over one run's stamps: stamp i predicts with the controls
+u[i] over dt[i], then fuses the landmarks lm[i] .. lm[i + 1] - 1 (their map positions xy and
+measurements z), then records when record_at[i].
+
+The motion model (bicycle or unicycle, an argument) is reached only through kernels.py's
+`predict` and `interval_step` (AdaptiveEKF.predict's interval accumulators, A <- F A F^T +
+Q(e) with the model's Q of a unit control noise e, and F_scan <- F F_scan).
+
+`pure_module()` gives a never-compiled copy (plain Python, kernels.py's pure copy underneath).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+
+import numpy as np
+
+from ..filters import als as _als
+from . import kernels as _kernels
+
+_PURE_COPY: bool = globals().get("_PURE", False)
+_k = _kernels.pure_module() if _PURE_COPY else _kernels
+JIT: bool = _k.JIT  # True: the kernel below is numba-compiled
+maybe_njit = _k.maybe_njit
+predict, interval_step = _k.predict, _k.interval_step
+innovation, nis, gain, correct = _k.innovation, _k.nis, _k.gain, _k.correct
+healthy, record, clip_to_bounds = _k.healthy, _k.record, _k.clip_to_bounds
+
+MOTION_BICYCLE, MOTION_UNICYCLE = _k.MOTION_BICYCLE, _k.MOTION_UNICYCLE
+
+
+def pure_module():
+    """A fresh copy of this module whose kernel is plain Python, whatever is installed."""
+    name = __name__ + "_pure"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, __file__)
+    mod = importlib.util.module_from_spec(spec)
+    mod._PURE = True  # read while the copy executes
+    spec.loader.exec_module(mod)
+    sys.modules[name] = mod
+    return mod
+
+
+if JIT and not _PURE_COPY:
+    from numba.extending import overload, register_jitable
+
+    @register_jitable
+    def _left_into(out, L, X):
+        """out[i] = L X[i] (k ascending; the 2- and 3-term sums written out, which LLVM can
+        schedule: these stacks are 3 x 3, 3 x 2 and 2 x 2)."""
+        q, b, c = X.shape
+        a = L.shape[0]
+        for i in range(q):
+            for r in range(a):
+                for s in range(c):
+                    if b == 3:
+                        out[i, r, s] = (
+                            L[r, 0] * X[i, 0, s] + L[r, 1] * X[i, 1, s] + (L[r, 2] * X[i, 2, s])
+                        )
+                    elif b == 2:
+                        out[i, r, s] = L[r, 0] * X[i, 0, s] + L[r, 1] * X[i, 1, s]
+                    else:
+                        t = 0.0
+                        for k in range(b):
+                            t += L[r, k] * X[i, k, s]
+                        out[i, r, s] = t
+
+    @register_jitable
+    def _right_into(out, Y, Rm):
+        """out[i] = Y[i] Rm^T (k ascending, as `_left_into`)."""
+        q, a, c = Y.shape
+        d = Rm.shape[0]
+        for i in range(q):
+            for r in range(a):
+                for s in range(d):
+                    if c == 3:
+                        out[i, r, s] = (
+                            Y[i, r, 0] * Rm[s, 0] + Y[i, r, 1] * Rm[s, 1] + (Y[i, r, 2] * Rm[s, 2])
+                        )
+                    elif c == 2:
+                        out[i, r, s] = Y[i, r, 0] * Rm[s, 0] + Y[i, r, 1] * Rm[s, 1]
+                    else:
+                        t = 0.0
+                        for k in range(c):
+                            t += Y[i, r, k] * Rm[s, k]
+                        out[i, r, s] = t
+
+    @overload(_als.batch_left)
+    def _batch_left_loop(L, X):
+        """Compiled, L X_i over a stack is a plain loop (one allocation)."""
+
+        def impl(L, X):
+            out = np.empty((X.shape[0], L.shape[0], X.shape[2]))
+            _left_into(out, L, X)
+            return out
+
+        return impl
+
+    @overload(_als.batch_right)
+    def _batch_right_loop(X, Rm):
+        """Compiled, X_i Rm^T over a stack is a plain loop (one allocation)."""
+
+        def impl(X, Rm):
+            out = np.empty((X.shape[0], X.shape[1], Rm.shape[0]))
+            _right_into(out, X, Rm)
+            return out
+
+        return impl
+
+    @overload(_als.batch_sandwich)
+    def _batch_sandwich_loop(L, X, Rm):
+        """Compiled, (L X_i) Rm^T over a stack is a plain loop (two allocations)."""
+
+        def impl(L, X, Rm):
+            tmp = np.empty((X.shape[0], L.shape[0], X.shape[2]))
+            _left_into(tmp, L, X)
+            out = np.empty((X.shape[0], L.shape[0], Rm.shape[0]))
+            _right_into(out, tmp, Rm)
+            return out
+
+        return impl
+
+    @overload(_als.triangularise)
+    def _triangularise_loop(Z):
+        """Compiled, the factor is Householder's QR as LAPACK's dgeqr2 runs it (dlarfg's sign
+        convention: T's diagonal is -sign(z_jj) times the column's norm), in plain loops."""
+
+        def impl(Z):
+            r, k = Z.shape
+            W = np.empty((r, k))
+            for i in range(r):
+                for c in range(k):
+                    W[i, c] = Z[i, c]
+            for j in range(min(r, k)):
+                s = 0.0
+                for i in range(j + 1, r):
+                    s += W[i, j] * W[i, j]
+                alpha = W[j, j]
+                if s == 0.0:  # nothing below the diagonal: H = I
+                    continue
+                norm = math.sqrt(alpha * alpha + s)
+                beta = -norm if alpha >= 0.0 else norm
+                tau = (beta - alpha) / beta
+                v0 = alpha - beta
+                for i in range(j + 1, r):
+                    W[i, j] /= v0
+                W[j, j] = beta
+                for c in range(j + 1, k):
+                    t = W[j, c]
+                    for i in range(j + 1, r):
+                        t += W[i, j] * W[i, c]
+                    t *= tau
+                    W[j, c] -= t
+                    for i in range(j + 1, r):
+                        W[i, c] -= t * W[i, j]
+            T = np.zeros((k, k))
+            for i in range(min(r, k)):
+                for c in range(i, k):
+                    T[i, c] = W[i, c]
+            return T
+
+        return impl
+
+    for _rule in (
+        _als.predict_sensitivities, _als.update_sensitivities, _als.push_past,
+        _als.rows_per_innovation, _als.innovation_rows, _als.merge_factors, _als.window_push,
+        _als.window_factor, _als._passive_solution, _als.nnls, _als.nnls_triangular,
+        _als.r_basis,
+    ):  # fmt: skip
+        register_jitable(_rule)
+
+predict_sensitivities = _als.predict_sensitivities
+update_sensitivities = _als.update_sensitivities
+push_past = _als.push_past
+rows_per_innovation = _als.rows_per_innovation
+innovation_rows = _als.innovation_rows
+triangularise = _als.triangularise
+window_push = _als.window_push
+window_factor = _als.window_factor
+nnls_triangular = _als.nnls_triangular
+r_basis = _als.r_basis
+
+_ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+_EYE9 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+
+
+@maybe_njit
+def as_diag(v):
+    """A length-2 array as the row-major tuple of diag(v)."""
+    return (v[0], 0.0, 0.0, v[1])
+
+
+@maybe_njit
+def nnls(A, b):
+    """filters.als.nnls as the kernel runs it (compiled when numba is in use): for tests."""
+    return _als.nnls(A, b)
+
+
+@maybe_njit
+def _fill(out, Q):
+    """A row-major 3 x 3 tuple into the 3 x 3 array `out`."""
+    for i in range(9):
+        out[i // 3, i % 3] = Q[i]
+
+
+@maybe_njit
+def _finish(M, past_nu, past_D, n_past, nu, H, K, R_basis):
+    """ALSEKF._finish_pending: the sensitivities through one innovation's update (K zero for a
+    rejected one), then (nu, C) kept as the newest past innovation. Returns (M, n_past)."""
+    M, C = update_sensitivities(M, past_D, n_past, H, K, R_basis)
+    return M, push_past(past_nu, past_D, n_past, nu, C)
+
+
+# ---------------------------------------------------------------------------------------------
+# The loop
+
+
+@maybe_njit
+def run_als_kernel(
+    u, dt, lm, xy, z, motion, B, T0, x0, P0, Qu0, R0, gate, has_gate,
+    adapt_R, adapt_Q, adaptation, from_all, floor, ceiling, lags, window, every, warmup,
+    record_at, out_x, out_P, out_R, out_Q,
+):  # fmt: skip
+    """filterpy_engine.run_filter with filters.als.ALSEKF: per stamp the predict and the
+    interval's transition and unit noises; per landmark that feeds adaptation the
+    sensitivities brought up to date and the innovation's rows (before its gain), reduced to
+    their factor in the window; the gate, the update and the sensitivities through it; per
+    scan with a landmark, every `every`-th, the non-negative least squares of the window (from
+    min(warmup, window) innovations on) and Qu, R from it within bounds. Returns (diverged,
+    records written, nis_sum, n_updates, n_rejected) as the other kernels."""
+    n_stamps = u.shape[0]
+    x = (x0[0], x0[1], x0[2])
+    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
+    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
+    R = (R0[0], R0[1], R0[2], R0[3])
+    R0_diag = np.array([R0[0], R0[3]])
+    Qu0_diag = np.array([Qu0[0], Qu0[3]])
+    bounds = (floor, ceiling)
+    M = np.zeros((4, 3, 3))
+    R_basis = r_basis()
+    Q_basis = np.zeros((4, 3, 3))
+    F_scan_a = np.empty((3, 3))
+    past_nu = np.zeros((lags, 2))
+    past_D = np.zeros((lags * 4, 3, 2))
+    n_past = 0
+    rows = np.empty((rows_per_innovation(2, lags), 5))
+    # The window's factors; no more than the run's measurements can fill it (a smaller ring
+    # that never wraps holds the same innovations).
+    size = max(1, min(window, z.shape[0]))
+    fac = np.empty((size, 5, 5))
+    suf = np.empty((size, 5, 5))
+    back = np.zeros((5, 5))
+    head = 0
+    count = 0
+    n_front = 0
+    min_count = min(warmup, window)
+    # the interval since the sensitivities were last brought up to date (AdaptiveEKF's)
+    steps = 0
+    A_v = _ZERO9
+    A_g = _ZERO9
+    F_scan = _EYE9
+    pending = False
+    pend_nu = np.zeros(2)
+    pend_H = np.zeros((2, 3))
+    no_gain = np.zeros((3, 2))
+    K = np.empty((3, 2))
+    S = np.empty((2, 2))
+    scans = 0
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    n_records = out_x.shape[0]
+    j = 0
+    bad_record = False
+    for i in range(n_stamps):
+        u0 = u[i, 0]
+        u1 = u[i, 1]
+        h = dt[i]
+        A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], u0, u1, h, motion, B, T0)
+        steps += 1
+        x, P, _ = predict(x, P, u0, u1, h, motion, B, T0, Qu)
+        first = lm[i]
+        last = lm[i + 1]
+        if last == first:
+            if record_at[i] and j < n_records:
+                j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
+                bad_record = bad_record or bad
+            continue
+        for m in range(first, last):
+            z0 = z[m, 0]
+            z1 = z[m, 1]
+            H, zh, nu, HPHt = innovation(x, P, xy[m, 0], xy[m, 1], z0, z1)
+            # before_gain: the previous landmark of this scan, if the gate refused it
+            if pending:
+                M, n_past = _finish(M, past_nu, past_D, n_past, pend_nu, pend_H, no_gain, R_basis)
+                pending = False
+            feeds = True
+            if not from_all and has_gate:
+                ok, v = nis(HPHt, R, nu[0], nu[1])
+                if not ok:
+                    return True, j, nis_sum, n_updates, n_rejected
+                feeds = v <= gate
+            if feeds:
+                if steps:  # ALSEKF._catch_up
+                    _fill(F_scan_a, F_scan)
+                    _fill(Q_basis[0], A_v)
+                    _fill(Q_basis[1], A_g)
+                    M = predict_sensitivities(M, past_D, n_past, F_scan_a, Q_basis)
+                    steps = 0
+                    A_v = _ZERO9
+                    A_g = _ZERO9
+                    F_scan = _EYE9
+                for a in range(4):
+                    S[a // 2, a % 2] = HPHt[a] + R[a]
+                # (the buffers of the previous innovation are free: it was finished above)
+                pend_nu[0] = nu[0]
+                pend_nu[1] = nu[1]
+                pend_H[0, 0] = H[0]
+                pend_H[0, 1] = H[1]
+                pend_H[1, 0] = H[2]
+                pend_H[1, 1] = H[3]
+                pend_H[1, 2] = -1.0
+                n = innovation_rows(
+                    pend_nu, pend_H, M, R_basis, past_nu, past_D, n_past, S, rows
+                )  # fmt: skip
+                head, count, n_front = window_push(
+                    fac, suf, back, head, count, n_front, triangularise(rows[:n])
+                )
+                pending = True
+            ok, v = nis(HPHt, R, nu[0], nu[1])
+            if not ok or not math.isfinite(v):
+                return True, j, nis_sum, n_updates, n_rejected
+            if has_gate and not v <= gate:
+                n_rejected += 1
+                continue
+            nis_sum += v
+            n_updates += 1
+            ok, Kt = gain(P, H, R)
+            if not ok:
+                return True, j, nis_sum, n_updates, n_rejected
+            ok, x, P = correct(x, P, H, zh, z0, z1, R)
+            # after_update
+            if pending:
+                for a in range(6):
+                    K[a // 2, a % 2] = Kt[a]
+                M, n_past = _finish(M, past_nu, past_D, n_past, pend_nu, pend_H, K, R_basis)
+                pending = False
+        # end_scan
+        if pending:
+            M, n_past = _finish(M, past_nu, past_D, n_past, pend_nu, pend_H, no_gain, R_basis)
+            pending = False
+        scans += 1
+        if adaptation and scans % every == 0 and count >= min_count:
+            T = window_factor(fac, suf, back, head, count, n_front)
+            theta = nnls_triangular(T[:4, :4], T[:4, 4])
+            for a in range(4):
+                if not math.isfinite(theta[a]):
+                    return True, j, nis_sum, n_updates, n_rejected
+            if adapt_Q:
+                Qu = as_diag(clip_to_bounds(theta[:2].copy(), Qu0_diag, bounds))
+            if adapt_R:
+                R = as_diag(clip_to_bounds(theta[2:].copy(), R0_diag, bounds))
+        if not healthy(x, P, R, Qu):
+            return True, j, nis_sum, n_updates, n_rejected
+        if record_at[i] and j < n_records:
+            j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
+            bad_record = bad_record or bad
+    return bad_record, j, nis_sum, n_updates, n_rejected

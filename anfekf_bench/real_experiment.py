@@ -2,9 +2,9 @@
 
 1. **Tune** (`tune`): the `ekf-tuned` reference's noise by a grid search on the training part
    (`sources.recorded.TuningConfig`): every training segment is cold-started from ground truth
-   and the plain EKF is run for every noise setting at once (`engines.events.run_ekf_grid`, plain
-   numpy, the settings split over `jobs` processes); the criterion is the pooled position RMSE
-   over the scorable evaluation times of all training segments.
+   and the plain EKF is run for every noise setting (`engines.tuning.score_setting`, the compiled
+   tuning kernel, the settings split over `jobs` processes); the criterion is the pooled position
+   RMSE over the scorable evaluation times of all training segments.
 2. **Run** (`run_segment`): each held-out segment is one Monte Carlo "run": every filter instance
    (each filter from each naive start, and ekf-tuned) is cold-started from ground truth at the
    segment's start and stepped over its events (`engines.events.run_filter_events`).
@@ -35,7 +35,8 @@ from joblib import Parallel, delayed
 from .analysis.comparisons import comparisons_frame, evaluate_claims
 from .analysis.metrics import add_trace_metrics
 from .analysis.tables import runs_frame, steps_frame, summary_records, update_statistics
-from .engines.events import Timeline, run_ekf_grid, run_filter_events, timeline
+from .engines.events import Timeline, run_filter_events, timeline
+from .engines.tuning import score_setting
 from .filters.custom import CustomSpec, contained
 from .filters.ekf import gate_threshold
 from .filters.spec import FilterContext
@@ -239,33 +240,32 @@ AXES = ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing")
 
 
 def _score_chunk(exps: np.ndarray, naive: np.ndarray, segs, P0, gate, T0) -> np.ndarray:
-    """(G, 5): sq_sum, count, max_err, n_updates, n_rejected over every training segment."""
-    sig = naive * np.exp2(exps)
-    Qu, R = sig[:, :2] ** 2, sig[:, 2:] ** 2
+    """(G, 5): sq_sum, count, max_err, n_updates, n_rejected of each setting over every training
+    segment (the tuning kernel, one setting at a time)."""
     out = np.zeros((len(exps), 5))
-    for s in segs:
-        sc = run_ekf_grid(s.timeline, s.segment.pose, P0, Qu, R, gate, T0, s.truth[:, :2], s.scored)
-        out[:, 0] += sc.sq_sum
-        out[:, 1] += sc.count
-        out[:, 2] = np.maximum(out[:, 2], sc.max_err)
-        out[:, 3] += sc.n_updates
-        out[:, 4] += sc.n_rejected
+    for g, e in enumerate(exps):
+        sig = naive * np.exp2(e)
+        for s in segs:
+            sq, mx, nu, nr, _ = score_setting(
+                s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth, s.scored
+            )
+            out[g] += (sq, int(s.scored.sum()), 0.0, nu, nr)
+            out[g, 2] = max(out[g, 2], mx)
     return out
 
 
 def _score(exps: np.ndarray, naive, segs, P0, gate, T0, jobs: int) -> np.ndarray:
-    """`_score_chunk` with the segments split over `jobs` processes (each runs the whole grid on
-    its share: the per-call overhead of numpy is split too, not only the arithmetic)."""
-    parts = max(1, min(jobs, len(segs)))
+    """`_score_chunk` with the settings dealt round-robin to `jobs` processes."""
+    parts = max(1, min(jobs, len(exps)))
     if parts == 1:
         return _score_chunk(exps, naive, segs, P0, gate, T0)
-    groups = [segs[i::parts] for i in range(parts)]
     with local_workers():
         found = Parallel(n_jobs=parts)(
-            delayed(_score_chunk)(exps, naive, g, P0, gate, T0) for g in groups
+            delayed(_score_chunk)(exps[i::parts], naive, segs, P0, gate, T0) for i in range(parts)
         )
-    out = np.sum(found, axis=0)
-    out[:, 2] = np.max([f[:, 2] for f in found], axis=0)
+    out = np.zeros((len(exps), 5))
+    for i, f in enumerate(found):
+        out[i::parts] = f
     return out
 
 
@@ -343,14 +343,12 @@ def tuned_covariances(tuned: dict) -> tuple[np.ndarray, np.ndarray]:
 
 # --------------------------------------------------------------------------------------------
 # 1b. Tuning across drives (protocol drives, SPEC 15): the same grid and refinement as `tune`,
-# on whole drives, by branch and bound on the compiled kernel (engines.grid)
+# on whole drives, by branch and bound on the compiled tuning kernel (engines.tuning)
 
 
 def _bnb_chunk(exps: np.ndarray, naive, inputs, P0, gate, T0, bound: float) -> np.ndarray:
     """(G, 5): sq_sum, max_err, n_updates, n_rejected, finished of each setting over all
     `inputs`, stopping a setting once its sum passes the best complete sum seen (or `bound`)."""
-    from .engines.grid import score_setting
-
     out = np.zeros((len(exps), 5))
     best = bound
     for g, e in enumerate(exps):
@@ -358,7 +356,7 @@ def _bnb_chunk(exps: np.ndarray, naive, inputs, P0, gate, T0, bound: float) -> n
         total, worst, upd, rej, finished = 0.0, 0.0, 0, 0, True
         for s in inputs:
             sq, mx, nu, nr, fin = score_setting(
-                s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth[:, :2], s.scored,
+                s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth, s.scored,
                 best - total,
             )  # fmt: skip
             total, worst, upd, rej = total + sq, max(worst, mx), upd + nu, rej + nr
@@ -452,7 +450,7 @@ def tune_on_drives(
         "train_max_pos_err": float(scores[i, 1]),
         "train_gate_rejected": float(scores[i, 3] / seen) if seen else math.nan,
         "settings": int(len(exps)),
-        "search": "branch and bound (engines.grid): a setting stops once its sum of squared"
+        "search": "branch and bound (engines.tuning): a setting stops once its sum of squared"
         " errors passes the best complete one; the winner is the full grid's",
         "stages": stages,
         "seconds": round(time.perf_counter() - started, 3),
@@ -460,14 +458,12 @@ def tune_on_drives(
 
 
 def drive_rmse(scenario: RealScenario, inputs: SegmentInputs, tuned: dict) -> float:
-    """The position RMSE of the plain EKF with `tuned` noise on one drive (engines.grid)."""
-    from .engines.grid import score_setting
-
+    """The position RMSE of the plain EKF with `tuned` noise on one drive (engines.tuning)."""
     sig = [tuned[k] for k in ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")]
     sq, *_ = score_setting(
         inputs.timeline, inputs.segment.pose, p0(scenario), sig,
         gate_threshold(scenario.gate_probability), scenario.odometry_period_s,
-        inputs.truth[:, :2], inputs.scored,
+        inputs.truth, inputs.scored,
     )  # fmt: skip
     n = int(inputs.scored.sum())
     return float(math.sqrt(sq / n)) if n else math.nan

@@ -36,7 +36,7 @@ from .analysis.comparisons import comparisons_frame, evaluate_claims
 from .analysis.metrics import add_trace_metrics
 from .analysis.tables import runs_frame, steps_frame, summary_records, update_statistics
 from .engines.events import Timeline, run_filter_events, timeline
-from .engines.tuning import score_setting
+from .engines.tuning import TimelineLikelihood, fit_noise, score_setting
 from .filters.custom import CustomSpec, contained
 from .filters.ekf import gate_threshold
 from .filters.spec import FilterContext
@@ -67,10 +67,12 @@ from .sources.recorded import (
 from .storage import (
     MANIFEST_FILE,
     RESULT_FORMAT,
+    RUNS_DIR,
     folder_lock,
     scenario_name_problem,
     write_json,
 )
+from .training import FIT_FILE, FIT_FORMAT, _read_cached
 from .workers import local_workers
 
 LOST_LOCK_M = 1.0  # a run whose position error exceeds this at a scored time has lost lock
@@ -510,6 +512,114 @@ def tune_drives(scenario: RealScenario, inputs: dict[str, SegmentInputs], world:
 
 
 # --------------------------------------------------------------------------------------------
+# 1c. ekf-ml: each run's noise fitted on that run's own innovations, never its ground truth
+
+NOISE_KEYS = ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")
+
+
+@dataclass(frozen=True, eq=False)
+class OwnInnovations:
+    """What `EKFMLSpec.fit` gets on recorded data (in place of the simulated training runs): one
+    run's landmark innovations under the unicycle EKF (`engines.tuning.TimelineLikelihood`, which
+    holds no ground truth) and the naive sigmas its Nelder-Mead starts multiply."""
+
+    problem: TimelineLikelihood
+    naive: np.ndarray
+
+    def fit_noise(self, criterion: str, starts: list[float], max_evaluations: int) -> dict:
+        if criterion != "likelihood":  # only the likelihood needs no truth
+            raise ValueError(f"a recorded run's own data fits the likelihood, not {criterion!r}")
+        found = fit_noise(self.problem, criterion, self.naive, starts, max_evaluations)
+        sigmas = found.pop("sigmas")
+        found["at_fit"] = found.pop("training")
+        return {**dict(zip(NOISE_KEYS, sigmas, strict=True)), **found}
+
+
+def own_innovations(scenario: RealScenario, inputs: SegmentInputs) -> OwnInnovations:
+    """The objective of `ekf-ml` on one run: its timeline from its cold start (the start pose,
+    as every filter's), with the scenario's P0, gate and T0; `inputs.truth` is not passed on."""
+    problem = TimelineLikelihood.of(
+        inputs.timeline, inputs.segment.pose, p0(scenario),
+        gate_threshold(scenario.gate_probability), scenario.odometry_period_s,
+    )  # fmt: skip
+    return OwnInnovations(problem, scenario.naive.sigmas())
+
+
+def own_fit_fingerprint(spec, own: OwnInnovations) -> str:
+    """Hash of what one run's fit depends on: the filter's parameters, the run's timeline and
+    start, P0, the gate, T0, the naive sigmas and the code (not the ground truth)."""
+    pr = own.problem
+    h = hashlib.sha256()
+    doc = {
+        "filter": spec.model_dump(mode="json", exclude={"name"}),
+        "P0": pr.P0.tolist(), "gate": pr.gate, "T0": pr.T0, "naive": own.naive.tolist(),
+        "x0": pr.x0.tolist(), "code": code_version(),
+    }  # fmt: skip
+    h.update(json.dumps(doc, sort_keys=True).encode())
+    for a in (pr.dt, pr.u, pr.lm, pr.z, pr.xy):
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()[:16]
+
+
+def _fit_own(spec, own: OwnInnovations) -> dict:
+    return spec.fit(own)
+
+
+def fit_on_own_innovations(
+    scenario: RealScenario, inputs: list[SegmentInputs], labels: list[str],
+    cache_dir: Path | None, jobs: int = 1,
+) -> tuple[dict[int, dict[str, dict]], dict]:  # fmt: skip
+    """Every `ekf-ml` filter of the scenario fitted on each run's own innovations (`inputs`, in
+    run order; `labels` name them: drive ids or segment numbers), the fits spread over `jobs`
+    processes, each cached in `cache_dir` by its fingerprint (a resumed batch does not refit).
+    Returns, per run index, the noise of each ekf-ml instance (instance name -> the sigma keys
+    of `tuned_covariances`), and the manifest's account of every fit and its cost."""
+    specs = [spec for spec in scenario.filters if spec.kind == "ekf-ml"]
+    if not specs:
+        return {}, {}
+    started = time.perf_counter()
+    todo, found = [], {}
+    for spec in specs:
+        for inp in inputs:
+            own = own_innovations(scenario, inp)
+            fp = own_fit_fingerprint(spec, own)
+            path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fp)
+            cached = None if path is None else _read_cached(path, fp)
+            found[spec.name, inp.segment.index] = (fp, cached is not None, cached)
+            if cached is None:
+                todo.append((spec, inp.segment.index, own, fp, path))
+    if todo:
+        with local_workers():
+            fits = Parallel(n_jobs=max(1, min(jobs, len(todo))))(
+                delayed(_fit_own)(spec, own) for spec, _, own, _, _ in todo
+            )
+        for (spec, run, _, fp, path), fitted in zip(todo, fits, strict=True):
+            if path is not None:
+                write_json(path, {"format": FIT_FORMAT, "fingerprint": fp, "fitted": fitted})
+            found[spec.name, run] = (fp, False, fitted)
+    noise: dict[int, dict[str, dict]] = {}
+    record = {}
+    for spec in specs:
+        runs = []
+        for inp, label in zip(inputs, labels, strict=True):
+            fp, cached, fitted = found[spec.name, inp.segment.index]
+            noise.setdefault(inp.segment.index, {})[spec.name] = fitted
+            runs.append({"run": inp.segment.index, "label": label, "fingerprint": fp,
+                         "cached": cached, **fitted})  # fmt: skip
+        record[spec.name] = {
+            "kind": spec.kind,
+            "criterion": "innovation negative log-likelihood of the run itself: sum over every"
+            " associated landmark measurement (accepted by the gate or not) of log|S| +"
+            " nu^T S^-1 nu, per measurement; the filter gates as it runs",
+            "uses": "each run's own odometry and landmark measurements; never its ground truth"
+            " (the start pose is the run's cold start, as for every filter)",
+            "runs": runs,
+        }
+    seconds = round(time.perf_counter() - started, 3)
+    return noise, {"filters": record, "seconds": seconds, "fitted_now": len(todo)}
+
+
+# --------------------------------------------------------------------------------------------
 # 2. The held-out segments
 
 
@@ -522,9 +632,14 @@ def _pad(a: np.ndarray, n: int) -> np.ndarray:
 
 
 def run_segment(
-    scenario: RealScenario, inputs: SegmentInputs, tuned: dict | None, n_steps: int
+    scenario: RealScenario,
+    inputs: SegmentInputs,
+    tuned: dict | None,
+    n_steps: int,
+    fitted: dict[str, dict] | None = None,
 ) -> dict:
-    """One held-out segment as a Monte Carlo run: every filter instance from ground truth."""
+    """One held-out segment as a Monte Carlo run: every filter instance from ground truth.
+    `tuned`: ekf-tuned's noise; `fitted`: each ekf-ml instance's, fitted on this run."""
     seg = inputs.segment
     model = Unicycle(scenario.odometry_period_s)
     gate = gate_threshold(scenario.gate_probability)
@@ -533,7 +648,7 @@ def run_segment(
     filters = {}
     for name, spec, m in scenario.instances():
         if m is None:
-            Qu, R = tuned_covariances(tuned)
+            Qu, R = tuned_covariances((fitted or {}).get(name, tuned))
         else:
             Qu, R = naive_covariances(scenario, m)
         ctx = FilterContext(
@@ -559,8 +674,8 @@ def run_segment(
     }
 
 
-def _run_one(scenario, inputs, tuned, n_steps) -> list[dict]:
-    return [run_segment(scenario, inputs, tuned, n_steps)]
+def _run_one(scenario, inputs, tuned, n_steps, fitted=None) -> list[dict]:
+    return [run_segment(scenario, inputs, tuned, n_steps, fitted)]
 
 
 # --------------------------------------------------------------------------------------------
@@ -663,10 +778,14 @@ def execute_real(
             )
         inputs = [segment_inputs(rec, s) for s in rec.test_segments]
         n_steps = max(len(i.t) for i in inputs)
+        fitted, fits = fit_on_own_innovations(
+            scenario, inputs, [str(i.segment.index) for i in inputs], target / RUNS_DIR, plan.jobs
+        )
+        action += _fits_action(fits)
         if on_start is not None:
             on_start(action, len(done), plan.runs)
         calls = [
-            delayed(_run_one)(scenario, i, tuned, n_steps)
+            delayed(_run_one)(scenario, i, tuned, n_steps, fitted.get(i.segment.index))
             for i in inputs
             if i.segment.index not in done
         ]
@@ -676,6 +795,7 @@ def execute_real(
             landmarks=rec.landmarks, n_steps=n_steps, data=rec.summary(), tuning=tuned,
             alignment="step k of a run is the k-th odometry stamp of its segment; t is seconds"
             " since the segment's cold start; shorter segments are padded with NaN",
+            **({"fits": fits} if fits else {}),
         )  # fmt: skip
     return summary, target
 
@@ -690,10 +810,17 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
         tuned_for, tuning = tune_drives(scenario, inputs, world, plan.jobs)
         action += f"; ekf-tuned tuned per dataset on the others' drives ({tuning['seconds']:.1f} s)"
     n_steps = max(len(i.t) for i in inputs.values())
+    fitted, fits = fit_on_own_innovations(
+        scenario, [inputs[d.id] for d in world.drives], [d.id for d in world.drives],
+        target / RUNS_DIR, plan.jobs,
+    )  # fmt: skip
+    action += _fits_action(fits)
     if on_start is not None:
         on_start(action, len(done), plan.runs)
     calls = [
-        delayed(_run_one)(scenario, inputs[d.id], tuned_for.get(d.id), n_steps)
+        delayed(_run_one)(
+            scenario, inputs[d.id], tuned_for.get(d.id), n_steps, fitted.get(d.segment.index)
+        )  # fmt: skip
         for d in world.drives
         if d.segment.index not in done
     ]
@@ -705,8 +832,20 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
         " its k-th evaluation time (odometry stamps at least eval_period_s apart); t is seconds"
         " since the cold start; shorter drives are padded with NaN",
         protocol="drives", tuning_seconds=tuning["seconds"] if tuning else 0.0,
+        **({"fits": fits} if fits else {}),
     )  # fmt: skip
     return summary, target
+
+
+def _fits_action(fits: dict) -> str:
+    """The start line's account of the ekf-ml fits (empty without ekf-ml)."""
+    if not fits:
+        return ""
+    n = sum(len(f["runs"]) for f in fits["filters"].values())
+    return (
+        f"; ekf-ml fitted on each run's own innovations ({n} fits, {fits['fitted_now']} computed"
+        f" now, {fits['seconds']:.1f} s)"
+    )
 
 
 def _run_and_save(plan, target, fingerprint, done, calls, on_result) -> tuple[dict, float]:

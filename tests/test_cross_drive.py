@@ -224,9 +224,11 @@ def test_shipped_cross_drive_config_tunes_each_dataset_on_the_others():
     assert sc.tuning_sources(6) == [7] and sc.tuning_sources(7) == [6]
     assert sc.tuning_sources(9) == [6, 7]
     d9 = yaml.safe_load((CONFIG.parent.parent / "real" / "mrclam-d9.yaml").read_text())
-    assert [f["name"] for f in d9["filters"]] == [f.name for f in sc.filters]
+    # the segment protocol's filters, and ekf-ml fitted on each drive's own innovations
+    assert [f["name"] for f in d9["filters"]] + ["ekf-ml"] == [f.name for f in sc.filters]
     names = sc.instance_names()
     assert "ekf-tuned" in names and "anfekf-rq x0.25" in names and "vbakf x4" in names
+    assert "ekf-ml" in names and not any(n.startswith("ekf-ml x") for n in names)
     maps = {d.dataset: d.log.landmark_x.tolist() for d in world.drives}
     assert len({tuple(v) for v in maps.values()}) == 3  # three maps, never mixed
     assert world.summary()["drives"][0]["drive"] == "d6-r1"

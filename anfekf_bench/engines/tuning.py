@@ -18,13 +18,14 @@ What it returns serves three searches:
 
 - the innovation likelihood (`ekf-ml`, no truth): sum_k [log|S_k| + nu_k^T S_k^-1 nu_k] (-2 x
   the log-likelihood, the constant 2 pi dropped) over EVERY associated landmark measurement,
-  whether the gate accepted it or not: the filter gates exactly as it will run, but the gate
-  decides whether the filter updates, not whether the measurement is evidence. Every setting is
-  then scored on the same measurements (the objective is well defined: its terms do not depend
-  on the setting). Summing over the accepted updates only would reward settings so tight that the
-  gate discards whatever they predict badly (the likelihood of the measurements kept grows
-  without bound as S shrinks: tests/test_ekf_ml_real.py shows it on the reference engine), and a
-  rejected measurement costing the gate's value would make S -> 0 optimal the same way;
+  whether the gate accepted it or not. The filter is fitted exactly as it runs (same gate: the
+  gate decides whether it updates), but every measurement is evidence, so every setting is scored
+  on the same set of measurements and the objective is well defined: a change of units adds the
+  same constant to every setting, and the minimiser does not move. A sum over the accepted
+  updates only runs over a set that depends on the setting: its minimiser depends on the units
+  (in millimetres it prefers settings that reject many measurements, since each accepted term is
+  then positive; tests/test_ekf_ml_real.py). The price: an outlier the gate rejects still costs
+  its full term, so gross outliers pull the fitted R up;
 - the squared position error and the NEES at the scored record stamps (`ekf-tuned` on simulated
   runs: the scorer's RMSE, then a consistency rescale);
 - the summed squared position error with an early stop (`bound`: the loop stops once the sum

@@ -352,6 +352,8 @@ def test_two_drives_end_to_end_with_report(tmp_path):
         eval_period_s=0.12,
         tuning={"sigma_v": [-1, 0], "sigma_w": [0, 1], "sigma_range": [-1, 0],
                 "sigma_bearing": [-2, -1], "refine": False},
+        filters=[{"name": "ekf", "kind": "ekf"}, {"name": "ekf-tuned", "kind": "ekf-tuned"},
+                 {"name": "ekf-ml", "kind": "ekf-ml", "starts": [1.0], "max_evaluations": 40}],
     )  # fmt: skip
     path = tmp_path / "two.yaml"
     path.write_text(yaml.safe_dump(doc))
@@ -367,6 +369,11 @@ def test_two_drives_end_to_end_with_report(tmp_path):
     rm = drive_rmse(load_real(folder))
     for d in ("d6-r1", "d7-r1"):
         assert rm.loc["ekf-tuned", d] == pytest.approx(per_drive[d]["cross_rmse_pos"], rel=1e-6)
+    # ekf-ml: one instance, fitted on each drive's own innovations, recorded with its cost
+    fits = manifest["fits"]["filters"]["ekf-ml"]["runs"]
+    assert [f["label"] for f in fits] == ["d6-r1", "d7-r1"] and not any(f["cached"] for f in fits)
+    assert all(f["evaluations"] <= 42 and f["seconds"] > 0 for f in fits)
+    assert "ekf-ml" in rm.index and not any(n.startswith("ekf-ml x") for n in rm.index)
     res = runner.invoke(app, ["report", str(folder), "--out", str(tmp_path / "rep")])
     assert res.exit_code == 0, res.output
     text = (tmp_path / "rep" / "real-data.md").read_text()

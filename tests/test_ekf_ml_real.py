@@ -238,3 +238,31 @@ def test_timeline_of_a_drive_has_every_landmark():
     full = timeline(m.events(log, 100.0, 160.0))
     inp = drive_span("d6-r2", 100.0, 160.0)
     assert np.array_equal(own_innovations(scenario(), inp).problem.z, full.z)
+
+
+def test_segments_protocol_fits_ekf_ml_per_held_out_segment(tmp_path):
+    """The segment protocol takes ekf-ml too: one fit per held-out segment, on its own data."""
+    import yaml
+    from typer.testing import CliRunner
+
+    from anfekf_bench.cli import app
+    from anfekf_bench.storage import read_json, read_steps
+
+    from .test_real_data import user_scenario
+
+    path = user_scenario(tmp_path)
+    doc = yaml.safe_load(path.read_text())
+    ml = {"name": "ekf-ml", "kind": "ekf-ml", "starts": [1.0], "max_evaluations": 30}
+    doc["filters"] = [{"name": "ekf-tuned", "kind": "ekf-tuned"}, ml]
+    doc["claims"] = []
+    path.write_text(yaml.safe_dump(doc))
+    res = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    assert res.exit_code == 0, res.output
+    folder = tmp_path / "out" / "my-robot"
+    manifest = read_json(folder / "manifest.json")
+    assert [f["name"] for f in manifest["filters"]] == ["ekf-tuned", "ekf-ml"]
+    runs = manifest["fits"]["filters"]["ekf-ml"]["runs"]
+    assert [r["label"] for r in runs] == ["0", "1"]
+    assert len({r["sigma_v"] for r in runs}) == 2  # each segment its own fit
+    steps = read_steps(folder)
+    assert np.isfinite(steps[steps["filter"] == "ekf-ml"]["pos_err"]).any()

@@ -257,14 +257,14 @@ def _score_chunk(exps: np.ndarray, naive: np.ndarray, segs, P0, gate, T0) -> np.
 
 
 def _score(exps: np.ndarray, naive, segs, P0, gate, T0, jobs: int) -> np.ndarray:
-    """`_score_chunk` with the settings dealt round-robin to `jobs` processes."""
+    """`_score_chunk` with the settings dealt round-robin to `jobs` threads (the compiled kernel
+    releases the GIL: no worker processes to start, nothing to pickle)."""
     parts = max(1, min(jobs, len(exps)))
     if parts == 1:
         return _score_chunk(exps, naive, segs, P0, gate, T0)
-    with local_workers():
-        found = Parallel(n_jobs=parts)(
-            delayed(_score_chunk)(exps[i::parts], naive, segs, P0, gate, T0) for i in range(parts)
-        )
+    found = Parallel(n_jobs=parts, backend="threading")(
+        delayed(_score_chunk)(exps[i::parts], naive, segs, P0, gate, T0) for i in range(parts)
+    )
     out = np.zeros((len(exps), 5))
     for i, f in enumerate(found):
         out[i::parts] = f
@@ -372,15 +372,14 @@ def _bnb_chunk(exps: np.ndarray, naive, inputs, P0, gate, T0, bound: float) -> n
 
 
 def _bnb(exps: np.ndarray, naive, inputs, P0, gate, T0, jobs: int, bound: float) -> np.ndarray:
-    """`_bnb_chunk` with the settings dealt round-robin to `jobs` processes."""
+    """`_bnb_chunk` with the settings dealt round-robin to `jobs` threads (as `_score`)."""
     parts = max(1, min(jobs, len(exps)))
     if parts == 1:
         return _bnb_chunk(exps, naive, inputs, P0, gate, T0, bound)
-    with local_workers():
-        found = Parallel(n_jobs=parts)(
-            delayed(_bnb_chunk)(exps[i::parts], naive, inputs, P0, gate, T0, bound)
-            for i in range(parts)
-        )
+    found = Parallel(n_jobs=parts, backend="threading")(
+        delayed(_bnb_chunk)(exps[i::parts], naive, inputs, P0, gate, T0, bound)
+        for i in range(parts)
+    )
     out = np.zeros((len(exps), 5))
     for i, f in enumerate(found):
         out[i::parts] = f

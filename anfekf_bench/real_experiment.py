@@ -42,6 +42,7 @@ from .filters.ekf import gate_threshold
 from .filters.spec import FilterContext
 from .models import Unicycle
 from .outputs import (
+    FIT_FILE,
     PlanError,
     ResultTables,
     code_version,
@@ -49,10 +50,12 @@ from .outputs import (
     machine_info,
     package_versions,
     prepare_output,
+    read_cached_fit,
     result_staging,
     save_run,
     scenario_folder,
     survey_output,
+    write_fit,
     write_result_tables,
 )
 from .sources import mrclam
@@ -72,7 +75,6 @@ from .storage import (
     scenario_name_problem,
     write_json,
 )
-from .training import FIT_FILE, FIT_FORMAT, _read_cached
 from .workers import local_workers
 
 LOST_LOCK_M = 1.0  # a run whose position error exceeds this at a scored time has lost lock
@@ -583,7 +585,7 @@ def fit_on_own_innovations(
             own = own_innovations(scenario, inp)
             fp = own_fit_fingerprint(spec, own)
             path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fp)
-            cached = None if path is None else _read_cached(path, fp)
+            cached = None if path is None else read_cached_fit(path, fp)
             found[spec.name, inp.segment.index] = (fp, cached is not None, cached)
             if cached is None:
                 todo.append((spec, inp.segment.index, own, fp, path))
@@ -594,7 +596,7 @@ def fit_on_own_innovations(
             )
         for (spec, run, _, fp, path), fitted in zip(todo, fits, strict=True):
             if path is not None:
-                write_json(path, {"format": FIT_FORMAT, "fingerprint": fp, "fitted": fitted})
+                write_fit(path, fp, fitted)
             found[spec.name, run] = (fp, False, fitted)
     noise: dict[int, dict[str, dict]] = {}
     record = {}

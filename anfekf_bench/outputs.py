@@ -358,3 +358,31 @@ def write_result_tables(
     write_json(target / CLAIMS_FILE, tables.claims)
     if tables.phases is not None:
         parquet(PHASES_FILE, tables.phases)
+
+
+# --------------------------------------------------------------------------------------------
+# Fitted filters' values in the run store (training.fit_filters, real_experiment's ekf-ml)
+
+FIT_FILE = "fit-{fingerprint}.json"
+FIT_FORMAT = "anfekf-bench fit v1"
+
+
+def read_cached_fit(path: Path, fingerprint: str) -> dict | None:
+    """The values `write_fit` saved at `path` for `fingerprint`; None when the file is missing,
+    unreadable or another fit's."""
+    try:
+        doc = read_json(path)
+    except ResultsError:
+        return None
+    if (
+        not isinstance(doc, dict)
+        or doc.get("format") != FIT_FORMAT
+        or doc.get("fingerprint") != fingerprint
+        or not isinstance(doc.get("fitted"), dict)
+    ):
+        return None
+    return doc["fitted"]
+
+
+def write_fit(path: Path, fingerprint: str, fitted: dict) -> None:
+    write_json(path, {"format": FIT_FORMAT, "fingerprint": fingerprint, "fitted": fitted})

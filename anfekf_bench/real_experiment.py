@@ -2,9 +2,9 @@
 
 1. **Tune** (`tune`): the `ekf-tuned` reference's noise by a grid search on the training part
    (`sources.recorded.TuningConfig`): every training segment is cold-started from ground truth
-   and the plain EKF is run for every noise setting at once (`engines.events.run_ekf_grid`, plain
-   numpy, the settings split over `jobs` processes); the criterion is the pooled position RMSE
-   over the scorable evaluation times of all training segments.
+   and the plain EKF is run for every noise setting (`engines.tuning.score_setting`, the compiled
+   tuning kernel, the settings split over `jobs` processes); the criterion is the pooled position
+   RMSE over the scorable evaluation times of all training segments.
 2. **Run** (`run_segment`): each held-out segment is one Monte Carlo "run": every filter instance
    (each filter from each naive start, and ekf-tuned) is cold-started from ground truth at the
    segment's start and stepped over its timeline (`timeline.Timeline`) on the plan's engine
@@ -35,11 +35,12 @@ from joblib import Parallel, delayed
 from .analysis.comparisons import comparisons_frame, evaluate_claims
 from .analysis.metrics import add_trace_metrics
 from .analysis.tables import runs_frame, steps_frame, summary_records, update_statistics
-from .engines.events import run_ekf_grid
+from .engines.tuning import TimelineLikelihood, fit_noise, score_setting
 from .filters.ekf import gate_threshold
 from .filters.spec import FilterContext
 from .models import Unicycle
 from .outputs import (
+    FIT_FILE,
     PlanError,
     ResultTables,
     code_version,
@@ -47,10 +48,12 @@ from .outputs import (
     machine_info,
     package_versions,
     prepare_output,
+    read_cached_fit,
     result_staging,
     save_run,
     scenario_folder,
     survey_output,
+    write_fit,
     write_result_tables,
 )
 from .runner import engine_of, fast_compiled, run_spec
@@ -66,6 +69,7 @@ from .sources.recorded import (
 from .storage import (
     MANIFEST_FILE,
     RESULT_FORMAT,
+    RUNS_DIR,
     folder_lock,
     scenario_name_problem,
     write_json,
@@ -240,33 +244,32 @@ AXES = ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing")
 
 
 def _score_chunk(exps: np.ndarray, naive: np.ndarray, segs, P0, gate, T0) -> np.ndarray:
-    """(G, 5): sq_sum, count, max_err, n_updates, n_rejected over every training segment."""
-    sig = naive * np.exp2(exps)
-    Qu, R = sig[:, :2] ** 2, sig[:, 2:] ** 2
+    """(G, 5): sq_sum, count, max_err, n_updates, n_rejected of each setting over every training
+    segment (the tuning kernel, one setting at a time)."""
     out = np.zeros((len(exps), 5))
-    for s in segs:
-        sc = run_ekf_grid(s.timeline, s.segment.pose, P0, Qu, R, gate, T0, s.truth[:, :2], s.scored)
-        out[:, 0] += sc.sq_sum
-        out[:, 1] += sc.count
-        out[:, 2] = np.maximum(out[:, 2], sc.max_err)
-        out[:, 3] += sc.n_updates
-        out[:, 4] += sc.n_rejected
+    for g, e in enumerate(exps):
+        sig = naive * np.exp2(e)
+        for s in segs:
+            sq, mx, nu, nr, _ = score_setting(
+                s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth, s.scored
+            )
+            out[g] += (sq, int(s.scored.sum()), 0.0, nu, nr)
+            out[g, 2] = max(out[g, 2], mx)
     return out
 
 
 def _score(exps: np.ndarray, naive, segs, P0, gate, T0, jobs: int) -> np.ndarray:
-    """`_score_chunk` with the segments split over `jobs` processes (each runs the whole grid on
-    its share: the per-call overhead of numpy is split too, not only the arithmetic)."""
-    parts = max(1, min(jobs, len(segs)))
+    """`_score_chunk` with the settings dealt round-robin to `jobs` threads (the compiled kernel
+    releases the GIL: no worker processes to start, nothing to pickle)."""
+    parts = max(1, min(jobs, len(exps)))
     if parts == 1:
         return _score_chunk(exps, naive, segs, P0, gate, T0)
-    groups = [segs[i::parts] for i in range(parts)]
-    with local_workers():
-        found = Parallel(n_jobs=parts)(
-            delayed(_score_chunk)(exps, naive, g, P0, gate, T0) for g in groups
-        )
-    out = np.sum(found, axis=0)
-    out[:, 2] = np.max([f[:, 2] for f in found], axis=0)
+    found = Parallel(n_jobs=parts, backend="threading")(
+        delayed(_score_chunk)(exps[i::parts], naive, segs, P0, gate, T0) for i in range(parts)
+    )
+    out = np.zeros((len(exps), 5))
+    for i, f in enumerate(found):
+        out[i::parts] = f
     return out
 
 
@@ -344,14 +347,12 @@ def tuned_covariances(tuned: dict) -> tuple[np.ndarray, np.ndarray]:
 
 # --------------------------------------------------------------------------------------------
 # 1b. Tuning across drives (protocol drives, SPEC 15): the same grid and refinement as `tune`,
-# on whole drives, by branch and bound on the compiled kernel (engines.grid)
+# on whole drives, by branch and bound on the compiled tuning kernel (engines.tuning)
 
 
 def _bnb_chunk(exps: np.ndarray, naive, inputs, P0, gate, T0, bound: float) -> np.ndarray:
     """(G, 5): sq_sum, max_err, n_updates, n_rejected, finished of each setting over all
     `inputs`, stopping a setting once its sum passes the best complete sum seen (or `bound`)."""
-    from .engines.grid import score_setting
-
     out = np.zeros((len(exps), 5))
     best = bound
     for g, e in enumerate(exps):
@@ -359,7 +360,7 @@ def _bnb_chunk(exps: np.ndarray, naive, inputs, P0, gate, T0, bound: float) -> n
         total, worst, upd, rej, finished = 0.0, 0.0, 0, 0, True
         for s in inputs:
             sq, mx, nu, nr, fin = score_setting(
-                s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth[:, :2], s.scored,
+                s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth, s.scored,
                 best - total,
             )  # fmt: skip
             total, worst, upd, rej = total + sq, max(worst, mx), upd + nu, rej + nr
@@ -373,15 +374,14 @@ def _bnb_chunk(exps: np.ndarray, naive, inputs, P0, gate, T0, bound: float) -> n
 
 
 def _bnb(exps: np.ndarray, naive, inputs, P0, gate, T0, jobs: int, bound: float) -> np.ndarray:
-    """`_bnb_chunk` with the settings dealt round-robin to `jobs` processes."""
+    """`_bnb_chunk` with the settings dealt round-robin to `jobs` threads (as `_score`)."""
     parts = max(1, min(jobs, len(exps)))
     if parts == 1:
         return _bnb_chunk(exps, naive, inputs, P0, gate, T0, bound)
-    with local_workers():
-        found = Parallel(n_jobs=parts)(
-            delayed(_bnb_chunk)(exps[i::parts], naive, inputs, P0, gate, T0, bound)
-            for i in range(parts)
-        )
+    found = Parallel(n_jobs=parts, backend="threading")(
+        delayed(_bnb_chunk)(exps[i::parts], naive, inputs, P0, gate, T0, bound)
+        for i in range(parts)
+    )
     out = np.zeros((len(exps), 5))
     for i, f in enumerate(found):
         out[i::parts] = f
@@ -453,7 +453,7 @@ def tune_on_drives(
         "train_max_pos_err": float(scores[i, 1]),
         "train_gate_rejected": float(scores[i, 3] / seen) if seen else math.nan,
         "settings": int(len(exps)),
-        "search": "branch and bound (engines.grid): a setting stops once its sum of squared"
+        "search": "branch and bound (engines.tuning): a setting stops once its sum of squared"
         " errors passes the best complete one; the winner is the full grid's",
         "stages": stages,
         "seconds": round(time.perf_counter() - started, 3),
@@ -461,14 +461,12 @@ def tune_on_drives(
 
 
 def drive_rmse(scenario: RealScenario, inputs: SegmentInputs, tuned: dict) -> float:
-    """The position RMSE of the plain EKF with `tuned` noise on one drive (engines.grid)."""
-    from .engines.grid import score_setting
-
+    """The position RMSE of the plain EKF with `tuned` noise on one drive (engines.tuning)."""
     sig = [tuned[k] for k in ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")]
     sq, *_ = score_setting(
         inputs.timeline, inputs.segment.pose, p0(scenario), sig,
         gate_threshold(scenario.gate_probability), scenario.odometry_period_s,
-        inputs.truth[:, :2], inputs.scored,
+        inputs.truth, inputs.scored,
     )  # fmt: skip
     n = int(inputs.scored.sum())
     return float(math.sqrt(sq / n)) if n else math.nan
@@ -515,6 +513,114 @@ def tune_drives(scenario: RealScenario, inputs: dict[str, SegmentInputs], world:
 
 
 # --------------------------------------------------------------------------------------------
+# 1c. ekf-ml: each run's noise fitted on that run's own innovations, never its ground truth
+
+NOISE_KEYS = ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")
+
+
+@dataclass(frozen=True, eq=False)
+class OwnInnovations:
+    """What `EKFMLSpec.fit` gets on recorded data (in place of the simulated training runs): one
+    run's landmark innovations under the unicycle EKF (`engines.tuning.TimelineLikelihood`, which
+    holds no ground truth) and the naive sigmas its Nelder-Mead starts multiply."""
+
+    problem: TimelineLikelihood
+    naive: np.ndarray
+
+    def fit_noise(self, criterion: str, starts: list[float], max_evaluations: int) -> dict:
+        if criterion != "likelihood":  # only the likelihood needs no truth
+            raise ValueError(f"a recorded run's own data fits the likelihood, not {criterion!r}")
+        found = fit_noise(self.problem, criterion, self.naive, starts, max_evaluations)
+        sigmas = found.pop("sigmas")
+        found["at_fit"] = found.pop("training")
+        return {**dict(zip(NOISE_KEYS, sigmas, strict=True)), **found}
+
+
+def own_innovations(scenario: RealScenario, inputs: SegmentInputs) -> OwnInnovations:
+    """The objective of `ekf-ml` on one run: its timeline from its cold start (the start pose,
+    as every filter's), with the scenario's P0, gate and T0; `inputs.truth` is not passed on."""
+    problem = TimelineLikelihood.of(
+        inputs.timeline, inputs.segment.pose, p0(scenario),
+        gate_threshold(scenario.gate_probability), scenario.odometry_period_s,
+    )  # fmt: skip
+    return OwnInnovations(problem, scenario.naive.sigmas())
+
+
+def own_fit_fingerprint(spec, own: OwnInnovations) -> str:
+    """Hash of what one run's fit depends on: the filter's parameters, the run's timeline and
+    start, P0, the gate, T0, the naive sigmas and the code (not the ground truth)."""
+    pr = own.problem
+    h = hashlib.sha256()
+    doc = {
+        "filter": spec.model_dump(mode="json", exclude={"name"}),
+        "P0": pr.P0.tolist(), "gate": pr.gate, "T0": pr.T0, "naive": own.naive.tolist(),
+        "x0": pr.x0.tolist(), "code": code_version(),
+    }  # fmt: skip
+    h.update(json.dumps(doc, sort_keys=True).encode())
+    for a in (pr.dt, pr.u, pr.lm, pr.z, pr.xy):
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()[:16]
+
+
+def _fit_own(spec, own: OwnInnovations) -> dict:
+    return spec.fit(own)
+
+
+def fit_on_own_innovations(
+    scenario: RealScenario, inputs: list[SegmentInputs], labels: list[str],
+    cache_dir: Path | None, jobs: int = 1,
+) -> tuple[dict[int, dict[str, dict]], dict]:  # fmt: skip
+    """Every `ekf-ml` filter of the scenario fitted on each run's own innovations (`inputs`, in
+    run order; `labels` name them: drive ids or segment numbers), the fits spread over `jobs`
+    processes, each cached in `cache_dir` by its fingerprint (a resumed batch does not refit).
+    Returns, per run index, the noise of each ekf-ml instance (instance name -> the sigma keys
+    of `tuned_covariances`), and the manifest's account of every fit and its cost."""
+    specs = [spec for spec in scenario.filters if spec.kind == "ekf-ml"]
+    if not specs:
+        return {}, {}
+    started = time.perf_counter()
+    todo, found = [], {}
+    for spec in specs:
+        for inp in inputs:
+            own = own_innovations(scenario, inp)
+            fp = own_fit_fingerprint(spec, own)
+            path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fp)
+            cached = None if path is None else read_cached_fit(path, fp)
+            found[spec.name, inp.segment.index] = (fp, cached is not None, cached)
+            if cached is None:
+                todo.append((spec, inp.segment.index, own, fp, path))
+    if todo:
+        with local_workers():
+            fits = Parallel(n_jobs=max(1, min(jobs, len(todo))))(
+                delayed(_fit_own)(spec, own) for spec, _, own, _, _ in todo
+            )
+        for (spec, run, _, fp, path), fitted in zip(todo, fits, strict=True):
+            if path is not None:
+                write_fit(path, fp, fitted)
+            found[spec.name, run] = (fp, False, fitted)
+    noise: dict[int, dict[str, dict]] = {}
+    record = {}
+    for spec in specs:
+        runs = []
+        for inp, label in zip(inputs, labels, strict=True):
+            fp, cached, fitted = found[spec.name, inp.segment.index]
+            noise.setdefault(inp.segment.index, {})[spec.name] = fitted
+            runs.append({"run": inp.segment.index, "label": label, "fingerprint": fp,
+                         "cached": cached, **fitted})  # fmt: skip
+        record[spec.name] = {
+            "kind": spec.kind,
+            "criterion": "innovation negative log-likelihood of the run itself: sum over every"
+            " associated landmark measurement (accepted by the gate or not) of log|S| +"
+            " nu^T S^-1 nu, per measurement; the filter gates as it runs",
+            "uses": "each run's own odometry and landmark measurements; never its ground truth"
+            " (the start pose is the run's cold start, as for every filter)",
+            "runs": runs,
+        }
+    seconds = round(time.perf_counter() - started, 3)
+    return noise, {"filters": record, "seconds": seconds, "fitted_now": len(todo)}
+
+
+# --------------------------------------------------------------------------------------------
 # 2. The held-out segments
 
 
@@ -527,11 +633,16 @@ def _pad(a: np.ndarray, n: int) -> np.ndarray:
 
 
 def run_segment(
-    scenario: RealScenario, inputs: SegmentInputs, tuned: dict | None, n_steps: int,
+    scenario: RealScenario,
+    inputs: SegmentInputs,
+    tuned: dict | None,
+    n_steps: int,
+    fitted: dict[str, dict] | None = None,
     engine: str = "filterpy",
-) -> dict:  # fmt: skip
+) -> dict:
     """One held-out segment as a Monte Carlo run: every filter instance from ground truth, on
-    `engine` (`runner.run_spec`: the fast engine runs what it implements, the rest filterpy)."""
+    `engine` (`runner.run_spec`: the fast engine runs what it implements, the rest filterpy).
+    `tuned`: ekf-tuned's noise; `fitted`: each ekf-ml instance's, fitted on this run."""
     seg = inputs.segment
     model = Unicycle(scenario.odometry_period_s)
     gate = gate_threshold(scenario.gate_probability)
@@ -540,7 +651,7 @@ def run_segment(
     filters = {}
     for name, spec, m in scenario.instances():
         if m is None:
-            Qu, R = tuned_covariances(tuned)
+            Qu, R = tuned_covariances((fitted or {}).get(name, tuned))
         else:
             Qu, R = naive_covariances(scenario, m)
         ctx = FilterContext(
@@ -561,8 +672,8 @@ def run_segment(
     }
 
 
-def _run_one(scenario, inputs, tuned, n_steps, engine="filterpy") -> list[dict]:
-    return [run_segment(scenario, inputs, tuned, n_steps, engine)]
+def _run_one(scenario, inputs, tuned, n_steps, fitted=None, engine="filterpy") -> list[dict]:
+    return [run_segment(scenario, inputs, tuned, n_steps, fitted, engine)]
 
 
 # --------------------------------------------------------------------------------------------
@@ -665,10 +776,16 @@ def execute_real(
             )
         inputs = [segment_inputs(rec, s) for s in rec.test_segments]
         n_steps = max(len(i.t) for i in inputs)
+        fitted, fits = fit_on_own_innovations(
+            scenario, inputs, [str(i.segment.index) for i in inputs], target / RUNS_DIR, plan.jobs
+        )
+        action += _fits_action(fits)
         if on_start is not None:
             on_start(action, len(done), plan.runs)
         calls = [
-            delayed(_run_one)(scenario, i, tuned, n_steps, plan.engine)
+            delayed(_run_one)(
+                scenario, i, tuned, n_steps, fitted.get(i.segment.index), plan.engine
+            )  # fmt: skip
             for i in inputs
             if i.segment.index not in done
         ]
@@ -678,6 +795,7 @@ def execute_real(
             landmarks=rec.landmarks, n_steps=n_steps, data=rec.summary(), tuning=tuned,
             alignment="step k of a run is the k-th odometry stamp of its segment; t is seconds"
             " since the segment's cold start; shorter segments are padded with NaN",
+            **({"fits": fits} if fits else {}),
         )  # fmt: skip
     return summary, target
 
@@ -692,10 +810,18 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
         tuned_for, tuning = tune_drives(scenario, inputs, world, plan.jobs)
         action += f"; ekf-tuned tuned per dataset on the others' drives ({tuning['seconds']:.1f} s)"
     n_steps = max(len(i.t) for i in inputs.values())
+    fitted, fits = fit_on_own_innovations(
+        scenario, [inputs[d.id] for d in world.drives], [d.id for d in world.drives],
+        target / RUNS_DIR, plan.jobs,
+    )  # fmt: skip
+    action += _fits_action(fits)
     if on_start is not None:
         on_start(action, len(done), plan.runs)
     calls = [
-        delayed(_run_one)(scenario, inputs[d.id], tuned_for.get(d.id), n_steps, plan.engine)
+        delayed(_run_one)(
+            scenario, inputs[d.id], tuned_for.get(d.id), n_steps, fitted.get(d.segment.index),
+            plan.engine,
+        )  # fmt: skip
         for d in world.drives
         if d.segment.index not in done
     ]
@@ -707,8 +833,20 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
         " its k-th evaluation time (odometry stamps at least eval_period_s apart); t is seconds"
         " since the cold start; shorter drives are padded with NaN",
         protocol="drives", tuning_seconds=tuning["seconds"] if tuning else 0.0,
+        **({"fits": fits} if fits else {}),
     )  # fmt: skip
     return summary, target
+
+
+def _fits_action(fits: dict) -> str:
+    """The start line's account of the ekf-ml fits (empty without ekf-ml)."""
+    if not fits:
+        return ""
+    n = sum(len(f["runs"]) for f in fits["filters"].values())
+    return (
+        f"; ekf-ml fitted on each run's own innovations ({n} fits, {fits['fitted_now']} computed"
+        f" now, {fits['seconds']:.1f} s)"
+    )
 
 
 def _run_and_save(plan, target, fingerprint, done, calls, on_result) -> tuple[dict, float]:

@@ -28,13 +28,11 @@ import numpy as np
 from .config import Scenario, World
 from .filters.ekf import gate_threshold
 from .filters.spec import FilterSpec
+from .outputs import FIT_FILE, read_cached_fit, write_fit
 from .runner import simulate
 from .sources.simulator import RunData, world_path
-from .storage import ResultsError, read_json, write_json
 
 TRAINING_BRANCH = 2**32 - 1  # spawn key of the training branch of the root seed
-FIT_FILE = "fit-{fingerprint}.json"
-FIT_FORMAT = "anfekf-bench fit v1"
 
 
 def training_seeds(seed: int, runs: int) -> list[np.random.SeedSequence]:
@@ -103,21 +101,6 @@ class Fits:
     fitted_now: int  # fits computed by this call (not read from the cache)
 
 
-def _read_cached(path: Path, fingerprint: str) -> dict | None:
-    try:
-        doc = read_json(path)
-    except ResultsError:
-        return None
-    if (
-        not isinstance(doc, dict)
-        or doc.get("format") != FIT_FORMAT
-        or doc.get("fingerprint") != fingerprint
-        or not isinstance(doc.get("fitted"), dict)
-    ):
-        return None
-    return doc["fitted"]
-
-
 def fit_filters(plan, cache_dir: Path | None, progress: Any = None) -> Fits:
     """Fit every fitted filter of `plan` (an experiment.Plan) once, or read its fit from
     `cache_dir` (None: no cache); see the module doc. `progress`: a rich Progress a long fit
@@ -131,7 +114,7 @@ def fit_filters(plan, cache_dir: Path | None, progress: Any = None) -> Fits:
     for spec in todo:
         fingerprint = plan.training_fingerprint(spec)
         path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fingerprint)
-        fitted = None if path is None else _read_cached(path, fingerprint)
+        fitted = None if path is None else read_cached_fit(path, fingerprint)
         cached = fitted is not None
         if fitted is None:
             if training is None:
@@ -139,8 +122,7 @@ def fit_filters(plan, cache_dir: Path | None, progress: Any = None) -> Fits:
             fitted = spec.fit(training)
             fitted_now += 1
             if path is not None:
-                doc = {"format": FIT_FORMAT, "fingerprint": fingerprint, "fitted": fitted}
-                write_json(path, doc)
+                write_fit(path, fingerprint, fitted)
         specs[spec.name] = spec.with_fit(fitted)
         records[spec.name] = {
             "kind": spec.kind,

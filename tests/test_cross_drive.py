@@ -13,9 +13,11 @@ import pytest
 import yaml
 
 from anfekf_bench.config import ScenarioError
-from anfekf_bench.engines.events import run_ekf_grid, timeline
-from anfekf_bench.engines.grid import score_setting
-from anfekf_bench.filters.ekf import gate_threshold
+from anfekf_bench.engines.events import run_filter_events, timeline
+from anfekf_bench.engines.tuning import score_setting
+from anfekf_bench.filters.ekf import RobotEKF, gate_threshold
+from anfekf_bench.filters.spec import FilterContext
+from anfekf_bench.models import Unicycle
 from anfekf_bench.real_experiment import (
     SegmentInputs,
     _bnb_chunk,
@@ -65,31 +67,41 @@ def drives_doc(**change) -> dict:
 # ------------------------------------------------------------------ the kernel
 
 
-def test_compiled_kernel_equals_the_vectorised_grid_ekf(d6r2):
-    """engines.grid (one setting, compiled, the fast engine's update) against run_ekf_grid (all
-    settings at once in numpy), on 60 s of 65 Hz odometry, settings that gate and lose lock."""
+def robot_ekf(x0, sig, gate=None) -> RobotEKF:
+    """The reference engine's plain EKF with the sigmas sig = (sv, sw, sr, sb)."""
+    sv, sw, sr, sb = sig
+    ctx = FilterContext(
+        x0=np.array(x0, float), P0=P0, Qu=np.diag([sv * sv, sw * sw]),
+        R=np.diag([sr * sr, sb * sb]), model=Unicycle(0.12), dt=0.12, gate=gate,
+    )  # fmt: skip
+    return RobotEKF(**ctx.kwargs())
+
+
+def test_compiled_kernel_equals_the_robot_ekf(d6r2):
+    """engines.tuning.score_setting (one setting, compiled) against RobotEKF on filterpy, on 60 s
+    of 65 Hz odometry, settings that gate and lose lock."""
     inp = span_inputs(d6r2, 100.0, 160.0)
     sig = np.array([[0.1, 0.1, 0.1, 0.05], [0.01, 0.5, 0.05, 0.005], [0.4, 0.02, 0.01, 0.002]])
     gate = gate_threshold(0.999)
-    ref = run_ekf_grid(
-        inp.timeline, inp.segment.pose, P0, sig[:, :2] ** 2, sig[:, 2:] ** 2, gate, 0.12,
-        inp.truth[:, :2], inp.scored,
-    )  # fmt: skip
-    for g, s in enumerate(sig):
+    rejected = 0
+    for s in sig:
+        ref = run_filter_events(robot_ekf(inp.segment.pose, s, gate), inp.timeline)
+        e = np.hypot(*(ref["x"][:, :2] - inp.truth[:, :2]).T)[inp.scored]
         sq, mx, nu, nr, fin = score_setting(
-            inp.timeline, inp.segment.pose, P0, s, gate, 0.12, inp.truth[:, :2], inp.scored
+            inp.timeline, inp.segment.pose, P0, s, gate, 0.12, inp.truth, inp.scored
         )
-        assert fin
-        assert sq == pytest.approx(ref.sq_sum[g], rel=1e-9)
-        assert mx == pytest.approx(ref.max_err[g], rel=1e-9)
-        assert (nu, nr) == (ref.n_updates[g], ref.n_rejected[g])
-    assert ref.n_rejected.max() > 0  # the gate acted somewhere
+        assert fin and not ref["diverged"]
+        assert sq == pytest.approx(np.sum(e**2), rel=1e-9)
+        assert mx == pytest.approx(e.max(), rel=1e-9)
+        assert (nu, nr) == (ref["n_updates"], ref["n_rejected"])
+        rejected += nr
+    assert rejected > 0  # the gate acted somewhere
 
 
 def test_kernel_stops_once_the_bound_is_passed(d6r2):
     inp = span_inputs(d6r2, 100.0, 160.0)
-    args = (inp.timeline, inp.segment.pose, P0, [0.1, 0.1, 0.1, 0.05], None, 0.12,
-            inp.truth[:, :2], inp.scored)  # fmt: skip
+    args = (inp.timeline, inp.segment.pose, P0, [0.1, 0.1, 0.1, 0.05], None, 0.12, inp.truth,
+            inp.scored)  # fmt: skip
     full = score_setting(*args)
     cut = score_setting(*args, bound=0.5 * full[0])
     assert full[4] and not cut[4]
@@ -114,11 +126,12 @@ def test_branch_and_bound_finds_the_full_grids_best(d6r2):
     exps = np.stack(np.meshgrid(*sc.tuning.axes(), indexing="ij"), -1).reshape(-1, 4)
     sig = sc.naive.sigmas() * np.exp2(exps)
     total = np.zeros(len(exps))
-    for p in parts:
-        total += run_ekf_grid(
-            p.timeline, p.segment.pose, P0, sig[:, :2] ** 2, sig[:, 2:] ** 2,
-            gate_threshold(0.999), 0.12, p.truth[:, :2], p.scored,
-        ).sq_sum  # fmt: skip
+    for p in parts:  # every setting scored in full (no bound)
+        total += [
+            score_setting(p.timeline, p.segment.pose, P0, s, gate_threshold(0.999), 0.12,
+                          p.truth, p.scored)[0]
+            for s in sig
+        ]  # fmt: skip
     best = exps[int(np.argmin(total))]
     assert list(found["log2_multipliers"].values()) == best.tolist()
     n = sum(int(p.scored.sum()) for p in parts)
@@ -211,9 +224,11 @@ def test_shipped_cross_drive_config_tunes_each_dataset_on_the_others():
     assert sc.tuning_sources(6) == [7] and sc.tuning_sources(7) == [6]
     assert sc.tuning_sources(9) == [6, 7]
     d9 = yaml.safe_load((CONFIG.parent.parent / "real" / "mrclam-d9.yaml").read_text())
-    assert [f["name"] for f in d9["filters"]] == [f.name for f in sc.filters]
+    # the segment protocol's filters, and ekf-ml fitted on each drive's own innovations
+    assert [f["name"] for f in d9["filters"]] + ["ekf-ml"] == [f.name for f in sc.filters]
     names = sc.instance_names()
     assert "ekf-tuned" in names and "anfekf-rq x0.25" in names and "vbakf x4" in names
+    assert "ekf-ml" in names and not any(n.startswith("ekf-ml x") for n in names)
     maps = {d.dataset: d.log.landmark_x.tolist() for d in world.drives}
     assert len({tuple(v) for v in maps.values()}) == 3  # three maps, never mixed
     assert world.summary()["drives"][0]["drive"] == "d6-r1"
@@ -337,6 +352,8 @@ def test_two_drives_end_to_end_with_report(tmp_path):
         eval_period_s=0.12,
         tuning={"sigma_v": [-1, 0], "sigma_w": [0, 1], "sigma_range": [-1, 0],
                 "sigma_bearing": [-2, -1], "refine": False},
+        filters=[{"name": "ekf", "kind": "ekf"}, {"name": "ekf-tuned", "kind": "ekf-tuned"},
+                 {"name": "ekf-ml", "kind": "ekf-ml", "starts": [1.0], "max_evaluations": 40}],
     )  # fmt: skip
     path = tmp_path / "two.yaml"
     path.write_text(yaml.safe_dump(doc))
@@ -352,6 +369,11 @@ def test_two_drives_end_to_end_with_report(tmp_path):
     rm = drive_rmse(load_real(folder))
     for d in ("d6-r1", "d7-r1"):
         assert rm.loc["ekf-tuned", d] == pytest.approx(per_drive[d]["cross_rmse_pos"], rel=1e-6)
+    # ekf-ml: one instance, fitted on each drive's own innovations, recorded with its cost
+    fits = manifest["fits"]["filters"]["ekf-ml"]["runs"]
+    assert [f["label"] for f in fits] == ["d6-r1", "d7-r1"] and not any(f["cached"] for f in fits)
+    assert all(f["evaluations"] <= 42 and f["seconds"] > 0 for f in fits)
+    assert "ekf-ml" in rm.index and not any(n.startswith("ekf-ml x") for n in rm.index)
     res = runner.invoke(app, ["report", str(folder), "--out", str(tmp_path / "rep")])
     assert res.exit_code == 0, res.output
     text = (tmp_path / "rep" / "real-data.md").read_text()

@@ -20,10 +20,10 @@ from anfekf_bench.analysis.statistics import (
 from anfekf_bench.analysis.tables import runs_frame
 from anfekf_bench.cli import app
 from anfekf_bench.config import ScenarioError
-from anfekf_bench.engines.events import run_ekf_grid, run_filter_events, timeline
+from anfekf_bench.engines.events import run_filter_events, timeline
 from anfekf_bench.filters.ekf import RobotEKF, gate_threshold
 from anfekf_bench.models import Unicycle, measurement_covariance, wrap_angle
-from anfekf_bench.real_experiment import run_segment, segment_inputs, tune
+from anfekf_bench.real_experiment import _score, run_segment, segment_inputs, tune
 from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources import mrclam as m
 from anfekf_bench.sources.mrclam import RobotLog
@@ -148,26 +148,42 @@ def builtin() -> RobotLog:
     return m.load_builtin()
 
 
-def test_grid_ekf_equals_the_robot_ekf_on_real_data(builtin):
-    """The numpy grid EKF of the ekf-tuned search computes what RobotEKF computes."""
+def test_grid_search_scores_equal_the_robot_ekf_on_real_data(builtin):
+    """The segments protocol's grid search (`_score`: the compiled tuning kernel per setting,
+    settings dealt to worker processes) computes, for every setting, what RobotEKF on filterpy
+    computes: the summed squared position error, the count, the largest error, the gate's
+    decisions (two segments, settings that gate, one that loses lock)."""
     ex = m.exclusions(builtin)
-    t0, pose = m.cold_start(builtin, 700.0)
-    tl = timeline(m.events(builtin, t0, 760.0))
-    t = tl.record_t
-    x, y, _ = m.interpolate_truth(builtin, t)
-    scored = ex.scorable(t)
+    segs = []
+    for t_start in (700.0, 900.0):
+        t0, pose = m.cold_start(builtin, t_start)
+        tl = timeline(m.events(builtin, t0, t0 + 40.0))
+        t = tl.record_t
+        truth = np.column_stack(m.interpolate_truth(builtin, t))
+        seg = type("Seg", (), {"pose": pose})()
+        segs.append(type("Inp", (), {"timeline": tl, "segment": seg, "truth": truth,
+                                     "scored": ex.scorable(t)})())  # fmt: skip
     gate = gate_threshold(0.999)
-    settings = [(0.015, 0.48, 0.12, 0.0037), (0.1, 0.1, 0.1, 0.05), (0.4, 0.4, 0.4, 0.2)]
-    sig = np.array(settings)
-    grid = run_ekf_grid(tl, pose, np.eye(3) * 0.05**2, sig[:, :2] ** 2, sig[:, 2:] ** 2, gate,
-                        0.12, np.column_stack([x, y]), scored)  # fmt: skip
-    for g, (sv, sw, sr, sb) in enumerate(settings):
-        out = run_filter_events(_ekf(x0=pose, gate=gate, sv=sv, sw=sw, sr=sr, sb=sb), tl)
-        e = np.hypot(out["x"][:, 0] - x, out["x"][:, 1] - y)[scored]
-        assert grid.sq_sum[g] == pytest.approx(np.sum(e**2), rel=1e-9)
-        assert grid.count[g] == scored.sum()
-        assert grid.n_rejected[g] == out["n_rejected"]
-        assert grid.n_updates[g] == out["n_updates"]
+    naive = np.array([0.1, 0.1, 0.1, 0.05])
+    exps = np.array([[-2.7, 2.3, 0.3, -3.8], [0.0, 0.0, 0.0, 0.0], [2.0, 2.0, 2.0, 2.0],
+                     [-4.0, -4.0, -3.0, -5.0]])  # fmt: skip
+    got = {jobs: _score(exps, naive, segs, np.eye(3) * 0.05**2, gate, 0.12, jobs)
+           for jobs in (1, 2)}  # fmt: skip
+    assert np.array_equal(got[1], got[2])
+    for g, (sv, sw, sr, sb) in enumerate(naive * np.exp2(exps)):
+        sq, count, mx, upd, rej = 0.0, 0, 0.0, 0, 0
+        for s in segs:
+            out = run_filter_events(
+                _ekf(x0=s.segment.pose, gate=gate, sv=sv, sw=sw, sr=sr, sb=sb), s.timeline
+            )
+            e = np.hypot(*(out["x"][:, :2] - s.truth[:, :2]).T)[s.scored]
+            sq, count, mx = sq + np.sum(e**2), count + len(e), max(mx, e.max())
+            upd, rej = upd + out["n_updates"], rej + out["n_rejected"]
+        assert got[1][g, 0] == pytest.approx(sq, rel=1e-9)
+        assert got[1][g, 2] == pytest.approx(mx, rel=1e-9)
+        assert got[1][g, [1, 3, 4]].tolist() == [count, upd, rej]
+    assert got[1][:, 4].max() > 0  # the gate acted
+    assert got[1][:, 2].max() > 1.0  # and a setting lost lock
 
 
 # ------------------------------------------------------------------ scoring and metrics

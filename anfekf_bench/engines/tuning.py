@@ -1,24 +1,44 @@
-"""Fitting a fixed EKF's four noise sigmas on training runs (`ekf-ml`, `ekf-tuned`), on the fast
-engine's kernels.
+"""The tuning kernel: the plain EKF for one noise setting over one run, compiled, and what every
+tuning criterion needs; and the fits built on it (`ekf-ml`, `ekf-tuned`).
 
-One objective evaluation runs the plain EKF (bicycle model) over every training run with one
-setting of (sigma_v, sigma_gamma, sigma_range, sigma_bearing) and returns what both criteria need
-(`ekf_scores`, compiled by numba with the other kernels):
+One kernel (`ekf_fit_kernel`, compiled by numba with the fast engine's kernels) serves every
+search of a fixed EKF's four sigmas, on both motion models, through the per-stamp contract of a
+recorded `engines.events.Timeline` (the simulator's fixed-rate runs are written in it too):
+stamp k predicts over dt[k] with the command u[k], fuses the landmarks lm[k]:lm[k+1] of z / xy
+one at a time, and, if record[k], scores the estimate against the next row of `truth`. `motion`
+picks the predict: MOTION_BICYCLE (`kernels.predict`, the simulated worlds) or MOTION_UNICYCLE
+(`predict_unicycle`, recorded logs: midpoint Euler with the rate-consistent process noise of
+`models.Unicycle`). The landmark update is the fast engine's (`kernels.innovation`, `kernels.nis`,
+`kernels.correct`: RobotEKF's, to round-off), the health check the reference engine's
+(`kernels.healthy` after every stamp that fused a landmark). The constants and the contract are
+those of the fast engine's kernels (u (n, 2), dt (n,), lm (n + 1,) offsets into z / xy (m, 2),
+record (n,) bool), so that this kernel can become `kernels.py`'s EKF.
 
-- the innovation log-likelihood (`ekf-ml`, no truth): -1/2 sum_k [log|S_k| + nu_k^T S_k^-1 nu_k]
-  (the constant 2 pi dropped) over EVERY associated landmark measurement, whether the gate
-  accepted it or not: the gate decides whether the filter updates, not whether the measurement
-  is evidence. Leaving rejected innovations out would reward settings so tight that the gate
-  discards whatever they predict badly (the likelihood of the measurements kept grows as S
-  shrinks); capping their NIS at the gate would make S -> 0 optimal.
-- the squared position error and the NEES at every control step (`ekf-tuned`, with truth); the
-  criterion is the scorer's scalar RMSE: sqrt(mean over runs of e^2) at each recorded step,
-  averaged over the steps (analysis.metrics, SPEC 5).
+What it returns serves three searches:
 
-`fit_noise` minimises either criterion over the LOG sigmas with scipy's Nelder-Mead from several
-starts (the likelihood has a ridge between Q and R and local optima), each start's simplex
-spanning a factor of 2 along each axis; a setting whose filter diverges in any training run
-scores +inf. The starts run one per worker process (`jobs`).
+- the innovation likelihood (`ekf-ml`, no truth): sum_k [log|S_k| + nu_k^T S_k^-1 nu_k] (-2 x
+  the log-likelihood, the constant 2 pi dropped) over EVERY associated landmark measurement,
+  whether the gate accepted it or not. The filter is fitted exactly as it runs (same gate: the
+  gate decides whether it updates), but every measurement is evidence, so every setting is scored
+  on the same set of measurements and the objective is well defined: a change of units adds the
+  same constant to every setting, and the minimiser does not move. A sum over the accepted
+  updates only runs over a set that depends on the setting: its minimiser depends on the units
+  (in millimetres it prefers settings that reject many measurements, since each accepted term is
+  then positive; tests/test_ekf_ml_real.py). The price: an outlier the gate rejects still costs
+  its full term, so gross outliers pull the fitted R up;
+- the squared position error and the NEES at the scored record stamps (`ekf-tuned` on simulated
+  runs: the scorer's RMSE, then a consistency rescale);
+- the summed squared position error with an early stop (`bound`: the loop stops once the sum
+  passes it): the grid searches of `ekf-tuned` on recorded data, whose criterion is a pooled
+  RMSE over the same scored times for every setting, so a setting whose partial sum passes the
+  best complete one can never win (branch and bound, real_experiment).
+
+`fit_noise` minimises the likelihood or the RMSE over the LOG sigmas with scipy's Nelder-Mead
+from several starts (the likelihood has a ridge between Q and R and local optima), each start's
+simplex spanning a factor of 2 along each axis; a setting whose filter diverges scores +inf. The
+starts run one per worker process (`jobs`). A problem is anything with `evaluate(sigmas)`:
+`TrainingProblem` (simulated training runs, bicycle) or `TimelineLikelihood` (one recorded run's
+own innovations, unicycle).
 """
 
 from __future__ import annotations
@@ -40,74 +60,248 @@ from .kernels import correct, healthy, innovation, maybe_njit, nis, predict, wra
 
 SIGMA_NAMES = ("sigma_v", "sigma_gamma", "sigma_range", "sigma_bearing")
 
+# The motion models, as the fast engine's kernels name them
+MOTION_BICYCLE = 0
+MOTION_UNICYCLE = 1
+
+# What ended a run of the kernel
+FINISHED = 0
+STOPPED = 1  # the summed squared error passed `bound`
+DIVERGED = 2  # the estimate or its covariance stopped being finite and positive definite
+
 
 @maybe_njit
-def ekf_scores(
-    u_odo, every, scan_start, scan_lm, scan_z, T, B, x0, P0, Qu, R, gate, has_gate, x_true,
-    out_sq, out_nees,
-):  # fmt: skip
-    """The plain EKF over one run (the same arithmetic as `kernels.run_kernel` with adaptation
-    off) and what the tuning criteria need.
+def predict_unicycle(x, P, v, w, dt, T0, qv, qw):
+    """Unicycle.f / F / Q of RobotEKF.predict: x+ = midpoint-Euler step with (v, w) held over dt,
+    P+ = F P F^T + (T0 / dt) G diag(qv, qw) G^T."""
+    x0, x1, x2 = x
+    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
+    a = x2 + 0.5 * w * dt
+    c = math.cos(a)
+    s = math.sin(a)
+    vdt = v * dt
+    f02 = -vdt * s
+    f12 = vdt * c
+    n00 = p00 + f02 * p20 + (p02 + f02 * p22) * f02
+    n01 = p01 + f02 * p21 + (p02 + f02 * p22) * f12
+    n02 = p02 + f02 * p22
+    n11 = p11 + f12 * p21 + (p12 + f12 * p22) * f12
+    n12 = p12 + f12 * p22
+    half = 0.5 * v * dt * dt
+    g00, g01, g10, g11, g21 = dt * c, -half * s, dt * s, half * c, dt
+    k = T0 / dt
+    q00 = k * (g00 * g00 * qv + g01 * g01 * qw)
+    q01 = k * (g00 * g10 * qv + g01 * g11 * qw)
+    q02 = k * (g01 * g21 * qw)
+    q11 = k * (g10 * g10 * qv + g11 * g11 * qw)
+    q12 = k * (g11 * g21 * qw)
+    q22 = k * (g21 * g21 * qw)
+    Pn = (
+        n00 + q00, n01 + q01, n02 + q02,
+        n01 + q01, n11 + q11, n12 + q12,
+        n02 + q02, n12 + q12, p22 + q22,
+    )  # fmt: skip
+    return (x0 + vdt * c, x1 + vdt * s, wrap(x2 + w * dt)), Pn
 
-    x_true (K + 1, 3): the truth at every control step (row 0: the start). Writes the squared
-    position error and the NEES after control step k to out_sq[k - 1] and out_nees[k - 1].
-    Returns (diverged, nll, n_innovations, n_rejected) with nll = sum over every associated
-    innovation of log|S| + nu^T S^-1 nu (accepted or not).
+
+@maybe_njit
+def ekf_fit_kernel(
+    motion, dt, u, lm, z, xy, record, x0, P0, Qu, R, gate, has_gate, T0, B, truth, scored,
+    bound, out_sq, out_nees,
+):  # fmt: skip
+    """The plain EKF with one noise setting over one run (see the module doc).
+
+    x0 (3,), P0 (9,) row-major, Qu and R (4,) row-major (the unicycle reads Qu's diagonal); T0:
+    the unicycle's reference step of Qu; B: the bicycle's wheelbase (its step is dt[k]). truth
+    (n_rec, 3) and scored (n_rec,) are indexed by record stamp: at the j-th record stamp with
+    scored[j], the squared position error goes to out_sq[j] and into the sum, the NEES to
+    out_nees[j] (the other entries are left as they are; truth is never read where scored[j] is
+    False). Returns (status, sq_sum, max_err, nll, n_updates, n_rejected): status FINISHED,
+    STOPPED (the sum passed `bound`) or DIVERGED; nll = sum over every associated innovation of
+    log|S| + nu^T S^-1 nu.
     """
-    K = u_odo.shape[0]
     x = (x0[0], x0[1], x0[2])
     P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
     Qt = (Qu[0], Qu[1], Qu[2], Qu[3])
     Rt = (R[0], R[1], R[2], R[3])
+    sq_sum = 0.0
+    max_sq = 0.0
     nll = 0.0
-    n_inn = 0
-    n_rejected = 0
-    for k in range(1, K + 1):
-        x, P, Q = predict(x, P, u_odo[k - 1, 0], u_odo[k - 1, 1], T, B, Qt)
-        if k % every == 0:
-            s = k // every - 1
-            first = scan_start[s]
-            last = scan_start[s + 1]
-            if last > first:
-                for m in range(first, last):
-                    z0 = scan_z[m, 0]
-                    z1 = scan_z[m, 1]
-                    H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
-                    ok, v = nis(HPHt, Rt, nu[0], nu[1])
-                    if not ok or not math.isfinite(v):
-                        return True, nll, n_inn, n_rejected
-                    s00 = HPHt[0] + Rt[0]
-                    s01 = HPHt[1] + Rt[1]
-                    s10 = HPHt[2] + Rt[2]
-                    s11 = HPHt[3] + Rt[3]
-                    det = s00 * s11 - s01 * s10
-                    if not det > 0.0:
-                        return True, nll, n_inn, n_rejected
-                    nll += math.log(det) + v
-                    n_inn += 1
-                    if has_gate and not v <= gate:
-                        n_rejected += 1
-                        continue
-                    ok, x, P = correct(x, P, H, zh, z0, z1, Rt)
-                    if not ok:
-                        return True, nll, n_inn, n_rejected
-                if not healthy(x, P, Rt, Qt):
-                    return True, nll, n_inn, n_rejected
-        e0 = x_true[k, 0] - x[0]
-        e1 = x_true[k, 1] - x[1]
-        e2 = wrap(x_true[k, 2] - x[2])
-        out_sq[k - 1] = e0 * e0 + e1 * e1
-        # e^T P^-1 e by Cramer's rule on the 3 x 3 P (NaN when P is singular)
-        a, b, c, d, e, f, g, h, i = P
-        c0 = e * i - f * h
-        c1 = f * g - d * i
-        c2 = d * h - e * g
-        det3 = a * c0 + b * c1 + c * c2
-        y0 = (e0 * c0 + e1 * (c * h - b * i) + e2 * (b * f - c * e)) / det3
-        y1 = (e0 * c1 + e1 * (a * i - c * g) + e2 * (c * d - a * f)) / det3
-        y2 = (e0 * c2 + e1 * (b * g - a * h) + e2 * (a * e - b * d)) / det3
-        out_nees[k - 1] = e0 * y0 + e1 * y1 + e2 * y2
-    return False, nll, n_inn, n_rejected
+    n_upd = 0
+    n_rej = 0
+    j = 0
+    for k in range(len(dt)):
+        if motion == MOTION_UNICYCLE:
+            x, P = predict_unicycle(x, P, u[k, 0], u[k, 1], dt[k], T0, Qt[0], Qt[3])
+        else:
+            x, P, Q = predict(x, P, u[k, 0], u[k, 1], dt[k], B, Qt)
+        first = lm[k]
+        last = lm[k + 1]
+        if last > first:
+            for i in range(first, last):
+                z0 = z[i, 0]
+                z1 = z[i, 1]
+                H, zh, nu, HPHt = innovation(x, P, xy[i, 0], xy[i, 1], z0, z1)
+                ok, v = nis(HPHt, Rt, nu[0], nu[1])
+                if not ok or not math.isfinite(v):
+                    return DIVERGED, math.inf, math.inf, nll, n_upd, n_rej
+                s00 = HPHt[0] + Rt[0]
+                s01 = HPHt[1] + Rt[1]
+                s10 = HPHt[2] + Rt[2]
+                s11 = HPHt[3] + Rt[3]
+                det = s00 * s11 - s01 * s10
+                if not det > 0.0:
+                    return DIVERGED, math.inf, math.inf, nll, n_upd, n_rej
+                nll += math.log(det) + v
+                if has_gate and not v <= gate:
+                    n_rej += 1
+                    continue
+                ok, x, P = correct(x, P, H, zh, z0, z1, Rt)
+                if not ok:
+                    return DIVERGED, math.inf, math.inf, nll, n_upd, n_rej
+                n_upd += 1
+            if not healthy(x, P, Rt, Qt):
+                return DIVERGED, math.inf, math.inf, nll, n_upd, n_rej
+        if record[k]:
+            if scored[j]:
+                e0 = truth[j, 0] - x[0]
+                e1 = truth[j, 1] - x[1]
+                e2 = wrap(truth[j, 2] - x[2])
+                sq = e0 * e0 + e1 * e1
+                if not math.isfinite(sq):
+                    return DIVERGED, math.inf, math.inf, nll, n_upd, n_rej
+                out_sq[j] = sq
+                # e^T P^-1 e by Cramer's rule on the 3 x 3 P (NaN when P is singular)
+                a, b, c, d, e, f, g, h, i = P
+                c0 = e * i - f * h
+                c1 = f * g - d * i
+                c2 = d * h - e * g
+                det3 = a * c0 + b * c1 + c * c2
+                y0 = (e0 * c0 + e1 * (c * h - b * i) + e2 * (b * f - c * e)) / det3
+                y1 = (e0 * c1 + e1 * (a * i - c * g) + e2 * (c * d - a * f)) / det3
+                y2 = (e0 * c2 + e1 * (b * g - a * h) + e2 * (a * e - b * d)) / det3
+                out_nees[j] = e0 * y0 + e1 * y1 + e2 * y2
+                sq_sum += sq
+                if sq > max_sq:
+                    max_sq = sq
+                if sq_sum > bound:
+                    return STOPPED, sq_sum, math.sqrt(max_sq), nll, n_upd, n_rej
+            j += 1
+    return FINISHED, sq_sum, math.sqrt(max_sq), nll, n_upd, n_rej
+
+
+def _variances(sigmas) -> tuple[np.ndarray, np.ndarray]:
+    """(Qu, R) as the kernel reads them, row-major (4,), from (s_v, s_turn, s_range, s_bearing)."""
+    sv, sg, sr, sb = (float(s) for s in sigmas)
+    return np.array([sv * sv, 0.0, 0.0, sg * sg]), np.array([sr * sr, 0.0, 0.0, sb * sb])
+
+
+def _gate(gate: float | None) -> tuple[float, bool]:
+    return (math.inf, False) if gate is None else (float(gate), True)
+
+
+# --------------------------------------------------------------------------------------------
+# Recorded runs (the unicycle): one setting scored against ground truth, and the likelihood
+
+
+def score_setting(tl, x0, P0, sig, gate, T0, truth, scored, bound=math.inf) -> tuple:
+    """One setting sig = (sv, sw, sr, sb) over a recorded `Timeline`, scored at its record stamps
+    (truth (n_rec, 2 or 3): the heading is not needed for the position error): (sq_sum, max_err,
+    n_updates, n_rejected, finished). `finished` is False when the sum passed `bound`; a filter
+    that diverges scores infinity (finished True)."""
+    Qu, R = _variances(sig)
+    g, has_gate = _gate(gate)
+    truth = np.asarray(truth, dtype=float)
+    if truth.shape[1] == 2:  # NEES is not asked for: any finite heading
+        truth = np.column_stack([truth, np.zeros(len(truth))])
+    n_rec = len(truth)
+    status, sq, mx, _, nu, nr = ekf_fit_kernel(
+        MOTION_UNICYCLE, tl.dt, tl.u, tl.lm, tl.z, tl.xy, tl.record,
+        np.ascontiguousarray(x0, dtype=float).reshape(3),
+        np.ascontiguousarray(P0, dtype=float).ravel(), Qu, R, g, has_gate, float(T0), 0.0,
+        np.ascontiguousarray(truth), np.ascontiguousarray(scored, dtype=np.bool_),
+        float(bound), np.empty(n_rec), np.empty(n_rec),
+    )  # fmt: skip
+    return sq, mx, nu, nr, status != STOPPED
+
+
+@dataclass(frozen=True, eq=False)
+class TimelineLikelihood:
+    """One recorded run's own innovations as an objective (`ekf-ml` on recorded data): the
+    unicycle EKF from the run's start over its timeline. It holds no ground truth: no stamp is a
+    record stamp for the kernel, so no truth is ever read."""
+
+    dt: np.ndarray
+    u: np.ndarray
+    lm: np.ndarray
+    z: np.ndarray
+    xy: np.ndarray
+    x0: np.ndarray
+    P0: np.ndarray  # (9,) row-major
+    gate: float | None
+    T0: float
+
+    @classmethod
+    def of(cls, tl, x0, P0, gate: float | None, T0: float) -> TimelineLikelihood:
+        return cls(
+            dt=tl.dt, u=tl.u, lm=tl.lm, z=tl.z, xy=tl.xy,
+            x0=np.ascontiguousarray(x0, dtype=float).reshape(3),
+            P0=np.ascontiguousarray(P0, dtype=float).ravel(), gate=gate, T0=float(T0),
+        )  # fmt: skip
+
+    def nll(self, sigmas) -> tuple[int, float, int, int]:
+        """(status, sum of log|S| + nu^T S^-1 nu, n_updates, n_rejected) at `sigmas`."""
+        Qu, R = _variances(sigmas)
+        g, has_gate = _gate(self.gate)
+        none = np.zeros(len(self.dt), np.bool_)
+        status, _, _, nll, nu, nr = ekf_fit_kernel(
+            MOTION_UNICYCLE, self.dt, self.u, self.lm, self.z, self.xy, none, self.x0, self.P0,
+            Qu, R, g, has_gate, self.T0, 0.0, np.zeros((0, 3)), np.zeros(0, np.bool_),
+            math.inf, np.zeros(0), np.zeros(0),
+        )  # fmt: skip
+        return status, nll, nu, nr
+
+    def evaluate(self, sigmas: np.ndarray) -> dict:
+        """The per-innovation objective `fit_noise` minimises, and the gate's share."""
+        status, nll, nu, nr = self.nll(sigmas)
+        n = len(self.z)
+        diverged = status == DIVERGED
+        return {
+            "nll_per_innovation": math.inf if diverged else nll / max(n, 1),
+            "innovations": n,
+            "gate_rejected": nr / n if n and not diverged else math.nan,
+            "diverged": diverged,
+        }
+
+
+# --------------------------------------------------------------------------------------------
+# Simulated training runs (the bicycle)
+
+
+def _fixed_rate_timeline(data: RunData, world: World, steps: np.ndarray) -> tuple:
+    """A simulated run in the per-stamp contract: one stamp per control step (dt = T), the scan
+    of step k (every sensor_every-th) at stamp k, record stamps at the scorer's steps, and the
+    truth there."""
+    scans = flat_scans(data, world)
+    K = len(data.u_odo)
+    every = int(world.sensor_every)
+    counts = np.zeros(K, dtype=np.int64)
+    n_scans = len(scans.start) - 1
+    scan_steps = np.arange(every, K + 1, every)[:n_scans]
+    counts[scan_steps - 1] = np.diff(scans.start)[: len(scan_steps)]
+    lm = np.zeros(K + 1, dtype=np.int64)
+    np.cumsum(counts, out=lm[1:])
+    record = np.zeros(K, np.bool_)
+    record[steps - 1] = True
+    return (
+        np.full(K, float(world.T)),
+        np.ascontiguousarray(data.u_odo, dtype=float),
+        lm,
+        scans.z,
+        scans.landmarks,
+        record,
+        np.ascontiguousarray(data.truth.x[steps], dtype=float),
+    )
 
 
 @dataclass(frozen=True)
@@ -115,14 +309,11 @@ class TrainingProblem:
     """What every objective evaluation needs: the training runs as the kernel reads them, the
     filter's start, the gate and which steps the scorer records."""
 
-    runs: tuple  # per run: (u_odo, scan_start, scan_lm, scan_z, x_true)
-    every: int
-    T: float
+    runs: tuple  # per run: (dt, u, lm, z, xy, record, truth at the record stamps)
     B: float
     x0: np.ndarray
     P0: np.ndarray  # (9,) row-major
-    gate: float
-    has_gate: bool
+    gate: float | None
     steps: np.ndarray  # recorded control steps (1-based), the scorer's
 
     @classmethod
@@ -134,51 +325,37 @@ class TrainingProblem:
         gate: float | None,
         record_every: int,
     ) -> TrainingProblem:
-        flat = []
-        for data in runs:
-            scans = flat_scans(data, world)
-            flat.append(
-                (
-                    np.ascontiguousarray(data.u_odo, dtype=float),
-                    scans.start,
-                    scans.landmarks,
-                    scans.z,
-                    np.ascontiguousarray(data.truth.x, dtype=float),
-                )
-            )
         K = min(len(data.u_odo) for data in runs)
+        steps = recorded_steps(K, record_every)
         return cls(
-            runs=tuple(flat),
-            every=int(world.sensor_every),
-            T=float(world.T),
+            runs=tuple(_fixed_rate_timeline(data, world, steps) for data in runs),
             B=float(world.B),
             x0=np.ascontiguousarray(world.x0, dtype=float).reshape(3),
             P0=np.ascontiguousarray(P0, dtype=float).ravel(),
-            gate=math.inf if gate is None else float(gate),
-            has_gate=gate is not None,
-            steps=recorded_steps(K, record_every),
+            gate=gate,
+            steps=steps,
         )
 
     def evaluate(self, sigmas: np.ndarray) -> dict:
         """Run the EKF with `sigmas` (sv, sg, sr, sb; radians) over every training run."""
-        sv, sg, sr, sb = (float(s) for s in sigmas)
-        Qu = np.array([sv * sv, 0.0, 0.0, sg * sg])
-        R = np.array([sr * sr, 0.0, 0.0, sb * sb])
+        Qu, R = _variances(sigmas)
+        g, has_gate = _gate(self.gate)
         nll, n_inn, n_rej, diverged = 0.0, 0, 0, False
         sq, nees = [], []
-        for u, start, lm, z, xt in self.runs:
-            out_sq = np.full(len(u), np.nan)
-            out_nees = np.full(len(u), np.nan)
-            d, ll, n, r = ekf_scores(
-                u, self.every, start, lm, z, self.T, self.B, self.x0, self.P0, Qu, R,
-                self.gate, self.has_gate, xt, out_sq, out_nees,
+        scored = np.ones(len(self.steps), np.bool_)
+        for dt, u, lm, z, xy, record, truth in self.runs:
+            out_sq = np.full(len(self.steps), np.nan)
+            out_nees = np.full(len(self.steps), np.nan)
+            status, _, _, ll, nu, nr = ekf_fit_kernel(
+                MOTION_BICYCLE, dt, u, lm, z, xy, record, self.x0, self.P0, Qu, R, g, has_gate,
+                0.0, self.B, truth, scored, math.inf, out_sq, out_nees,
             )  # fmt: skip
-            diverged |= bool(d)
+            diverged |= status == DIVERGED
             nll += ll
-            n_inn += n
-            n_rej += r
-            sq.append(out_sq[self.steps - 1])
-            nees.append(out_nees[self.steps - 1])
+            n_inn += nu + nr
+            n_rej += nr
+            sq.append(out_sq)
+            nees.append(out_nees)
         sq, nees = np.array(sq), np.array(nees)
         with np.errstate(all="ignore"):
             rmse = float(np.mean(np.sqrt(np.mean(sq, axis=0))))
@@ -203,9 +380,7 @@ CRITERIA = {
 }
 
 
-def _one_start(
-    problem: TrainingProblem, criterion: str, theta0: np.ndarray, max_evaluations: int
-) -> dict:
+def _one_start(problem, criterion: str, theta0: np.ndarray, max_evaluations: int) -> dict:
     key = CRITERIA[criterion]
     evaluations = 0
 
@@ -250,15 +425,16 @@ def _consistent_scale(problem: TrainingProblem, sigmas: np.ndarray, at_fit: dict
 
 
 def fit_noise(
-    problem: TrainingProblem,
+    problem,
     criterion: str,
     start_sigmas: np.ndarray,
     starts: list[float],
     max_evaluations: int,
     jobs: int = 1,
 ) -> dict:
-    """The sigmas (radians) minimising `criterion` ("likelihood" or "rmse") over the training
-    runs, from each start multiplier of `start_sigmas`; what it found and what it cost."""
+    """The sigmas (radians) minimising `criterion` ("likelihood" or "rmse", the latter for a
+    `TrainingProblem` only) over `problem`, from each start multiplier of `start_sigmas`; what
+    it found and what it cost."""
     started = time.perf_counter()
     thetas = [np.log(np.asarray(start_sigmas, float) * m) for m in starts]
     if jobs > 1 and len(thetas) > 1:

@@ -97,7 +97,8 @@ class FittedNoiseSpec(FittedSpec):
 
 class EKFMLSpec(FittedNoiseSpec):
     """The EKF with the sigmas that maximise the innovation log-likelihood of the training runs
-    (no truth): the fair "tuned without truth" reference."""
+    (no truth): the fair "tuned without truth" reference. On a recorded log, of the run it is
+    scored on (its own innovations, never its ground truth: real_experiment.OwnInnovations)."""
 
     kind: Literal["ekf-ml"]
     criterion: ClassVar[str] = "likelihood"

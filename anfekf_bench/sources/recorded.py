@@ -14,11 +14,13 @@ A document with a `data:` key is a `RealScenario` (`scenarios.load_scenario` han
       - {name: anfekf, kind: anfekf, adapt: RQ}
 
 Angles of this block are in radians, as their keys say (`_rad`): the unit of the data and of the
-research notes. Every filter but `ekf-tuned` runs once per naive start m, as the instance
-`"<name> x<m>"` (e.g. `anfekf x0.25`), starting from the naive standard deviations times m (the
-variances times m^2). `ekf-tuned` is the fixed EKF whose noise the grid search on the training
-part chose (`TuningConfig`, real_experiment.tune). Resolving the file reads the log and cuts it
-(`Recording`): nothing is run here.
+research notes. Every filter but `ekf-tuned` and `ekf-ml` runs once per naive start m, as the
+instance `"<name> x<m>"` (e.g. `anfekf x0.25`), starting from the naive standard deviations times m
+(the variances times m^2). `ekf-tuned` is the fixed EKF whose noise the grid search on the training
+part chose (`TuningConfig`, real_experiment.tune); `ekf-ml` the fixed EKF whose noise maximises the
+innovation likelihood of the very run it is scored on (its own odometry and landmarks, never its
+ground truth: real_experiment.fit_on_own_innovations); both run once, without naive starts.
+Resolving the file reads the log and cuts it (`Recording`): nothing is run here.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from ..config import (
     check_unique_names,
 )
 from ..filters.ekf import RobotEKF
+from ..filters.fitted import EKFMLSpec
 from ..filters.registry import SPECS, expand_entry_points
 from ..filters.spec import FilterContext, FilterSpec
 from ..schema import PositiveFloat, StrictModel
@@ -58,11 +61,13 @@ class TunedEKFSpec(FilterSpec):
         return RobotEKF(**ctx.kwargs())
 
 
-# A recorded log has no training runs of its own: the simulated scenarios' fitted kinds
-# (filters.fitted: ekf-ml, and their ekf-tuned) give way to this grid-searched ekf-tuned.
+# A recorded log has no training runs of its own: the simulated scenarios' ekf-tuned gives way to
+# this grid-searched one; ekf-ml is fitted on each run's own innovations (no truth needed:
+# real_experiment.fit_on_own_innovations); the other fitted kinds are not available here.
 REAL_SPECS: tuple[type[FilterSpec], ...] = (
     *(s for s in SPECS if not s.fitted_on_training),
     TunedEKFSpec,
+    EKFMLSpec,
 )
 REAL_KINDS = tuple(s.model_fields["kind"].annotation.__args__[0] for s in REAL_SPECS)
 RealFilterSpec = Annotated[Union[REAL_SPECS], Field(discriminator="kind")]  # noqa: UP007
@@ -306,7 +311,8 @@ class RealScenario(StrictModel):
         return check_named_filters(items, set(instance_names(filters, starts)))
 
     def instances(self) -> list[tuple[str, FilterSpec, float | None]]:
-        """(instance name, spec, start multiplier or None for ekf-tuned), in scenario order."""
+        """(instance name, spec, start multiplier or None for ekf-tuned and ekf-ml), in
+        scenario order."""
         return list(_instances(self.filters, self.starts))
 
     def instance_names(self) -> list[str]:
@@ -322,9 +328,12 @@ def start_label(m: float) -> str:
     return f"{m:.3g}"
 
 
+FIXED_KINDS = ("ekf-tuned", "ekf-ml")  # one instance, its noise fitted: no naive starts
+
+
 def _instances(filters, starts):
     for spec in filters:
-        if spec.kind == "ekf-tuned":
+        if spec.kind in FIXED_KINDS:
             yield spec.name, spec, None
         else:
             for m in starts:

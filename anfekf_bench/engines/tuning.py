@@ -6,13 +6,13 @@ search of a fixed EKF's four sigmas, on both motion models, through the per-stam
 recorded `engines.events.Timeline` (the simulator's fixed-rate runs are written in it too):
 stamp k predicts over dt[k] with the command u[k], fuses the landmarks lm[k]:lm[k+1] of z / xy
 one at a time, and, if record[k], scores the estimate against the next row of `truth`. `motion`
-picks the predict: MOTION_BICYCLE (`kernels.predict`, the simulated worlds) or MOTION_UNICYCLE
-(`predict_unicycle`, recorded logs: midpoint Euler with the rate-consistent process noise of
+is the fast engine's motion argument of `kernels.predict`: MOTION_BICYCLE (the simulated worlds)
+or MOTION_UNICYCLE (recorded logs: midpoint Euler with the rate-consistent process noise of
 `models.Unicycle`). The landmark update is the fast engine's (`kernels.innovation`, `kernels.nis`,
 `kernels.correct`: RobotEKF's, to round-off), the health check the reference engine's
 (`kernels.healthy` after every stamp that fused a landmark). The constants and the contract are
 those of the fast engine's kernels (u (n, 2), dt (n,), lm (n + 1,) offsets into z / xy (m, 2),
-record (n,) bool), so that this kernel can become `kernels.py`'s EKF.
+record (n,) bool); what it adds to the fast engine's EKF is the scoring.
 
 What it returns serves three searches:
 
@@ -56,52 +56,24 @@ from ..analysis.metrics import recorded_steps
 from ..config import World
 from ..sources.simulator import RunData
 from .fast import flat_scans
-from .kernels import correct, healthy, innovation, maybe_njit, nis, predict, wrap
+from .kernels import (
+    MOTION_BICYCLE,
+    MOTION_UNICYCLE,
+    correct,
+    healthy,
+    innovation,
+    maybe_njit,
+    nis,
+    predict,
+    wrap,
+)
 
 SIGMA_NAMES = ("sigma_v", "sigma_gamma", "sigma_range", "sigma_bearing")
-
-# The motion models, as the fast engine's kernels name them
-MOTION_BICYCLE = 0
-MOTION_UNICYCLE = 1
 
 # What ended a run of the kernel
 FINISHED = 0
 STOPPED = 1  # the summed squared error passed `bound`
 DIVERGED = 2  # the estimate or its covariance stopped being finite and positive definite
-
-
-@maybe_njit
-def predict_unicycle(x, P, v, w, dt, T0, qv, qw):
-    """Unicycle.f / F / Q of RobotEKF.predict: x+ = midpoint-Euler step with (v, w) held over dt,
-    P+ = F P F^T + (T0 / dt) G diag(qv, qw) G^T."""
-    x0, x1, x2 = x
-    p00, p01, p02, p10, p11, p12, p20, p21, p22 = P
-    a = x2 + 0.5 * w * dt
-    c = math.cos(a)
-    s = math.sin(a)
-    vdt = v * dt
-    f02 = -vdt * s
-    f12 = vdt * c
-    n00 = p00 + f02 * p20 + (p02 + f02 * p22) * f02
-    n01 = p01 + f02 * p21 + (p02 + f02 * p22) * f12
-    n02 = p02 + f02 * p22
-    n11 = p11 + f12 * p21 + (p12 + f12 * p22) * f12
-    n12 = p12 + f12 * p22
-    half = 0.5 * v * dt * dt
-    g00, g01, g10, g11, g21 = dt * c, -half * s, dt * s, half * c, dt
-    k = T0 / dt
-    q00 = k * (g00 * g00 * qv + g01 * g01 * qw)
-    q01 = k * (g00 * g10 * qv + g01 * g11 * qw)
-    q02 = k * (g01 * g21 * qw)
-    q11 = k * (g10 * g10 * qv + g11 * g11 * qw)
-    q12 = k * (g11 * g21 * qw)
-    q22 = k * (g21 * g21 * qw)
-    Pn = (
-        n00 + q00, n01 + q01, n02 + q02,
-        n01 + q01, n11 + q11, n12 + q12,
-        n02 + q02, n12 + q12, p22 + q22,
-    )  # fmt: skip
-    return (x0 + vdt * c, x1 + vdt * s, wrap(x2 + w * dt)), Pn
 
 
 @maybe_njit
@@ -131,10 +103,7 @@ def ekf_fit_kernel(
     n_rej = 0
     j = 0
     for k in range(len(dt)):
-        if motion == MOTION_UNICYCLE:
-            x, P = predict_unicycle(x, P, u[k, 0], u[k, 1], dt[k], T0, Qt[0], Qt[3])
-        else:
-            x, P, Q = predict(x, P, u[k, 0], u[k, 1], dt[k], B, Qt)
+        x, P, _ = predict(x, P, u[k, 0], u[k, 1], dt[k], motion, B, T0, Qt)
         first = lm[k]
         last = lm[k + 1]
         if last > first:

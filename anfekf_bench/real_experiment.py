@@ -66,6 +66,7 @@ from .sources.recorded import (
 from .storage import (
     MANIFEST_FILE,
     RESULT_FORMAT,
+    RUNS_DIR,
     folder_lock,
     scenario_name_problem,
     write_json,
@@ -536,10 +537,10 @@ def run_segment(
     truth = _pad(inputs.truth, n_steps)
     filters = {}
     for name, spec, m in scenario.instances():
-        if m is None:
+        if m is None and spec.kind == "ekf-tuned":
             Qu, R = tuned_covariances(tuned)
-        else:
-            Qu, R = naive_covariances(scenario, m)
+        else:  # a trained filter (kalmannet, one instance) has no noise: the naive x1 is passed
+            Qu, R = naive_covariances(scenario, 1.0 if m is None else m)
         ctx = FilterContext(
             x0=np.array(seg.pose, dtype=float), P0=p0(scenario), Qu=Qu, R=R, model=model,
             dt=scenario.odometry_period_s, gate=gate,
@@ -641,8 +642,10 @@ def execute_real(
     force: bool = False,
     on_start: Callable[[str, int, int], None] | None = None,
     on_result: Callable[[dict], None] | None = None,
+    progress=None,
 ) -> tuple[list[dict], Path]:
-    """`experiment.execute` for a real-data scenario: same folder rules, run store and files."""
+    """`experiment.execute` for a real-data scenario: same folder rules, run store and files.
+    `progress`: the CLI's rich Progress, to which a training (kalmannet) adds its bar."""
 
     started = time.time()
     check_real_plan(plan)
@@ -654,7 +657,7 @@ def execute_real(
         tuned = None
         if isinstance(rec, DriveSet):
             return _execute_drives(plan, target, done, action, fingerprint, on_start, on_result,
-                                   started)  # fmt: skip
+                                   started, progress)  # fmt: skip
         if scenario.reference() is not None:
             tuned = tune(scenario, rec, plan.jobs)
             action += (
@@ -684,11 +687,19 @@ def execute_real(
     return summary, target
 
 
-def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result, started):
+def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result, started,
+                    progress=None):  # fmt: skip
     """`execute_real`'s body for protocol drives: tune per test dataset, run every drive whole."""
+    from .real_training import fit_on_drives
 
     world, scenario = plan.world, plan.scenario
     inputs = {d.id: segment_inputs(d, d.segment, scenario.eval_period_s) for d in world.drives}
+    # Trained filters (kalmannet): one fit per fold, on its training drives only (or the cache).
+    run_scenario, trained = fit_on_drives(scenario, world, inputs, target / RUNS_DIR, progress)
+    if trained:
+        for name, folds in trained.items():
+            how = "read from the cache" if all(r["cached"] for r in folds.values()) else "trained"
+            action += f"; {name} {how} per fold (on dataset(s) {', '.join(folds)})"
     tuned_for, tuning = {}, None
     if scenario.reference() is not None:
         tuned_for, tuning = tune_drives(scenario, inputs, world, plan.jobs)
@@ -697,7 +708,7 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
     if on_start is not None:
         on_start(action, len(done), plan.runs)
     calls = [
-        delayed(_run_one)(scenario, inputs[d.id], tuned_for.get(d.id), n_steps)
+        delayed(_run_one)(run_scenario[d.id], inputs[d.id], tuned_for.get(d.id), n_steps)
         for d in world.drives
         if d.segment.index not in done
     ]
@@ -709,6 +720,7 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
         " its k-th evaluation time (odometry stamps at least eval_period_s apart); t is seconds"
         " since the cold start; shorter drives are padded with NaN",
         protocol="drives", tuning_seconds=tuning["seconds"] if tuning else 0.0,
+        **({"training": trained} if trained else {}),
     )  # fmt: skip
     return summary, target
 

@@ -64,6 +64,11 @@ REAL_SPECS: tuple[type[FilterSpec], ...] = (
     *(s for s in SPECS if not s.fitted_on_training),
     TunedEKFSpec,
 )
+# KalmanNet is trained on the training drives of protocol drives (anfekf_bench.real_training).
+TRAINED_KINDS = ("kalmannet",)  # one instance each (no naive noise to start from)
+REAL_SPECS += tuple(
+    s for s in SPECS if s.model_fields["kind"].annotation.__args__[0] in TRAINED_KINDS
+)
 REAL_KINDS = tuple(s.model_fields["kind"].annotation.__args__[0] for s in REAL_SPECS)
 RealFilterSpec = Annotated[Union[REAL_SPECS], Field(discriminator="kind")]  # noqa: UP007
 
@@ -296,6 +301,16 @@ class RealScenario(StrictModel):
             raise ValueError("at most one ekf-tuned filter (the reference)")
         return filters
 
+    @model_validator(mode="after")
+    def _trained_on_drives(self) -> RealScenario:
+        trained = [f.name for f in self.filters if f.kind in TRAINED_KINDS]
+        if trained and self.protocol != "drives":
+            raise ValueError(
+                f"filters: {trained[0]}: kalmannet trains on the training drives of protocol"
+                " drives (data.drives)"
+            )
+        return self
+
     @field_validator("claims", "compare")
     @classmethod
     def _name_instances(cls, items: list, info: ValidationInfo) -> list:
@@ -324,7 +339,7 @@ def start_label(m: float) -> str:
 
 def _instances(filters, starts):
     for spec in filters:
-        if spec.kind == "ekf-tuned":
+        if spec.kind == "ekf-tuned" or spec.kind in TRAINED_KINDS:
             yield spec.name, spec, None
         else:
             for m in starts:

@@ -279,8 +279,8 @@ def test_two_drives_end_to_end_record_the_training_per_fold(tmp_path):
 
     doc = {"name": "kn-e2e", "protocol": "drives", "eval_period_s": 0.12, "starts": [1],
            "data": {"kind": "mrclam", "path": "builtin", "drives": ["d6-r1", "d7-r1"]},
-           "tuning": {"sigma_v": [0], "sigma_w": [0], "sigma_range": [0], "sigma_bearing": [0],
-                      "refine": False},
+           "tuning": {"sigma_v": [-1, 0], "sigma_w": [0, 1], "sigma_range": [-1, 0],
+                      "sigma_bearing": [-2, -1], "refine": False},
            "filters": [{"name": "ekf-tuned", "kind": "ekf-tuned"},
                        {"name": "kalmannet", "kind": "kalmannet", "epochs": 1, "hidden_size": 4,
                         "window_s": 300, "validation_runs": 0}]}  # fmt: skip

@@ -54,6 +54,7 @@ from .outputs import (
     survey_output,
     write_result_tables,
 )
+from .real_training import fit_on_drives, fit_on_segments
 from .sources import mrclam
 from .sources.recorded import (
     DriveSet,
@@ -658,6 +659,11 @@ def execute_real(
         if isinstance(rec, DriveSet):
             return _execute_drives(plan, target, done, action, fingerprint, on_start, on_result,
                                    started, progress)  # fmt: skip
+        # Trained filters (kalmannet): fitted on the training segments only (or the cache).
+        run_scenario, trained = fit_on_segments(scenario, rec, target / RUNS_DIR, progress)
+        for name in trained:
+            how = "read from the cache" if trained[name]["train"]["cached"] else "trained"
+            action += f"; {name} {how} on the training segments"
         if scenario.reference() is not None:
             tuned = tune(scenario, rec, plan.jobs)
             action += (
@@ -673,7 +679,7 @@ def execute_real(
         if on_start is not None:
             on_start(action, len(done), plan.runs)
         calls = [
-            delayed(_run_one)(scenario, i, tuned, n_steps)
+            delayed(_run_one)(run_scenario, i, tuned, n_steps)
             for i in inputs
             if i.segment.index not in done
         ]
@@ -683,6 +689,7 @@ def execute_real(
             landmarks=rec.landmarks, n_steps=n_steps, data=rec.summary(), tuning=tuned,
             alignment="step k of a run is the k-th odometry stamp of its segment; t is seconds"
             " since the segment's cold start; shorter segments are padded with NaN",
+            **({"training": trained} if trained else {}),
         )  # fmt: skip
     return summary, target
 
@@ -690,7 +697,6 @@ def execute_real(
 def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result, started,
                     progress=None):  # fmt: skip
     """`execute_real`'s body for protocol drives: tune per test dataset, run every drive whole."""
-    from .real_training import fit_on_drives
 
     world, scenario = plan.world, plan.scenario
     inputs = {d.id: segment_inputs(d, d.segment, scenario.eval_period_s) for d in world.drives}

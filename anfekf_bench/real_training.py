@@ -1,4 +1,6 @@
-"""Filters trained on recorded drives (`kalmannet`, filters.kalmannet) in the cross-drive protocol.
+"""Filters trained on recorded data (`kalmannet`, filters.kalmannet): on the training drives of
+the cross-drive protocol (`fit_on_drives`), or on the training segments of one log (protocol
+segments, `fit_on_segments`: one fit, on the segments that tune `ekf-tuned`).
 
 The recorded counterpart of anfekf_bench.training: a drive is scored by weights trained on the
 drives of the datasets that tune its `ekf-tuned` (`RealScenario.tuning_sources`: tune on Dataset
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +49,22 @@ def fold_fingerprint(scenario: RealScenario, spec, drives: list) -> str:
         "code": code_version(),
     }
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _fit_or_read(spec, fingerprint: str, cache_dir: Path | None, fit) -> tuple[dict, bool]:
+    """`fit()` (what `spec.fit_recorded` returns), or the cached fit of `fingerprint`; written
+    to the cache when fitted. Returns (fitted, cached)."""
+    path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fingerprint)
+    fitted = None if path is None else _read_cached(path, fingerprint)
+    if fitted is not None:
+        return fitted, True
+    try:
+        fitted = fit()
+    except ValueError as exc:
+        raise PlanError(f"filters: {spec.name}: {exc}") from None
+    if path is not None:
+        write_json(path, {"format": FIT_FORMAT, "fingerprint": fingerprint, "fitted": fitted})
+    return fitted, False
 
 
 def fit_on_drives(
@@ -81,22 +100,12 @@ def fit_on_drives(
         fitted_for[sources] = {}
         for spec in todo:
             fingerprint = fold_fingerprint(scenario, spec, train)
-            name = FIT_FILE.format(fingerprint=fingerprint)
-            path = None if cache_dir is None else cache_dir / name
-            fitted = None if path is None else _read_cached(path, fingerprint)
-            cached = fitted is not None
-            if fitted is None:
-                drives = [(inputs[d.id].timeline, inputs[d.id].truth) for d in train]
-                try:
-                    fitted = spec.fit_recorded(
-                        drives, model, progress, f"training {spec.name} on dataset(s) {label}"
-                    )
-                except ValueError as exc:
-                    raise PlanError(f"filters: {spec.name}: {exc}") from None
-                if path is not None:
-                    write_json(
-                        path, {"format": FIT_FORMAT, "fingerprint": fingerprint, "fitted": fitted}
-                    )
+            drives = [(inputs[d.id].timeline, inputs[d.id].truth) for d in train]
+            fitted, cached = _fit_or_read(
+                spec, fingerprint, cache_dir,
+                partial(spec.fit_recorded, drives, model, progress,
+                        f"training {spec.name} on dataset(s) {label}"),
+            )  # fmt: skip
             fitted_for[sources][spec.name] = spec.with_fit(fitted)
             records[spec.name][label] = {
                 "kind": spec.kind,
@@ -111,3 +120,50 @@ def fit_on_drives(
         filters = [specs.get(f.name, f) for f in scenario.filters]
         out[d.id] = scenario.model_copy(update={"filters": filters})
     return out, records
+
+
+# The scenario fields that decide a log's training segments (sources.recorded.cut_segments)
+_SEGMENT_FIELDS = _INPUT_FIELDS | {"split_fraction", "split_at_s", "segment_s", "min_scorable_s"}
+
+
+def fit_on_segments(
+    scenario: RealScenario, rec, cache_dir: Path | None, progress: Any = None
+) -> tuple[RealScenario, dict]:
+    """Protocol segments: every trained filter fitted once on the log's training segments (each
+    cold-started from ground truth, as `ekf-tuned`'s tuning sees them; never a held-out one), or
+    read from the cache. Returns the scenario carrying the fits and the manifest's account (per
+    filter, one fold keyed "train")."""
+    from .models import Unicycle
+    from .real_experiment import segment_inputs
+
+    todo = trained_filters(scenario)
+    if not todo:
+        return scenario, {}
+    model = Unicycle(scenario.odometry_period_s)
+    segments = [segment_inputs(rec, s) for s in rec.train_segments]
+    specs, records = {}, {}
+    for spec in todo:
+        doc = {
+            "filter": spec.model_dump(mode="json", exclude={"name"}),
+            "scenario": scenario.model_dump(mode="json", include=_SEGMENT_FIELDS),
+            "log": rec.digest,
+            "code": code_version(),
+        }
+        fingerprint = hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+        fitted, cached = _fit_or_read(
+            spec, fingerprint, cache_dir,
+            partial(spec.fit_recorded, [(s.timeline, s.truth) for s in segments], model,
+                    progress, f"training {spec.name} on {len(segments)} training segments"),
+        )  # fmt: skip
+        specs[spec.name] = spec.with_fit(fitted)
+        records[spec.name] = {
+            "train": {
+                "kind": spec.kind,
+                "fingerprint": fingerprint,
+                "cached": cached,
+                "train_segments": [s.index for s in rec.train_segments],
+                "fitted": spec.fit_record(fitted),
+            }
+        }
+    filters = [specs.get(f.name, f) for f in scenario.filters]
+    return scenario.model_copy(update={"filters": filters}), records

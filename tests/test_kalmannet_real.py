@@ -239,15 +239,32 @@ def test_a_fold_is_read_from_the_cache(stretches, monkeypatch, tmp_path):
 # ------------------------------------------------------------------ the scenario file
 
 
-def test_kalmannet_is_one_instance_and_only_on_protocol_drives():
+def test_kalmannet_is_one_instance():
     scenario = fold_scenario()
     assert scenario.instance_names() == ["ekf x0.25", "ekf x1", "ekf x4", "kn"]
-    from anfekf_bench.config import ScenarioError
 
-    doc = {"name": "seg", "data": {"kind": "mrclam", "path": "builtin"},
-           "filters": [{"name": "kn", "kind": "kalmannet"}]}  # fmt: skip
-    with pytest.raises(ScenarioError, match="protocol drives"):
-        parse_real_scenario(doc, "seg.yaml")
+
+def test_on_protocol_segments_it_trains_on_the_training_segments_only(tmp_path):
+    """A user's log, protocol segments: one fit on the training segments, cached, recorded."""
+    from typer.testing import CliRunner
+
+    from anfekf_bench.cli import app
+
+    from .test_real_data import user_scenario
+
+    path = user_scenario(tmp_path)
+    doc = yaml.safe_load(path.read_text())
+    doc["filters"] = [doc["filters"][1], {**TINY, "epochs": 1, "window_s": 5}]
+    doc["claims"] = []
+    path.write_text(yaml.safe_dump(doc))
+    res = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    assert res.exit_code == 0, res.output
+    manifest = json.loads((tmp_path / "out" / "my-robot" / "manifest.json").read_text())
+    fold = manifest["training"]["kn"]["train"]
+    train = [s["index"] for s in manifest["data"]["train_segments"]]
+    assert fold["train_segments"] == train and not fold["cached"]
+    assert fold["fitted"]["weights_sha256"] and fold["fitted"]["training_time_s"] > 0
+    assert "kn" in [f["name"] for f in manifest["filters"]]
 
 
 def test_without_torch_a_drives_scenario_naming_kalmannet_is_one_line(monkeypatch):

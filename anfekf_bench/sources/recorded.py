@@ -64,7 +64,8 @@ REAL_SPECS: tuple[type[FilterSpec], ...] = (
     *(s for s in SPECS if not s.fitted_on_training),
     TunedEKFSpec,
 )
-# KalmanNet is trained on the training drives of protocol drives (anfekf_bench.real_training).
+# KalmanNet is trained on the training drives (protocol drives) or the training segments
+# (protocol segments) by anfekf_bench.real_training.
 TRAINED_KINDS = ("kalmannet",)  # one instance each (no naive noise to start from)
 REAL_SPECS += tuple(
     s for s in SPECS if s.model_fields["kind"].annotation.__args__[0] in TRAINED_KINDS
@@ -300,16 +301,6 @@ class RealScenario(StrictModel):
         if sum(f.kind == "ekf-tuned" for f in filters) > 1:
             raise ValueError("at most one ekf-tuned filter (the reference)")
         return filters
-
-    @model_validator(mode="after")
-    def _trained_on_drives(self) -> RealScenario:
-        trained = [f.name for f in self.filters if f.kind in TRAINED_KINDS]
-        if trained and self.protocol != "drives":
-            raise ValueError(
-                f"filters: {trained[0]}: kalmannet trains on the training drives of protocol"
-                " drives (data.drives)"
-            )
-        return self
 
     @field_validator("claims", "compare")
     @classmethod

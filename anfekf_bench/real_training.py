@@ -84,9 +84,7 @@ def fit_on_drives(
     if not todo:
         return {d.id: scenario for d in world.drives}, {}
     model = Unicycle(scenario.odometry_period_s)
-    folds: dict[tuple[int, ...], list] = {}
-    for d in world.drives:
-        folds.setdefault(tuple(scenario.tuning_sources(d.dataset)), [])
+    folds = {tuple(scenario.tuning_sources(d.dataset)) for d in world.drives}
     fitted_for: dict[tuple, dict[str, Any]] = {}
     records: dict[str, dict] = {spec.name: {} for spec in todo}
     for sources in sorted(folds, key=lambda k: (len(k), k)):

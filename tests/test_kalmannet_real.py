@@ -236,6 +236,13 @@ def test_a_fold_is_read_from_the_cache(stretches, monkeypatch, tmp_path):
     ]
 
 
+def test_more_held_out_windows_than_windows_is_a_one_line_plan_error(stretches, monkeypatch):
+    from anfekf_bench.outputs import PlanError
+
+    with pytest.raises(PlanError, match=r"^filters: kn: validation_runs: 50 must be fewer"):
+        fit_folds(fold_scenario(validation_runs=50), stretches, monkeypatch)
+
+
 # ------------------------------------------------------------------ the scenario file
 
 

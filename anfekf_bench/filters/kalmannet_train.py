@@ -278,7 +278,7 @@ def windows_of_drive(tl, truth: np.ndarray, window_s: float) -> list[TrainingWin
     for j, i in enumerate(starts):
         a = rec[i] + 1  # first stamp after the start
         b = rec[starts[j + 1]] + 1 if j + 1 < len(starts) else len(tl.t)
-        lo, hi = int(tl.lm[a]) if a < len(tl.t) else int(tl.lm[-1]), int(tl.lm[b])
+        lo, hi = int(tl.lm[a]), int(tl.lm[b])
         part = replace(
             tl, t_start=float(tl.t[a - 1]), t=tl.t[a:b], dt=tl.dt[a:b], u=tl.u[a:b],
             lm=tl.lm[a : b + 1] - lo, z=tl.z[lo:hi], xy=tl.xy[lo:hi], record=tl.record[a:b],

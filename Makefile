@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 ANFEKF := $(VENV)/bin/anfekf
 OUT    ?= results
 
-.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps real changing drives learned
+.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps real changing drives learned learned-drives
 
 setup: $(VENV)/.installed
 
@@ -85,3 +85,10 @@ learned: setup
 	@$(PY) -c "import torch" 2>/dev/null || { echo "make learned needs PyTorch: pip install -e '.[learned]'"; exit 2; }
 	$(ANFEKF) run configs/learned --out $(OUT)/learned --force
 	$(ANFEKF) report $(OUT)/learned --out $(OUT)/learned/report
+
+## KalmanNet on the eleven MRCLAM drives (configs/learned-drives): trained per cross-drive fold on
+## that fold's training drives (Dataset 6 scores 7, 7 scores 6, both score 9), against ekf-tuned.
+learned-drives: setup
+	@$(PY) -c "import torch" 2>/dev/null || { echo "make learned-drives needs PyTorch: pip install -e '.[learned]'"; exit 2; }
+	$(ANFEKF) run configs/learned-drives --out $(OUT)/learned-drives --force
+	$(ANFEKF) report $(OUT)/learned-drives --out $(OUT)/learned-drives/report

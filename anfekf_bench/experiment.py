@@ -285,7 +285,9 @@ def execute(
     if not isinstance(plan, Plan):  # a recorded log (SPEC 9)
         from .real_experiment import execute_real
 
-        return execute_real(plan, out_dir, force=force, on_start=on_start, on_result=on_result)
+        return execute_real(
+            plan, out_dir, force=force, on_start=on_start, on_result=on_result, progress=progress
+        )
     started = time.time()
     # Validate everything first (nothing is touched): values, route, memory, the folder's state,
     # the Dask cluster and its workers. Only then lock the folder and (--force) remove.

@@ -56,9 +56,11 @@ from .outputs import (
     write_fit,
     write_result_tables,
 )
+from .real_training import fit_on_drives, fit_on_segments
 from .runner import engine_of, fast_compiled, run_spec
 from .sources import mrclam
 from .sources.recorded import (
+    FIXED_KINDS,
     DriveSet,
     RealScenario,
     Recording,
@@ -650,10 +652,10 @@ def run_segment(
     truth = _pad(inputs.truth, n_steps)
     filters = {}
     for name, spec, m in scenario.instances():
-        if m is None:
+        if m is None and spec.kind in FIXED_KINDS:
             Qu, R = tuned_covariances((fitted or {}).get(name, tuned))
-        else:
-            Qu, R = naive_covariances(scenario, m)
+        else:  # a trained filter (kalmannet, one instance) has no noise: the naive x1 is passed
+            Qu, R = naive_covariances(scenario, 1.0 if m is None else m)
         ctx = FilterContext(
             x0=np.array(seg.pose, dtype=float), P0=p0(scenario), Qu=Qu, R=R, model=model,
             dt=scenario.odometry_period_s, gate=gate,
@@ -750,8 +752,10 @@ def execute_real(
     force: bool = False,
     on_start: Callable[[str, int, int], None] | None = None,
     on_result: Callable[[dict], None] | None = None,
+    progress=None,
 ) -> tuple[list[dict], Path]:
-    """`experiment.execute` for a real-data scenario: same folder rules, run store and files."""
+    """`experiment.execute` for a real-data scenario: same folder rules, run store and files.
+    `progress`: the CLI's rich Progress, to which a training (kalmannet) adds its bar."""
 
     started = time.time()
     check_real_plan(plan)
@@ -763,7 +767,12 @@ def execute_real(
         tuned = None
         if isinstance(rec, DriveSet):
             return _execute_drives(plan, target, done, action, fingerprint, on_start, on_result,
-                                   started)  # fmt: skip
+                                   started, progress)  # fmt: skip
+        # Trained filters (kalmannet): fitted on the training segments only (or the cache).
+        run_scenario, trained = fit_on_segments(scenario, rec, target / RUNS_DIR, progress)
+        for name in trained:
+            how = "read from the cache" if trained[name]["train"]["cached"] else "trained"
+            action += f"; {name} {how} on the training segments"
         if scenario.reference() is not None:
             tuned = tune(scenario, rec, plan.jobs)
             action += (
@@ -784,7 +793,7 @@ def execute_real(
             on_start(action, len(done), plan.runs)
         calls = [
             delayed(_run_one)(
-                scenario, i, tuned, n_steps, fitted.get(i.segment.index), plan.engine
+                run_scenario, i, tuned, n_steps, fitted.get(i.segment.index), plan.engine
             )  # fmt: skip
             for i in inputs
             if i.segment.index not in done
@@ -796,15 +805,23 @@ def execute_real(
             alignment="step k of a run is the k-th odometry stamp of its segment; t is seconds"
             " since the segment's cold start; shorter segments are padded with NaN",
             **({"fits": fits} if fits else {}),
+            **({"training": trained} if trained else {}),
         )  # fmt: skip
     return summary, target
 
 
-def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result, started):
+def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result, started,
+                    progress=None):  # fmt: skip
     """`execute_real`'s body for protocol drives: tune per test dataset, run every drive whole."""
 
     world, scenario = plan.world, plan.scenario
     inputs = {d.id: segment_inputs(d, d.segment, scenario.eval_period_s) for d in world.drives}
+    # Trained filters (kalmannet): one fit per fold, on its training drives only (or the cache).
+    run_scenario, trained = fit_on_drives(scenario, world, inputs, target / RUNS_DIR, progress)
+    if trained:
+        for name, folds in trained.items():
+            how = "read from the cache" if all(r["cached"] for r in folds.values()) else "trained"
+            action += f"; {name} {how} per fold (on dataset(s) {', '.join(folds)})"
     tuned_for, tuning = {}, None
     if scenario.reference() is not None:
         tuned_for, tuning = tune_drives(scenario, inputs, world, plan.jobs)
@@ -819,7 +836,11 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
         on_start(action, len(done), plan.runs)
     calls = [
         delayed(_run_one)(
-            scenario, inputs[d.id], tuned_for.get(d.id), n_steps, fitted.get(d.segment.index),
+            run_scenario[d.id],
+            inputs[d.id],
+            tuned_for.get(d.id),
+            n_steps,
+            fitted.get(d.segment.index),
             plan.engine,
         )  # fmt: skip
         for d in world.drives
@@ -834,6 +855,7 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
         " since the cold start; shorter drives are padded with NaN",
         protocol="drives", tuning_seconds=tuning["seconds"] if tuning else 0.0,
         **({"fits": fits} if fits else {}),
+        **({"training": trained} if trained else {}),
     )  # fmt: skip
     return summary, target
 

@@ -253,7 +253,9 @@ class KalmanNetFilter(RobotEKF):
 class KalmanNetSpec(FittedSpec):
     """KalmanNet (Revach et al. 2022, architecture 1): the EKF's structure with each landmark's
     gain from a GRU, trained on the scenario's training runs (`training.runs`, see
-    anfekf_bench.training; the extra `.[learned]`); no covariance, no NEES.
+    anfekf_bench.training) or, on recorded data, on the training drives of each cross-drive fold
+    (or the training segments; anfekf_bench.real_training); the extra `.[learned]`; no
+    covariance, no NEES.
 
     A fitted filter like `ekf-ml`: `fit` trains on the training set and returns the weights
     (base64 of `KalmanNetWeights.to_bytes`, their SHA-256) with the training cost, which the
@@ -275,6 +277,11 @@ class KalmanNetSpec(FittedSpec):
         " epoch that does best on them (0: keep the last epoch)",
     )  # fmt: skip
     seed: int = Field(0, ge=0, le=2**63 - 1, description="initial weights and batch order")
+    window_s: float = Field(
+        60.0, ge=1.0, le=1e5, allow_inf_nan=False,
+        description="recorded drives: the training drives are cut into windows of this many"
+        " seconds, each cold-started from ground truth (validation_runs of them held out)",
+    )  # fmt: skip
     _weights: KalmanNetWeights | None = PrivateAttr(None)
 
     @model_validator(mode="after")
@@ -316,7 +323,22 @@ class KalmanNetSpec(FittedSpec):
         from .registry import filter_context
 
         ctx = filter_context(self, training.scenario, training.world)
-        result = self.train(training.runs, training.world, ctx, progress=training.progress)
+        return self.fitted_doc(
+            self.train(training.runs, training.world, ctx, progress=training.progress)
+        )
+
+    def fit_recorded(self, drives, model, progress=False, description: str | None = None) -> dict:
+        """`fit` on recorded training drives: (Timeline, truth at its evaluation times, NaN
+        where not scored) pairs on the unicycle `model` (kalmannet_train.train_recorded)."""
+        from . import kalmannet_train
+
+        return self.fitted_doc(
+            kalmannet_train.train_recorded(self, drives, model, progress, description)
+        )
+
+    @staticmethod
+    def fitted_doc(result: TrainingResult) -> dict:
+        """What `fit` returns of a training: the weights (base64) and their hash, the cost."""
         data = result.weights.to_bytes()
         return {
             "weights_sha256": hashlib.sha256(data).hexdigest(),

@@ -3,15 +3,18 @@
 Imported only to train (`KalmanNetSpec.train`); the trained filter runs in numpy
 (filters/kalmannet.py). The core is generic over a `System` (the known f and h, the frame the
 gain is computed in, and the entry-wise scale of the gain), so that the same code trains the
-robot's filter (`RobotSystem`) and the linear-Gaussian check of the tests (`LinearSystem`).
+robot's filter on the simulator's bicycle (`RobotSystem`), on recorded drives' unicycle with a
+step length per step (`UnicycleSystem`) and the linear-Gaussian check of the tests (`LinearSystem`).
 
 Training (the paper's recipe): Adam on the mean squared state error at every target step (the
 scan steps, where the benchmark scores), truncated back-propagation through time every `bptt`
 measurement updates, gradient norm clipped at 1 (KalmanNet's known NaN losses), float64.
 A batch holds runs with the same schedule of controls and scans (every simulated run of a world
 has the same one: the truth path is shared, only the noise differs), so their steps run as one
-tensor operation. Deterministic on CPU for a seed: torch.manual_seed, deterministic algorithms,
-one thread, a fixed batch order drawn from the seed.
+tensor operation. Recorded drives have no common schedule: their training windows
+(`windows_of_drive`) are aligned stamp by stamp (`recorded_batch`), and an event carries a mask of
+the windows it applies to (the others keep their state exactly). Deterministic on CPU for a seed:
+torch.manual_seed, deterministic algorithms, one thread, a fixed batch order drawn from the seed.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..models import Bicycle
+from ..models import Bicycle, Unicycle, residual_z
 from .kalmannet import KalmanNetWeights, TrainingResult
 
 DTYPE = torch.float64
@@ -115,6 +118,33 @@ class RobotSystem:
 
     def loss_weights(self) -> torch.Tensor:
         return torch.tensor([1.0, 1.0, HEADING_WEIGHT_M**2], dtype=DTYPE)
+
+
+class UnicycleSystem(RobotSystem):
+    """The unicycle of recorded logs (models.unicycle: midpoint Euler) with the range-bearing
+    sensor; a control is (v, w, dt): each step has its own length."""
+
+    def __init__(self, range_scale: float):
+        self.range_scale = range_scale
+
+    def f(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        v, w, dt = u[:, 0], u[:, 1], u[:, 2]
+        a = x[:, 2] + 0.5 * w * dt
+        return torch.stack(
+            [x[:, 0] + v * dt * torch.cos(a), x[:, 1] + v * dt * torch.sin(a),
+             wrap(x[:, 2] + w * dt)], dim=1,
+        )  # fmt: skip
+
+    def prepare_span(self, u: torch.Tensor):
+        """`RobotSystem.prepare_span` for the unicycle, u (S, B, 3): the heading's increments
+        w dt do not depend on the state, so S steps are phi+ = phi + D and the rotated sums A, C
+        of v dt at the midpoint angles c_j = (the increments before step j) + w_j dt_j / 2. A
+        step of zeros (v = w = dt = 0, the padding of `recorded_batch`) adds exactly nothing."""
+        v, w, dt = u[..., 0], u[..., 1], u[..., 2]
+        dphi = w * dt
+        c = torch.cumsum(dphi, dim=0) - dphi + 0.5 * dphi
+        step = v * dt
+        return torch.sum(step * torch.cos(c), 0), torch.sum(step * torch.sin(c), 0), dphi.sum(0)
 
 
 class LinearSystem:
@@ -218,6 +248,116 @@ def robot_batch(system: RobotSystem, runs, world) -> Batch:
     return Batch(x0=x0, events=events)
 
 
+@dataclass(frozen=True, eq=False)
+class TrainingWindow:
+    """A stretch of a recorded drive to train on, cold-started from ground truth: x0 at the
+    stamp before `timeline`'s first (`timeline` holds the stamps after it, as
+    engines.events.Timeline), and the truth (n_records, 3) at its evaluation times, NaN where
+    it is not scored (the loss leaves those out)."""
+
+    x0: np.ndarray
+    timeline: object  # engines.events.Timeline
+    truth: np.ndarray
+
+
+def windows_of_drive(tl, truth: np.ndarray, window_s: float) -> list[TrainingWindow]:
+    """A drive's timeline `tl` (engines.events.Timeline) and its truth at the evaluation times
+    (NaN where not scored) cut into windows of about `window_s` seconds. Each starts at a scored
+    evaluation time, from the truth there, and runs to the next window's start (the last to the
+    end); a window without a scored time after its start is left out."""
+    from dataclasses import replace
+
+    rec = np.flatnonzero(tl.record)  # stamp of each evaluation time
+    ok = np.all(np.isfinite(truth), axis=1)
+    starts, last = [], -math.inf
+    for i in np.flatnonzero(ok).tolist():
+        if tl.t[rec[i]] - last >= window_s:
+            starts.append(i)
+            last = tl.t[rec[i]]
+    out = []
+    for j, i in enumerate(starts):
+        a = rec[i] + 1  # first stamp after the start
+        b = rec[starts[j + 1]] + 1 if j + 1 < len(starts) else len(tl.t)
+        lo, hi = int(tl.lm[a]), int(tl.lm[b])
+        part = replace(
+            tl, t_start=float(tl.t[a - 1]), t=tl.t[a:b], dt=tl.dt[a:b], u=tl.u[a:b],
+            lm=tl.lm[a : b + 1] - lo, z=tl.z[lo:hi], xy=tl.xy[lo:hi], record=tl.record[a:b],
+        )  # fmt: skip
+        n_before = int(np.sum(tl.record[:a]))
+        window_truth = truth[n_before : n_before + int(part.record.sum())]
+        if len(part.t) and np.all(np.isfinite(window_truth), axis=1).any():
+            out.append(TrainingWindow(np.array(truth[i], dtype=float), part, window_truth))
+    return out
+
+
+# A masked-out measurement still runs through the (batched) arithmetic: its landmark is put far
+# away so that every value stays finite (a NaN there would poison the gradient through `where`).
+_FAR_LANDMARK = (1e3, 1e3)
+
+
+def recorded_batch(system, windows: list[TrainingWindow]) -> Batch:
+    """The events of training windows of recorded drives, aligned stamp by stamp: slot j holds
+    the j-th "unit" of every window (the steps up to a stamp with a landmark or an evaluation
+    time, its landmarks, its target), each event masked to the windows that have it. The steps
+    of a unit are (v, w, dt), padded with zero steps; F1 is as `robot_batch`'s (the same
+    landmark, told apart by its map position, at the previous stamp with a landmark)."""
+    B = len(windows)
+    per_window = []
+    for w in windows:
+        tl, units, steps, last, j = w.timeline, [], [], {}, 0
+        lm = tl.lm.tolist()
+        for k in range(len(tl.t)):
+            steps.append((float(tl.u[k, 0]), float(tl.u[k, 1]), float(tl.dt[k])))
+            zs = []
+            if lm[k + 1] > lm[k]:
+                seen = {}
+                for i in range(lm[k], lm[k + 1]):
+                    key = (float(tl.xy[i, 0]), float(tl.xy[i, 1]))
+                    z = tl.z[i].astype(float)
+                    prev = last.get(key)
+                    d1 = np.zeros(2) if prev is None else residual_z(z.copy(), prev)
+                    zs.append((z, tl.xy[i].astype(float), d1))
+                    seen[key] = z
+                last = seen
+            target = None
+            if tl.record[k]:
+                target = w.truth[j]
+                j += 1
+            if zs or target is not None:
+                units.append((steps, zs, target))
+                steps = []
+        per_window.append(units)
+    n_slots = max((len(u) for u in per_window), default=0)
+    events: list = []
+    for j in range(n_slots):
+        here = [u[j] if j < len(u) else None for u in per_window]
+        has = torch.tensor([h is not None for h in here])
+        S = max(len(h[0]) for h in here if h is not None)
+        u = np.zeros((S, B, 3))
+        for b, h in enumerate(here):
+            if h is not None:
+                u[: len(h[0]), b] = h[0]
+        events.append(("f", system.prepare_span(torch.as_tensor(u, dtype=DTYPE)), has))
+        n_z = max(len(h[1]) if h is not None else 0 for h in here)
+        for i in range(n_z):
+            z, aux, d1 = np.zeros((B, 2)), np.tile(_FAR_LANDMARK, (B, 1)), np.zeros((B, 2))
+            mask = np.zeros(B, bool)
+            for b, h in enumerate(here):
+                if h is not None and i < len(h[1]):
+                    z[b], aux[b], d1[b] = h[1][i]
+                    mask[b] = True
+            z, aux, d1 = (torch.as_tensor(a, dtype=DTYPE) for a in (z, aux, d1))
+            events.append(("z", z, aux, d1, torch.as_tensor(mask)))
+        truth, mask = np.zeros((B, 3)), np.zeros(B, bool)
+        for b, h in enumerate(here):
+            if h is not None and h[2] is not None and np.all(np.isfinite(h[2])):
+                truth[b], mask[b] = h[2], True
+        if mask.any():
+            events.append(("target", torch.as_tensor(truth, dtype=DTYPE), torch.as_tensor(mask)))
+    x0 = torch.as_tensor(np.stack([w.x0 for w in windows]), dtype=DTYPE)
+    return Batch(x0=x0, events=events)
+
+
 def linear_batch(x_true: np.ndarray, z: np.ndarray) -> Batch:
     """The events of sequences of a `LinearSystem`: x_true (B, T + 1, n) from x_true[:, 0], z
     (B, T, m) the measurement of x_true[:, t + 1]; F1 = z_t - z_{t-1} (zero at the first)."""
@@ -229,20 +369,38 @@ def linear_batch(x_true: np.ndarray, z: np.ndarray) -> Batch:
     return Batch(x0=x_true[:, 0].clone(), events=events)
 
 
+def mask_of(ev) -> torch.Tensor | None:
+    """The (B,) mask of the runs an event applies to (`recorded_batch`), or None: all of them
+    (events without a mask: `robot_batch`, `linear_batch`)."""
+    want = {"f": 3, "z": 5, "target": 3}[ev[0]]
+    return ev[want - 1] if len(ev) == want else None
+
+
 def feature_scales(system, batches: list[Batch]) -> tuple[np.ndarray, np.ndarray]:
     """(obs_scale, state_scale): the RMS of each component of F1 over the training data (the
     measurements' change between scans) and of the truth's change between targets (the state's
-    change between updates). Only data, never an estimate: the scales are fixed before training."""
+    change between updates). Only data, never an estimate: the scales are fixed before training.
+    A masked event counts its masked runs only; a truth that is NaN (not scored) breaks the
+    chain of changes."""
     d1s, dxs = [], []
     for b in batches:
         prev = None
         for ev in b.events:
+            mask = mask_of(ev)
             if ev[0] == "z":
-                d1s.append(ev[3][torch.any(ev[3] != 0, dim=1)])
+                seen = torch.any(ev[3] != 0, dim=1)
+                d1s.append(ev[3][seen if mask is None else seen & mask])
             elif ev[0] == "target":
-                if prev is not None:
-                    dxs.append(system.residual_x(ev[1], prev))
-                prev = ev[1]
+                if mask is None:
+                    if prev is not None:
+                        dxs.append(system.residual_x(ev[1], prev))
+                    prev = ev[1]
+                    continue
+                if prev is None:
+                    prev = torch.full_like(ev[1], math.nan)
+                d = system.residual_x(ev[1], prev)[mask]
+                dxs.append(d[torch.all(torch.isfinite(d), dim=1)])
+                prev = torch.where(mask[:, None], ev[1], prev)
 
     def rms(parts, dim):
         if not parts:
@@ -296,8 +454,9 @@ class FilterState:
             setattr(self, name, getattr(self, name).detach())
 
 
-def update(net, system, st: FilterState, z, aux, d1, obs_scale, state_scale) -> None:
-    """One measurement: the four features, the gain, x+ = x- + K nu (filters/kalmannet.py)."""
+def update(net, system, st: FilterState, z, aux, d1, obs_scale, state_scale, mask=None) -> None:
+    """One measurement: the four features, the gain, x+ = x- + K nu (filters/kalmannet.py).
+    With a mask, the runs outside it keep x, the hidden state and the features' history."""
     x = st.x
     z_hat, rot, geo, scale = system.measure(x, aux)
     nu = system.residual_z(z, z_hat)
@@ -313,9 +472,19 @@ def update(net, system, st: FilterState, z, aux, d1, obs_scale, state_scale) -> 
         ],
         dim=1,
     )
+    st.h_prev = st.h
     k_raw, st.h = net(features, st.h)
     K = torch.einsum("bji,bjk->bik", rot, k_raw * scale)  # rot^T (K_local): back to the world
     x_post = system.wrap_x(x + torch.einsum("bij,bj->bi", K, nu))
+    if mask is not None:
+        keep, h_prev = mask[:, None], st.h_prev
+
+        def pick(new, old):
+            return torch.where(keep, new, old)
+
+        st.post_prev2, st.prior_prev = pick(st.post_prev, st.post_prev2), pick(x, st.prior_prev)
+        st.post_prev, st.x, st.h = pick(x_post, st.post_prev), pick(x_post, x), pick(st.h, h_prev)
+        return
     st.post_prev2, st.post_prev, st.prior_prev = st.post_prev, x_post, x
     st.x = x_post
 
@@ -348,15 +517,20 @@ def run_pass(net, system, batch: Batch, scales, bptt: int, optimizer=None, on_st
         st.detach()
 
     for ev in batch.events:
+        mask = mask_of(ev)
         if ev[0] == "f":
-            st.x = system.f_span(st.x, ev[1])
+            moved = system.f_span(st.x, ev[1])
+            st.x = moved if mask is None else torch.where(mask[:, None], moved, st.x)
         elif ev[0] == "z":
-            update(net, system, st, ev[1], ev[2], ev[3], obs_scale, state_scale)
+            update(net, system, st, ev[1], ev[2], ev[3], obs_scale, state_scale, mask)
             updates += 1
         else:
-            window_x.append(st.x)
-            window_true.append(ev[1])
+            # A masked target scores its masked runs only (the truth is NaN elsewhere).
             estimates.append(st.x.detach())
+            if mask is not None and not bool(mask.any()):
+                continue
+            window_x.append(st.x if mask is None else st.x[mask])
+            window_true.append(ev[1] if mask is None else ev[1][mask])
             if optimizer is not None and updates >= bptt:
                 step()
     step()
@@ -524,4 +698,44 @@ def train(spec, runs, world, ctx, progress: bool = False) -> TrainingResult:
         seed=spec.seed,
         progress=progress,
         description=f"training {spec.name}",
+    )
+
+
+def train_recorded(
+    spec, drives, model: Unicycle, progress=False, description: str | None = None
+) -> TrainingResult:
+    """KalmanNet for the unicycle from recorded training drives (`spec`'s parameters): `drives`
+    are (Timeline, truth at its evaluation times with NaN where not scored) pairs, each cut into
+    windows of `spec.window_s` seconds (`windows_of_drive`); `spec.validation_runs` of the
+    windows, spread evenly over them, are held out to pick the best epoch, the others fitted in
+    batches of `spec.batch_size`. Only what `drives` holds is read: never a test drive."""
+    if not isinstance(model, Unicycle):
+        raise ValueError("kalmannet on recorded drives trains on the unicycle model")
+    windows = [w for tl, truth in drives for w in windows_of_drive(tl, truth, spec.window_s)]
+    if len(windows) <= spec.validation_runs:
+        raise ValueError(
+            f"validation_runs: {spec.validation_runs} must be fewer than the training windows"
+            f" ({len(windows)} of {spec.window_s:g} s)"
+        )
+    ranges = np.concatenate([w.timeline.z[:, 0] for w in windows])
+    system = UnicycleSystem(float(np.mean(ranges)) if len(ranges) else 1.0)
+    held: set[int] = set()
+    if spec.validation_runs:
+        held = set(np.round(np.linspace(0, len(windows) - 1, spec.validation_runs)).astype(int))
+    fitted = [w for i, w in enumerate(windows) if i not in held]
+    checked = [w for i, w in enumerate(windows) if i in held]
+    size = spec.batch_size
+    batches = [recorded_batch(system, fitted[i : i + size]) for i in range(0, len(fitted), size)]
+    validation = [recorded_batch(system, checked)] if checked else None
+    return fit(
+        system,
+        batches,
+        validation=validation,
+        epochs=spec.epochs,
+        learning_rate=spec.learning_rate,
+        hidden_size=spec.hidden_size,
+        bptt=spec.bptt,
+        seed=spec.seed,
+        progress=progress,
+        description=description or f"training {spec.name}",
     )

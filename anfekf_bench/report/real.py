@@ -426,7 +426,8 @@ def ratio_rows(rd: RealData) -> list[dict]:
 def ratio_figure(rd: RealData):
     rows = [r for r in ratio_rows(rd) if r["kind"] != "ekf-tuned"]
     bases = list(dict.fromkeys(r["base"] for r in rows))
-    starts = sorted({r["start"] for r in rows})
+    # A trained filter (kalmannet) has one instance, start None: drawn after the naive starts.
+    starts = sorted({r["start"] for r in rows}, key=lambda m: (m is None, m or 0.0))
     fig, axes = _figure(1, 1, (8, 0.35 * len(bases) * max(1, len(starts)) + 1.5))
     ax = axes[0, 0]
     markers = "os^Dv<>p"
@@ -445,7 +446,8 @@ def ratio_figure(rd: RealData):
                         color=colours[base], ms=5, capsize=2,
                         gid=f"ratio/{r['filter']}")  # fmt: skip
             ticks.append(y)
-            labels.append(f"{base} x{m:g}" + (" (lost lock)" if r["lost_lock_runs"] else ""))
+            shown = base if m is None else f"{base} x{m:g}"
+            labels.append(shown + (" (lost lock)" if r["lost_lock_runs"] else ""))
             y -= 1
         y -= 0.5
     ax.axvline(1.0, color="k", lw=1)
@@ -460,6 +462,13 @@ def ratio_figure(rd: RealData):
 # Markdown
 
 
+def _start_text(r: dict) -> str:
+    """A row's start: 'x1' (a naive start), 'tuned' (ekf-tuned), 'trained' (kalmannet)."""
+    if r["start"] is not None:
+        return f"x{r['start']:g}"
+    return "tuned" if r["kind"] == "ekf-tuned" else "trained"
+
+
 def markdown_table(rd: RealData) -> str:
     header = (
         "filter", "start", "RMSE pos [m]", "pooled [m]", "ratio to ekf-tuned [95 %]",
@@ -471,7 +480,7 @@ def markdown_table(rd: RealData) -> str:
         if math.isfinite(r["lo"]):
             ratio += f" [{r['lo']:.2f}, {r['hi']:.2f}]"
         lines.append("| " + " | ".join([
-            r["base"], "tuned" if r["start"] is None else f"x{r['start']:g}",
+            r["base"], _start_text(r),
             format_number(r["rmse_pos"], 3), format_number(r["rmse_pos_pooled"], 3), ratio,
             format_number(r["rmse_heading_deg"], 1), format_number(r["anees"], 1),
             format_share(r["nees_in_bounds"]), format_share(r["gate_rejected"]),
@@ -767,7 +776,7 @@ def drives_markdown(rd: RealData, figures: dict[str, str]) -> str:
         if math.isfinite(r["lo"]):
             ratio += f" [{r['lo']:.2f}, {r['hi']:.2f}]"
         lines.append("| " + " | ".join([
-            r["base"], "tuned" if r["start"] is None else f"x{r['start']:g}", ratio,
+            r["base"], _start_text(r), ratio,
             format_number(r["p_value"], 3), f"{r['better']}/{r['used']}",
             format_number(r["rmse_median"], 3), f"{r['lost_lock']}/{r['drives']}",
         ]) + " |")  # fmt: skip

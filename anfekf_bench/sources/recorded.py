@@ -69,6 +69,12 @@ REAL_SPECS: tuple[type[FilterSpec], ...] = (
     TunedEKFSpec,
     EKFMLSpec,
 )
+# KalmanNet is trained on the training drives (protocol drives) or the training segments
+# (protocol segments) by anfekf_bench.real_training.
+TRAINED_KINDS = ("kalmannet",)  # one instance each (no naive noise to start from)
+REAL_SPECS += tuple(
+    s for s in SPECS if s.model_fields["kind"].annotation.__args__[0] in TRAINED_KINDS
+)
 REAL_KINDS = tuple(s.model_fields["kind"].annotation.__args__[0] for s in REAL_SPECS)
 RealFilterSpec = Annotated[Union[REAL_SPECS], Field(discriminator="kind")]  # noqa: UP007
 
@@ -333,7 +339,7 @@ FIXED_KINDS = ("ekf-tuned", "ekf-ml")  # one instance, its noise fitted: no naiv
 
 def _instances(filters, starts):
     for spec in filters:
-        if spec.kind in FIXED_KINDS:
+        if spec.kind in FIXED_KINDS or spec.kind in TRAINED_KINDS:
             yield spec.name, spec, None
         else:
             for m in starts:

@@ -56,7 +56,7 @@ from .outputs import (
     write_fit,
     write_result_tables,
 )
-from .real_training import fit_on_drives, fit_on_segments
+from .real_training import fit_on_drives, fit_on_segments, trained_filters
 from .runner import engine_of, fast_compiled, run_spec
 from .sources import mrclam
 from .sources.recorded import (
@@ -769,7 +769,11 @@ def execute_real(
             return _execute_drives(plan, target, done, action, fingerprint, on_start, on_result,
                                    started, progress)  # fmt: skip
         # Trained filters (kalmannet): fitted on the training segments only (or the cache).
-        run_scenario, trained = fit_on_segments(scenario, rec, target / RUNS_DIR, progress)
+        learns = bool(trained_filters(scenario))
+        training = [segment_inputs(rec, s) for s in rec.train_segments] if learns else []
+        run_scenario, trained = fit_on_segments(
+            scenario, rec, training, target / RUNS_DIR, progress
+        )  # fmt: skip
         for name in trained:
             how = "read from the cache" if trained[name]["train"]["cached"] else "trained"
             action += f"; {name} {how} on the training segments"

@@ -123,20 +123,18 @@ _SEGMENT_FIELDS = _INPUT_FIELDS | {"split_fraction", "split_at_s", "segment_s", 
 
 
 def fit_on_segments(
-    scenario: RealScenario, rec, cache_dir: Path | None, progress: Any = None
+    scenario: RealScenario, rec, segments: list, cache_dir: Path | None, progress: Any = None
 ) -> tuple[RealScenario, dict]:
-    """Protocol segments: every trained filter fitted once on the log's training segments (each
-    cold-started from ground truth, as `ekf-tuned`'s tuning sees them; never a held-out one), or
-    read from the cache. Returns the scenario carrying the fits and the manifest's account (per
-    filter, one fold keyed "train")."""
+    """Protocol segments: every trained filter fitted once on the log's training segments
+    (`segments`: their real_experiment.SegmentInputs, each cold-started from ground truth, as
+    `ekf-tuned`'s tuning sees them; never a held-out one), or read from the cache. Returns the
+    scenario carrying the fits and the manifest's account (per filter, one fold keyed "train")."""
     from .models import Unicycle
-    from .real_experiment import segment_inputs
 
     todo = trained_filters(scenario)
     if not todo:
         return scenario, {}
     model = Unicycle(scenario.odometry_period_s)
-    segments = [segment_inputs(rec, s) for s in rec.train_segments]
     specs, records = {}, {}
     for spec in todo:
         doc = {

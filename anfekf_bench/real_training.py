@@ -28,14 +28,16 @@ from pathlib import Path
 from typing import Any
 
 from .outputs import FIT_FILE, PlanError, code_version, read_cached_fit, write_fit
-from .sources.recorded import DriveSet, RealScenario, log_digest
+from .sources.recorded import TRAINED_KINDS, DriveSet, RealScenario, log_digest
 
 # The scenario fields a drive's timeline and scored truth depend on (real_experiment.segment_inputs)
 _INPUT_FIELDS = {"eval_period_s", "odometry_period_s", "max_gap_s", "misfit_detection"}
 
 
 def trained_filters(scenario: RealScenario) -> list:
-    return [f for f in scenario.filters if getattr(f, "fitted_on_training", False)]
+    """The filters trained on training drives or segments (kalmannet); ekf-ml is fitted on each
+    run's own innovations instead (real_experiment.fit_on_own_innovations)."""
+    return [f for f in scenario.filters if f.kind in TRAINED_KINDS]
 
 
 def fold_fingerprint(scenario: RealScenario, spec, drives: list) -> str:

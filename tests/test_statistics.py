@@ -8,6 +8,7 @@ import warnings
 import numpy as np
 import pytest
 
+from anfekf_bench.analysis import statistics
 from anfekf_bench.analysis.metrics import summarize_filter
 from anfekf_bench.analysis.statistics import (
     METRICS,
@@ -120,6 +121,29 @@ def test_the_run_weight_path_equals_indexing_the_runs():
     fast = paired_bootstrap(a, b, rmse_statistic, resamples=300)
     plain = paired_bootstrap(a, b, lambda x: rmse_statistic(x), resamples=300)  # no run-mean form
     assert fast.method == plain.method == "BCa"
+    for key in ("estimate", "lo", "hi"):
+        assert getattr(fast, key) == pytest.approx(getattr(plain, key), rel=1e-12)
+
+
+@pytest.mark.parametrize("statistic", [rmse_statistic, mean_statistic], ids=["rmse", "mean"])
+def test_the_run_weight_path_equals_indexing_the_runs_with_unscored_steps(statistic):
+    """Recorded logs: NaN where a step has no score (Vicon gaps, padding after a short drive;
+    here one step no run scores). The weighted path leaves each run out of the steps it does not
+    score, as np.nanmean over the resampled runs does, and gives the plain path's interval."""
+    rng = np.random.default_rng(11)
+    a, b = (np.abs(rng.normal(1.0, 0.5, (11, 40))) for _ in range(2))
+    for x in (a, b):
+        x[rng.random(x.shape) < 0.2] = np.nan
+        x[3, 25:] = np.nan  # a short drive
+        x[:, 7] = np.nan  # a step no run scores
+    idx = rng.integers(0, 11, (50, 11))
+    weighted = statistics._resampled(statistic, a)
+    assert weighted is not None
+    direct = np.array([statistic(a[i]) for i in idx])
+    np.testing.assert_allclose(weighted(idx), direct, rtol=1e-12)
+    fast = paired_bootstrap(a, b, statistic, resamples=300)
+    plain = paired_bootstrap(a, b, lambda x: statistic(x), resamples=300)  # no run-mean form
+    assert math.isfinite(fast.lo) and fast.method == plain.method
     for key in ("estimate", "lo", "hi"):
         assert getattr(fast, key) == pytest.approx(getattr(plain, key), rel=1e-12)
 

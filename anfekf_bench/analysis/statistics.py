@@ -140,19 +140,27 @@ def in_bounds_statistic(nees: np.ndarray) -> float | np.ndarray:
 
 # The statistics above take a mean over runs first: statistic(x) = g(mean over runs of h(x)). A
 # resample of run indices is then a weight per run, and the run means of every resample at once
-# are one matrix product (`_resampled`): no (resamples, runs, steps) copy of the data.
-rmse_statistic.run_mean_form = (np.square, lambda m: np.sqrt(m).mean(axis=-1))
-mean_statistic.run_mean_form = (lambda x: x, lambda m: m.mean(axis=-1))
+# are one matrix product (`_resampled`): no (resamples, runs, steps) copy of the data. Steps
+# without a score (NaN: recorded logs) leave a run out of that step's mean: the weighted sum over
+# the runs that have a value, over their summed weight (np.nanmean over the resampled runs); g's
+# time mean then leaves out the steps no resampled run scores (`nan_aware_mean`).
+rmse_statistic.run_mean_form = (np.square, lambda m: nan_aware_mean(np.sqrt(m), axis=-1))
+mean_statistic.run_mean_form = (lambda x: x, lambda m: nan_aware_mean(m, axis=-1))
 
 
 def _resampled(statistic: Statistic, x: np.ndarray) -> Callable[[np.ndarray], np.ndarray] | None:
     """statistic(x[idx]) for stacks of run indices idx (..., k), through the weights of each
-    resample's runs; None when the statistic has no run-mean form or x has NaN (unscored steps)."""
+    resample's runs; None when the statistic has no run-mean form."""
     form = getattr(statistic, "run_mean_form", None)
-    if form is None or np.isnan(x).any():
+    if form is None:
         return None
     h, g = form
     hx = h(x)
+    scored = ~np.isnan(hx)
+    unscored = not scored.all()
+    if unscored:
+        hx = np.where(scored, hx, 0.0)
+        scored = scored.astype(float)
     runs = x.shape[0]
 
     def of(idx: np.ndarray) -> np.ndarray:
@@ -160,7 +168,12 @@ def _resampled(statistic: Statistic, x: np.ndarray) -> Callable[[np.ndarray], np
         rows = flat.shape[0]
         cells = (flat + runs * np.arange(rows)[:, None]).ravel()
         weights = np.bincount(cells, minlength=rows * runs).reshape(rows, runs) / flat.shape[-1]
-        return g(weights @ hx).reshape(idx.shape[:-1])
+        if unscored:
+            with np.errstate(invalid="ignore", divide="ignore"):  # 0 / 0: a step none scores
+                m = (weights @ hx) / (weights @ scored)
+        else:
+            m = weights @ hx
+        return g(m).reshape(idx.shape[:-1])
 
     return of
 

@@ -27,7 +27,6 @@ from __future__ import annotations
 import functools
 import math
 import sys
-import weakref
 
 import numpy as np
 
@@ -94,56 +93,8 @@ def _motion(model: object) -> tuple[int, float, float] | None:
 register_engine("fast", supports)  # what `anfekf kinds` and the registry's capabilities report
 
 
-# ---------------------------------------------------------------------------------------------
-# A run's scans as flat arrays, per scan (the ekf-ml tuning grid reads them; the kernels read a
-# timeline: `timeline.from_run`)
-
-
-class FlatScans:
-    """The scans of one run as the kernel reads them: scan i's measurements are rows
-    start[i] .. start[i + 1] - 1 of `landmarks` (their map positions) and `z`."""
-
-    __slots__ = ("start", "landmarks", "z")
-
-    def __init__(self, start: np.ndarray, landmarks: np.ndarray, z: np.ndarray):
-        self.start = start
-        self.landmarks = landmarks
-        self.z = z
-
-
-_last_flat: tuple[weakref.ref, weakref.ref, FlatScans] | None = None
-
-
-def flat_scans(data: RunData, world: World) -> FlatScans:
-    """`data.scans` as flat arrays; the last run's are kept, so that the filters of one run
-    (called one after the other on the same `RunData`) flatten its scans once."""
-    global _last_flat
-    if _last_flat is not None:
-        data_ref, lm_ref, flat = _last_flat
-        if data_ref() is data and lm_ref() is world.landmarks:
-            return flat
-    scans = data.scans
-    counts = np.fromiter((len(s.ids) for s in scans), dtype=np.int64, count=len(scans))
-    start = np.zeros(len(scans) + 1, dtype=np.int64)
-    np.cumsum(counts, out=start[1:])
-    if start[-1]:
-        ids = np.concatenate([s.ids for s in scans])
-        z = np.ascontiguousarray(np.concatenate([s.z for s in scans]), dtype=float).reshape(-1, 2)
-        landmarks = np.ascontiguousarray(world.landmarks[ids], dtype=float)
-    else:
-        z = landmarks = np.zeros((0, 2))
-    flat = FlatScans(start, landmarks, z)
-    try:
-        _last_flat = (weakref.ref(data), weakref.ref(world.landmarks), flat)
-    except TypeError:  # not weak-referenceable: no cache
-        _last_flat = None
-    return flat
-
-
 def clear_cache() -> None:
-    """Forget the last run's flattened scans and timeline (the bench times making them too)."""
-    global _last_flat
-    _last_flat = None
+    """Forget the last run's timeline (the bench times making it too)."""
     clear_timeline_cache()
 
 

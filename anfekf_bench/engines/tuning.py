@@ -55,7 +55,7 @@ from scipy.stats import chi2
 from ..analysis.metrics import recorded_steps
 from ..config import World
 from ..sources.simulator import RunData
-from .fast import flat_scans
+from ..timeline import from_run
 from .kernels import (
     MOTION_BICYCLE,
     MOTION_UNICYCLE,
@@ -248,29 +248,14 @@ class TimelineLikelihood:
 
 
 def _fixed_rate_timeline(data: RunData, world: World, steps: np.ndarray) -> tuple:
-    """A simulated run in the per-stamp contract: one stamp per control step (dt = T), the scan
-    of step k (every sensor_every-th) at stamp k, record stamps at the scorer's steps, and the
-    truth there."""
-    scans = flat_scans(data, world)
-    K = len(data.u_odo)
-    every = int(world.sensor_every)
-    counts = np.zeros(K, dtype=np.int64)
-    n_scans = len(scans.start) - 1
-    scan_steps = np.arange(every, K + 1, every)[:n_scans]
-    counts[scan_steps - 1] = np.diff(scans.start)[: len(scan_steps)]
-    lm = np.zeros(K + 1, dtype=np.int64)
-    np.cumsum(counts, out=lm[1:])
-    record = np.zeros(K, np.bool_)
+    """A simulated run in the per-stamp contract (`timeline.from_run`: one stamp per control
+    step, the scan of step k at stamp k), its record stamps at the scorer's steps, and the truth
+    there."""
+    tl = from_run(data, world, 0)
+    record = np.zeros(len(tl.t), np.bool_)
     record[steps - 1] = True
-    return (
-        np.full(K, float(world.T)),
-        np.ascontiguousarray(data.u_odo, dtype=float),
-        lm,
-        scans.z,
-        scans.landmarks,
-        record,
-        np.ascontiguousarray(data.truth.x[steps], dtype=float),
-    )
+    truth = np.ascontiguousarray(data.truth.x[steps], dtype=float)
+    return tl.dt, tl.u, tl.lm, tl.z, tl.xy, record, truth
 
 
 @dataclass(frozen=True)

@@ -1727,7 +1727,7 @@ def swvb_qu_sample(x, x_m, P, P_m_a, interval):
     dx = np.array([x[0] - x_m[0], x[1] - x_m[1], wrap(x[2] - x_m[2])])
     try:
         P_m_inv = inv(P_m_a)
-        W = process_noise_moment(dx, FPF, P_m_a, P_m_inv, as_matrix(P))
+        W = process_noise_moment(dx, FPF, P_m_inv, as_matrix(P))
         q = qu_least_squares(W, A_v, A_g, P_m_inv)
     except Exception:  # numba catches no narrower class
         return False, (0.0, 0.0)

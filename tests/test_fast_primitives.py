@@ -42,6 +42,28 @@ def test_products_are_numpys(compiled):
         assert compiled["trace_of_product"](A, B) == np.trace(compiled["matmul"](A, B))
 
 
+def test_products_sum_in_k_order(compiled):
+    """The unrolled 3 x 3 product and the general loop (3 x 2, 2 x 3) both sum each entry from
+    0.0 with k ascending: the same bits as that sum written out in Python floats."""
+
+    def k_order(A, B):
+        out = np.empty((A.shape[0], B.shape[1]))
+        for i in range(A.shape[0]):
+            for j in range(B.shape[1]):
+                t = 0.0
+                for k in range(A.shape[1]):
+                    t += float(A[i, k]) * float(B[k, j])
+                out[i, j] = t
+        return out
+
+    for shape_a, shape_b in (((3, 3), (3, 3)), ((3, 3), (3, 2)), ((2, 3), (3, 3))):
+        A, B = rng.normal(size=shape_a), rng.normal(size=shape_b)
+        np.testing.assert_array_equal(compiled["matmul"](A, B), k_order(A, B))
+        np.testing.assert_array_equal(compiled["matmul"](A, B.T.T), k_order(A, B))
+    A = rng.normal(size=(3, 3))
+    np.testing.assert_array_equal(compiled["matmul"](A, A.T), k_order(A, A.T))
+
+
 def test_inv_is_numpys_with_pivoting(compiled):
     for _ in range(20):
         A = rng.normal(size=(3, 3))

@@ -35,7 +35,7 @@ def test_process_noise_moment_is_the_smoothed_second_moment():
     K = P_m @ C.T @ np.linalg.inv(C @ P_m @ C.T + Rv)
     x_p = K @ y
     P_p = (np.eye(3) - K @ C) @ P_m
-    W = process_noise_moment(x_p, P_s, F, P_m, np.linalg.inv(P_m), P_p)
+    W = process_noise_moment(x_p, F @ P_s @ F.T, np.linalg.inv(P_m), P_p)
     # brute force: the joint of (x_s, x_k, y), conditioned on y
     T = np.vstack([np.hstack([np.eye(3), np.zeros((3, 3))]), np.hstack([F, np.eye(3)])])
     S_sw = np.block([[P_s, np.zeros((3, 3))], [np.zeros((3, 3)), Q]])

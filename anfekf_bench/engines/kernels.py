@@ -1051,6 +1051,13 @@ if _NJIT is not None:
             n, m = A.shape
             p = B.shape[1]
             out = np.empty((n, p))
+            if n == 3 and m == 3 and p == 3:  # the rules' usual case, unrolled: the same sums
+                for i in range(3):
+                    a0, a1, a2 = A[i, 0], A[i, 1], A[i, 2]
+                    out[i, 0] = 0.0 + a0 * B[0, 0] + a1 * B[1, 0] + a2 * B[2, 0]
+                    out[i, 1] = 0.0 + a0 * B[0, 1] + a1 * B[1, 1] + a2 * B[2, 1]
+                    out[i, 2] = 0.0 + a0 * B[0, 2] + a1 * B[1, 2] + a2 * B[2, 2]
+                return out
             for i in range(n):
                 for j in range(p):
                     t = 0.0
@@ -1696,32 +1703,31 @@ def flat9(A):
 @maybe_njit
 def swvb_interval(P_s, F_s, A_v, A_g):
     """What the rules read of the interval, the same over a scan's passes, as 3 x 3 arrays:
-    (P_s, F_s, F_s P_s F_s^T, A_v, A_g) from row-major 9-tuples."""
-    P_s_a = as_matrix(P_s)
+    (F_s P_s F_s^T, A_v, A_g) from row-major 9-tuples."""
     F = as_matrix(F_s)
-    return P_s_a, F, matmul(matmul(F, P_s_a), F.T), as_matrix(A_v), as_matrix(A_g)
+    return matmul(matmul(F, as_matrix(P_s)), F.T), as_matrix(A_v), as_matrix(A_g)
 
 
 @maybe_njit
 def swvb_interval_prior(interval, qv, qg):
-    """`interval_prior` of `swvb_interval`'s arrays, as a row-major 9-tuple."""
-    _, _, FPF, A_v, A_g = interval
-    return flat9(interval_prior(FPF, A_v, A_g, qv, qg))
+    """`interval_prior` of `swvb_interval`'s arrays, as a row-major 9-tuple and as the array."""
+    FPF, A_v, A_g = interval
+    P_m = interval_prior(FPF, A_v, A_g, qv, qg)
+    return flat9(P_m), P_m
 
 
 @maybe_njit
-def swvb_qu_sample(x, x_m, P, P_m, interval):
+def swvb_qu_sample(x, x_m, P, P_m_a, interval):
     """A pass's sample of diag(Qu) in SWVBEKF.update_scan, not clipped: the smoother's moment
     (`process_noise_moment`, dx = x - x_m with its heading wrapped) mapped to (qv, qg) with the
     weight P_m^-1; (ok, (qv, qg)), ok False where P_m is singular or not finite (LinAlgError:
-    the filter diverged). x, x_m 3-tuples, P, P_m row-major 9-tuples, `interval` the arrays of
-    `swvb_interval`."""
-    P_s, F_s, _, A_v, A_g = interval
+    the filter diverged). x, x_m 3-tuples, P a row-major 9-tuple, P_m_a the 3 x 3 array,
+    `interval` the arrays of `swvb_interval`."""
+    FPF, A_v, A_g = interval
     dx = np.array([x[0] - x_m[0], x[1] - x_m[1], wrap(x[2] - x_m[2])])
-    P_m_a = as_matrix(P_m)
     try:
         P_m_inv = inv(P_m_a)
-        W = process_noise_moment(dx, P_s, F_s, P_m_a, P_m_inv, as_matrix(P))
+        W = process_noise_moment(dx, FPF, P_m_inv, as_matrix(P))
         q = qu_least_squares(W, A_v, A_g, P_m_inv)
     except Exception:  # numba catches no narrower class
         return False, (0.0, 0.0)
@@ -1799,9 +1805,10 @@ def run_swvb_kernel(
             b_r0_n = b_r0
             b_r1_n = b_r1
             interval = swvb_interval(P_s, F_scan, A_v, A_g)
+            P_m_a = as_matrix(P_m)
             for n in range(passes):
                 if n > 0:
-                    P_m = swvb_interval_prior(interval, qu0, qu1)
+                    P_m, P_m_a = swvb_interval_prior(interval, qu0, qu1)
                 x = x_m
                 P = P_m
                 if adaptation:
@@ -1825,7 +1832,7 @@ def run_swvb_kernel(
                         return True, j, nis_sum, n_updates, n_rejected
                 if not adaptation:
                     break
-                ok, q = swvb_qu_sample(x, x_m, P, P_m, interval)
+                ok, q = swvb_qu_sample(x, x_m, P, P_m_a, interval)
                 if not ok:
                     return True, j, nis_sum, n_updates, n_rejected
                 b_q0_n = b_q0 + 0.5 * clip_to_bounds(q[0], Qu0[0], bounds)

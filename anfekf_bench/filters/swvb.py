@@ -14,7 +14,7 @@ a <- rho a, b <- rho b (once per scan), iterate n = 1..N from the scan's prior x
     lag-one smoother over the interval:  J = P_s F_s^T P-(n)^-1,
         m = (I - F_s J) dx,  dx = x+ - x- (heading wrapped)
         E[w w^T] = m m^T + P+ - P+ J^T F_s^T - F_s J P+ + F_s P_s|k F_s^T,
-        P_s|k = P_s + J (P+ - P-(n)) J^T                                                  (S.2)
+        P_s|k = P_s + J (P+ - P-(n)) J^T  (computed with L = I - F_s J)            (S.2)
     q = qu_least_squares(E[w w^T], A_v, A_g, P-(n)^-1) clipped to the bounds (notes 0.4a)
     Qu(n) = (b_q + q / 2) / (a_q + 1/2)                                                   (S.3)
     R(n)  = (b_r + 1/2 sum_l [e_l^2 + diag(H_l P+ H_l^T)]) / (a_r + n_l / 2),
@@ -48,17 +48,22 @@ def interval_prior(FPF, A_v, A_g, qv, qg):
     return FPF + qv * A_v + qg * A_g
 
 
-def process_noise_moment(dx, P_s, F_s, P_prior, P_prior_inv, P_post):
+def process_noise_moment(dx, FPF, P_prior_inv, P_post):
     """E[w w^T] of the interval's process noise w = x_k - F_s x_s under the lag-one smoother
-    (S.2); dx = x+ - x- with its heading wrapped, P_prior_inv = P_prior^-1 (the caller's: it
-    also weighs the least squares). (`matmul` and `outer` are numpy's, compiled as plain loops
-    on the fast engine.)"""
-    J = matmul(matmul(P_s, F_s.T), P_prior_inv)
-    m = dx - matmul(F_s, matmul(J, dx))
-    P_s_smooth = P_s + matmul(matmul(J, P_post - P_prior), J.T)
-    C = matmul(matmul(P_post, J.T), F_s.T)
-    W = outer(m, m) + P_post - C - C.T + matmul(matmul(F_s, P_s_smooth), F_s.T)
-    return 0.5 * (W + W.T)
+    (S.2), in terms of L = I - F_s J = I - FPF P-^-1 (FPF = F_s P_s F_s^T, the same over a
+    scan's passes): m = L dx, and with F_s J P- = FPF,
+
+        E[w w^T] = m m^T + P+ - P+ J^T F_s^T - F_s J P+ + F_s P_s|k F_s^T
+                 = m m^T + (L P+ + FPF) L^T,
+
+    three 3 x 3 products where J's form takes nine (equal to round-off). Symmetric to round-off
+    and not symmetrised: `qu_least_squares` reads only its symmetric part (tr(W A W X^T) =
+    tr(W A W X) for symmetric W and A). dx = x+ - x- with its heading wrapped,
+    P_prior_inv = P-^-1 (the caller's: it also weighs the least squares). (`matmul` and
+    `outer` are numpy's, compiled as plain loops on the fast engine.)"""
+    L = np.eye(3) - matmul(FPF, P_prior_inv)
+    m = matmul(L, dx)
+    return outer(m, m) + matmul(matmul(L, P_post) + FPF, L.T)
 
 
 def r_moment(zs, landmarks, x, P):
@@ -129,7 +134,7 @@ class SWVBEKF(AdaptiveEKF):
             dx = self.x - x_m
             dx[2] = wrap_scalar(dx[2])
             P_m_inv = np.linalg.inv(P_m)
-            W = process_noise_moment(dx, self.P_scan_start, self.F_scan, P_m, P_m_inv, self.P)
+            W = process_noise_moment(dx, FPF, P_m_inv, self.P)
             q = clip_to_bounds(qu_least_squares(W, self.A_v, self.A_g, P_m_inv), qu0, self.bounds)
             b_q_n = b_q + 0.5 * q
             qu = clip_to_bounds(b_q_n / (a_q + 0.5), qu0, self.bounds)

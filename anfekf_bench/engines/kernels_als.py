@@ -212,6 +212,29 @@ if JIT and not _PURE_COPY:
 
         return impl
 
+    @overload(_als.dual)
+    def _dual_loop(R, c, x):
+        """Compiled, R^T (c - R x) is two plain loops (numba's `@` calls BLAS, whose call
+        costs more than these 4 x 4 products), sums in index order."""
+
+        def impl(R, c, x):
+            n, k = R.shape
+            res = np.empty(n)
+            for i in range(n):
+                t = 0.0
+                for j in range(k):
+                    t += R[i, j] * x[j]
+                res[i] = c[i] - t
+            w = np.empty(k)
+            for j in range(k):
+                t = 0.0
+                for i in range(n):
+                    t += res[i] * R[i, j]
+                w[j] = t
+            return w
+
+        return impl
+
     @overload(_als.closed_loop)
     def _closed_loop_loop(K, H):
         """Compiled, I - K H is one loop into one array (K H summed as `matmul`'s loop)."""
@@ -230,50 +253,51 @@ if JIT and not _PURE_COPY:
         return impl
 
     @register_jitable
-    def _factor_in_place(W):
-        """The upper-triangular factor of W (r x k), Householder's QR as LAPACK's dgeqr2 runs
-        it (dlarfg's sign convention: T's diagonal is -sign(w_jj) times the column's norm), W
-        overwritten."""
-        r, k = W.shape
+    def _factor_columns(Wt):
+        """The upper-triangular factor of W (r x k), given as its columns Wt = W^T (k x r, so
+        that every inner loop runs along contiguous memory), overwritten: Householder's QR as
+        LAPACK's dgeqr2 runs it (dlarfg's sign convention: T's diagonal is -sign(w_jj) times
+        the column's norm)."""
+        k, r = Wt.shape
         for j in range(min(r, k)):
             s = 0.0
             for i in range(j + 1, r):
-                s += W[i, j] * W[i, j]
-            alpha = W[j, j]
+                s += Wt[j, i] * Wt[j, i]
+            alpha = Wt[j, j]
             if s == 0.0:  # nothing below the diagonal: H = I
                 continue
             norm = math.sqrt(alpha * alpha + s)
             beta = -norm if alpha >= 0.0 else norm
             tau = (beta - alpha) / beta
-            v0 = alpha - beta
+            scale = 1.0 / (alpha - beta)  # dlarfg scales by the reciprocal too
             for i in range(j + 1, r):
-                W[i, j] /= v0
-            W[j, j] = beta
+                Wt[j, i] *= scale
+            Wt[j, j] = beta
             for c in range(j + 1, k):
-                t = W[j, c]
+                t = Wt[c, j]
                 for i in range(j + 1, r):
-                    t += W[i, j] * W[i, c]
+                    t += Wt[j, i] * Wt[c, i]
                 t *= tau
-                W[j, c] -= t
+                Wt[c, j] -= t
                 for i in range(j + 1, r):
-                    W[i, c] -= t * W[i, j]
+                    Wt[c, i] -= t * Wt[j, i]
         T = np.zeros((k, k))
         for i in range(min(r, k)):
             for c in range(i, k):
-                T[i, c] = W[i, c]
+                T[i, c] = Wt[c, i]
         return T
 
     @overload(_als.triangularise)
     def _triangularise_loop(Z):
-        """Compiled, the factor is `_factor_in_place` on a copy of Z."""
+        """Compiled, the factor is `_factor_columns` on a copy of Z's columns."""
 
         def impl(Z):
             r, k = Z.shape
-            W = np.empty((r, k))
+            Wt = np.empty((k, r))
             for i in range(r):
                 for c in range(k):
-                    W[i, c] = Z[i, c]
-            return _factor_in_place(W)
+                    Wt[c, i] = Z[i, c]
+            return _factor_columns(Wt)
 
         return impl
 
@@ -284,14 +308,14 @@ if JIT and not _PURE_COPY:
         def impl(X, Y):
             rx, k = X.shape
             ry = Y.shape[0]
-            W = np.empty((rx + ry, k))
+            Wt = np.empty((k, rx + ry))
             for i in range(rx):
                 for c in range(k):
-                    W[i, c] = X[i, c]
+                    Wt[c, i] = X[i, c]
             for i in range(ry):
                 for c in range(k):
-                    W[rx + i, c] = Y[i, c]
-            return _factor_in_place(W)
+                    Wt[c, rx + i] = Y[i, c]
+            return _factor_columns(Wt)
 
         return impl
 

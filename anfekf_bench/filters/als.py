@@ -76,6 +76,11 @@ def right_minus_left(X: np.ndarray, Rm: np.ndarray, L: np.ndarray, Y: np.ndarray
     return X @ Rm.T - L @ Y
 
 
+def dual(R: np.ndarray, c: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """R^T (c - R x): minus the gradient of ||R x - c||^2 / 2 (Lawson & Hanson's w)."""
+    return (c - R @ x) @ R
+
+
 def left_in_place(L: np.ndarray, X: np.ndarray) -> None:
     """X_i <- L X_i for every matrix X_i of the stack X (q, b, c), in place."""
     X[...] = L @ X
@@ -319,7 +324,7 @@ def nnls_triangular(R: np.ndarray, c: np.ndarray) -> np.ndarray:
     tol = 10.0 * _EPS * n * max(np.abs(Rt).max(), 1e-300)
     x = np.zeros(n)
     passive = np.zeros(n, dtype=np.bool_)
-    w = (c - Rt @ x) @ Rt  # the dual: minus the gradient, Rt^T (c - Rt x)
+    w = dual(Rt, c, x)
     skip = np.zeros(n, dtype=np.bool_)  # variables whose entry made no progress (w ~ 0)
     for _ in range(3 * n + 1):
         best, t = tol, -1
@@ -351,7 +356,7 @@ def nnls_triangular(R: np.ndarray, c: np.ndarray) -> np.ndarray:
                     x[i] = 0.0
             z = _passive_solution(Rt, c, passive)
         x = z
-        w = (c - Rt @ x) @ Rt
+        w = dual(Rt, c, x)
     return x
 
 

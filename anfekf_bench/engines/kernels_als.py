@@ -59,7 +59,16 @@ if JIT and not _PURE_COPY:
         (so out may be X: in place)."""
         q, b, c = X.shape
         a = L.shape[0]
-        if b == 3:
+        if b == 3 and a == 3:  # L in locals too
+            l00, l01, l02, l10, l11, l12 = L[0, 0], L[0, 1], L[0, 2], L[1, 0], L[1, 1], L[1, 2]
+            l20, l21, l22 = L[2, 0], L[2, 1], L[2, 2]
+            for i in range(q):
+                for s in range(c):
+                    x0, x1, x2 = X[i, 0, s], X[i, 1, s], X[i, 2, s]
+                    out[i, 0, s] = l00 * x0 + l01 * x1 + (l02 * x2)
+                    out[i, 1, s] = l10 * x0 + l11 * x1 + (l12 * x2)
+                    out[i, 2, s] = l20 * x0 + l21 * x1 + (l22 * x2)
+        elif b == 3:
             for i in range(q):
                 for s in range(c):
                     x0, x1, x2 = X[i, 0, s], X[i, 1, s], X[i, 2, s]

@@ -163,3 +163,41 @@ def test_nnls_kkt_and_non_finite_input():
     A[3, 2] = np.nan
     assert np.all(np.isnan(nnls(A, b)))
     assert np.all(np.isnan(kernels_als.nnls(A, b)))
+
+
+@pytest.mark.skipif(not kernels_als.JIT, reason="numba is not installed: nothing is compiled")
+def test_compiled_products_equal_numpy():
+    """The fused batched products (filters.als) as the fast engine compiles them, plain loops,
+    equal numpy's on every shape their loops special-case (2, 3) and on the general one (4)."""
+    from numba import njit
+
+    from anfekf_bench.filters import als
+
+    @njit
+    def compiled(L, X, Rm, Y, Xr, Rr, Yb, Ly, K, H, R, c, x):
+        Z = X.copy()
+        als.left_in_place(Yb[0], Z)
+        return (
+            als.batch_left(L, X), Z, als.sandwich_plus(L, X, Rm, Y),
+            als.right_plus_sandwich(Xr, Rr, L, Yb), als.right_minus_left(Xr, Rr, L, Ly),
+            als.closed_loop(K, H), als.dual(R, c, x),
+        )  # fmt: skip
+
+    rng = np.random.default_rng(3)
+    for b in (2, 3, 4):
+        for c in (2, 3, 4):
+            a, d, q = 3, 2, 5
+            L, X = rng.standard_normal((a, b)), rng.standard_normal((q, b, c))
+            Rm, Y = rng.standard_normal((d, c)), rng.standard_normal((q, a, d))
+            Xr, Rr = rng.standard_normal((q, a, c)), rng.standard_normal((a, c))
+            Yb, Ly = rng.standard_normal((q, b, b)), rng.standard_normal((q, b, a))
+            K, H = rng.standard_normal((b, c)), rng.standard_normal((c, b))
+            R, v, x = rng.standard_normal((b, c)), rng.standard_normal(b), rng.standard_normal(c)
+            expected = (
+                L @ X, Yb[0] @ X, als.sandwich_plus(L, X, Rm, Y),
+                als.right_plus_sandwich(Xr, Rr, L, Yb), als.right_minus_left(Xr, Rr, L, Ly),
+                als.closed_loop(K, H), als.dual(R, v, x),
+            )  # fmt: skip
+            got = compiled(L, X, Rm, Y, Xr, Rr, Yb, Ly, K, H, R, v, x)
+            for g, e in zip(got, expected, strict=True):
+                np.testing.assert_allclose(g, e, rtol=1e-12, atol=1e-12)

@@ -1,8 +1,9 @@
 """The fast engine's kernel of `als` (filters/als.py): online autocovariance least squares.
 
 The rule is filters/als.py's plain functions, called here as the filterpy engine's `ALSEKF`
-calls them from its hooks (numba compiles them with `register_jitable`; their two batched
-products and the QR's factor, numpy's there, are plain loops here); the EKF steps are
+calls them from its hooks (numba compiles them with `register_jitable`; their batched
+products and the QR's factor, numpy's there, are plain loops here, each writing one array and
+no temporaries: numba's small arrays cost more than their arithmetic); the EKF steps are
 kernels.py's primitives. The loop runs over one run's stamps: stamp i predicts with the controls
 u[i] over dt[i], then fuses the landmarks lm[i] .. lm[i + 1] - 1 (their map positions xy and
 measurements z), then records when record_at[i].
@@ -53,45 +54,68 @@ if JIT and not _PURE_COPY:
     from numba.extending import overload, register_jitable
 
     @register_jitable
-    def _left_into(out, L, X):
-        """out[i] = L X[i] (k ascending; the 2- and 3-term sums written out, which LLVM can
-        schedule: these stacks are 3 x 3, 3 x 2 and 2 x 2)."""
+    def _left_cols(out, L, X):
+        """out[i] = L X_i column by column, each column of X_i read before out's is written
+        (so out may be X: in place)."""
         q, b, c = X.shape
         a = L.shape[0]
-        for i in range(q):
-            for r in range(a):
+        if b == 3 and a == 3:  # L in locals too
+            l00, l01, l02, l10, l11, l12 = L[0, 0], L[0, 1], L[0, 2], L[1, 0], L[1, 1], L[1, 2]
+            l20, l21, l22 = L[2, 0], L[2, 1], L[2, 2]
+            for i in range(q):
                 for s in range(c):
-                    if b == 3:
-                        out[i, r, s] = (
-                            L[r, 0] * X[i, 0, s] + L[r, 1] * X[i, 1, s] + (L[r, 2] * X[i, 2, s])
-                        )
-                    elif b == 2:
-                        out[i, r, s] = L[r, 0] * X[i, 0, s] + L[r, 1] * X[i, 1, s]
-                    else:
-                        t = 0.0
-                        for k in range(b):
-                            t += L[r, k] * X[i, k, s]
-                        out[i, r, s] = t
+                    x0, x1, x2 = X[i, 0, s], X[i, 1, s], X[i, 2, s]
+                    out[i, 0, s] = l00 * x0 + l01 * x1 + (l02 * x2)
+                    out[i, 1, s] = l10 * x0 + l11 * x1 + (l12 * x2)
+                    out[i, 2, s] = l20 * x0 + l21 * x1 + (l22 * x2)
+        elif b == 3:
+            for i in range(q):
+                for s in range(c):
+                    x0, x1, x2 = X[i, 0, s], X[i, 1, s], X[i, 2, s]
+                    for r in range(a):
+                        out[i, r, s] = L[r, 0] * x0 + L[r, 1] * x1 + (L[r, 2] * x2)
+        elif b == 2:
+            for i in range(q):
+                for s in range(c):
+                    x0, x1 = X[i, 0, s], X[i, 1, s]
+                    for r in range(a):
+                        out[i, r, s] = L[r, 0] * x0 + L[r, 1] * x1
+        else:  # (no such stack here: its temporary column is allocated in this branch)
+            col = np.empty(b)
+            for i in range(q):
+                for s in range(c):
+                    for k in range(b):
+                        col[k] = X[i, k, s]
+                    for r in range(a):
+                        out[i, r, s] = _dot(L, r, col)
 
     @register_jitable
-    def _right_into(out, Y, Rm):
-        """out[i] = Y[i] Rm^T (k ascending, as `_left_into`)."""
-        q, a, c = Y.shape
+    def _dot(L, r, v):
+        """L[r] . v, k ascending."""
+        t = 0.0
+        for k in range(v.shape[0]):
+            t += L[r, k] * v[k]
+        return t
+
+    @register_jitable
+    def _right_rows(out, X, Rm):
+        """out[i] += X_i Rm^T, row by row, k ascending (each row of X_i in locals)."""
+        q, a, c = X.shape
         d = Rm.shape[0]
-        for i in range(q):
-            for r in range(a):
-                for s in range(d):
-                    if c == 3:
-                        out[i, r, s] = (
-                            Y[i, r, 0] * Rm[s, 0] + Y[i, r, 1] * Rm[s, 1] + (Y[i, r, 2] * Rm[s, 2])
-                        )
-                    elif c == 2:
-                        out[i, r, s] = Y[i, r, 0] * Rm[s, 0] + Y[i, r, 1] * Rm[s, 1]
-                    else:
+        if c == 3:
+            for i in range(q):
+                for r in range(a):
+                    y0, y1, y2 = X[i, r, 0], X[i, r, 1], X[i, r, 2]
+                    for s in range(d):
+                        out[i, r, s] += y0 * Rm[s, 0] + y1 * Rm[s, 1] + (y2 * Rm[s, 2])
+        else:
+            for i in range(q):
+                for r in range(a):
+                    for s in range(d):
                         t = 0.0
                         for k in range(c):
-                            t += Y[i, r, k] * Rm[s, k]
-                        out[i, r, s] = t
+                            t += X[i, r, k] * Rm[s, k]
+                        out[i, r, s] += t
 
     @overload(_als.batch_left)
     def _batch_left_loop(L, X):
@@ -99,79 +123,214 @@ if JIT and not _PURE_COPY:
 
         def impl(L, X):
             out = np.empty((X.shape[0], L.shape[0], X.shape[2]))
-            _left_into(out, L, X)
+            _left_cols(out, L, X)
             return out
 
         return impl
 
-    @overload(_als.batch_right)
-    def _batch_right_loop(X, Rm):
-        """Compiled, X_i Rm^T over a stack is a plain loop (one allocation)."""
+    @overload(_als.left_in_place)
+    def _left_in_place_loop(L, X):
+        """Compiled, X_i <- L X_i column by column, each column read before it is written."""
 
-        def impl(X, Rm):
+        def impl(L, X):
+            _left_cols(X, L, X)
+
+        return impl
+
+    @register_jitable
+    def _sandwich_into(L, X, Rm):
+        """(L X_i) Rm^T over the stack into a new array, each row of L X_i in locals (summed as
+        `_left_cols` then a right product would, without the intermediate stack)."""
+        q, b, c = X.shape
+        a, d = L.shape[0], Rm.shape[0]
+        out = np.empty((q, a, d))
+        if b == 3 and c == 3:
+            for i in range(q):
+                x00, x01, x02 = X[i, 0, 0], X[i, 0, 1], X[i, 0, 2]
+                x10, x11, x12 = X[i, 1, 0], X[i, 1, 1], X[i, 1, 2]
+                x20, x21, x22 = X[i, 2, 0], X[i, 2, 1], X[i, 2, 2]
+                for r in range(a):
+                    l0, l1, l2 = L[r, 0], L[r, 1], L[r, 2]
+                    t0 = l0 * x00 + l1 * x10 + (l2 * x20)
+                    t1 = l0 * x01 + l1 * x11 + (l2 * x21)
+                    t2 = l0 * x02 + l1 * x12 + (l2 * x22)
+                    for s in range(d):
+                        out[i, r, s] = t0 * Rm[s, 0] + t1 * Rm[s, 1] + (t2 * Rm[s, 2])
+        elif b == 2 and c == 2:
+            for i in range(q):
+                x00, x01, x10, x11 = X[i, 0, 0], X[i, 0, 1], X[i, 1, 0], X[i, 1, 1]
+                for r in range(a):
+                    l0, l1 = L[r, 0], L[r, 1]
+                    t0 = l0 * x00 + l1 * x10
+                    t1 = l0 * x01 + l1 * x11
+                    for s in range(d):
+                        out[i, r, s] = t0 * Rm[s, 0] + t1 * Rm[s, 1]
+        else:  # (no such stack here: its temporaries are allocated in this branch)
+            LX = np.empty((q, a, c))
+            _left_cols(LX, L, X)
+            for i in range(q):
+                for r in range(a):
+                    for s in range(d):
+                        t = 0.0
+                        for k in range(c):
+                            t += LX[i, r, k] * Rm[s, k]
+                        out[i, r, s] = t
+        return out
+
+    @overload(_als.sandwich_plus)
+    def _sandwich_plus_loop(L, X, Rm, Y):
+        """Compiled, (L X_i) Rm^T + Y_i is one loop into one array."""
+
+        def impl(L, X, Rm, Y):
+            out = _sandwich_into(L, X, Rm)
+            q, a, d = out.shape
+            for i in range(q):
+                for r in range(a):
+                    for s in range(d):
+                        out[i, r, s] += Y[i, r, s]
+            return out
+
+        return impl
+
+    @overload(_als.right_plus_sandwich)
+    def _right_plus_sandwich_loop(X, Rm, L, Y):
+        """Compiled, X_i Rm^T + (L Y_i) L^T is one loop into one array (a + b = b + a)."""
+
+        def impl(X, Rm, L, Y):
+            out = _sandwich_into(L, Y, L)
+            _right_rows(out, X, Rm)
+            return out
+
+        return impl
+
+    @overload(_als.right_minus_left)
+    def _right_minus_left_loop(X, Rm, L, Y):
+        """Compiled, X_i Rm^T - L Y_i is one loop into one array: -(L Y_i) + X_i Rm^T, the
+        same value (negation and a - b = -b + a are exact)."""
+
+        def impl(X, Rm, L, Y):
             out = np.empty((X.shape[0], X.shape[1], Rm.shape[0]))
-            _right_into(out, X, Rm)
+            _left_cols(out, L, Y)
+            q, a, d = out.shape
+            for i in range(q):
+                for r in range(a):
+                    for s in range(d):
+                        out[i, r, s] = -out[i, r, s]
+            _right_rows(out, X, Rm)
             return out
 
         return impl
 
-    @overload(_als.batch_sandwich)
-    def _batch_sandwich_loop(L, X, Rm):
-        """Compiled, (L X_i) Rm^T over a stack is a plain loop (two allocations)."""
+    @overload(_als.dual)
+    def _dual_loop(R, c, x):
+        """Compiled, R^T (c - R x) is two plain loops (numba's `@` calls BLAS, whose call
+        costs more than these 4 x 4 products), sums in index order."""
 
-        def impl(L, X, Rm):
-            tmp = np.empty((X.shape[0], L.shape[0], X.shape[2]))
-            _left_into(tmp, L, X)
-            out = np.empty((X.shape[0], L.shape[0], Rm.shape[0]))
-            _right_into(out, tmp, Rm)
-            return out
+        def impl(R, c, x):
+            n, k = R.shape
+            res = np.empty(n)
+            for i in range(n):
+                t = 0.0
+                for j in range(k):
+                    t += R[i, j] * x[j]
+                res[i] = c[i] - t
+            w = np.empty(k)
+            for j in range(k):
+                t = 0.0
+                for i in range(n):
+                    t += res[i] * R[i, j]
+                w[j] = t
+            return w
 
         return impl
+
+    @overload(_als.closed_loop)
+    def _closed_loop_loop(K, H):
+        """Compiled, I - K H is one loop into one array (K H summed as `matmul`'s loop)."""
+
+        def impl(K, H):
+            n, m = K.shape
+            A = np.empty((n, n))
+            for r in range(n):
+                for c in range(n):
+                    t = 0.0
+                    for k in range(m):
+                        t += K[r, k] * H[k, c]
+                    A[r, c] = (1.0 if r == c else 0.0) - t
+            return A
+
+        return impl
+
+    @register_jitable
+    def _factor_columns(Wt):
+        """The upper-triangular factor of W (r x k), given as its columns Wt = W^T (k x r, so
+        that every inner loop runs along contiguous memory), overwritten: Householder's QR as
+        LAPACK's dgeqr2 runs it (dlarfg's sign convention: T's diagonal is -sign(w_jj) times
+        the column's norm)."""
+        k, r = Wt.shape
+        for j in range(min(r, k)):
+            s = 0.0
+            for i in range(j + 1, r):
+                s += Wt[j, i] * Wt[j, i]
+            alpha = Wt[j, j]
+            if s == 0.0:  # nothing below the diagonal: H = I
+                continue
+            norm = math.sqrt(alpha * alpha + s)
+            beta = -norm if alpha >= 0.0 else norm
+            tau = (beta - alpha) / beta
+            scale = 1.0 / (alpha - beta)  # dlarfg scales by the reciprocal too
+            for i in range(j + 1, r):
+                Wt[j, i] *= scale
+            Wt[j, j] = beta
+            for c in range(j + 1, k):
+                t = Wt[c, j]
+                for i in range(j + 1, r):
+                    t += Wt[j, i] * Wt[c, i]
+                t *= tau
+                Wt[c, j] -= t
+                for i in range(j + 1, r):
+                    Wt[c, i] -= t * Wt[j, i]
+        T = np.zeros((k, k))
+        for i in range(min(r, k)):
+            for c in range(i, k):
+                T[i, c] = Wt[c, i]
+        return T
 
     @overload(_als.triangularise)
     def _triangularise_loop(Z):
-        """Compiled, the factor is Householder's QR as LAPACK's dgeqr2 runs it (dlarfg's sign
-        convention: T's diagonal is -sign(z_jj) times the column's norm), in plain loops."""
+        """Compiled, the factor is `_factor_columns` on a copy of Z's columns."""
 
         def impl(Z):
             r, k = Z.shape
-            W = np.empty((r, k))
+            Wt = np.empty((k, r))
             for i in range(r):
                 for c in range(k):
-                    W[i, c] = Z[i, c]
-            for j in range(min(r, k)):
-                s = 0.0
-                for i in range(j + 1, r):
-                    s += W[i, j] * W[i, j]
-                alpha = W[j, j]
-                if s == 0.0:  # nothing below the diagonal: H = I
-                    continue
-                norm = math.sqrt(alpha * alpha + s)
-                beta = -norm if alpha >= 0.0 else norm
-                tau = (beta - alpha) / beta
-                v0 = alpha - beta
-                for i in range(j + 1, r):
-                    W[i, j] /= v0
-                W[j, j] = beta
-                for c in range(j + 1, k):
-                    t = W[j, c]
-                    for i in range(j + 1, r):
-                        t += W[i, j] * W[i, c]
-                    t *= tau
-                    W[j, c] -= t
-                    for i in range(j + 1, r):
-                        W[i, c] -= t * W[i, j]
-            T = np.zeros((k, k))
-            for i in range(min(r, k)):
-                for c in range(i, k):
-                    T[i, c] = W[i, c]
-            return T
+                    Wt[c, i] = Z[i, c]
+            return _factor_columns(Wt)
+
+        return impl
+
+    @overload(_als.merge_factors)
+    def _merge_factors_loop(X, Y):
+        """Compiled, the rows of X and Y are stacked straight into the factor's work array."""
+
+        def impl(X, Y):
+            rx, k = X.shape
+            ry = Y.shape[0]
+            Wt = np.empty((k, rx + ry))
+            for i in range(rx):
+                for c in range(k):
+                    Wt[c, i] = X[i, c]
+            for i in range(ry):
+                for c in range(k):
+                    Wt[c, rx + i] = Y[i, c]
+            return _factor_columns(Wt)
 
         return impl
 
     for _rule in (
         _als.predict_sensitivities, _als.update_sensitivities, _als.push_past,
-        _als.rows_per_innovation, _als.innovation_rows, _als.merge_factors, _als.window_push,
+        _als.rows_per_innovation, _als.innovation_rows, _als.window_push,
         _als.window_factor, _als._passive_solution, _als.nnls, _als.nnls_triangular,
         _als.r_basis,
     ):  # fmt: skip

@@ -52,7 +52,8 @@ from .spec import AdaptiveSpec, FilterContext
 
 # ---------------------------------------------------------------------------------------------
 # Batched products: numpy's broadcasting matmul here; the fast engine compiles them as plain
-# loops (engines/kernels_als.py), where a small array's allocation costs more than the product.
+# loops (engines/kernels_als.py), where a small array's allocation costs more than the product
+# (hence the fused forms: one output array, no temporaries).
 
 
 def batch_left(L: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -60,14 +61,34 @@ def batch_left(L: np.ndarray, X: np.ndarray) -> np.ndarray:
     return L @ X
 
 
-def batch_right(X: np.ndarray, Rm: np.ndarray) -> np.ndarray:
-    """X_i Rm^T for every matrix X_i of the stack X (q, a, c): (q, a, d)."""
-    return X @ Rm.T
+def sandwich_plus(L: np.ndarray, X: np.ndarray, Rm: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """L X_i Rm^T + Y_i for every matrix X_i of the stack X (q, b, c): (q, a, d)."""
+    return (L @ X) @ Rm.T + Y
 
 
-def batch_sandwich(L: np.ndarray, X: np.ndarray, Rm: np.ndarray) -> np.ndarray:
-    """L X_i Rm^T for every matrix X_i of the stack X (q, b, c): (q, a, d)."""
-    return (L @ X) @ Rm.T
+def right_plus_sandwich(X: np.ndarray, Rm: np.ndarray, L: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """X_i Rm^T + L Y_i L^T for every pair of the stacks X (q, a, c), Y (q, b, e)."""
+    return X @ Rm.T + (L @ Y) @ L.T
+
+
+def right_minus_left(X: np.ndarray, Rm: np.ndarray, L: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """X_i Rm^T - L Y_i for every pair of the stacks X (q, a, c), Y (q, b, d)."""
+    return X @ Rm.T - L @ Y
+
+
+def dual(R: np.ndarray, c: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """R^T (c - R x): minus the gradient of ||R x - c||^2 / 2 (Lawson & Hanson's w)."""
+    return (c - R @ x) @ R
+
+
+def left_in_place(L: np.ndarray, X: np.ndarray) -> None:
+    """X_i <- L X_i for every matrix X_i of the stack X (q, b, c), in place."""
+    X[...] = L @ X
+
+
+def closed_loop(K: np.ndarray, H: np.ndarray) -> np.ndarray:
+    """A = I - K H."""
+    return np.eye(K.shape[0]) - matmul(K, H)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -85,8 +106,8 @@ def predict_sensitivities(
     D_l <- F D_l in place. Returns the new M (p, n, n)."""
     used = n_past * M.shape[0]
     if used:
-        past_D[:used] = batch_left(F, past_D[:used])
-    return batch_sandwich(F, M, F) + Q_basis
+        left_in_place(F, past_D[:used])
+    return sandwich_plus(F, M, F, Q_basis)
 
 
 def update_sensitivities(
@@ -100,13 +121,13 @@ def update_sensitivities(
     """One measurement (gain K, zero for a rejected one): the innovation's cross term
     C_i = A M_i H^T - K R_basis_i (A = I - K H), every stored D_l <- A D_l in place, and
     M_i <- A M_i A^T + K R_basis_i K^T. Returns (new M, C)."""
-    A = np.eye(M.shape[1]) - matmul(K, H)
+    A = closed_loop(K, H)
     AM = batch_left(A, M)
-    C = batch_right(AM, H) - batch_left(K, R_basis)
+    C = right_minus_left(AM, H, K, R_basis)
     used = n_past * M.shape[0]
     if used:
-        past_D[:used] = batch_left(A, past_D[:used])
-    return batch_right(AM, A) + batch_sandwich(K, R_basis, K), C
+        left_in_place(A, past_D[:used])
+    return right_plus_sandwich(AM, A, K, R_basis), C
 
 
 def push_past(
@@ -118,9 +139,10 @@ def push_past(
     if lags == 0:
         return 0
     p = C.shape[0]
-    if n_past == lags:
-        past_nu[:-1] = past_nu[1:].copy()
-        past_D[:-p] = past_D[p:].copy()
+    if n_past == lags:  # each one a place older, block by block (no overlapping copy)
+        for j in range(lags - 1):
+            past_nu[j] = past_nu[j + 1]
+            past_D[j * p : (j + 1) * p] = past_D[(j + 1) * p : (j + 2) * p]
         n_past -= 1
     past_nu[n_past] = nu
     past_D[n_past * p : (n_past + 1) * p] = C
@@ -148,7 +170,7 @@ def innovation_rows(
     the entries of nu nu_l^T (row-major), every row divided by sqrt(S_aa S_bb). Returns how
     many rows it wrote."""
     m, p = len(nu), M.shape[0]
-    lag0 = batch_sandwich(H, M, H) + R_basis  # (p, m, m)
+    lag0 = sandwich_plus(H, M, H, R_basis)  # (p, m, m)
     r = 0
     for a in range(m):
         for b in range(a, m):
@@ -157,13 +179,13 @@ def innovation_rows(
                 out[r, i] = lag0[i, a, b] / scale
             out[r, p] = nu[a] * nu[b] / scale
             r += 1
+    cross = batch_left(H, past_D[: n_past * p])  # (n_past * p, m, m)
     for j in range(n_past):
-        cross = batch_left(H, past_D[j * p : (j + 1) * p])  # (p, m, m)
         for a in range(m):
             for b in range(m):
                 scale = math.sqrt(S[a, a] * S[b, b])
                 for i in range(p):
-                    out[r, i] = cross[i, a, b] / scale
+                    out[r, i] = cross[j * p + i, a, b] / scale
                 out[r, p] = nu[a] * past_nu[j, b] / scale
                 r += 1
     return r
@@ -302,7 +324,7 @@ def nnls_triangular(R: np.ndarray, c: np.ndarray) -> np.ndarray:
     tol = 10.0 * _EPS * n * max(np.abs(Rt).max(), 1e-300)
     x = np.zeros(n)
     passive = np.zeros(n, dtype=np.bool_)
-    w = (c - Rt @ x) @ Rt  # the dual: minus the gradient, Rt^T (c - Rt x)
+    w = dual(Rt, c, x)
     skip = np.zeros(n, dtype=np.bool_)  # variables whose entry made no progress (w ~ 0)
     for _ in range(3 * n + 1):
         best, t = tol, -1
@@ -334,7 +356,7 @@ def nnls_triangular(R: np.ndarray, c: np.ndarray) -> np.ndarray:
                     x[i] = 0.0
             z = _passive_solution(Rt, c, passive)
         x = z
-        w = (c - Rt @ x) @ Rt
+        w = dual(Rt, c, x)
     return x
 
 

@@ -150,9 +150,16 @@ def predict(x, P, u0, u1, dt, motion, B, T0, Qu):
     """RobotEKF.predict with `motion`'s model: F and G at (x, u), x- = f(x, u),
     P- = F P F^T + Q (eqs. 19-21). Returns (x-, P-, Q): Q = G Qu G^T (bicycle, eq. 20) or
     (T0 / dt) G Qu G^T (unicycle, 0 for dt <= 0)."""
+    f02, f12, G = jacobians(x[2], u0, u1, dt, motion, B)
+    return predict_with(x, P, f02, f12, G, u0, u1, dt, motion, B, T0, Qu)
+
+
+@maybe_njit
+def predict_with(x, P, f02, f12, G, u0, u1, dt, motion, B, T0, Qu):
+    """`predict` given the step's Jacobians (f02, f12, G) = jacobians(x[2], ...): a kernel that
+    needs them for its own bookkeeping too (`interval_step`) computes them once."""
     x0, x1, x2 = x
     q00, q01, q10, q11 = Qu
-    f02, f12, G = jacobians(x2, u0, u1, dt, motion, B)
     g00, g01, g10, g11, g20, g21 = G
     # Q = (G Qu) G^T
     a00 = g00 * q00 + g01 * q10
@@ -1211,16 +1218,15 @@ EYE9 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 
 
 @maybe_njit
-def interval_step(A_v, A_g, F_scan, x2, u0, u1, dt, motion, B, T0):
+def interval_step(A_v, A_g, F_scan, f02, f12, G, c):
     """AdaptiveEKF.predict's accumulators (filters.adaptive.propagate_interval) at a predict
-    from heading x2 with controls (u0, u1) over dt, on row-major 9-tuples (no arrays: this
-    runs at every step). A <- F A F^T + G e e^T G^T is the EKF's covariance predict with Qu = e e^T,
-    `propagate` above, and F_scan <- F F_scan; the same products, bit for bit, as the rule's
-    loops over F's zeros and ones (exact for finite values)."""
-    f02, f12, G = jacobians(x2, u0, u1, dt, motion, B)
+    whose Jacobians are (f02, f12, G) = jacobians(...) (computed once, shared with
+    `predict_with`) and whose Q is c G Qu G^T (c = noise_scale), on row-major 9-tuples (no
+    arrays: this runs at every step). A <- F A F^T + c G e e^T G^T is the EKF's covariance
+    predict with Qu = e e^T, `propagate` above, and F_scan <- F F_scan; the same products, bit
+    for bit, as the rule's loops over F's zeros and ones (exact for finite values)."""
     g00, g01, g10, g11, g20, g21 = G
     # the model's Q of a unit noise e: c G e e^T G^T (c = 1 for the bicycle: exact)
-    c = noise_scale(dt, motion, T0)
     Q_v = (
         c * (g00 * g00), c * (g00 * g10), c * (g00 * g20),
         c * (g10 * g00), c * (g10 * g10), c * (g10 * g20),
@@ -1440,9 +1446,12 @@ def run_akhlaghi_kernel(
         u0 = u_odo[k, 0]
         u1 = u_odo[k, 1]
         dt_k = dt[k]
-        if adapt_Q:  # AdaptiveEKF.predict: F and G before the predict
-            A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], u0, u1, dt_k, motion, B, T0)
-        x, P, Q = predict(x, P, u0, u1, dt_k, motion, B, T0, Qu)
+        f02, f12, G = jacobians(x[2], u0, u1, dt_k, motion, B)  # F, G before the predict
+        if adapt_Q:  # AdaptiveEKF.predict's interval accumulators
+            A_v, A_g, F_scan = interval_step(
+                A_v, A_g, F_scan, f02, f12, G, noise_scale(dt_k, motion, T0)
+            )
+        x, P, Q = predict_with(x, P, f02, f12, G, u0, u1, dt_k, motion, B, T0, Qu)
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
         if last > first:
@@ -1776,8 +1785,11 @@ def run_swvb_kernel(
         u0 = u_odo[k, 0]
         u1 = u_odo[k, 1]
         dt_k = dt[k]
-        A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], u0, u1, dt_k, motion, B, T0)
-        x, P, Q = predict(x, P, u0, u1, dt_k, motion, B, T0, Qu)
+        f02, f12, G = jacobians(x[2], u0, u1, dt_k, motion, B)  # F, G before the predict
+        A_v, A_g, F_scan = interval_step(
+            A_v, A_g, F_scan, f02, f12, G, noise_scale(dt_k, motion, T0)
+        )
+        x, P, Q = predict_with(x, P, f02, f12, G, u0, u1, dt_k, motion, B, T0, Qu)
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
         if last > first:
@@ -1939,9 +1951,12 @@ def run_sage_husa_kernel(
         u0 = u_odo[k, 0]
         u1 = u_odo[k, 1]
         dt_k = dt[k]
-        if adapt_Q:
-            A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], u0, u1, dt_k, motion, B, T0)
-        x, P, Q = predict(x, P, u0, u1, dt_k, motion, B, T0, Qu)
+        f02, f12, G = jacobians(x[2], u0, u1, dt_k, motion, B)  # F, G before the predict
+        if adapt_Q:  # AdaptiveEKF.predict's interval accumulators
+            A_v, A_g, F_scan = interval_step(
+                A_v, A_g, F_scan, f02, f12, G, noise_scale(dt_k, motion, T0)
+            )
+        x, P, Q = predict_with(x, P, f02, f12, G, u0, u1, dt_k, motion, B, T0, Qu)
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
         if last > first:
@@ -2139,9 +2154,12 @@ def run_iae_kernel(
         u0 = u_odo[k, 0]
         u1 = u_odo[k, 1]
         dt_k = dt[k]
-        if adapt_Q:
-            A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], u0, u1, dt_k, motion, B, T0)
-        x, P, Q = predict(x, P, u0, u1, dt_k, motion, B, T0, Qu)
+        f02, f12, G = jacobians(x[2], u0, u1, dt_k, motion, B)  # F, G before the predict
+        if adapt_Q:  # AdaptiveEKF.predict's interval accumulators
+            A_v, A_g, F_scan = interval_step(
+                A_v, A_g, F_scan, f02, f12, G, noise_scale(dt_k, motion, T0)
+            )
+        x, P, Q = predict_with(x, P, f02, f12, G, u0, u1, dt_k, motion, B, T0, Qu)
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
         if last > first:

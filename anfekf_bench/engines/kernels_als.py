@@ -30,7 +30,8 @@ _PURE_COPY: bool = globals().get("_PURE", False)
 _k = _kernels.pure_module() if _PURE_COPY else _kernels
 JIT: bool = _k.JIT  # True: the kernel below is numba-compiled
 maybe_njit = _k.maybe_njit
-predict, interval_step = _k.predict, _k.interval_step
+jacobians, noise_scale, interval_step = _k.jacobians, _k.noise_scale, _k.interval_step
+predict_with = _k.predict_with
 innovation, nis, gain, correct = _k.innovation, _k.nis, _k.gain, _k.correct
 healthy, record, clip_to_bounds = _k.healthy, _k.record, _k.clip_to_bounds
 
@@ -443,9 +444,11 @@ def run_als_kernel(
         u0 = u[i, 0]
         u1 = u[i, 1]
         h = dt[i]
-        A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, x[2], u0, u1, h, motion, B, T0)
+        f02, f12, G = jacobians(x[2], u0, u1, h, motion, B)  # once for both
+        c = noise_scale(h, motion, T0)
+        A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, f02, f12, G, c)
         steps += 1
-        x, P, _ = predict(x, P, u0, u1, h, motion, B, T0, Qu)
+        x, P, _ = predict_with(x, P, f02, f12, G, u0, u1, h, motion, B, T0, Qu)
         first = lm[i]
         last = lm[i + 1]
         if last == first:

@@ -52,17 +52,23 @@ def maybe_njit(fn):
     return _NJIT(cache=True, nogil=True, error_model="numpy")(fn)
 
 
+def pure_copy(name: str, path: str):
+    """A fresh copy of the kernel module `name` (file `path`) whose kernels are plain Python,
+    whatever is installed (kept in sys.modules as `name`_pure)."""
+    pure = name + "_pure"
+    if pure in sys.modules:
+        return sys.modules[pure]
+    spec = importlib.util.spec_from_file_location(pure, path)
+    mod = importlib.util.module_from_spec(spec)
+    mod._PURE = True  # read by `_njit` (and kernels_als) while the copy executes
+    spec.loader.exec_module(mod)
+    sys.modules[pure] = mod
+    return mod
+
+
 def pure_module():
     """A fresh copy of this module whose kernels are plain Python, whatever is installed."""
-    name = __name__ + "_pure"
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, __file__)
-    mod = importlib.util.module_from_spec(spec)
-    mod._PURE = True  # read by `_njit` while the copy executes
-    spec.loader.exec_module(mod)
-    sys.modules[name] = mod
-    return mod
+    return pure_copy(__name__, __file__)
 
 
 PI = math.pi

@@ -17,9 +17,7 @@ Q(e) with the model's Q of a unit control noise e, and F_scan <- F F_scan).
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
 
 import numpy as np
 
@@ -40,15 +38,7 @@ MOTION_BICYCLE, MOTION_UNICYCLE = _k.MOTION_BICYCLE, _k.MOTION_UNICYCLE
 
 def pure_module():
     """A fresh copy of this module whose kernel is plain Python, whatever is installed."""
-    name = __name__ + "_pure"
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, __file__)
-    mod = importlib.util.module_from_spec(spec)
-    mod._PURE = True  # read while the copy executes
-    spec.loader.exec_module(mod)
-    sys.modules[name] = mod
-    return mod
+    return _kernels.pure_copy(__name__, __file__)
 
 
 if JIT and not _PURE_COPY:

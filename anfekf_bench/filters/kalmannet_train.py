@@ -687,6 +687,11 @@ def train(spec, runs, world, ctx, progress: bool = False) -> TrainingResult:
         robot_batch(system, fitted[i : i + size], world) for i in range(0, len(fitted), size)
     ]
     validation = [robot_batch(system, checked, world)] if checked else None
+    return _fit_spec(spec, system, batches, validation, progress, f"training {spec.name}")
+
+
+def _fit_spec(spec, system, batches, validation, progress, description: str) -> TrainingResult:
+    """`fit` with the training parameters of a kalmannet spec."""
     return fit(
         system,
         batches,
@@ -697,7 +702,7 @@ def train(spec, runs, world, ctx, progress: bool = False) -> TrainingResult:
         bptt=spec.bptt,
         seed=spec.seed,
         progress=progress,
-        description=f"training {spec.name}",
+        description=description,
     )
 
 
@@ -727,15 +732,5 @@ def train_recorded(
     size = spec.batch_size
     batches = [recorded_batch(system, fitted[i : i + size]) for i in range(0, len(fitted), size)]
     validation = [recorded_batch(system, checked)] if checked else None
-    return fit(
-        system,
-        batches,
-        validation=validation,
-        epochs=spec.epochs,
-        learning_rate=spec.learning_rate,
-        hidden_size=spec.hidden_size,
-        bptt=spec.bptt,
-        seed=spec.seed,
-        progress=progress,
-        description=description or f"training {spec.name}",
-    )
+    description = description or f"training {spec.name}"
+    return _fit_spec(spec, system, batches, validation, progress, description)

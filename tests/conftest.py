@@ -113,10 +113,16 @@ SLOW_TESTS: dict[str, set[str]] = {
 }
 
 
+# Whole modules left to the full suite: each family's engine equivalence in every mode, pure
+# Python and forced divergence. The quick tier keeps tests/test_engines_equivalence.py, which
+# checks every registered kind on both engines and both motion models.
+SLOW_MODULES = {"test_fast_adaptive", "test_fast_adaptive_cm", "test_fast_bank", "test_fast_als"}
+
+
 def pytest_collection_modifyitems(config, items) -> None:
     for item in items:
         module = item.module.__name__.rsplit(".", 1)[-1] if item.module else ""
-        if item.originalname in SLOW_TESTS.get(module, ()):
+        if module in SLOW_MODULES or item.originalname in SLOW_TESTS.get(module, ()):
             item.add_marker(pytest.mark.slow)
 
 

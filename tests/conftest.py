@@ -142,3 +142,26 @@ def small_world_noise_off(seed: int, runs: int):
     world = resolve_world(scenario.world, Path("small.yaml"))
     data = [simulate(scenario, world, s) for s in np.random.SeedSequence(seed).spawn(runs)]
     return scenario, world, data
+
+
+def corrupted_half_way(data, what: str):
+    """(run data, the corrupted scan): `data` with, half-way through (at the middle scan that saw
+    two landmarks), either an odometry sample NaN 5 steps before that scan ("odometry") or that
+    scan's second range infinite ("measurement"); the engines' divergence tests share it."""
+    import dataclasses
+
+    import numpy as np
+
+    from anfekf_bench.sources.simulator import RunData
+
+    scans = [s for s in data.scans if len(s.ids) >= 2]
+    bad = scans[len(scans) // 2]
+    if what == "odometry":
+        u = data.u_odo.copy()
+        u[bad.step - 5, 0] = np.nan
+        return RunData(truth=data.truth, u_odo=u, scans=data.scans), bad
+    z = bad.z.copy()
+    z[1, 0] = np.inf
+    i = data.scans.index(bad)
+    scans = data.scans[:i] + (dataclasses.replace(bad, z=z),) + data.scans[i + 1 :]
+    return RunData(truth=data.truth, u_odo=data.u_odo, scans=scans), bad

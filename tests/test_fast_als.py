@@ -17,9 +17,8 @@ from anfekf_bench.config import parse_scenario, resolve_world
 from anfekf_bench.engines import fast, kernels_als
 from anfekf_bench.filters.als import ALSSpec, nnls
 from anfekf_bench.runner import simulate
-from anfekf_bench.sources.simulator import RunData
 
-from .conftest import small_scenario, small_world_noise_off
+from .conftest import corrupted_half_way, small_scenario, small_world_noise_off
 from .test_fast_engine import assert_same_run, both, ctx_of
 
 VARIANTS = {
@@ -93,18 +92,7 @@ def test_divergence_in_mid_run(noise_off, what):
     data = runs[0]
     spec = ALSSpec(name="a", kind="als", every=1, warmup=5)
     ctx = ctx_of(spec, scenario, world)
-    scans = [s for s in data.scans if len(s.ids) >= 2]
-    bad = scans[len(scans) // 2]
-    if what == "odometry":
-        u = data.u_odo.copy()
-        u[bad.step - 5, 0] = np.nan
-        data = RunData(truth=data.truth, u_odo=u, scans=data.scans)
-    else:
-        z = bad.z.copy()
-        z[1, 0] = np.inf
-        i = data.scans.index(bad)
-        scans = data.scans[:i] + (dataclasses.replace(bad, z=z),) + data.scans[i + 1 :]
-        data = RunData(truth=data.truth, u_odo=data.u_odo, scans=scans)
+    data, bad = corrupted_half_way(data, what)
     ref, out = both(spec, ctx, data, world, 1)
     assert ref["diverged"] and ref["n_updates"] > 10
     assert np.isnan(ref["x"][bad.step - 1 :]).all() and np.isfinite(ref["x"][: bad.step - 5]).all()

@@ -46,7 +46,7 @@ from anfekf_bench.runner import simulate
 from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources.simulator import RunData, Scan
 
-from .conftest import small_scenario
+from .conftest import corrupted_half_way, small_scenario
 
 TOL = 1e-9
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -498,18 +498,7 @@ def test_divergence_in_mid_run(small, what, name):
     data = runs[0]
     spec = VARIANTS[name]
     ctx = ctx_of(spec, scenario, world)
-    scans = [s for s in data.scans if len(s.ids) >= 2]
-    bad = scans[len(scans) // 2]
-    if what == "odometry":
-        u = data.u_odo.copy()
-        u[bad.step - 5, 0] = np.nan
-        data = RunData(truth=data.truth, u_odo=u, scans=data.scans)
-    else:
-        z = bad.z.copy()
-        z[1, 0] = np.inf
-        i = data.scans.index(bad)
-        scans = data.scans[:i] + (dataclasses.replace(bad, z=z),) + data.scans[i + 1 :]
-        data = RunData(truth=data.truth, u_odo=data.u_odo, scans=scans)
+    data, bad = corrupted_half_way(data, what)
     ref, out = both(spec, ctx, data, world, 1)
     assert ref["diverged"] and ref["n_updates"] > 10
     assert np.isnan(ref["x"][bad.step - 1 :]).all() and np.isfinite(ref["x"][: bad.step - 5]).all()

@@ -55,7 +55,7 @@ from .engines.filterpy_engine import run_filter
 from .experiment import execute, machine_info, make_plan, package_versions
 from .filters import ANFEKFSpec, EKFSpec, FilterContext, FilterSpec, RobotEKF, build_filter
 from .filters.registry import filter_context
-from .models import F_jacobian, G_jacobian, H_jacobian, f, h, residual_z
+from .models import H_jacobian, f, h, jacobians, residual_z
 from .runner import run_batch, simulate
 from .scenarios import load_scenario
 from .sources.simulator import RunData
@@ -237,8 +237,7 @@ def bare_ekf_loop(flt: BareEKF, data: RunData, world: World, Qu: np.ndarray) -> 
     every = world.sensor_every
     scans = data.scans
     for k, u in enumerate(data.u_odo, start=1):
-        flt.F = F_jacobian(flt.x, u, T, B)
-        G = G_jacobian(flt.x, u, T, B)
+        flt.F, G = jacobians(flt.x, u, T, B)
         flt.Q = G @ Qu @ G.T
         flt.predict(u)
         if k % every == 0:

@@ -48,13 +48,13 @@ def test_is_a_motion_model():
 @pytest.mark.parametrize("x, u, dt", CASES)
 def test_F_matches_central_differences(x, u, dt):
     num = central_diff(lambda xx: MODEL.f(xx, u, dt), x)
-    np.testing.assert_allclose(MODEL.F(x, u, dt), num, atol=1e-8)
+    np.testing.assert_allclose(MODEL.jacobians(x, u, dt)[0], num, atol=1e-8)
 
 
 @pytest.mark.parametrize("x, u, dt", CASES)
 def test_G_matches_central_differences(x, u, dt):
     num = central_diff(lambda uu: MODEL.f(x, uu, dt), u)
-    np.testing.assert_allclose(MODEL.G(x, u, dt), num, atol=1e-8)
+    np.testing.assert_allclose(MODEL.jacobians(x, u, dt)[1], num, atol=1e-8)
 
 
 def test_heading_is_wrapped():
@@ -89,7 +89,7 @@ def _noise_in_steps(x, u, dt, n, Qu, model=MODEL):
     h = dt / n
     P = np.zeros((3, 3))
     for _ in range(n):
-        F, G = model.F(x, u, h), model.G(x, u, h)
+        F, G = model.jacobians(x, u, h)
         P = F @ P @ F.T + model.Q(G, Qu, h)
         x = model.f(x, u, h)
     return P
@@ -130,9 +130,9 @@ def test_rate_consistency_many_steps_and_the_textbook_form_is_not():
 def test_a_step_of_T0_is_the_textbook_form_and_zero_dt_is_no_noise():
     x, u = np.array([0.3, 0.1, -2.0]), np.array([0.142, 0.0])
     Qu = np.diag([0.1**2, 0.1**2])
-    G = MODEL.G(x, u, MODEL.T0)
+    G = MODEL.jacobians(x, u, MODEL.T0)[1]
     np.testing.assert_allclose(MODEL.Q(G, Qu, MODEL.T0), G @ Qu @ G.T)
-    assert not MODEL.Q(MODEL.G(x, u, 0.0), Qu, 0.0).any()
+    assert not MODEL.Q(MODEL.jacobians(x, u, 0.0)[1], Qu, 0.0).any()
     np.testing.assert_array_equal(MODEL.f(x, u, 0.0), x)
 
 

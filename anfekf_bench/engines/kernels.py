@@ -125,7 +125,7 @@ MOTION_UNICYCLE = 1  # u = (v, w), midpoint Euler, Q = (T0 / dt) G Qu G^T (rate-
 def jacobians(x2, u0, u1, dt, motion, B):
     """F and G of one step of `motion` from heading x2 with controls (u0, u1) over dt:
     (f02, f12, G) with F = [[1, 0, f02], [0, 1, f12], [0, 0, 1]] and G = (g00, g01, g10, g11,
-    g20, g21) row-major (bicycle.F_jacobian / G_jacobian, Unicycle.F / G, their products in
+    g20, g21) row-major (bicycle.jacobians, Unicycle.jacobians, their products in
     their order). Both models' position step is (f12, -f02), bit for bit: negation is exact."""
     if motion == MOTION_UNICYCLE:
         a = x2 + 0.5 * u1 * dt

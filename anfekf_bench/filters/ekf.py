@@ -117,8 +117,7 @@ class RobotEKF(ExtendedKalmanFilter):
         with variable steps (recorded logs), else the filter's own step."""
         if dt is not None:
             self.dt = dt
-        self.F = self.model.F(self.x, u, self.dt)
-        self.G = self.model.G(self.x, u, self.dt)
+        self.F, self.G = self.model.jacobians(self.x, u, self.dt)
         self.Q = self.model.Q(self.G, self.Qu, self.dt)
         super().predict(u)
 

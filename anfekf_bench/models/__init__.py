@@ -2,7 +2,7 @@
 
 from .angles import TWO_PI, wrap_angle, wrap_scalar
 from .base import MotionModel
-from .bicycle import Bicycle, F_jacobian, G_jacobian, control_covariance, f
+from .bicycle import Bicycle, control_covariance, f, jacobians
 from .range_bearing import H_jacobian, h, measurement_covariance, residual_z
 from .unicycle import Unicycle
 
@@ -11,12 +11,11 @@ __all__ = [
     "MotionModel",
     "TWO_PI",
     "Unicycle",
-    "F_jacobian",
-    "G_jacobian",
     "H_jacobian",
     "control_covariance",
     "f",
     "h",
+    "jacobians",
     "measurement_covariance",
     "residual_z",
     "wrap_angle",

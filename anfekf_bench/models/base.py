@@ -18,11 +18,8 @@ class MotionModel(Protocol):
     def f(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
         """The noise-free step, heading wrapped to (-pi, pi]."""
 
-    def F(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-        """df/dX (3x3) at (X, u)."""
-
-    def G(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-        """df/du (3x2) at (X, u)."""
+    def jacobians(self, x: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """F = df/dX (3x3) and G = df/du (3x2) at (X, u)."""
 
     def Q(self, G: np.ndarray, Qu: np.ndarray, dt: float) -> np.ndarray:
         """The step's state-space process noise from the control-noise covariance Qu (2x2)."""

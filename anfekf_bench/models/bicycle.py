@@ -26,31 +26,28 @@ def f(x: np.ndarray, u: np.ndarray, T: float, B: float) -> np.ndarray:
     )
 
 
-def F_jacobian(x: np.ndarray, u: np.ndarray, T: float, B: float) -> np.ndarray:
-    """F = df/dX at (X, u), eqs. (9) and (21)."""
-    V, gamma = u[0], u[1]
-    a = x[2] + gamma
-    return np.array(
-        [
-            [1.0, 0.0, -T * V * math.sin(a)],
-            [0.0, 1.0, T * V * math.cos(a)],
-            [0.0, 0.0, 1.0],
-        ]
-    )
-
-
-def G_jacobian(x: np.ndarray, u: np.ndarray, T: float, B: float) -> np.ndarray:
-    """G = df/du at (X, u), eqs. (10) and (21)."""
+def jacobians(x: np.ndarray, u: np.ndarray, T: float, B: float) -> tuple[np.ndarray, np.ndarray]:
+    """F = df/dX (3x3) and G = df/du (3x2) at (X, u), eqs. (9), (10) and (21): one call, because
+    both need the same angle (and a filter always wants both)."""
     V, gamma = u[0], u[1]
     a = x[2] + gamma
     ca, sa = math.cos(a), math.sin(a)
-    return np.array(
+    TV = T * V
+    F = np.array(
         [
-            [T * ca, -T * V * sa],
-            [T * sa, T * V * ca],
-            [T * math.sin(gamma) / B, T * V * math.cos(gamma) / B],
+            [1.0, 0.0, -TV * sa],
+            [0.0, 1.0, TV * ca],
+            [0.0, 0.0, 1.0],
         ]
     )
+    G = np.array(
+        [
+            [T * ca, -TV * sa],
+            [T * sa, TV * ca],
+            [T * math.sin(gamma) / B, TV * math.cos(gamma) / B],
+        ]
+    )
+    return F, G
 
 
 def control_covariance(sigma_v: float, sigma_gamma: float) -> np.ndarray:
@@ -72,11 +69,8 @@ class Bicycle:
     def f(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
         return f(x, u, dt, self.B)
 
-    def F(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-        return F_jacobian(x, u, dt, self.B)
-
-    def G(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-        return G_jacobian(x, u, dt, self.B)
+    def jacobians(self, x: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        return jacobians(x, u, dt, self.B)
 
     def Q(self, G: np.ndarray, Qu: np.ndarray, dt: float) -> np.ndarray:
         """Eq. (20): G Qu G^T."""

@@ -60,31 +60,28 @@ class Unicycle:
             ]
         )
 
-    def F(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-        """df/dX (3x3)."""
-        v, w = float(u[0]), float(u[1])
-        a = x[2] + 0.5 * w * dt
-        return np.array(
-            [
-                [1.0, 0.0, -v * dt * math.sin(a)],
-                [0.0, 1.0, v * dt * math.cos(a)],
-                [0.0, 0.0, 1.0],
-            ]
-        )
-
-    def G(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-        """df/du (3x2); the w column includes the midpoint's d a / d w = dt / 2."""
+    def jacobians(self, x: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """F = df/dX (3x3) and G = df/du (3x2); G's w column includes the midpoint's
+        d a / d w = dt / 2."""
         v, w = float(u[0]), float(u[1])
         a = x[2] + 0.5 * w * dt
         ca, sa = math.cos(a), math.sin(a)
         half = 0.5 * v * dt * dt
-        return np.array(
+        F = np.array(
+            [
+                [1.0, 0.0, -v * dt * sa],
+                [0.0, 1.0, v * dt * ca],
+                [0.0, 0.0, 1.0],
+            ]
+        )
+        G = np.array(
             [
                 [dt * ca, -half * sa],
                 [dt * sa, half * ca],
                 [0.0, dt],
             ]
         )
+        return F, G
 
     def Q(self, G: np.ndarray, Qu: np.ndarray, dt: float) -> np.ndarray:
         """Rate-consistent step noise (T0 / dt) G Qu G^T; zero for a zero-length step."""

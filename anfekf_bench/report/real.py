@@ -139,14 +139,7 @@ def _check_real_manifest(path: Path, manifest: dict) -> None:
         for s in segments
     ):
         raise ResultsError(f"{path}: data.segments: expected segments with an index and a t0")
-    landmarks = data.get("landmarks")
-    columns = [landmarks.get(k) for k in ("id", "x", "y")] if isinstance(landmarks, dict) else []
-    if (
-        len(columns) != 3
-        or not all(isinstance(c, list) for c in columns)
-        or len({len(c) for c in columns}) != 1
-        or not all(_finite(v, COORDINATE_LIMIT) for c in columns for v in c)
-    ):
+    if not _landmarks_ok(data.get("landmarks"), ("id", "x", "y")):
         raise ResultsError(
             f"{path}: data.landmarks: expected id, x and y lists of one length, finite numbers"
             f" within {COORDINATE_LIMIT:g} m"
@@ -163,6 +156,18 @@ def _check_real_manifest(path: Path, manifest: dict) -> None:
             raise ResultsError(f"{path}: data.{key}: expected a list of [start, end] in seconds")
 
 
+def _landmarks_ok(landmarks, keys: tuple[str, ...]) -> bool:
+    """Whether a map's `keys` columns are lists of one length of finite numbers within
+    COORDINATE_LIMIT."""
+    columns = [landmarks.get(k) for k in keys] if isinstance(landmarks, dict) else []
+    return (
+        len(columns) == len(keys)
+        and all(isinstance(c, list) for c in columns)
+        and len({len(c) for c in columns}) == 1
+        and all(_finite(v, COORDINATE_LIMIT) for c in columns for v in c)
+    )
+
+
 def _check_drives(path: Path, data: dict) -> None:
     """The drives of a cross-drive result as the report draws them: each a plain id and its
     dataset's landmarks (finite x and y lists of one length)."""
@@ -170,15 +175,10 @@ def _check_drives(path: Path, data: dict) -> None:
     if not isinstance(drives, list) or not drives:
         raise ResultsError(f"{path}: data.drives: expected a non-empty list of drives")
     for i, d in enumerate(drives):
-        landmarks = d.get("landmarks") if isinstance(d, dict) else None
-        columns = [landmarks.get(k) for k in ("x", "y")] if isinstance(landmarks, dict) else []
         if (
             not isinstance(d.get("drive") if isinstance(d, dict) else None, str)
             or scenario_name_problem(d["drive"])
-            or len(columns) != 2
-            or not all(isinstance(c, list) for c in columns)
-            or len({len(c) for c in columns}) != 1
-            or not all(_finite(v, COORDINATE_LIMIT) for c in columns for v in c)
+            or not _landmarks_ok(d.get("landmarks"), ("x", "y"))
         ):
             raise ResultsError(
                 f"{path}: data.drives.{i}: expected a plain drive id and landmarks x, y (finite"

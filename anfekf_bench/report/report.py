@@ -8,13 +8,17 @@ The paired comparisons (comparisons.parquet: ratios with 95 % bootstrap interval
 verdicts (claims.json) and the per-run metrics (runs.parquet) are shown as saved. plots.py draws
 the arrays; `write_report` writes the figures, report.md and report.html (one self-contained
 file, document.py).
+
+One pipeline for every source: each result (a simulated scenario, a recorded log of either
+protocol, a sweep) gives its section as document blocks (`section`: `scenario_section` here,
+`real.section`, `sweep.section`), its figures saved through the one writer
+(`plots.FigureSaver`); the one Document becomes report.md and report.html.
 """
 
 from __future__ import annotations
 
 import math
 import os
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import Enum
@@ -878,31 +882,44 @@ def scenario_section(sc: ScenarioData, save: plots.FigureSaver, out_dir: Path) -
     return out + [figures[kind] for kind in ("changes", "variances") if kind in figures]
 
 
-def section(result: ScenarioData | real.RealData, save: plots.FigureSaver, out_dir: Path):
+ResultData = ScenarioData | real.RealData | sweep_report.SweepData
+
+
+def section(result: ResultData, save: plots.FigureSaver, out_dir: Path) -> list[Block]:
     """One result folder's blocks, from the section builder of its source kind: a simulated
-    scenario (with a noise schedule or not) or a recorded log (segments or drives protocol)."""
+    scenario (with a noise schedule or not), a recorded log (segments or drives protocol) or a
+    sweep."""
     if isinstance(result, real.RealData):
         return real.section(result, save)
+    if isinstance(result, sweep_report.SweepData):
+        return sweep_report.section(result, save)
     return scenario_section(result, save, out_dir)
+
+
+# The groups after the simulated scenarios: their heading (text, anchor) before the first one.
+GROUPS = ((real.RealData, "Real data", "real-data"), (sweep_report.SweepData, "Sweeps", "sweeps"))
 
 
 def build_document(
     scenarios: Sequence[ScenarioData],
     rows: Sequence[SummaryRow],
-    recorded: Sequence[real.RealData],
+    others: Sequence[ResultData],
     save: plots.FigureSaver,
     out_dir: Path,
 ) -> Document:
     """The report's content, once, for report.md and report.html: the simulated scenarios'
-    summary, then one loop over the result folders, each giving its section; the figures are
-    saved through `save` on the way."""
+    summary, then one loop over the result folders (simulated, then recorded, then sweeps),
+    each giving its section; the figures are saved through `save` on the way."""
     doc = Document("anfekf-bench report")
     doc.add(Paragraph(INTRO), Contents())
     if scenarios:
         doc.add(*summary_blocks(scenarios, rows, save))
-    for result in [*scenarios, *recorded]:
-        if recorded and result is recorded[0]:
-            doc.add(Heading("Real data", anchor="real-data"))
+    started = set()
+    for result in [*scenarios, *others]:
+        for kind, text, anchor in GROUPS:
+            if isinstance(result, kind) and kind not in started:
+                doc.add(Heading(text, anchor=anchor))
+                started.add(kind)
         doc.add(*section(result, save, out_dir))
     return doc
 
@@ -921,16 +938,14 @@ def write_report(
 ) -> ReportResult:
     """Read every result under `results_dirs` (scenarios, real data) and the `sweeps` folders,
     write their figures, and one report.md and report.html to `out_dir` covering all of them,
-    with a table of contents (the sweeps also get sweeps.md).
+    with a table of contents.
 
     Everything is read (and checked) before anything is written, so bad input leaves no partial
     report behind.
     """
     out_dir = Path(out_dir)
     fmt = ImageFormat(fmt)
-    sweeps = [Path(f) for f in sweeps]
-    for folder in sweeps:
-        sweep_report.read_sweep(folder)  # checked before anything is written
+    swept = [sweep_report.read_sweep(Path(f)) for f in sweeps]  # read before anything is written
     found = (
         find_scenarios(results_dirs, out_dir)
         if not sweeps or sweep_report.has_scenario_results(list(results_dirs))
@@ -952,20 +967,9 @@ def write_report(
     # (a recorded result's instances by the filter they were made from).
     names = [f.name for sc in scenarios for f in sc.filters]
     names += [f["base"] for rd in recorded for f in rd.instances()]
-    sweep_files: list[tuple[str, list[Path]]] = []
-    with plots.palette(names):
-        if sweeps:  # in the scenarios' colours where a filter name is the same
-            sweeps_md, sweep_files = sweep_report.write_sweeps(sweeps, out_dir, fmt.value)
-            result.files += [f for _, files in sweep_files for f in files] + [sweeps_md]
-        doc = build_document(scenarios, rows, recorded, save, out_dir)
+    with plots.palette(names):  # a sweep's filters in the scenarios' colours, by name
+        doc = build_document(scenarios, rows, [*recorded, *swept], save, out_dir)
     result.files += save.files
-    if sweep_files:
-        doc.add(Heading("Sweeps", anchor="sweeps"))
-        link = sweep_report.SWEEPS_REPORT
-        doc.add(Paragraph(f"Break-down ranges and every cell's numbers: [{link}]({link})."))
-        for name, files in sweep_files:
-            doc.add(Heading(f"Sweep {name}", level=3, anchor=f"sweep-{_slug(name)}"))
-            doc.add(*_file_blocks(files, fmt, html))
     outputs = {REPORT_FILE: to_markdown(doc)}
     if html:
         outputs[HTML_FILE] = to_html(doc)
@@ -981,26 +985,6 @@ LEADERBOARD_CAPTION = (
     " log colour scale centred on 1 (white); frame: the 95 % paired interval includes 1;"
     " dot: NEES in the 95 % bounds on at least 85 % of steps; filters sorted best first"
 )
-
-
-def _slug(text: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.-]", "_", text) or "x"
-
-
-def _file_blocks(files: Sequence[Path], fmt: ImageFormat, html: bool) -> list[FigureBlock]:
-    """Figures the sweeps wrote, embedded as they are: PNG and SVG in the HTML, a PDF as a
-    link."""
-    blocks = []
-    for path in files:
-        if path.suffix not in (".png", ".svg", ".pdf"):
-            continue
-        caption = path.stem.replace("_", " ")
-        embed = html and fmt is not ImageFormat.pdf
-        image = path.read_bytes() if embed else b""
-        mime = "image/svg+xml" if fmt is ImageFormat.svg else "image/png"
-        blocks.append(FigureBlock(path.name, caption, image, mime,
-                                  link_only=fmt is ImageFormat.pdf))  # fmt: skip
-    return blocks
 
 
 def scenario_figures(sc: ScenarioData, save: plots.FigureSaver) -> dict[str, FigureBlock]:

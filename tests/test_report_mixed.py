@@ -10,6 +10,7 @@ import re
 from pathlib import Path
 
 import pandas as pd
+import pytest
 from typer.testing import CliRunner
 
 from anfekf_bench.analysis.metrics import format_number, format_sig
@@ -17,6 +18,7 @@ from anfekf_bench.cli import app
 
 from .conftest import small_scenario, write_scenario
 from .test_real_data import user_scenario
+from .test_report import CHROMIUM, _chromium
 
 runner = CliRunner()
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -32,14 +34,23 @@ def _cells(page: str) -> list[str]:
                                                                           page)]  # fmt: skip
 
 
-def test_one_report_holds_a_simulated_and_a_recorded_result(tmp_path):
-    results = tmp_path / "results"
+@pytest.fixture(scope="module")
+def mixed(tmp_path_factory) -> tuple[Path, Path]:
+    """A tiny simulated scenario (2 runs) and a recorded log (test_real_data's user log: two
+    held-out segments) in one results folder, and their report: (results, report folder)."""
+    root = tmp_path_factory.mktemp("mixed")
+    results = root / "results"
     doc = small_scenario(name="tiny", runs=2, record_every=8)
-    _run(write_scenario(tmp_path / "tiny.yaml", doc), results)
-    _run(user_scenario(tmp_path), results)
-    out = tmp_path / "report"
+    _run(write_scenario(root / "tiny.yaml", doc), results)
+    _run(user_scenario(root), results)
+    out = root / "report"
     res = runner.invoke(app, ["report", str(results), "--out", str(out)])
     assert res.exit_code == 0, res.output
+    return results, out
+
+
+def test_one_report_holds_a_simulated_and_a_recorded_result(mixed):
+    results, out = mixed
     assert sorted(p.name for p in out.glob("*.md")) == ["report.md"]  # one report, not two
     page = (out / "report.html").read_text(encoding="utf-8")
     text = (out / "report.md").read_text(encoding="utf-8")
@@ -92,3 +103,15 @@ def test_one_report_holds_a_simulated_and_a_recorded_result(tmp_path):
             assert (out / link).exists(), link
     for name in figures:
         assert f"]({name})" in text and f'href="{name}"' in page
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (apt-get install chromium)")
+def test_the_mixed_report_opens_in_a_browser_with_every_image(mixed, tmp_path):
+    _, out = mixed
+    dom = _chromium(out / "report.html", tmp_path / "profile", "--dump-dom")
+    assert dom.returncode == 0, dom.stderr[-2000:]
+    found = re.search(rb'data-images-ok="(\d+)/(\d+)"', dom.stdout)
+    assert found, "the page's load handler did not run"
+    ok, total = int(found.group(1)), int(found.group(2))
+    assert total == len(list(out.glob("*.png"))) == 10 and ok == total

@@ -19,6 +19,7 @@ simulated scenarios' sections, through the same figure writer) shows:
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -28,6 +29,7 @@ import numpy as np
 import pandas as pd
 
 from ..analysis.metrics import format_number, format_share
+from ..config import FILTER_NAME_PATTERN
 from ..filters.registry import adapted_noise
 from ..storage import (
     COMPARISONS_FILE,
@@ -106,10 +108,6 @@ def _finite(value, limit: float = math.inf) -> bool:
 def _check_real_manifest(path: Path, manifest: dict) -> None:
     """ResultsError unless the parts of a real-data manifest the report draws are as `anfekf
     run` writes them (a hand-edited one is refused in one line, before any figure)."""
-    import json
-
-    from ..config import FILTER_NAME_PATTERN
-
     try:
         json.dumps(manifest, ensure_ascii=False).encode("utf-8")
     except UnicodeEncodeError:

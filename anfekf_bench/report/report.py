@@ -61,6 +61,7 @@ from ..storage import (
 )
 from . import changing, plots, real
 from . import sweep as sweep_report
+from .consistency import check_saved_result
 from .data import (
     _ADAPTED,
     _NEEDED_COLUMNS,
@@ -365,9 +366,7 @@ def load_scenario_data(folder: Path) -> ScenarioData:
     manifest = _manifest(folder)
     manifest_path = folder / MANIFEST_FILE
     specs = _filter_specs(manifest, manifest_path)
-    from .consistency import check_saved_result  # one batch's steps, whole, under plain names
-
-    check_saved_result(folder, steps, manifest)
+    check_saved_result(folder, steps, manifest)  # one batch's steps, whole, under plain names
     check_one_batch(folder, manifest)
     names = [str(n) for n in steps["filter"].cat.categories if (steps["filter"] == n).any()]
     unknown = [n for n in names if n not in specs]

@@ -703,7 +703,7 @@ def report(
     folders = results or [Path("results")]
     with one_line_errors(debug, (ResultsError,), os_error=f"{out}: cannot write the report"):
         sweep_folders = find_sweeps(folders)
-        # One report of everything: scenarios, real data and sweeps (which also get sweeps.md).
+        # One report of everything: scenarios, real data and sweeps.
         done = write_report(folders, out, ImageFormat(image_format), dpi=dpi, sweeps=sweep_folders)
     if done.rows:
         table_console().print(rich_table(done.rows))

@@ -376,5 +376,5 @@ def test_two_drives_end_to_end_with_report(tmp_path):
     assert "ekf-ml" in rm.index and not any(n.startswith("ekf-ml x") for n in rm.index)
     res = runner.invoke(app, ["report", str(folder), "--out", str(tmp_path / "rep")])
     assert res.exit_code == 0, res.output
-    text = (tmp_path / "rep" / "real-data.md").read_text()
+    text = (tmp_path / "rep" / "report.md").read_text()
     assert "cross / in-dataset" in text and "drives_heatmap.png" in text

@@ -425,15 +425,17 @@ def test_a_users_log_runs_end_to_end(tmp_path):
     # The report draws the real-data figures from the saved results.
     rep = runner.invoke(app, ["report", str(out), "--out", str(tmp_path / "report")])
     assert rep.exit_code == 0, rep.output
-    text = (tmp_path / "report" / "real-data.md").read_text()
-    assert "| ekf-tuned | tuned |" in text
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert "| ekf-tuned | tuned |" in text and "### my-robot (real data)" in text
     for kind in ("track", "errors", "noise", "ratios"):
         assert (tmp_path / "report" / f"my-robot_{kind}.png").is_file()
-    # ... and the one report.html embeds them, report.md links real-data.md
+        assert f"](my-robot_{kind}.png)" in text
+    # ... and the one report.html holds the same section: its table, its figures embedded
     page = (tmp_path / "report" / "report.html").read_text()
     assert all(f'href="my-robot_{k}.png"' in page for k in ("track", "errors", "noise", "ratios"))
-    assert page.count("<img ") == 4
-    assert "[real-data.md](real-data.md)" in (tmp_path / "report" / "report.md").read_text()
+    assert page.count("<img ") == 4 and '<h3 id="real-my-robot">' in page
+    assert "<td>ekf-tuned</td><td>tuned</td>" in page
+    assert not (tmp_path / "report" / "real-data.md").exists()  # one report, not two
     # the noise figure: every adaptive instance from x1 (the registry says anfekf adapts R),
     # none for the fixed EKFs
     from anfekf_bench.report import real

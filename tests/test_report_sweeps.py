@@ -1,6 +1,7 @@
 """One report of everything: a sweep-only folder gets report.md and report.html too, every
-figure written is in them, report.md links sweeps.md; the sweep heatmaps use the report's one
-ratio scale (a ratio of 1 has one colour everywhere) and leave out the oracle's constant panel."""
+figure written is in them (the sweep's section: its cells, figures and captions); the sweep
+heatmaps use the report's one ratio scale (a ratio of 1 has one colour everywhere) and leave out
+the oracle's constant panel."""
 
 from __future__ import annotations
 
@@ -51,8 +52,10 @@ def test_a_sweep_only_folder_gets_one_report_with_every_figure(sweep_folder, tmp
     figures = sorted(p.name for p in out.iterdir() if p.suffix == ".png")
     assert figures, "the sweep's heatmaps"
     md = (out / "report.md").read_text(encoding="utf-8")
-    assert "[sweeps.md](sweeps.md)" in md and (out / "sweeps.md").is_file()
-    assert sorted(re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)) == figures
+    assert "### Sweep sw" in md and "2 runs per cell" in md
+    assert not (out / "sweeps.md").exists()  # one report: the sweep's section is in report.md
+    # (a caption may hold brackets of its own: "position RMSE [m]")
+    assert sorted(re.findall(r"\]\(([^)\s]+\.png)\)", md)) == figures
     page = (out / "report.html").read_text(encoding="utf-8")
     assert page.count('<img src="data:image/png;base64,') == len(figures)
     assert all(f'href="{name}"' in page for name in figures)

@@ -10,7 +10,9 @@ import pytest
 
 from anfekf_bench.config import ScenarioError
 from anfekf_bench.experiment import execute, make_plan
-from anfekf_bench.report.sweep import breakdown_range, write_sweep_report
+from anfekf_bench.report.document import Document, to_markdown
+from anfekf_bench.report.plots import FigureSaver
+from anfekf_bench.report.sweep import breakdown_range, read_sweep, section
 from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.storage import MANIFEST_FILE
 from anfekf_bench.sweeps import (
@@ -196,7 +198,10 @@ def test_breakdown_range_around_factor_one():
 def test_the_sweep_report_draws_lines_or_heatmaps(tmp_path, n_axes):
     axes = [{"scale": "R", "values": [0.5, 1.0, 4.0]}, {"scale": "Qu", "values": [0.5, 2.0]}]
     _, target = _sweep(tmp_path, sweep_doc(axes[:n_axes]), tmp_path / "out")
-    files, text = write_sweep_report(target, tmp_path / "report")
+    save = FigureSaver(tmp_path / "report", html=False)
+    (tmp_path / "report").mkdir()
+    text = to_markdown(Document("", section(read_sweep(target), save)))
+    files = save.files
     assert all(p.is_file() and p.stat().st_size > 5000 for p in files)
     if n_axes == 1:
         assert len(files) == 1 and "Break-down" in text and "| ekf-oracle | 0.5 | 4 |" in text

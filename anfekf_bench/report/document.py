@@ -41,6 +41,13 @@ class Warning:  # noqa: A001 - a block of the report, not the builtin exception
 
 
 @dataclass(frozen=True)
+class ListBlock:
+    """A bulleted list, one item a line of text (nothing when empty)."""
+
+    items: Sequence[str]
+
+
+@dataclass(frozen=True)
 class TableBlock:
     header: Sequence[str]
     rows: Sequence[Sequence[Cell | str]]
@@ -67,7 +74,7 @@ class Contents:
     level: int = 2
 
 
-Block = Heading | Paragraph | Warning | TableBlock | FigureBlock | Contents
+Block = Heading | Paragraph | Warning | ListBlock | TableBlock | FigureBlock | Contents
 
 
 def anchor_of(h: Heading) -> str:
@@ -131,6 +138,8 @@ def to_markdown(doc: Document) -> str:
             out += [b.text, ""]
         elif isinstance(b, Warning):
             out += [f"> **Warning:** {b.text}", ""]
+        elif isinstance(b, ListBlock):
+            out += [*(f"- {item}" for item in b.items), ""] if b.items else []
         elif isinstance(b, TableBlock):
             out += [*_md_table(b), ""]
         elif isinstance(b, FigureBlock):
@@ -311,6 +320,9 @@ def to_html(doc: Document) -> str:
         elif isinstance(b, Warning):
             text = inline_html(b.text)
             out.append(f'<div class="warning"><strong>Warning:</strong> {text}</div>')
+        elif isinstance(b, ListBlock):
+            if b.items:
+                out += ["<ul>", *(f"<li>{inline_html(item)}</li>" for item in b.items), "</ul>"]
         elif isinstance(b, TableBlock):
             out += _html_table(b)
         elif isinstance(b, FigureBlock):

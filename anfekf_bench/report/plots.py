@@ -7,9 +7,11 @@ One colour per filter in every figure (`filter_colour`).
 
 from __future__ import annotations
 
+import io
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
 
@@ -43,6 +45,7 @@ from .data import (  # noqa: E402
     ScenarioData,
     SummaryRow,
 )
+from .document import FigureBlock  # noqa: E402
 
 DPI = 110
 ELLIPSE_SIGMA = 3.0
@@ -132,6 +135,47 @@ def save_figure(fig: Figure, path: Path | BinaryIO, fmt: str = "png", dpi: int =
         write_atomic(
             Path(path), lambda tmp: fig.savefig(tmp, format=fmt, dpi=dpi, metadata=metadata)
         )
+
+
+@dataclass
+class FigureSaver:
+    """The one place a report's figures are written: each section builder hands it a figure,
+    its file name and its caption; it saves the file into `out_dir` (remembered in `files`) and
+    returns the document's block, with the image report.html embeds (a PDF gets a PNG copy: a
+    browser does not show a PDF in <img>)."""
+
+    out_dir: Path
+    fmt: str = "png"
+    dpi: int = DPI
+    html: bool = True
+    files: list[Path] = field(default_factory=list)
+
+    def __call__(self, fig: Figure, name: str, caption: str) -> FigureBlock:
+        path = Path(self.out_dir) / name
+        save_figure(fig, path, self.fmt, dpi=self.dpi)
+        self.files.append(path)
+        if not self.html:
+            image, mime = b"", "image/png"
+        elif self.fmt == "pdf":
+            buf = io.BytesIO()
+            save_figure(fig, buf, "png", dpi=self.dpi)
+            image, mime = buf.getvalue(), "image/png"
+        else:
+            image = path.read_bytes()
+            mime = "image/svg+xml" if self.fmt == "svg" else "image/png"
+        return FigureBlock(name, caption, image, mime, link_only=self.fmt == "pdf")
+
+
+def legend_entries(axes: Iterable[Axes]) -> tuple[list, list[str]]:
+    """The legend handles and labels of several axes, each label once (its first handle): one
+    legend for a figure whose panels share filters."""
+    handles, labels = [], []
+    for ax in axes:
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    return handles, labels
 
 
 def plain_number(x: float, pos=None) -> str:
@@ -456,12 +500,7 @@ def noise_figure(sc: ScenarioData) -> Figure:
             axes[g * per_group + j // ncols, j % ncols].set_visible(False)
     for ax in axes[-1]:
         ax.set_xlabel("time [s]")
-    handles, labels = [], []
-    for ax in axes.ravel():
-        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
-            if lab not in labels:
-                handles.append(h)
-                labels.append(lab)
+    handles, labels = legend_entries(axes.ravel())
     # Outside the data: with ten filters a legend inside would cover the lines.
     fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 5),
                fontsize=7)  # fmt: skip
@@ -659,12 +698,7 @@ def overview_figure(rows: Sequence[SummaryRow]) -> Figure:
     ax_cons.set_ylabel("steps with run-averaged NEES in bounds [%]")
     ax_cons.set_ylim(0, 108)
     ax_cons.set_title("steps with NEES in 95 % bounds\n(higher is better)", fontsize=9)
-    handles, labels = [], []
-    for ax in (ax_rmse, ax_anees, ax_cons):
-        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
-            if lab not in labels:
-                handles.append(h)
-                labels.append(lab)
+    handles, labels = legend_entries((ax_rmse, ax_anees, ax_cons))
     fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 6),
                title="error bars: 95 % paired bootstrap interval over runs")  # fmt: skip
     runs = "/".join(str(n) for n in sorted({r.runs for r in rows}))

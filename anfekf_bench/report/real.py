@@ -1,7 +1,9 @@
 """Report figures and tables of real-data results (SPEC 9), from saved results only.
 
 A real-data result folder (manifest `kind: recorded`, written by real_experiment) holds its
-held-out segments as runs. Its section of the report (`real-data.md` and the figures) shows:
+held-out segments (or, protocol drives, its whole drives) as runs. Its section of the one report
+(`section`: document blocks; report.py writes them into report.md and report.html with the
+simulated scenarios' sections, through the same figure writer) shows:
 
 - `<name>_track`: the map, the Vicon path at the scored evaluation times and the estimates of
   ekf-tuned, of the naive EKF (x1) and of the adaptive instance with the lowest position RMSE;
@@ -17,6 +19,7 @@ held-out segments as runs. Its section of the report (`real-data.md` and the fig
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -26,6 +29,7 @@ import numpy as np
 import pandas as pd
 
 from ..analysis.metrics import format_number, format_share
+from ..config import FILTER_NAME_PATTERN
 from ..filters.registry import adapted_noise
 from ..storage import (
     COMPARISONS_FILE,
@@ -38,21 +42,13 @@ from ..storage import (
     read_parquet,
     read_steps,
     scenario_name_problem,
-    write_atomic,
 )
-from .plots import LINE_STYLES, PALETTE, plain_log_axis
+from .document import Block, Cell, Heading, ListBlock, Paragraph, TableBlock
+from .plots import FigureSaver, filter_colour, filter_linestyle, legend_entries, plain_log_axis
 
-REAL_REPORT_FILE = "real-data.md"
 LOST_LOCK_M = 1.0
 # The track and error figures show three filters: the reference, the naive EKF, the best adaptive.
 SHOWN_COLOURS = ("#1f77b4", "#d62728", "#2ca02c")
-
-
-def _palette(n: int) -> list:
-    from matplotlib import colormaps
-
-    cmap = colormaps["tab20"]
-    return [cmap(i % 20) for i in range(n)]
 
 
 def is_real_result(folder: Path) -> bool:
@@ -112,10 +108,6 @@ def _finite(value, limit: float = math.inf) -> bool:
 def _check_real_manifest(path: Path, manifest: dict) -> None:
     """ResultsError unless the parts of a real-data manifest the report draws are as `anfekf
     run` writes them (a hand-edited one is refused in one line, before any figure)."""
-    import json
-
-    from ..config import FILTER_NAME_PATTERN
-
     try:
         json.dumps(manifest, ensure_ascii=False).encode("utf-8")
     except UnicodeEncodeError:
@@ -145,14 +137,7 @@ def _check_real_manifest(path: Path, manifest: dict) -> None:
         for s in segments
     ):
         raise ResultsError(f"{path}: data.segments: expected segments with an index and a t0")
-    landmarks = data.get("landmarks")
-    columns = [landmarks.get(k) for k in ("id", "x", "y")] if isinstance(landmarks, dict) else []
-    if (
-        len(columns) != 3
-        or not all(isinstance(c, list) for c in columns)
-        or len({len(c) for c in columns}) != 1
-        or not all(_finite(v, COORDINATE_LIMIT) for c in columns for v in c)
-    ):
+    if not _landmarks_ok(data.get("landmarks"), ("id", "x", "y")):
         raise ResultsError(
             f"{path}: data.landmarks: expected id, x and y lists of one length, finite numbers"
             f" within {COORDINATE_LIMIT:g} m"
@@ -169,6 +154,18 @@ def _check_real_manifest(path: Path, manifest: dict) -> None:
             raise ResultsError(f"{path}: data.{key}: expected a list of [start, end] in seconds")
 
 
+def _landmarks_ok(landmarks, keys: tuple[str, ...]) -> bool:
+    """Whether a map's `keys` columns are lists of one length of finite numbers within
+    COORDINATE_LIMIT."""
+    columns = [landmarks.get(k) for k in keys] if isinstance(landmarks, dict) else []
+    return (
+        len(columns) == len(keys)
+        and all(isinstance(c, list) for c in columns)
+        and len({len(c) for c in columns}) == 1
+        and all(_finite(v, COORDINATE_LIMIT) for c in columns for v in c)
+    )
+
+
 def _check_drives(path: Path, data: dict) -> None:
     """The drives of a cross-drive result as the report draws them: each a plain id and its
     dataset's landmarks (finite x and y lists of one length)."""
@@ -176,15 +173,10 @@ def _check_drives(path: Path, data: dict) -> None:
     if not isinstance(drives, list) or not drives:
         raise ResultsError(f"{path}: data.drives: expected a non-empty list of drives")
     for i, d in enumerate(drives):
-        landmarks = d.get("landmarks") if isinstance(d, dict) else None
-        columns = [landmarks.get(k) for k in ("x", "y")] if isinstance(landmarks, dict) else []
         if (
             not isinstance(d.get("drive") if isinstance(d, dict) else None, str)
             or scenario_name_problem(d["drive"])
-            or len(columns) != 2
-            or not all(isinstance(c, list) for c in columns)
-            or len({len(c) for c in columns}) != 1
-            or not all(_finite(v, COORDINATE_LIMIT) for c in columns for v in c)
+            or not _landmarks_ok(d.get("landmarks"), ("x", "y"))
         ):
             raise ResultsError(
                 f"{path}: data.drives.{i}: expected a plain drive id and landmarks x, y (finite"
@@ -366,18 +358,16 @@ def noise_figure(rd: RealData):
     naive = rd.manifest["scenario"]["naive"]
     starts = {f["start"] for f in rd.instances() if f["start"] is not None}
     start = 1.0 if 1.0 in starts else (min(starts) if starts else None)
-    adaptive = {f["name"]: adapts(rd, f) for f in rd.instances()
+    adaptive = {f["name"]: (f["base"], adapts(rd, f)) for f in rd.instances()
                 if f["start"] == start and adapts(rd, f)}  # fmt: skip
     for ax, (col, label, key) in zip(axes.ravel(), NOISE, strict=True):
-        for i, (name, what) in enumerate(adaptive.items()):
+        for name, (base, what) in adaptive.items():
             if col[0] not in what:  # R_rr, R_bb: "R"; Q_vv, Q_gg: "Q"
                 continue
             sub = _broken(_one(rd, name), ["t_abs", col])
-            # colour and line style by order: thirteen filters stay apart
-            colour = PALETTE[i % len(PALETTE)]
-            style = LINE_STYLES[(i // len(PALETTE)) % len(LINE_STYLES)]
-            ax.plot(sub[:, 0], np.sqrt(sub[:, 1]), lw=0.9, color=colour, ls=style,
-                    gid=f"{col}/{name}", label=name)  # fmt: skip
+            # the report's colour and line style of the filter: thirteen filters stay apart
+            ax.plot(sub[:, 0], np.sqrt(sub[:, 1]), lw=0.9, color=filter_colour(base),
+                    ls=filter_linestyle(base), gid=f"{col}/{name}", label=name)  # fmt: skip
         if key in tuned:
             ax.axhline(tuned[key], color="k", ls="--", lw=1, gid=f"{col}/tuned", label="ekf-tuned")
         if start is not None:
@@ -386,12 +376,7 @@ def noise_figure(rd: RealData):
         plain_log_axis(ax)
         ax.set_ylabel(label)
         ax.set_xlabel("log time [s]")
-    handles, labels = [], []
-    for ax in axes.ravel():
-        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
-            if lab not in labels:
-                handles.append(h)
-                labels.append(lab)
+    handles, labels = legend_entries(axes.ravel())
     fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 5), fontsize=7)
     fig.suptitle(f"{rd.name}: adapted R and Q (start x{start:g}) against the tuned values")
     return fig
@@ -431,7 +416,7 @@ def ratio_figure(rd: RealData):
     fig, axes = _figure(1, 1, (8, 0.35 * len(bases) * max(1, len(starts)) + 1.5))
     ax = axes[0, 0]
     markers = "os^Dv<>p"
-    colours = dict(zip(bases, _palette(len(bases)), strict=True))
+    colours = {base: filter_colour(base) for base in bases}  # the report's one palette
     y = 0
     ticks, labels = [], []
     for base in bases:
@@ -459,7 +444,7 @@ def ratio_figure(rd: RealData):
 
 
 # --------------------------------------------------------------------------------------------
-# Markdown
+# The report's section (document blocks; report.py puts them in the one report)
 
 
 def _start_text(r: dict) -> str:
@@ -469,92 +454,103 @@ def _start_text(r: dict) -> str:
     return "tuned" if r["kind"] == "ekf-tuned" else "trained"
 
 
-def markdown_table(rd: RealData) -> str:
+def _number(value: float, digits: int) -> Cell:
+    return Cell(format_number(value, digits), value)
+
+
+def _ratio_cell(r: dict) -> Cell:
+    """'0.92 [0.85, 1.01]': a ratio to ekf-tuned with its interval (when it has one)."""
+    text = format_number(r["ratio"], 2)
+    if math.isfinite(r["lo"]):
+        text += f" [{r['lo']:.2f}, {r['hi']:.2f}]"
+    return Cell(text, r["ratio"])
+
+
+def _count_cell(count: int, total: int) -> Cell:
+    return Cell(f"{count}/{total}", count)
+
+
+def results_table(rd: RealData) -> TableBlock:
+    """Per instance (segments protocol): RMSE (Monte Carlo statistic and pooled), the ratio to
+    ekf-tuned with its interval, heading RMSE, ANEES, NEES in bounds, gate rejections, lost lock."""
     header = (
         "filter", "start", "RMSE pos [m]", "pooled [m]", "ratio to ekf-tuned [95 %]",
         "RMSE head [deg]", "ANEES", "NEES in bounds", "gate rejected", "lost lock",
     )  # fmt: skip
-    lines = ["| " + " | ".join(header) + " |", "|---|---|" + "---:|" * (len(header) - 2)]
-    for r in ratio_rows(rd):
-        ratio = format_number(r["ratio"], 2)
-        if math.isfinite(r["lo"]):
-            ratio += f" [{r['lo']:.2f}, {r['hi']:.2f}]"
-        lines.append("| " + " | ".join([
-            r["base"], _start_text(r),
-            format_number(r["rmse_pos"], 3), format_number(r["rmse_pos_pooled"], 3), ratio,
-            format_number(r["rmse_heading_deg"], 1), format_number(r["anees"], 1),
-            format_share(r["nees_in_bounds"]), format_share(r["gate_rejected"]),
-            f"{r['lost_lock_runs']}/{r['runs']}",
-        ]) + " |")  # fmt: skip
-    return "\n".join(lines)
+    rows = [
+        [
+            Cell(r["base"]), Cell(_start_text(r)),
+            _number(r["rmse_pos"], 3), _number(r["rmse_pos_pooled"], 3), _ratio_cell(r),
+            _number(r["rmse_heading_deg"], 1), _number(r["anees"], 1),
+            Cell(format_share(r["nees_in_bounds"]), r["nees_in_bounds"]),
+            Cell(format_share(r["gate_rejected"]), r["gate_rejected"]),
+            _count_cell(r["lost_lock_runs"], r["runs"]),
+        ]
+        for r in ratio_rows(rd)
+    ]  # fmt: skip
+    return TableBlock(header, rows, (False, False) + (True,) * (len(header) - 2))
 
 
-def markdown(rd: RealData, figures: dict[str, str]) -> str:
+SEGMENTS_FIGURES = (
+    ("ratios", ratio_figure, "every filter from every naive start against ekf-tuned"),
+    ("track", track_figure, "the held-out segments against Vicon, with the map"),
+    ("errors", errors_figure, "position and heading error over time"),
+    ("noise", noise_figure, "adapted R and Q against the tuned values"),
+)
+
+
+def _figures(rd: RealData, save: FigureSaver, drawn: Sequence) -> list[Block]:
+    """Each figure of `drawn` ((key, function, caption)) saved as `<name>_<key>.<format>`."""
+    return [save(draw(rd), f"{rd.slug}_{key}.{save.fmt}", f"{rd.name}: {caption}")
+            for key, draw, caption in drawn]  # fmt: skip
+
+
+def segments_section(rd: RealData, save: FigureSaver, level: int = 3) -> list[Block]:
+    """A result of the segments protocol (SPEC 9): the log and its held-out part, ekf-tuned's
+    noise, the table of every instance and four figures."""
     m = rd.manifest
     data, tuned = m["data"], m.get("tuning")
-    out = [f"## {rd.name} (real data)", ""]
+    out: list[Block] = [Heading(f"{rd.name} (real data)", level, anchor=f"real-{rd.slug}")]
     if rd.description:
-        out += [rd.description, ""]
-    out += [
+        out.append(Paragraph(rd.description))
+    out.append(Paragraph(
         f"Log: {data['source']} ({data['log']}); held-out part {data['held_out'][0]:.1f}-"
         f"{data['held_out'][1]:.1f} s with {data['held_out_scorable_s']:.0f} s of scorable ground"
         f" truth, in {m['runs']} segments, each cold-started from ground truth (the runs of the"
         " statistics below: one robot, one sensor, consecutive stretches of one drive, so not"
-        " independent repeats; docs/REAL_DATA.md).",
-        "",
-    ]
+        " independent repeats; docs/REAL_DATA.md)."
+    ))  # fmt: skip
     if tuned:
-        out += [
+        out.append(Paragraph(
             f"ekf-tuned: sigma_v {tuned['sigma_v']:.4g} m/s, sigma_w {tuned['sigma_w_rad']:.4g}"
             f" rad/s, sigma_range {tuned['sigma_range']:.4g} m, sigma_bearing"
             f" {tuned['sigma_bearing_rad']:.4g} rad, chosen among {tuned['settings']} settings on"
             f" {tuned['train_segments']} training segments (training RMSE"
             f" {tuned['train_rmse_pos']:.4f} m; {100 * tuned['coarse_lost_lock_share']:.0f} % of"
-            " the coarse grid lost lock).",
-            "",
-        ]
-    out += [
+            " the coarse grid lost lock)."
+        ))  # fmt: skip
+    out.append(Paragraph(
         "RMSE pos: the time mean of the RMSE-over-segments curve (segments aligned by the rank of"
         " the evaluation time in the segment); pooled: over every scored time of every segment."
-        f" Lost lock: segments whose position error exceeds {LOST_LOCK_M:g} m at a scored time.",
-        "",
-        markdown_table(rd),
-        "",
-    ]
-    captions = {
-        "ratios": "every filter from every naive start against ekf-tuned",
-        "track": "the held-out segments against Vicon, with the map",
-        "errors": "position and heading error over time",
-        "noise": "adapted R and Q against the tuned values",
-    }
-    for key, caption in captions.items():
-        if key in figures:
-            out += [f"![{rd.name}: {caption}]({figures[key]})", ""]
-    return "\n".join(out)
+        f" Lost lock: segments whose position error exceeds {LOST_LOCK_M:g} m at a scored time."
+    ))  # fmt: skip
+    out.append(results_table(rd))
+    return out + _figures(rd, save, SEGMENTS_FIGURES)
 
 
-def write_real_report(
-    results: Sequence[RealData], out_dir: Path, fmt: str, dpi: int | None = None
-) -> tuple[list[Path], str]:
-    """Write the figures of every real-data result and real-data.md into `out_dir`; returns the
-    files written and the markdown (report.md's real-data part)."""
-
-    files = []
-    parts = ["# Real data", "", "Generated by `anfekf report` from saved results only.", ""]
-    for rd in results:
-        try:
-            files += _write_real(rd, out_dir, fmt, dpi, parts)
-        except (KeyError, TypeError, ValueError, IndexError, OverflowError, AttributeError) as exc:
-            # A hand-edited manifest the checks above let through: one line, not a traceback.
-            raise ResultsError(
-                f"{rd.folder / MANIFEST_FILE}: not a real-data manifest written by anfekf run"
-                f" ({type(exc).__name__})"
-            ) from None
-    text = "\n".join(parts) + "\n"
-    md = Path(out_dir) / REAL_REPORT_FILE
-    write_atomic(md, lambda tmp: tmp.write_text(text, encoding="utf-8"))
-    files.append(md)
-    return files, text
+def section(rd: RealData, save: FigureSaver, level: int = 3) -> list[Block]:
+    """A recorded result's part of the report, by its protocol (segments, drives); its figures
+    saved through `save` (the report's one figure writer)."""
+    try:
+        if is_drives_result(rd):  # per-drive figures and statistics over drives
+            return drives_section(rd, save, level)
+        return segments_section(rd, save, level)
+    except (KeyError, TypeError, ValueError, IndexError, OverflowError, AttributeError) as exc:
+        # A hand-edited manifest the checks above let through: one line, not a traceback.
+        raise ResultsError(
+            f"{rd.folder / MANIFEST_FILE}: not a real-data manifest written by anfekf run"
+            f" ({type(exc).__name__})"
+        ) from None
 
 
 # --------------------------------------------------------------------------------------------
@@ -719,19 +715,18 @@ def drives_noise_figure(rd: RealData):
     fig, axes = _figure(2, 2, (11, 6.5))
     starts = {f["start"] for f in rd.instances() if f["start"] is not None}
     start = 1.0 if 1.0 in starts else (min(starts) if starts else None)
-    adaptive = [f["name"] for f in rd.instances()
-                if f["kind"] not in ("ekf", "ekf-tuned") and f["start"] == start]  # fmt: skip
-    colours = _palette(len(adaptive))
+    adaptive = {f["name"]: f["base"] for f in rd.instances()
+                if f["kind"] not in ("ekf", "ekf-tuned") and f["start"] == start}  # fmt: skip
     tuning = rd.manifest.get("tuning") or {}
     per_drive = {d["drive"]: d for d in tuning.get("per_drive", [])}
     tunings = tuning.get("tunings", {})
     steps = rd.steps
     for ax, (col, label, key) in zip(axes.ravel(), NOISE, strict=True):
-        for name, colour in zip(adaptive, colours, strict=True):
+        for name, base in adaptive.items():
             sub = steps[steps["filter"] == name]
             med = sub.groupby("run")[col].median().reindex(range(len(ids)))
             ax.plot(range(len(ids)), np.sqrt(med.to_numpy(float)), "o-", ms=3, lw=0.6,
-                    color=colour, gid=f"{col}/{name}", label=name)  # fmt: skip
+                    color=filter_colour(base), gid=f"{col}/{name}", label=name)  # fmt: skip
         tuned = [tunings.get("+".join(map(str, _sources(per_drive.get(d)))), {}).get(key)
                  for d in ids]  # fmt: skip
         if any(v is not None for v in tuned):
@@ -752,106 +747,72 @@ def _sources(entry: dict | None) -> list[int]:
     return sorted({int(d[1]) for d in entry["tuned_on"]})
 
 
-def drives_markdown(rd: RealData, figures: dict[str, str]) -> str:
+def drives_table(rd: RealData) -> TableBlock:
+    """Per instance (drives protocol): the ratio to ekf-tuned over drives with its interval, the
+    Wilcoxon p, the drives it beat ekf-tuned on, its median RMSE and the drives it lost lock on."""
+    header = ("filter", "start", "ratio to ekf-tuned [95 %]", "p", "better on", "median RMSE [m]",
+              "lost lock")  # fmt: skip
+    rows = [
+        [
+            Cell(r["base"]), Cell(_start_text(r)), _ratio_cell(r),
+            _number(r["p_value"], 3), _count_cell(r["better"], r["used"]),
+            _number(r["rmse_median"], 3), _count_cell(r["lost_lock"], r["drives"]),
+        ]
+        for r in drive_ratio_rows(rd)
+    ]  # fmt: skip
+    return TableBlock(header, rows, (False, False) + (True,) * (len(header) - 2))
+
+
+def drives_section(rd: RealData, save: FigureSaver, level: int = 3) -> list[Block]:
+    """A result of the drives protocol (SPEC 15): the ratios over drives, ekf-tuned's tuning per
+    drive, the per-drive RMSE and four figures."""
     m = rd.manifest
     tuning = m.get("tuning") or {}
     rm = drive_rmse(rd)
-    out = [f"## {rd.name} (real data, {m['runs']} drives)", ""]
+    heading = f"{rd.name} (real data, {m['runs']} drives)"
+    out: list[Block] = [Heading(heading, level, anchor=f"real-{rd.slug}")]
     if rd.description:
-        out += [rd.description, ""]
-    out += [
+        out.append(Paragraph(rd.description))
+    out.append(Paragraph(
         "Each drive is one run, cold-started from Vicon at its first stamp and scored over its"
         " whole ground-truth span (docs/REAL_DATA.md section 6). Ratios: the geometric mean"
         " over drives of each drive's position RMSE over ekf-tuned's on that drive, with a"
         " paired 95 % BCa bootstrap interval over drives (the independent repeats) and the"
         f" Wilcoxon p. Lost lock: drives with a position error above {LOST_LOCK_M:g} m at a"
-        " scored time (or diverged).",
-        "",
-    ]
-    header = ("filter", "start", "ratio to ekf-tuned [95 %]", "p", "better on", "median RMSE [m]",
-              "lost lock")  # fmt: skip
-    lines = ["| " + " | ".join(header) + " |", "|---|---|" + "---:|" * (len(header) - 2)]
-    for r in drive_ratio_rows(rd):
-        ratio = format_number(r["ratio"], 2)
-        if math.isfinite(r["lo"]):
-            ratio += f" [{r['lo']:.2f}, {r['hi']:.2f}]"
-        lines.append("| " + " | ".join([
-            r["base"], _start_text(r), ratio,
-            format_number(r["p_value"], 3), f"{r['better']}/{r['used']}",
-            format_number(r["rmse_median"], 3), f"{r['lost_lock']}/{r['drives']}",
-        ]) + " |")  # fmt: skip
-    out += lines + [""]
+        " scored time (or diverged)."
+    ))  # fmt: skip
+    out.append(drives_table(rd))
     if tuning.get("per_drive"):
-        out += [
+        out.append(Paragraph(
             "ekf-tuned per drive: tuned on the drives of the other dataset(s) (cross), against"
             " values tuned on its own dataset's drives, itself included (in-dataset, in-sample:"
-            " what tuning on that map could give). RMSE of the plain EKF with each on the drive.",
-            "",
-            "| drive | tuned on | cross RMSE [m] | in-dataset RMSE [m] | cross / in-dataset |",
-            "|---|---|---:|---:|---:|",
-        ]
+            " what tuning on that map could give). RMSE of the plain EKF with each on the drive."
+        ))  # fmt: skip
+        rows = []
         for d in tuning["per_drive"]:
             c, i = d["cross_rmse_pos"], d["in_dataset_rmse_pos"]
-            out.append(
-                f"| {d['drive']} | datasets {'+'.join(map(str, _sources(d)))} |"
-                f" {format_number(c, 3)} | {format_number(i, 3)} |"
-                f" {format_number(c / i if i else math.nan, 2)} |"
-            )
-        out.append("")
-        for key, t in tuning.get("tunings", {}).items():
-            out.append(
-                f"- tuned on dataset(s) {key}: sigma_v {t['sigma_v']:.4g} m/s, sigma_w"
-                f" {t['sigma_w_rad']:.4g} rad/s, sigma_range {t['sigma_range']:.4g} m,"
-                f" sigma_bearing {t['sigma_bearing_rad']:.4g} rad (training RMSE"
-                f" {t['train_rmse_pos']:.4f} m, {t['settings']} settings, {t['seconds']:.1f} s)"
-            )
-        out.append("")
-    out += ["Per drive position RMSE [m]:", "",
-            "| filter | " + " | ".join(rm.columns) + " |",
-            "|---|" + "---:|" * rm.shape[1]]  # fmt: skip
-    for name, row in rm.iterrows():
-        out.append(f"| {name} | " + " | ".join(format_number(v, 3) for v in row) + " |")
-    out.append("")
-    captions = {
-        "heatmap": "filters x drives, RMSE over ekf-tuned's",
-        "tracks": "every drive against Vicon",
-        "errors": "position error over time per drive",
-        "noise": "adapted noise per drive against the tuned values",
-    }
-    for key, caption in captions.items():
-        if key in figures:
-            out += [f"![{rd.name}: {caption}]({figures[key]})", ""]
-    return "\n".join(out)
+            ratio = c / i if i else math.nan
+            rows.append([Cell(d["drive"]), Cell(f"datasets {'+'.join(map(str, _sources(d)))}"),
+                         _number(c, 3), _number(i, 3), _number(ratio, 2)])  # fmt: skip
+        header = ("drive", "tuned on", "cross RMSE [m]", "in-dataset RMSE [m]",
+                  "cross / in-dataset")  # fmt: skip
+        out.append(TableBlock(header, rows, (False, False, True, True, True)))
+        out.append(ListBlock([
+            f"tuned on dataset(s) {key}: sigma_v {t['sigma_v']:.4g} m/s, sigma_w"
+            f" {t['sigma_w_rad']:.4g} rad/s, sigma_range {t['sigma_range']:.4g} m,"
+            f" sigma_bearing {t['sigma_bearing_rad']:.4g} rad (training RMSE"
+            f" {t['train_rmse_pos']:.4f} m, {t['settings']} settings, {t['seconds']:.1f} s)"
+            for key, t in tuning.get("tunings", {}).items()
+        ]))  # fmt: skip
+    rows = [[Cell(str(name)), *(_number(v, 3) for v in row)] for name, row in rm.iterrows()]
+    out.append(TableBlock(("filter", *rm.columns), rows, (False,) + (True,) * rm.shape[1],
+                          caption="Per drive position RMSE [m]:"))  # fmt: skip
+    return out + _figures(rd, save, DRIVES_FIGURES)
 
 
 DRIVES_FIGURES = (
-    ("heatmap", drives_heatmap_figure),
-    ("tracks", drives_track_figure),
-    ("errors", drives_errors_figure),
-    ("noise", drives_noise_figure),
+    ("heatmap", drives_heatmap_figure, "filters x drives, RMSE over ekf-tuned's"),
+    ("tracks", drives_track_figure, "every drive against Vicon"),
+    ("errors", drives_errors_figure, "position error over time per drive"),
+    ("noise", drives_noise_figure, "adapted noise per drive against the tuned values"),
 )
-
-
-def _write_real(rd: RealData, out_dir: Path, fmt: str, dpi: int | None, parts: list) -> list:
-    """One real-data result's figures (written) and its markdown (appended to `parts`)."""
-    from . import plots
-
-    files = []
-    figures = {}
-    if is_drives_result(rd):  # protocol drives: per-drive figures and statistics over drives
-        for key, draw in DRIVES_FIGURES:
-            name = f"{rd.slug}_{key}.{fmt}"
-            plots.save_figure(draw(rd), Path(out_dir) / name, fmt, dpi=dpi or plots.DPI)
-            files.append(Path(out_dir) / name)
-            figures[key] = name
-        parts.append(drives_markdown(rd, figures))
-        return files
-    for key, draw in (("ratios", ratio_figure), ("track", track_figure),
-                      ("errors", errors_figure), ("noise", noise_figure)):  # fmt: skip
-        name = f"{rd.slug}_{key}.{fmt}"
-        path = Path(out_dir) / name
-        plots.save_figure(draw(rd), path, fmt, dpi=dpi or plots.DPI)
-        files.append(path)
-        figures[key] = name
-    parts.append(markdown(rd, figures))
-    return files

@@ -8,14 +8,17 @@ The paired comparisons (comparisons.parquet: ratios with 95 % bootstrap interval
 verdicts (claims.json) and the per-run metrics (runs.parquet) are shown as saved. plots.py draws
 the arrays; `write_report` writes the figures, report.md and report.html (one self-contained
 file, document.py).
+
+One pipeline for every source: each result (a simulated scenario, a recorded log of either
+protocol, a sweep) gives its section as document blocks (`section`: `scenario_section` here,
+`real.section`, `sweep.section`), its figures saved through the one writer
+(`plots.FigureSaver`); the one Document becomes report.md and report.html.
 """
 
 from __future__ import annotations
 
-import io
 import math
 import os
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import Enum
@@ -58,6 +61,7 @@ from ..storage import (
 )
 from . import changing, plots, real
 from . import sweep as sweep_report
+from .consistency import check_saved_result
 from .data import (
     _ADAPTED,
     _NEEDED_COLUMNS,
@@ -79,6 +83,7 @@ from .data import (
     first_of_kind,
 )
 from .document import (
+    Block,
     Cell,
     Contents,
     Document,
@@ -361,9 +366,7 @@ def load_scenario_data(folder: Path) -> ScenarioData:
     manifest = _manifest(folder)
     manifest_path = folder / MANIFEST_FILE
     specs = _filter_specs(manifest, manifest_path)
-    from .consistency import check_saved_result  # one batch's steps, whole, under plain names
-
-    check_saved_result(folder, steps, manifest)
+    check_saved_result(folder, steps, manifest)  # one batch's steps, whole, under plain names
     check_one_batch(folder, manifest)
     names = [str(n) for n in steps["filter"].cat.categories if (steps["filter"] == n).any()]
     unknown = [n for n in names if n not in specs]
@@ -450,8 +453,9 @@ def load_summary_only(folder: Path) -> ScenarioData:
     return _scenario_data(folder, manifest, manifest_path, filters, None, per_run)
 
 
-def _check_unique_names(scenarios: Sequence[ScenarioData]) -> None:
-    """Figures are named after scenarios, so two results of one scenario would overwrite."""
+def _check_unique_names(scenarios: Sequence[ScenarioData | real.RealData]) -> None:
+    """Figures are named after scenarios (simulated or recorded), so two results of one
+    scenario would overwrite."""
     seen: dict[str, Path] = {}
     for sc in scenarios:
         if sc.slug in seen:
@@ -815,76 +819,108 @@ def caption(sc: ScenarioData, kind: str) -> str:
     )
 
 
+OVERVIEW_CAPTION = (
+    "Per scenario: each filter's position RMSE and ANEES divided by the oracle EKF's (log"
+    " scale, 95 % paired bootstrap intervals as error bars) and its share of steps with NEES in"
+    " the 95 % bounds"
+)
+
+
+def summary_blocks(
+    scenarios: Sequence[ScenarioData], rows: Sequence[SummaryRow], save: plots.FigureSaver
+) -> list[Block]:
+    """The simulated scenarios side by side: warnings, the summary table, the leaderboard (when
+    there is an oracle) and the overview figure."""
+    fmt = ImageFormat(save.fmt)
+    out: list[Block] = [Heading("Summary", anchor="summary")]
+    out += [Warning(text) for sc in scenarios for text in scenario_warnings(sc)]
+    out.append(summary_table(rows))
+    if any(r.kind == "ekf-oracle" for r in rows):
+        name = figure_name("", "leaderboard", fmt)
+        out += [Heading("Leaderboard", level=3, anchor="leaderboard"),
+                save(plots.leaderboard_figure(rows), name, LEADERBOARD_CAPTION),
+                leaderboard_table(rows)]  # fmt: skip
+    out.append(save(plots.overview_figure(rows), figure_name("", "overview", fmt),
+                    OVERVIEW_CAPTION))  # fmt: skip
+    return out
+
+
+def scenario_section(sc: ScenarioData, save: plots.FigureSaver, out_dir: Path) -> list[Block]:
+    """A simulated scenario's part of the report: its noise, claims, runs, phases (a noise
+    schedule, SPEC 14) and figures."""
+    out: list[Block] = [Heading(sc.name, anchor=f"scenario-{sc.slug}")]
+    if sc.description:
+        out.append(Paragraph(sc.description))
+    seed = f", seed {sc.seed}" if sc.seed is not None else ""
+    link = Path(os.path.relpath(sc.folder.resolve(), Path(out_dir).resolve())).as_posix()
+    out.append(Paragraph(f"{sc.runs} runs{seed}; results in [{link}]({link})."))
+    out += [Paragraph(mismatch_sentence(sc)), noise_table(sc)]
+    out += [Warning(text) for text in scenario_warnings(sc)]
+    claims = claims_table(sc)
+    if claims is not None:
+        out += [Paragraph("**Claims** declared by the scenario, decided on the interval:"), claims]
+    per_run = per_run_table(sc)
+    if per_run is not None:
+        out += [Paragraph("**Per run** (runs.parquet; diverged runs left out):"), per_run]
+    if sc.phases is not None:  # the true noise changes (SPEC 14)
+        out += [Paragraph("**Per phase** (phases.parquet; diverged runs left out):"),
+                changing.phases_table(sc.phases)]  # fmt: skip
+    if not sc.has_steps:
+        return [*out, Paragraph(NO_STEPS_NOTE)]
+    figures = scenario_figures(sc, save)
+    for kind in ("rmse", "nees", "noise", "map"):
+        block = figures.get(kind)
+        if block is None and kind == "noise" and sc.schedule is not None:
+            continue  # drawn against the true schedule below ("variances")
+        if block is None:
+            out.append(Paragraph(f"*{CAPTIONS[kind].split(' (')[0]}: no filter of this scenario"
+                                 " adapts R or Q.*"))  # fmt: skip
+        else:
+            out.append(block)
+    # a scenario with a noise schedule
+    return out + [figures[kind] for kind in ("changes", "variances") if kind in figures]
+
+
+ResultData = ScenarioData | real.RealData | sweep_report.SweepData
+
+
+def section(result: ResultData, save: plots.FigureSaver, out_dir: Path) -> list[Block]:
+    """One result folder's blocks, from the section builder of its source kind: a simulated
+    scenario (with a noise schedule or not), a recorded log (segments or drives protocol) or a
+    sweep."""
+    if isinstance(result, real.RealData):
+        return real.section(result, save)
+    if isinstance(result, sweep_report.SweepData):
+        return sweep_report.section(result, save)
+    return scenario_section(result, save, out_dir)
+
+
+# The groups after the simulated scenarios: their heading (text, anchor) before the first one.
+GROUPS = ((real.RealData, "Real data", "real-data"), (sweep_report.SweepData, "Sweeps", "sweeps"))
+
+
 def build_document(
     scenarios: Sequence[ScenarioData],
     rows: Sequence[SummaryRow],
-    figures: dict[str, dict[str, FigureBlock]],
-    overview: FigureBlock | None,
+    others: Sequence[ResultData],
+    save: plots.FigureSaver,
     out_dir: Path,
-    *,
-    leaderboard: FigureBlock | None = None,
 ) -> Document:
-    """The report's content, once, for report.md and report.html."""
+    """The report's content, once, for report.md and report.html: the simulated scenarios'
+    summary, then one loop over the result folders (simulated, then recorded, then sweeps),
+    each giving its section; the figures are saved through `save` on the way."""
     doc = Document("anfekf-bench report")
     doc.add(Paragraph(INTRO), Contents())
-    if not scenarios:
-        return doc
-    doc.add(Heading("Summary", anchor="summary"))
-    for sc in scenarios:
-        for text in scenario_warnings(sc):
-            doc.add(Warning(text))
-    doc.add(summary_table(rows))
-    if leaderboard is not None:
-        doc.add(Heading("Leaderboard", level=3, anchor="leaderboard"), leaderboard,
-                leaderboard_table(rows))  # fmt: skip
-    doc.add(overview)
-    for sc in scenarios:
-        doc.add(Heading(sc.name, anchor=f"scenario-{sc.slug}"))
-        if sc.description:
-            doc.add(Paragraph(sc.description))
-        seed = f", seed {sc.seed}" if sc.seed is not None else ""
-        link = Path(os.path.relpath(sc.folder.resolve(), Path(out_dir).resolve())).as_posix()
-        doc.add(Paragraph(f"{sc.runs} runs{seed}; results in [{link}]({link})."))
-        doc.add(Paragraph(mismatch_sentence(sc)), noise_table(sc))
-        for text in scenario_warnings(sc):
-            doc.add(Warning(text))
-        claims = claims_table(sc)
-        if claims is not None:
-            doc.add(Paragraph("**Claims** declared by the scenario, decided on the interval:"),
-                    claims)  # fmt: skip
-        per_run = per_run_table(sc)
-        if per_run is not None:
-            doc.add(Paragraph("**Per run** (runs.parquet; diverged runs left out):"), per_run)
-        if sc.phases is not None:  # the true noise changes (SPEC 14)
-            doc.add(Paragraph("**Per phase** (phases.parquet; diverged runs left out):"),
-                    changing.phases_table(sc.phases))  # fmt: skip
-        if not sc.has_steps:
-            doc.add(Paragraph(NO_STEPS_NOTE))
-            continue
-        for kind in ("rmse", "nees", "noise", "map"):
-            block = figures[sc.slug].get(kind)
-            if block is None and kind == "noise" and sc.schedule is not None:
-                continue  # drawn against the true schedule below ("variances")
-            if block is None:
-                doc.add(Paragraph(f"*{CAPTIONS[kind].split(' (')[0]}: no filter of this scenario"
-                                  " adapts R or Q.*"))  # fmt: skip
-            else:
-                doc.add(block)
-        for kind in ("changes", "variances"):  # a scenario with a noise schedule
-            if kind in figures[sc.slug]:
-                doc.add(figures[sc.slug][kind])
+    if scenarios:
+        doc.add(*summary_blocks(scenarios, rows, save))
+    started = set()
+    for result in [*scenarios, *others]:
+        for kind, text, anchor in GROUPS:
+            if isinstance(result, kind) and kind not in started:
+                doc.add(Heading(text, anchor=anchor))
+                started.add(kind)
+        doc.add(*section(result, save, out_dir))
     return doc
-
-
-def render_markdown(
-    scenarios: Sequence[ScenarioData],
-    rows: Sequence[SummaryRow],
-    figures: dict[str, dict[str, FigureBlock]],
-    overview: FigureBlock,
-    out_dir: Path = Path("."),
-) -> str:
-    """report.md: the summary table, the overview and every scenario's figures."""
-    return to_markdown(build_document(scenarios, rows, figures, overview, out_dir))
 
 
 # --------------------------------------------------------------------------- the command
@@ -901,79 +937,38 @@ def write_report(
 ) -> ReportResult:
     """Read every result under `results_dirs` (scenarios, real data) and the `sweeps` folders,
     write their figures, and one report.md and report.html to `out_dir` covering all of them,
-    with a table of contents (the sweeps also get sweeps.md, real data real-data.md).
+    with a table of contents.
 
     Everything is read (and checked) before anything is written, so bad input leaves no partial
     report behind.
     """
     out_dir = Path(out_dir)
     fmt = ImageFormat(fmt)
-    sweeps = [Path(f) for f in sweeps]
-    for folder in sweeps:
-        sweep_report.read_sweep(folder)  # checked before anything is written
+    swept = [sweep_report.read_sweep(Path(f)) for f in sweeps]  # read before anything is written
     found = (
         find_scenarios(results_dirs, out_dir)
         if not sweeps or sweep_report.has_scenario_results(list(results_dirs))
         else []
     )
-    folders, recorded = real.split_folders(found)
-    real_data = [real.load_real(f) for f in recorded]  # real-data results: report/real.py
+    folders, recorded_folders = real.split_folders(found)
+    recorded = [real.load_real(f) for f in recorded_folders]
     scenarios = [
         load_scenario_data(f) if os.path.lexists(f / STEPS_FILE) else load_summary_only(f)
         for f in folders
     ]
-    _check_unique_names(scenarios)
+    _check_unique_names([*scenarios, *recorded])
     rows = summary_rows(scenarios)
     result = ReportResult(out_dir=out_dir, scenarios=scenarios, rows=rows)
     result.warnings = [w for sc in scenarios for w in scenario_warnings(sc)]
     out_dir.mkdir(parents=True, exist_ok=True)
-    real_files: list[Path] = []
-    if real_data:
-        real_files, _ = real.write_real_report(real_data, out_dir, fmt.value, dpi)
-        result.files += real_files
-    sweep_files: list[tuple[str, list[Path]]] = []
-    if sweeps:  # in the scenarios' colours where a filter name is the same
-        with plots.palette([f.name for sc in scenarios for f in sc.filters]):
-            sweeps_md, sweep_files = sweep_report.write_sweeps(sweeps, out_dir, fmt.value)
-        result.files += [f for _, files in sweep_files for f in files] + [sweeps_md]
-
-    def save(fig, name: str, text: str) -> FigureBlock:
-        path = out_dir / name
-        plots.save_figure(fig, path, fmt.value, dpi=dpi)
-        result.files.append(path)
-        if not html:
-            image, mime = b"", "image/png"
-        elif fmt is ImageFormat.pdf:  # a browser does not show a PDF in <img>: embed a PNG
-            buf = io.BytesIO()
-            plots.save_figure(fig, buf, "png", dpi=dpi)
-            image, mime = buf.getvalue(), "image/png"
-        else:
-            image = path.read_bytes()
-            mime = "image/svg+xml" if fmt is ImageFormat.svg else "image/png"
-        return FigureBlock(name, text, image, mime, link_only=fmt is ImageFormat.pdf)
-
-    # Colours by the filters' order in this report: the same filter, the same colour throughout.
-    figures: dict[str, dict[str, FigureBlock]] = {}
-    overview = leaderboard = None
-    if scenarios:
-        with plots.palette([f.name for sc in scenarios for f in sc.filters]):
-            figures, overview = _draw_figures(scenarios, rows, save, fmt)
-            if any(r.kind == "ekf-oracle" for r in rows):
-                name = figure_name("", "leaderboard", fmt)
-                leaderboard = save(plots.leaderboard_figure(rows), name, LEADERBOARD_CAPTION)
-    doc = build_document(scenarios, rows, figures, overview, out_dir, leaderboard=leaderboard)
-    if real_files:
-        doc.add(Heading("Real data", anchor="real-data"))
-        link = real.REAL_REPORT_FILE
-        doc.add(Paragraph(f"Tables and every number: [{link}]({link})."))
-        doc.add(*_file_blocks(real_files, fmt, html))
-    if sweep_files:
-        doc.add(Heading("Sweeps", anchor="sweeps"))
-        link = sweep_report.SWEEPS_REPORT
-        doc.add(Paragraph(f"Break-down ranges and every cell's numbers: [{link}]({link})."))
-        for name, files in sweep_files:
-            doc.add(Heading(f"Sweep {name}", level=3, anchor=f"sweep-{_slug(name)}"))
-            doc.add(*_file_blocks(files, fmt, html))
+    save = plots.FigureSaver(out_dir, fmt.value, dpi, html)
+    # Colours by the filters' order in this report: the same filter, the same colour throughout
+    # (a recorded result's instances by the filter they were made from).
+    names = [f.name for sc in scenarios for f in sc.filters]
+    names += [f["base"] for rd in recorded for f in rd.instances()]
+    with plots.palette(names):  # a sweep's filters in the scenarios' colours, by name
+        doc = build_document(scenarios, rows, [*recorded, *swept], save, out_dir)
+    result.files += save.files
     outputs = {REPORT_FILE: to_markdown(doc)}
     if html:
         outputs[HTML_FILE] = to_html(doc)
@@ -991,67 +986,37 @@ LEADERBOARD_CAPTION = (
 )
 
 
-def _slug(text: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.-]", "_", text) or "x"
-
-
-def _file_blocks(files: Sequence[Path], fmt: ImageFormat, html: bool) -> list[FigureBlock]:
-    """Figures another part of the report wrote (sweeps, real data), embedded as they are: PNG
-    and SVG in the HTML, a PDF as a link."""
-    blocks = []
-    for path in files:
-        if path.suffix not in (".png", ".svg", ".pdf"):
-            continue
-        caption = path.stem.replace("_", " ")
-        embed = html and fmt is not ImageFormat.pdf
-        image = path.read_bytes() if embed else b""
-        mime = "image/svg+xml" if fmt is ImageFormat.svg else "image/png"
-        blocks.append(FigureBlock(path.name, caption, image, mime,
-                                  link_only=fmt is ImageFormat.pdf))  # fmt: skip
-    return blocks
-
-
-def _draw_figures(scenarios, rows, save, fmt) -> tuple[dict[str, dict[str, FigureBlock]], object]:
-    """Each scenario's figures and the overview, saved with `save`."""
-    figures: dict[str, dict[str, FigureBlock]] = {}
-    for sc in scenarios:
-        made = figures[sc.slug] = {}
-        if not sc.has_steps:
-            continue  # no steps.parquet: tables only (the overview includes it)
-        label = f"{sc.name}: "
-        made["rmse"] = save(plots.rmse_figure(sc), figure_name(sc.slug, "rmse", fmt),
-                            label + caption(sc, "rmse"))  # fmt: skip
-        made["nees"] = save(plots.nees_figure(sc), figure_name(sc.slug, "nees", fmt),
-                            label + caption(sc, "nees"))  # fmt: skip
-        # With a schedule the true noise is not one line: the variances figure draws it instead.
-        if sc.adapted_columns and sc.schedule is None:
-            made["noise"] = save(plots.noise_figure(sc), figure_name(sc.slug, "noise", fmt),
-                                 label + caption(sc, "noise"))  # fmt: skip
-        made["map"] = save(plots.map_figure(sc), figure_name(sc.slug, "map", fmt),
-                           label + caption(sc, "map"))  # fmt: skip
-        if sc.schedule is not None:  # the true noise changes (SPEC 14)
-            made["changes"] = save(
-                changing.changes_figure(sc, sc.schedule),
-                figure_name(sc.slug, "changes", fmt),
-                label + "Position RMSE over time and its ratio to the oracle's, with the noise"
-                " changes marked (dotted; blackouts shaded)",
+def scenario_figures(sc: ScenarioData, save: plots.FigureSaver) -> dict[str, FigureBlock]:
+    """A scenario's figures (kind -> block), saved with `save`."""
+    fmt = ImageFormat(save.fmt)
+    made: dict[str, FigureBlock] = {}
+    label = f"{sc.name}: "
+    made["rmse"] = save(plots.rmse_figure(sc), figure_name(sc.slug, "rmse", fmt),
+                        label + caption(sc, "rmse"))  # fmt: skip
+    made["nees"] = save(plots.nees_figure(sc), figure_name(sc.slug, "nees", fmt),
+                        label + caption(sc, "nees"))  # fmt: skip
+    # With a schedule the true noise is not one line: the variances figure draws it instead.
+    if sc.adapted_columns and sc.schedule is None:
+        made["noise"] = save(plots.noise_figure(sc), figure_name(sc.slug, "noise", fmt),
+                             label + caption(sc, "noise"))  # fmt: skip
+    made["map"] = save(plots.map_figure(sc), figure_name(sc.slug, "map", fmt),
+                       label + caption(sc, "map"))  # fmt: skip
+    if sc.schedule is not None:  # the true noise changes (SPEC 14)
+        made["changes"] = save(
+            changing.changes_figure(sc, sc.schedule),
+            figure_name(sc.slug, "changes", fmt),
+            label + "Position RMSE over time and its ratio to the oracle's, with the noise"
+            " changes marked (dotted; blackouts shaded)",
+        )
+        fig = changing.variances_figure(sc, sc.schedule)
+        if fig is not None:
+            made["variances"] = save(
+                fig,
+                figure_name(sc.slug, "variances", fmt),
+                label + "Variances of every filter that adapts them (mean over runs) against"
+                " the true schedule (dashed)",
             )
-            fig = changing.variances_figure(sc, sc.schedule)
-            if fig is not None:
-                made["variances"] = save(
-                    fig,
-                    figure_name(sc.slug, "variances", fmt),
-                    label + "Variances of every filter that adapts them (mean over runs) against"
-                    " the true schedule (dashed)",
-                )
-    overview = save(
-        plots.overview_figure(rows),
-        figure_name("", "overview", fmt),
-        "Per scenario: each filter's position RMSE and ANEES divided by the oracle EKF's"
-        " (log scale, 95 % paired bootstrap intervals as error bars) and its share of steps with"
-        " NEES in the 95 % bounds",
-    )
-    return figures, overview
+    return made
 
 
 def _scenario_data(

@@ -8,6 +8,7 @@ filter and metric, every cell annotated. A third axis, if any, gives one set per
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,7 +26,16 @@ from ..storage import (
     read_parquet,
     sweep_folders,
 )
-from .plots import filter_colour, save_figure
+from .document import Block, Cell, Heading, Paragraph, TableBlock
+from .plots import (
+    RATIO_MAX,
+    RATIO_MIN,
+    FigureSaver,
+    filter_colour,
+    ratio_cmap,
+    ratio_colourbar,
+    ratio_norm,
+)
 
 # (column, its interval's columns or None, title, log scale, the value marking "as good as" the
 # reference, or None)
@@ -135,9 +145,7 @@ def heatmap_figure(
     """One heatmap per filter of `column` over two axes, every cell annotated. Ratios to the
     oracle use the report's one ratio scale (log, white at 1, ticks 1, 1.5, 2, 3, 5, 10, 30), and
     the oracle's own panel (1 everywhere) is left out; the cells show point estimates (the
-    intervals are in sweep.parquet and sweeps.md's line figures)."""
-    from .plots import RATIO_MAX, RATIO_MIN, ratio_cmap, ratio_colourbar, ratio_norm
-
+    intervals are in sweep.parquet)."""
     ratio = column.endswith("_vs_oracle")
     names = [str(n) for n in rows["filter"].cat.categories if (rows["filter"] == n).any()]
     if ratio:  # the reference against itself: a constant panel of 1.00 says nothing
@@ -213,39 +221,42 @@ def breakdown_range(
     return out
 
 
-def breakdown_lines(data: SweepData, within: float) -> list[str]:
-    """A markdown table of each filter's break-down range on every factor axis of a 1-D sweep."""
+def breakdown_blocks(data: SweepData, within: float) -> list[Block]:
+    """Each filter's break-down range on the factor axis of a 1-D sweep: a sentence and a table
+    (nothing for other sweeps)."""
     axes = [a for a in data.axes if a in data.factor_axes]
     if len(data.axes) != 1 or not axes:
         return []
     axis = axes[0]
     found = breakdown_range(data.table, axis, within=within)
-    lines = [
-        f"Break-down: the range of {axis} around 1 over which a filter stays within {within:g} x"
-        " the oracle's position RMSE ('-': not even at 1).",
-        "",
-        f"| filter | lowest {axis} | highest {axis} |",
-        "|---|---:|---:|",
+    rows = [
+        [Cell(name), *(Cell("-") if math.isnan(v) else Cell(f"{v:.3g}", v) for v in (lo, hi))]
+        for name, (lo, hi) in found.items()
     ]
-    for name, (lo, hi) in found.items():
-        shown = ("-", "-") if math.isnan(lo) else (f"{lo:.3g}", f"{hi:.3g}")
-        lines.append(f"| {name} | {shown[0]} | {shown[1]} |")
-    return [*lines, ""]
+    return [
+        Paragraph(
+            f"Break-down: the range of {axis} around 1 over which a filter stays within"
+            f" {within:g} x the oracle's position RMSE ('-': not even at 1)."
+        ),
+        TableBlock(("filter", f"lowest {axis}", f"highest {axis}"), rows, (False, True, True)),
+    ]
 
 
-def write_sweep_report(
-    folder: Path, out: Path, fmt: str = "png", within: float = 1.5
-) -> tuple[list[Path], str]:
-    """The sweep's figures into `out`; returns the files and the report.md section."""
-    data = read_sweep(folder)
-    out = Path(out)
-    files: list[Path] = []
-    lines = [f"## Sweep {data.name}", ""]
-    lines.append(
+def anchor(name: str) -> str:
+    """The id of a sweep's heading in the report."""
+    return "sweep-" + (re.sub(r"[^A-Za-z0-9_.-]", "_", name) or "x")
+
+
+def section(data: SweepData, save: FigureSaver, within: float = 1.5, level: int = 3) -> list[Block]:
+    """A sweep's part of the report: its cells, the break-down ranges (one factor axis) and its
+    figures (lines for one axis, a heatmap per metric for two; a set per value of a third),
+    saved through `save` (the report's one figure writer)."""
+    out: list[Block] = [Heading(f"Sweep {data.name}", level, anchor=anchor(data.name))]
+    out.append(Paragraph(
         f"{data.runs} runs per cell, the same seed in every cell (cells are paired); ratios are to"
         " the EKF given the true noise, with 95 % paired bootstrap intervals."
-    )
-    lines.append("")
+    ))  # fmt: skip
+    out += breakdown_blocks(data, within)
     table = data.table
     if len(data.axes) == 1:
         groups = [((), table)]
@@ -254,26 +265,20 @@ def write_sweep_report(
         rest = data.axes[2:]
         groups = list(table.groupby(rest, sort=True)) if rest else [((), table)]
         plotted = data.axes[:2]
-    lines += breakdown_lines(data, within)
     for key, rows in groups:
-        suffix = "" if not key else "-" + "-".join(f"{v:g}" for v in np.atleast_1d(key))
+        values = np.atleast_1d(key)
+        suffix = "" if not len(values) else "-" + "-".join(f"{v:g}" for v in values)
+        where = "" if not len(values) else " (" + ", ".join(
+            f"{a} {v:g}" for a, v in zip(data.axes[2:], values, strict=True)) + ")"  # fmt: skip
         if len(plotted) == 1:
-            path = out / f"sweep-{data.name}{suffix}.{fmt}"
-            save_figure(line_figure(data, plotted[0], rows, data.name), path, fmt)
-            files.append(path)
-            lines.append(f"![{data.name}]({path.name})")
-        else:
-            for column, _, label, _, _ in PANELS:
-                path = out / f"sweep-{data.name}-{column}{suffix}.{fmt}"
-                fig = heatmap_figure(data, plotted[0], plotted[1], rows, column, label)
-                save_figure(fig, path, fmt)
-                files.append(path)
-                lines.append(f"![{data.name}: {label}]({path.name})")
-        lines.append("")
-    return files, "\n".join(lines)
-
-
-SWEEPS_REPORT = "sweeps.md"
+            fig = line_figure(data, plotted[0], rows, data.name)
+            out.append(save(fig, f"sweep-{data.name}{suffix}.{save.fmt}", data.name + where))
+            continue
+        for column, _, label, _, _ in PANELS:
+            fig = heatmap_figure(data, plotted[0], plotted[1], rows, column, label)
+            name = f"sweep-{data.name}-{column}{suffix}.{save.fmt}"
+            out.append(save(fig, name, f"{data.name}: {label}{where}"))
+    return out
 
 
 def find_sweeps(folders: list[Path]) -> list[Path]:
@@ -293,28 +298,3 @@ def has_scenario_results(folders: list[Path]) -> bool:
         ):
             return True
     return False
-
-
-def write_sweeps(
-    folders: list[Path], out: Path, fmt: str = "png"
-) -> tuple[Path, list[tuple[str, list[Path]]]]:
-    """Every sweep's figures and its section into `out`/sweeps.md; returns that file and each
-    sweep's name with its figure files (report.md and report.html show them too)."""
-    from ..storage import write_atomic
-
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    sections = ["# Sweeps", ""]
-    written = []
-    for folder in folders:
-        files, text = write_sweep_report(folder, out, fmt)
-        written.append((read_sweep(folder).name, files))
-        sections += [text, ""]
-    path = out / SWEEPS_REPORT
-    write_atomic(path, lambda tmp: tmp.write_text("\n".join(sections), encoding="utf-8"))
-    return path, written
-
-
-def write_sweeps_report(folders: list[Path], out: Path, fmt: str = "png") -> Path:
-    """Every sweep's figures and its section into `out`/sweeps.md; returns that file."""
-    return write_sweeps(folders, out, fmt)[0]

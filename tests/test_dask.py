@@ -159,6 +159,7 @@ def test_dask_batch_reports_each_run_and_skips_done_ones(tmp_path: Path, schedul
                 )
 
 
+@pytest.mark.slow  # two runs of a recorded log, each with its tuning: about 15 s
 def test_recorded_log_on_dask_equals_local_run(tmp_path: Path, scheduler: str) -> None:
     """A recorded log's held-out segments go through the same dispatch as simulated runs: on
     the cluster (one Dask task per segment) they write exactly the local run's tables."""
@@ -191,6 +192,24 @@ def test_recorded_log_on_dask_equals_local_run(tmp_path: Path, scheduler: str) -
     assert local_manifest["backend"]["kind"] == "local"
     assert dask_manifest["fingerprint"] == local_manifest["fingerprint"]
     assert dask_manifest["tuning"]["sigma_v"] == local_manifest["tuning"]["sigma_v"]
+
+
+def test_recorded_plan_takes_the_backend_overrides(tmp_path: Path) -> None:
+    """One make_plan for every source: a recorded scenario's plan takes --backend dask and
+    --scheduler like a simulated one's (its resume fingerprint does not depend on them)."""
+    from anfekf_bench.real_experiment import RecordedSource
+
+    from .test_real_data import user_scenario
+
+    scenario, recording = load_scenario(user_scenario(tmp_path))
+    plan = make_plan(scenario, recording, None, None, None, backend="dask", scheduler="tcp://h:1")
+    assert isinstance(plan.source, RecordedSource) and plan.runs == 2
+    assert plan.backend == BackendConfig(kind="dask", scheduler="tcp://h:1")
+    local = make_plan(scenario, recording, None, None, None)
+    assert local.backend.kind == "local" and local.engine == "filterpy"
+    assert plan.fingerprint() == local.fingerprint()
+    fast = make_plan(scenario, recording, None, None, None, engine="fast")
+    assert fast.fingerprint() != local.fingerprint()  # the engine changes a run's bytes
 
 
 def test_unreachable_scheduler_is_one_line_within_timeout(tmp_path: Path) -> None:

@@ -87,21 +87,29 @@ class Source(Protocol):
     world: object  # World, Recording or DriveSet: has landmarks and waypoints
 
     @property
-    def runs(self) -> int: ...
+    def runs(self) -> int:
+        """How many runs the batch has (run indices 0 .. runs - 1)."""
 
-    def filter_names(self, scenario) -> list[str]: ...
+    def filter_names(self, scenario) -> list[str]:
+        """The names every run's filters are recorded under, in order."""
 
-    def fingerprint_doc(self, plan: Plan) -> dict: ...
+    def fingerprint_doc(self, plan: Plan) -> dict:
+        """What determines a run's bytes (the plan adds the code version and hashes it)."""
 
-    def check(self, plan: Plan) -> int: ...
+    def check(self, plan: Plan) -> int:
+        """PlanError (one line) for what would fail, before any work; the evaluation steps."""
 
-    def engines(self, plan: Plan) -> dict[str, str]: ...
+    def engines(self, plan: Plan) -> dict[str, str]:
+        """For the manifest: the engine each filter (instance) runs on."""
 
-    def comparison_pairs(self, scenario) -> list[tuple[str, str]]: ...
+    def comparison_pairs(self, scenario) -> list[tuple[str, str]]:
+        """The (filter, vs) pairs of comparisons.parquet."""
 
-    def summary(self, plan: Plan, records: list[dict], steps, ordered: list[dict]): ...
+    def summary(self, plan: Plan, records: list[dict], steps, ordered: list[dict]):
+        """(summary records with the source's own columns, the phases table or None)."""
 
-    def prepare(self, plan: Plan, store: Path, progress=None) -> Prepared: ...
+    def prepare(self, plan: Plan, store: Path, progress=None) -> Prepared:
+        """Fits, tuning, training (cached in the run store `store`), then the runs as calls."""
 
 
 @dataclass(frozen=True)

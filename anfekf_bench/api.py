@@ -108,14 +108,21 @@ def run(
     seed: int | None = None,
     jobs: int | None = None,
     engine: str | None = None,
+    backend: str | None = None,
+    scheduler: str | None = None,
     force: bool = False,
     on_result: Callable[[dict], None] | None = None,
 ) -> Result:
-    """Run every filter of a scenario (None: the scenario's own runs, seed, jobs, engine) and
-    write its result to `out/<name>` exactly as `anfekf run` does (resume, `force`, the lock)."""
+    """Run every filter of a scenario, simulated or recorded (None: the scenario's own runs,
+    seed, jobs, engine, backend) and write its result to `out/<name>` exactly as `anfekf run`
+    does (resume, `force`, the lock); `backend="dask"` with `scheduler="tcp://HOST:PORT"` runs
+    on a Dask cluster."""
     if not isinstance(experiment, Experiment):
         experiment = load(experiment)
-    plan: Plan = make_plan(experiment.scenario, experiment.world, runs, seed, jobs, engine=engine)
+    plan: Plan = make_plan(
+        experiment.scenario, experiment.world, runs, seed, jobs, backend=backend,
+        scheduler=scheduler, engine=engine,
+    )  # fmt: skip
     _, folder = execute(plan, Path(out), force=force, on_result=on_result)
     return Result(Path(folder))
 

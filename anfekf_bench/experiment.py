@@ -1,4 +1,14 @@
-"""One scenario end to end: resolve, run the batch, save every finished run, write the results.
+"""One scenario end to end, whatever its source: resolve, prepare, run the batch, save every
+finished run, write the results.
+
+A `Plan` is a scenario with the command line's overrides applied and its source: a
+`SimulatedSource` (runs simulated from the scenario's world, one per seed) or a
+`real_experiment.RecordedSource` (a recorded log's held-out segments or drives). What really
+differs sits behind the source: how many runs there are, what is checked before any work, what
+the resume fingerprint covers, the preparation (fits, tuning, training) and the runs it hands
+out as picklable calls, the default comparison pairs and the summary's extra columns. The rest
+is one pipeline (`execute`): the same folder rules, run store, dispatch (`runner.dispatch_runs`:
+local processes or Dask), tables (`result_tables`) and manifest (`write_result`).
 
 Each finished run is saved at once under <out>/<name>/.runs/ (atomically), so an interrupted batch
 loses at most the runs in flight; the next `anfekf run` into the same folder resumes from them when
@@ -22,6 +32,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 from pydantic import ValidationError
 
@@ -51,8 +62,10 @@ from .outputs import (
     survey_output,
     write_result_tables,
 )
-from .runner import connect_dask, engine_of, fast_compiled, run_batch
-from .sources.simulator import RouteNotCompleted, simulate_truth
+from .real_experiment import RecordedSource
+from .runner import Prepared, connect_dask, dispatch_runs, engine_of, fast_compiled, simulated_items
+from .sources.recorded import RealScenario
+from .sources.simulator import RouteNotCompleted, simulate_truth, world_path
 from .storage import (
     MANIFEST_FILE,
     RESULT_FORMAT,
@@ -67,13 +80,44 @@ from .training import fit_filters
 __all__ = ["FolderBusy", "OutputExists", "PlanError", "RUNS_DIR", "execute", "make_plan"]
 
 
+class Source(Protocol):
+    """What differs between the sources of a plan's runs (`SimulatedSource`,
+    `real_experiment.RecordedSource`); `plan` is the `Plan` the source belongs to."""
+
+    world: object  # World, Recording or DriveSet: has landmarks and waypoints
+
+    @property
+    def runs(self) -> int:
+        """How many runs the batch has (run indices 0 .. runs - 1)."""
+
+    def filter_names(self, scenario) -> list[str]:
+        """The names every run's filters are recorded under, in order."""
+
+    def fingerprint_doc(self, plan: Plan) -> dict:
+        """What determines a run's bytes (the plan adds the code version and hashes it)."""
+
+    def check(self, plan: Plan) -> int:
+        """PlanError (one line) for what would fail, before any work; the evaluation steps."""
+
+    def engines(self, plan: Plan) -> dict[str, str]:
+        """For the manifest: the engine each filter (instance) runs on."""
+
+    def comparison_pairs(self, scenario) -> list[tuple[str, str]]:
+        """The (filter, vs) pairs of comparisons.parquet."""
+
+    def summary(self, plan: Plan, records: list[dict], steps, ordered: list[dict]):
+        """(summary records with the source's own columns, the phases table or None)."""
+
+    def prepare(self, plan: Plan, store: Path, progress=None) -> Prepared:
+        """Fits, tuning, training (cached in the run store `store`), then the runs as calls."""
+
+
 @dataclass(frozen=True)
 class Plan:
-    """A scenario with the command line's overrides applied."""
+    """A scenario with the command line's overrides applied, and where its runs come from."""
 
-    scenario: Scenario
-    world: World
-    runs: int
+    scenario: Scenario | RealScenario
+    source: Source
     seed: int
     jobs: int
     backend: BackendConfig = BackendConfig()
@@ -83,43 +127,29 @@ class Plan:
     def name(self) -> str:
         return self.scenario.name
 
+    @property
+    def runs(self) -> int:
+        return self.source.runs
+
+    @property
+    def world(self):
+        """The simulated world, or the recorded log (a `Recording` or `DriveSet`)."""
+        return self.source.world
+
     def filter_names(self) -> list[str]:
-        """The filters of every run (a real-data plan has one per filter and naive start)."""
-        return [f.name for f in self.scenario.filters]
+        """The filters of every run (a recorded plan has one per filter and naive start)."""
+        return self.source.filter_names(self.scenario)
 
     def fingerprint(self) -> str:
         """Hash of everything that determines a run's bytes (not jobs or backend: they change
         nothing, so a batch started locally may be resumed on a Dask cluster and back)."""
-        doc = {
-            "scenario": self.scenario.model_dump(mode="json", exclude={"jobs", "runs", "backend"}),
-            "seed": self.seed,
-            "engine": self.engine,
-            "landmarks": self.world.landmarks.tolist(),
-            "waypoints": self.world.waypoints.tolist(),
-            "code": code_version(),
-        }
-        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
-
-    def training_fingerprint(self, spec) -> str:
-        """Hash of everything a fitted filter's fit depends on (anfekf_bench.training): its own
-        parameters, the scenario's world, noise, start, gate, recording and training settings,
-        the seed and the code; not the evaluation runs, the other filters or the engine."""
-        fields = {"world", "true_noise", "filter_noise", "p0", "gate_probability", "training",
-                  "record_every"}  # fmt: skip
-        doc = {
-            "filter": spec.model_dump(mode="json", exclude={"name"}),
-            "scenario": self.scenario.model_dump(mode="json", include=fields),
-            "seed": self.seed,
-            "landmarks": self.world.landmarks.tolist(),
-            "waypoints": self.world.waypoints.tolist(),
-            "code": code_version(),
-        }
+        doc = {**self.source.fingerprint_doc(self), "code": code_version()}
         return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def make_plan(
-    scenario: Scenario,
-    world: World,
+    scenario: Scenario | RealScenario,
+    world,
     runs: int | None,
     seed: int | None,
     jobs: int | None,
@@ -129,21 +159,27 @@ def make_plan(
     engine: str | None = None,
 ) -> Plan:
     """Apply the command line's overrides (None: keep the scenario file's value)."""
-    if not isinstance(scenario, Scenario):  # a recorded log (SPEC 9): real_experiment
-        from .real_experiment import make_real_plan
-
-        return make_real_plan(
-            scenario, world, runs, seed, jobs, backend=backend, scheduler=scheduler, engine=engine
-        )
     return Plan(
         scenario=scenario,
-        world=world,
-        runs=scenario.runs if runs is None else runs,
+        source=plan_source(scenario, world, runs),
         seed=scenario.seed if seed is None else seed,
         jobs=scenario.jobs if jobs is None else jobs,
         backend=resolve_backend(scenario.backend, backend, scheduler),
         engine=scenario.engine if engine is None else engine,
     )
+
+
+def plan_source(scenario: Scenario | RealScenario, world, runs: int | None) -> Source:
+    """The source of a scenario's runs: the one place past `scenarios.load_scenario` (which
+    tells a recorded log's document from a simulated one's) that tells them apart."""
+    if not isinstance(scenario, RealScenario):
+        return SimulatedSource(world, scenario.runs if runs is None else runs)
+    if runs is not None:
+        raise PlanError(
+            f"--runs {runs}: a real-data scenario's runs are its held-out segments (set"
+            " segment_s in the scenario file)"
+        )
+    return RecordedSource(world)
 
 
 def resolve_backend(base: BackendConfig, kind: str | None, scheduler: str | None) -> BackendConfig:
@@ -218,57 +254,132 @@ def memory_estimate(plan: Plan, control_steps: int) -> int:
 
 
 def check_plan(plan: Plan) -> int:
-    """Everything about a plan that can fail before its batch, checked without touching disk:
-    the route (completed, long enough to record) and the memory the batch needs. Returns the
-    route's control steps; PlanError (a one-line message naming the field) otherwise."""
-    if not isinstance(plan, Plan):  # a recorded log (SPEC 9)
-        from .real_experiment import check_real_plan
-
-        return check_real_plan(plan)
+    """Everything about a plan that can fail before its batch, checked without touching disk
+    (the source's checks: a simulated route, completed and long enough to record, and the
+    memory the batch needs; a recorded log's segments). Returns the evaluation steps the source
+    counts (a route's control steps; a log's held-out evaluation times); PlanError (a one-line
+    message naming the field) otherwise."""
     problem = scenario_name_problem(plan.name)
     if problem:
         raise PlanError(f"name: {problem}")
-    for f in plan.scenario.filters:  # a fitted filter that the training runs cannot train
-        message = f.fitted_on_training and f.training_problem(plan.scenario.training.runs)
-        if message:
-            raise PlanError(f"filters.{f.name}.{message}")
-    try:
-        control_steps = len(simulate_truth(plan.world).u)
-    except RouteNotCompleted as exc:
-        raise PlanError(f"world.max_steps: {exc}") from None
-    except (OverflowError, ValueError, FloatingPointError, MemoryError) as exc:
-        raise PlanError(f"world: the route cannot be driven ({type(exc).__name__})") from None
-    if control_steps == 0:
-        raise PlanError(
-            "world.waypoints: the route has no control steps (the start is already within"
-            " waypoint_tolerance of every waypoint)"
-        )
-    every = plan.scenario.record_every
-    if every > control_steps:
-        raise PlanError(
-            f"record_every: {every} is longer than the route ({control_steps} control steps);"
-            f" use at most {control_steps}"
-        )
-    for i, spec in enumerate(plan.scenario.filters):
-        if isinstance(spec, CustomSpec):  # a user's __init__ that fails does so before any work
-            try:
-                build_filter(spec, plan.scenario, plan.world)
-            except CustomFilterFailed as exc:
-                raise PlanError(f"filters.{i}: {exc}") from None
-    need, have = memory_estimate(plan, control_steps), machine_memory()
-    if have is not None and need > MEMORY_SHARE * have:
-        recorded = control_steps // every
-        raise PlanError(
-            f"runs: {plan.runs} runs of {recorded} recorded steps x"
-            f" {len(plan.scenario.filters)} filters (jobs {plan.jobs}) need about {_bytes(need)}"
-            f" of memory, more than {MEMORY_SHARE:.0%} of this machine's {_bytes(have)}; use"
-            " fewer runs, a larger record_every, fewer jobs or a smaller map"
-        )
-    return control_steps
+    return plan.source.check(plan)
+
+
+@dataclass(frozen=True)
+class SimulatedSource:
+    """Runs simulated from the scenario's world: run i from the i-th child of the plan's seed
+    (SPEC 6); fitted filters are fitted on training runs of a disjoint seed branch (training)."""
+
+    world: World
+    runs: int
+
+    def filter_names(self, scenario: Scenario) -> list[str]:
+        return [f.name for f in scenario.filters]
+
+    def fingerprint_doc(self, plan: Plan) -> dict:
+        return {
+            "scenario": plan.scenario.model_dump(mode="json", exclude={"jobs", "runs", "backend"}),
+            "seed": plan.seed,
+            "engine": plan.engine,
+            "landmarks": self.world.landmarks.tolist(),
+            "waypoints": self.world.waypoints.tolist(),
+        }
+
+    def training_fingerprint(self, plan: Plan, spec) -> str:
+        """Hash of everything a fitted filter's fit depends on (anfekf_bench.training): its own
+        parameters, the scenario's world, noise, start, gate, recording and training settings,
+        the seed and the code; not the evaluation runs, the other filters or the engine."""
+        fields = {"world", "true_noise", "filter_noise", "p0", "gate_probability", "training",
+                  "record_every"}  # fmt: skip
+        doc = {
+            "filter": spec.model_dump(mode="json", exclude={"name"}),
+            "scenario": plan.scenario.model_dump(mode="json", include=fields),
+            "seed": plan.seed,
+            "landmarks": self.world.landmarks.tolist(),
+            "waypoints": self.world.waypoints.tolist(),
+            "code": code_version(),
+        }
+        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+
+    def check(self, plan: Plan) -> int:
+        """The fitted filters' training, the route (completed, long enough to record), a
+        user's filter's __init__, and the memory; returns the route's control steps."""
+        for f in plan.scenario.filters:  # a fitted filter that the training runs cannot train
+            message = f.fitted_on_training and f.training_problem(plan.scenario.training.runs)
+            if message:
+                raise PlanError(f"filters.{f.name}.{message}")
+        try:
+            control_steps = len(simulate_truth(self.world).u)
+        except RouteNotCompleted as exc:
+            raise PlanError(f"world.max_steps: {exc}") from None
+        except (OverflowError, ValueError, FloatingPointError, MemoryError) as exc:
+            raise PlanError(f"world: the route cannot be driven ({type(exc).__name__})") from None
+        if control_steps == 0:
+            raise PlanError(
+                "world.waypoints: the route has no control steps (the start is already within"
+                " waypoint_tolerance of every waypoint)"
+            )
+        every = plan.scenario.record_every
+        if every > control_steps:
+            raise PlanError(
+                f"record_every: {every} is longer than the route ({control_steps} control"
+                f" steps); use at most {control_steps}"
+            )
+        for i, spec in enumerate(plan.scenario.filters):
+            if isinstance(spec, CustomSpec):  # a user's __init__ that fails does so before work
+                try:
+                    build_filter(spec, plan.scenario, self.world)
+                except CustomFilterFailed as exc:
+                    raise PlanError(f"filters.{i}: {exc}") from None
+        need, have = memory_estimate(plan, control_steps), machine_memory()
+        if have is not None and need > MEMORY_SHARE * have:
+            recorded = control_steps // every
+            raise PlanError(
+                f"runs: {plan.runs} runs of {recorded} recorded steps x"
+                f" {len(plan.scenario.filters)} filters (jobs {plan.jobs}) need about"
+                f" {_bytes(need)} of memory, more than {MEMORY_SHARE:.0%} of this machine's"
+                f" {_bytes(have)}; use fewer runs, a larger record_every, fewer jobs or a smaller"
+                " map"
+            )
+        return control_steps
+
+    def engines(self, plan: Plan) -> dict[str, str]:
+        return {f.name: engine_of(plan.engine, f, plan.scenario) for f in plan.scenario.filters}
+
+    def comparison_pairs(self, scenario: Scenario) -> list[tuple[str, str]]:
+        return comparison_pairs(((f.name, f.kind) for f in scenario.filters), scenario.compare)
+
+    def summary(self, plan: Plan, records: list[dict], steps, ordered: list[dict]):
+        """With a noise schedule (SPEC 14): per-phase metrics, recovery and tracking errors."""
+        schedule, phases = plan.scenario.noise_schedule, None
+        if schedule is not None:
+            sigmas = plan.scenario.true_noise.radians()
+            oracles = [f.name for f in plan.scenario.filters if f.kind == "ekf-oracle"]
+            oracle = oracles[0] if oracles else None
+            phases = phases_frame(steps, schedule, sigmas, oracle, seed=plan.seed)
+            tracking = summary_tracking(steps, schedule, sigmas)
+            for record in records:
+                record.update(tracking[record["filter"]])
+        return records, phases
+
+    def prepare(self, plan: Plan, store: Path, progress=None) -> Prepared:
+        """Filters fitted on training runs: fitted (or read from the run store's cache) here,
+        once; the workers get the fitted values in their copy of the scenario."""
+        fits = fit_filters(plan, store, progress)
+        action = ""
+        if fits.records:
+            action = "; " + ", ".join(
+                f"{name} {'read from the cache' if r['cached'] else 'fitted'}"
+                f" ({r['training_runs']} training runs)"
+                for name, r in fits.records.items()
+            )
+        path = world_path(self.world)
+        items = simulated_items(fits.scenario, self.world, plan.runs, plan.seed, plan.engine, path)
+        return Prepared(items, action, {"training": fits.records}, len(path.truth.u))
 
 
 # --------------------------------------------------------------------------------------------
-# The scenario folder: confined, surveyed read-only, then (locked) prepared
+# The one pipeline: validate, survey, connect, lock, prepare, run, tables, manifest
 
 
 def execute(
@@ -282,12 +393,6 @@ def execute(
 ) -> tuple[list[dict], Path]:
     """Run the plan and write its results; returns (summary records, scenario folder).
     `progress`: the CLI's rich Progress, to which a long fit (kalmannet) adds its bar."""
-    if not isinstance(plan, Plan):  # a recorded log (SPEC 9)
-        from .real_experiment import execute_real
-
-        return execute_real(
-            plan, out_dir, force=force, on_start=on_start, on_result=on_result, progress=progress
-        )
     started = time.time()
     # Validate everything first (nothing is touched): values, route, memory, the folder's state,
     # the Dask cluster and its workers. Only then lock the folder and (--force) remove.
@@ -316,37 +421,41 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result, 
         if on_result is not None:
             on_result(result)
 
-    # Filters fitted on training runs: fitted (or read from the run store's cache) here, once;
-    # the workers get the fitted values in their copy of the scenario.
-    fits = fit_filters(plan, target / RUNS_DIR, progress)
-    if fits.records:
-        action += "; " + ", ".join(
-            f"{name} {'read from the cache' if r['cached'] else 'fitted'}"
-            f" ({r['training_runs']} training runs)"
-            for name, r in fits.records.items()
-        )
+    prepared = plan.source.prepare(plan, target / RUNS_DIR, progress)
+    if on_start is not None:
+        on_start(action + prepared.action, len(done), plan.runs)
+    run_started = time.perf_counter()
     results = dict(done)
-    batch = run_batch(
-        fits.scenario,
-        plan.world,
-        runs=plan.runs,
-        seed=plan.seed,
+    batch = dispatch_runs(
+        [call for run, call in sorted(prepared.items.items()) if run not in done],
         jobs=plan.jobs,
         on_result=keep,
-        skip=set(done),
         backend=plan.backend.kind,
         scheduler=plan.backend.scheduler,
         connect_timeout_s=plan.backend.connect_timeout_s,
         engine=plan.engine,
         client=client,
     )
-    if on_start is not None:
-        on_start(action, len(done), plan.runs)
     for result in batch:
         results[result["run"]] = result
+    run_seconds = time.perf_counter() - run_started
     ordered = [results[i] for i in range(plan.runs)]
     tables = result_tables(plan, ordered)
-    records = tables.summary
+    write_result(plan, target, tables, prepared, sorted(done), started, run_seconds)
+    return tables.summary, target
+
+
+def write_result(
+    plan: Plan,
+    target: Path,
+    tables: ResultTables,
+    prepared: Prepared,
+    resumed: list[int],
+    started: float,
+    run_seconds: float,
+) -> None:
+    """The batch's tables and manifest, staged and then swapped in whole (finish_result)."""
+    fingerprint = plan.fingerprint()
     staging = result_staging(target)
     write_result_tables(
         staging,
@@ -361,26 +470,24 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result, 
         "jobs": plan.jobs,
         "backend": plan.backend.model_dump(mode="json"),
         "engine": plan.engine,
-        "engines": {
-            f.name: engine_of(plan.engine, f, plan.scenario) for f in plan.scenario.filters
-        },
+        "engines": plan.source.engines(plan),
         "fast_compiled": fast_compiled(plan.engine),  # false: numba missing, plain Python
         "format": RESULT_FORMAT,
         "fingerprint": fingerprint,
         "world": {
             "landmarks": plan.world.landmarks.tolist(),
             "waypoints": plan.world.waypoints.tolist(),
-            "control_steps": ordered[0]["control_steps"],
+            "control_steps": prepared.control_steps,
         },
-        "resumed_runs": sorted(done),
-        "training": fits.records,
+        **prepared.manifest,  # the source's own keys (training, data, tuning, ...)
+        "resumed_runs": resumed,
         "versions": package_versions(),
         "machine": machine_info(),
+        "run_seconds": round(run_seconds, 3),
         "wall_time_s": round(time.time() - started, 3),
     }
     write_json(staging / MANIFEST_FILE, manifest)
     finish_result(target, staging)
-    return records, target
 
 
 def result_tables(plan: Plan, ordered: list[dict]) -> ResultTables:
@@ -389,21 +496,11 @@ def result_tables(plan: Plan, ordered: list[dict]) -> ResultTables:
     Bootstrap intervals draw from the scenario's root seed, so they are as reproducible as the
     runs themselves.
     """
-    names = [f.name for f in plan.scenario.filters]
+    names = plan.filter_names()
     steps = steps_frame(plan.name, names, ordered)
-    pairs = comparison_pairs(
-        ((f.name, f.kind) for f in plan.scenario.filters), plan.scenario.compare
-    )
-    summary = summary_records(steps, update_statistics(ordered, names))
-    schedule, phases = plan.scenario.noise_schedule, None
-    if schedule is not None:  # SPEC 14: per-phase metrics, recovery and tracking errors
-        sigmas = plan.scenario.true_noise.radians()
-        oracles = [f.name for f in plan.scenario.filters if f.kind == "ekf-oracle"]
-        oracle = oracles[0] if oracles else None
-        phases = phases_frame(steps, schedule, sigmas, oracle, seed=plan.seed)
-        tracking = summary_tracking(steps, schedule, sigmas)
-        for record in summary:
-            record.update(tracking[record["filter"]])
+    pairs = plan.source.comparison_pairs(plan.scenario)
+    records = summary_records(steps, update_statistics(ordered, names))
+    summary, phases = plan.source.summary(plan, records, steps, ordered)
     return ResultTables(
         steps=steps,
         runs=runs_frame(plan.name, names, ordered),

@@ -1,7 +1,7 @@
 """A batch's output folder, the same for every source (simulated or recorded): where it goes,
 what may already be there and whose it is, the run store, the staged result and its swap into
 place, and the tables and provenance every result writes (docs/HARDENING.md).
-`experiment` (simulated scenarios) and `real_experiment` (recorded logs) both build on it.
+`experiment`'s one pipeline builds on it for every source (simulated or recorded).
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ from .storage import (
 
 
 class BatchPlan(Protocol):
-    """What the output folder needs of a plan (`experiment.Plan`, `real_experiment.RealPlan`)."""
+    """What the output folder needs of a plan (`experiment.Plan`, whatever its source)."""
 
     name: str
     runs: int

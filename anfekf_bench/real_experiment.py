@@ -14,9 +14,12 @@
    Segments differ by a few stamps, so shorter ones are padded with NaN up to the longest.
    Ground truth is NaN wherever it must not be scored (a Vicon gap, a mis-fit, the padding):
    errors and NEES are NaN there and every metric leaves NaN out (analysis.metrics).
-4. **Write** what a simulated scenario writes (steps, runs, summary, comparisons against
-   ekf-tuned, claims, manifest), through the same tables and the same run store, so a batch is
-   resumed segment by segment after an interruption.
+4. **Write**: `RecordedSource` is what experiment's one pipeline (`experiment.execute`) asks of
+   a recorded log: its runs, its checks, the preparation above (tuning, training, fits) and the
+   runs as picklable calls; the pipeline dispatches them (local processes or Dask), saves each
+   run as it finishes (resumed segment by segment after an interruption) and writes what a
+   simulated scenario writes (steps, runs, summary, comparisons against ekf-tuned, claims,
+   manifest) through the same tables and the same run store.
 """
 
 from __future__ import annotations
@@ -25,39 +28,21 @@ import hashlib
 import json
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 from joblib import Parallel, delayed
 
-from .analysis.comparisons import comparisons_frame, evaluate_claims
 from .analysis.metrics import add_trace_metrics
-from .analysis.tables import runs_frame, steps_frame, summary_records, update_statistics
 from .engines.tuning import TimelineLikelihood, fit_noise, score_setting
 from .filters.ekf import gate_threshold
 from .filters.spec import FilterContext
 from .models import Unicycle
-from .outputs import (
-    FIT_FILE,
-    PlanError,
-    ResultTables,
-    code_version,
-    finish_result,
-    machine_info,
-    package_versions,
-    prepare_output,
-    read_cached_fit,
-    result_staging,
-    save_run,
-    scenario_folder,
-    survey_output,
-    write_fit,
-    write_result_tables,
-)
+from .outputs import FIT_FILE, PlanError, code_version, read_cached_fit, write_fit
 from .real_training import fit_on_drives, fit_on_segments, trained_filters
-from .runner import engine_of, fast_compiled, run_spec
+from .runner import Prepared, engine_of, run_spec
 from .sources import mrclam
 from .sources.recorded import (
     FIXED_KINDS,
@@ -68,112 +53,10 @@ from .sources.recorded import (
     naive_covariances,
     p0,
 )
-from .storage import (
-    MANIFEST_FILE,
-    RESULT_FORMAT,
-    RUNS_DIR,
-    folder_lock,
-    scenario_name_problem,
-    write_json,
-)
 from .timeline import Timeline, timeline
 from .workers import local_workers
 
 LOST_LOCK_M = 1.0  # a run whose position error exceeds this at a scored time has lost lock
-
-
-class RealPlanError(ValueError):
-    """Command-line overrides a real-data scenario cannot take (one-line message)."""
-
-
-@dataclass(frozen=True)
-class RealPlan:
-    """A real-data scenario with the command line's overrides applied: the runs are its held-out
-    segments, the seed only seeds the bootstrap intervals."""
-
-    scenario: RealScenario
-    world: Recording
-    seed: int
-    jobs: int
-    engine: str = "filterpy"
-
-    @property
-    def name(self) -> str:
-        return self.scenario.name
-
-    @property
-    def runs(self) -> int:
-        return len(self.world.test_segments)
-
-    def filter_names(self) -> list[str]:
-        return self.scenario.instance_names()
-
-    def fingerprint(self) -> str:
-        """Hash of what determines a segment's bytes: the scenario, the log's content, the code."""
-
-        doc = {
-            "scenario": self.scenario.model_dump(mode="json", exclude={"jobs"}),
-            "data": self.world.digest,
-            "code": code_version(),
-        }
-        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
-
-
-def make_real_plan(
-    scenario: RealScenario,
-    recording: Recording,
-    runs: int | None,
-    seed: int | None,
-    jobs: int | None,
-    *,
-    backend: str | None = None,
-    scheduler: str | None = None,
-    engine: str | None = None,
-) -> RealPlan:
-    """`experiment.make_plan` for a real-data scenario; PlanError for overrides it cannot take."""
-
-    if runs is not None:
-        raise PlanError(
-            f"--runs {runs}: a real-data scenario's runs are its held-out segments (set"
-            " segment_s in the scenario file)"
-        )
-    if backend not in (None, "local") or scheduler is not None:
-        raise PlanError("--backend dask: a real-data scenario runs on local processes only")
-    return RealPlan(
-        scenario=scenario,
-        world=recording,
-        seed=scenario.seed if seed is None else seed,
-        jobs=scenario.jobs if jobs is None else jobs,
-        engine=engine or "filterpy",
-    )
-
-
-def check_real_plan(plan: RealPlan) -> int:
-    """What can fail before the batch; returns the held-out evaluation times."""
-
-    problem = scenario_name_problem(plan.name)
-    if problem:
-        raise PlanError(f"name: {problem}")
-    if isinstance(plan.world, DriveSet):
-        return sum(
-            int(np.sum((d.log.odo_t > d.segment.t0) & (d.log.odo_t <= d.segment.end)))
-            for d in plan.world.drives
-        )
-    log = plan.world.log
-    for part, segments in (("training", plan.world.train_segments),
-                           ("held-out", plan.world.test_segments)):  # fmt: skip
-        for seg in segments:
-            if not np.any((log.odo_t > seg.t0) & (log.odo_t <= seg.end)):
-                odo = f"{log.odo_t.min():.1f}-{log.odo_t.max():.1f} s" if len(log.odo_t) else "none"
-                raise PlanError(
-                    f"data: {part} segment {seg.index} ({seg.t0:.1f}-{seg.end:.1f} s) holds no"
-                    f" odometry (the log's odometry: {odo}); odometry and ground truth must"
-                    " overlap"
-                )
-    return sum(
-        int(np.sum((plan.world.log.odo_t > s.t0) & (plan.world.log.odo_t <= s.end)))
-        for s in plan.world.test_segments
-    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -674,10 +557,6 @@ def run_segment(
     }
 
 
-def _run_one(scenario, inputs, tuned, n_steps, fitted=None, engine="filterpy") -> list[dict]:
-    return [run_segment(scenario, inputs, tuned, n_steps, fitted, engine)]
-
-
 # --------------------------------------------------------------------------------------------
 # 3. Tables
 
@@ -710,136 +589,161 @@ def real_summary(records: list[dict], ordered: list[dict], scenario: RealScenari
     return out
 
 
-def real_result_tables(plan: RealPlan, ordered: list[dict]):
-
-    names = plan.filter_names()
-    ref = plan.scenario.reference()
-    pairs = [(n, ref) for n in names if ref is not None and n != ref]
-    for pair in plan.scenario.compare:
-        if tuple(pair) not in pairs:
-            pairs.append(tuple(pair))
-    steps = steps_frame(plan.name, names, ordered)
-    records = summary_records(steps, update_statistics(ordered, names))
-    import pandas as pd
-
-    comparisons = (
-        comparisons_frame(steps, pairs, seed=plan.seed)
-        if pairs
-        else pd.DataFrame(
-            columns=[
-                "scenario", "filter", "vs", "metric", "kind", "runs_used", "estimate", "lo",
-                "hi", "method", "p_value", "test",
-            ]
-        )
-    )  # fmt: skip
-    return ResultTables(
-        steps=steps,
-        runs=runs_frame(plan.name, names, ordered),
-        summary=real_summary(records, ordered, plan.scenario),
-        comparisons=comparisons,
-        claims=evaluate_claims(steps, plan.scenario.claims, seed=plan.seed),
-    )
-
-
 # --------------------------------------------------------------------------------------------
-# 4. End to end
+# 4. The source of experiment's one pipeline
+
+SEGMENTS_ALIGNMENT = (
+    "step k of a run is the k-th odometry stamp of its segment; t is seconds since the segment's"
+    " cold start; shorter segments are padded with NaN"
+)
+DRIVES_ALIGNMENT = (
+    "run r is drive r of data.drives, whole from its ground-truth start; step k is its k-th"
+    " evaluation time (odometry stamps at least eval_period_s apart); t is seconds since the"
+    " cold start; shorter drives are padded with NaN"
+)
 
 
-def execute_real(
-    plan: RealPlan,
-    out_dir: Path,
-    *,
-    force: bool = False,
-    on_start: Callable[[str, int, int], None] | None = None,
-    on_result: Callable[[dict], None] | None = None,
-    progress=None,
-) -> tuple[list[dict], Path]:
-    """`experiment.execute` for a real-data scenario: same folder rules, run store and files.
-    `progress`: the CLI's rich Progress, to which a training (kalmannet) adds its bar."""
+@dataclass(frozen=True, eq=False)
+class RecordedSource:
+    """Runs read from a recorded log (experiment.Plan's source for a `RealScenario`): its
+    held-out segments (protocol segments, a `Recording`) or its drives (protocol drives, a
+    `DriveSet`), each cold-started from ground truth. The plan's seed only seeds the bootstrap
+    intervals; ekf-tuned is tuned, kalmannet trained and ekf-ml fitted in `prepare`."""
 
-    started = time.time()
-    check_real_plan(plan)
-    survey_output(plan, scenario_folder(out_dir, plan.name), force)
-    with folder_lock(Path(out_dir) / plan.name):
-        target, done, action = prepare_output(plan, out_dir, force)
-        fingerprint = plan.fingerprint()
-        rec, scenario = plan.world, plan.scenario
-        tuned = None
-        if isinstance(rec, DriveSet):
-            return _execute_drives(plan, target, done, action, fingerprint, on_start, on_result,
-                                   started, progress)  # fmt: skip
-        # Trained filters (kalmannet): fitted on the training segments only (or the cache).
-        learns = bool(trained_filters(scenario))
-        training = [segment_inputs(rec, s) for s in rec.train_segments] if learns else []
-        run_scenario, trained = fit_on_segments(
-            scenario, rec, training, target / RUNS_DIR, progress
-        )  # fmt: skip
-        for name in trained:
-            how = "read from the cache" if trained[name]["train"]["cached"] else "trained"
-            action += f"; {name} {how} on the training segments"
-        if scenario.reference() is not None:
-            tuned = tune(scenario, rec, plan.jobs)
-            action += (
-                f"; ekf-tuned on {tuned['train_segments']} training segments"
-                f" ({tuned['settings']} settings, {tuned['seconds']:.1f} s): sigma_v"
-                f" {tuned['sigma_v']:.4g} m/s, sigma_w {tuned['sigma_w_rad']:.4g} rad/s,"
-                f" sigma_range {tuned['sigma_range']:.4g} m, sigma_bearing"
-                f" {tuned['sigma_bearing_rad']:.4g} rad (training RMSE"
-                f" {tuned['train_rmse_pos']:.4f} m)"
+    world: Recording | DriveSet
+
+    @property
+    def runs(self) -> int:
+        return len(self.world.test_segments)
+
+    def filter_names(self, scenario: RealScenario) -> list[str]:
+        """Every filter instance (each filter from each naive start, and the fixed ones)."""
+        return scenario.instance_names()
+
+    def fingerprint_doc(self, plan) -> dict:
+        """What determines a run's bytes: the scenario, the log's content, the engine."""
+        return {
+            "scenario": plan.scenario.model_dump(mode="json", exclude={"jobs"}),
+            "data": self.world.digest,
+            "engine": plan.engine,
+        }
+
+    def check(self, plan) -> int:
+        """What can fail before the batch (PlanError); returns the held-out evaluation times."""
+        if isinstance(self.world, DriveSet):
+            return sum(
+                int(np.sum((d.log.odo_t > d.segment.t0) & (d.log.odo_t <= d.segment.end)))
+                for d in self.world.drives
             )
-        inputs = [segment_inputs(rec, s) for s in rec.test_segments]
-        n_steps = max(len(i.t) for i in inputs)
-        fitted, fits = fit_on_own_innovations(
-            scenario, inputs, [str(i.segment.index) for i in inputs], target / RUNS_DIR, plan.jobs
+        log = self.world.log
+        for part, segments in (("training", self.world.train_segments),
+                               ("held-out", self.world.test_segments)):  # fmt: skip
+            for seg in segments:
+                if not np.any((log.odo_t > seg.t0) & (log.odo_t <= seg.end)):
+                    odo = (
+                        f"{log.odo_t.min():.1f}-{log.odo_t.max():.1f} s" if len(log.odo_t)
+                        else "none"
+                    )  # fmt: skip
+                    raise PlanError(
+                        f"data: {part} segment {seg.index} ({seg.t0:.1f}-{seg.end:.1f} s) holds"
+                        f" no odometry (the log's odometry: {odo}); odometry and ground truth"
+                        " must overlap"
+                    )
+        return sum(
+            int(np.sum((log.odo_t > s.t0) & (log.odo_t <= s.end))) for s in self.world.test_segments
         )
-        action += _fits_action(fits)
-        if on_start is not None:
-            on_start(action, len(done), plan.runs)
-        calls = [
-            delayed(_run_one)(
-                run_scenario, i, tuned, n_steps, fitted.get(i.segment.index), plan.engine
-            )  # fmt: skip
-            for i in inputs
-            if i.segment.index not in done
-        ]
-        results, run_seconds = _run_and_save(plan, target, fingerprint, done, calls, on_result)
-        summary = _write_result(
-            plan, target, fingerprint, results, done, started, run_seconds,
-            landmarks=rec.landmarks, n_steps=n_steps, data=rec.summary(), tuning=tuned,
-            alignment="step k of a run is the k-th odometry stamp of its segment; t is seconds"
-            " since the segment's cold start; shorter segments are padded with NaN",
-            **({"fits": fits} if fits else {}),
-            **({"training": trained} if trained else {}),
-        )  # fmt: skip
-    return summary, target
+
+    def engines(self, plan) -> dict[str, str]:
+        model = Unicycle(plan.scenario.odometry_period_s)
+        return {
+            name: engine_of(plan.engine, spec, model=model)
+            for name, spec, _ in plan.scenario.instances()
+        }
+
+    def comparison_pairs(self, scenario: RealScenario) -> list[tuple[str, str]]:
+        """Every instance against the ekf-tuned reference, then the scenario's `compare`."""
+        ref = scenario.reference()
+        pairs = [(n, ref) for n in scenario.instance_names() if ref is not None and n != ref]
+        for pair in scenario.compare:
+            if tuple(pair) not in pairs:
+                pairs.append(tuple(pair))
+        return pairs
+
+    def summary(self, plan, records: list[dict], steps, ordered: list[dict]):
+        """The summary with real_summary's columns; no phases."""
+        return real_summary(records, ordered, plan.scenario), None
+
+    def prepare(self, plan, store: Path, progress=None) -> Prepared:
+        """Train (kalmannet, on training segments or per fold), tune ekf-tuned, fit ekf-ml on
+        each run's own innovations (all cached in `store` where they can be), and hand out one
+        `run_segment` call per held-out segment or drive."""
+        if isinstance(self.world, DriveSet):
+            return _prepare_drives(plan, self.world, store, progress)
+        return _prepare_segments(plan, self.world, store, progress)
 
 
-def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result, started,
-                    progress=None):  # fmt: skip
-    """`execute_real`'s body for protocol drives: tune per test dataset, run every drive whole."""
+def _prepare_segments(plan, rec: Recording, store: Path, progress) -> Prepared:
+    scenario = plan.scenario
+    # Trained filters (kalmannet): fitted on the training segments only (or the cache).
+    learns = bool(trained_filters(scenario))
+    training = [segment_inputs(rec, s) for s in rec.train_segments] if learns else []
+    run_scenario, trained = fit_on_segments(scenario, rec, training, store, progress)
+    action = ""
+    for name in trained:
+        how = "read from the cache" if trained[name]["train"]["cached"] else "trained"
+        action += f"; {name} {how} on the training segments"
+    tuned = None
+    if scenario.reference() is not None:
+        tuned = tune(scenario, rec, plan.jobs)
+        action += (
+            f"; ekf-tuned on {tuned['train_segments']} training segments"
+            f" ({tuned['settings']} settings, {tuned['seconds']:.1f} s): sigma_v"
+            f" {tuned['sigma_v']:.4g} m/s, sigma_w {tuned['sigma_w_rad']:.4g} rad/s,"
+            f" sigma_range {tuned['sigma_range']:.4g} m, sigma_bearing"
+            f" {tuned['sigma_bearing_rad']:.4g} rad (training RMSE"
+            f" {tuned['train_rmse_pos']:.4f} m)"
+        )
+    inputs = [segment_inputs(rec, s) for s in rec.test_segments]
+    n_steps = max(len(i.t) for i in inputs)
+    fitted, fits = fit_on_own_innovations(
+        scenario, inputs, [str(i.segment.index) for i in inputs], store, plan.jobs
+    )
+    items = {
+        i.segment.index: partial(
+            run_segment, run_scenario, i, tuned, n_steps, fitted.get(i.segment.index), plan.engine
+        )
+        for i in inputs
+    }
+    manifest = {
+        **_recorded_manifest(plan.scenario, rec.summary(), tuned, SEGMENTS_ALIGNMENT),
+        **({"fits": fits} if fits else {}),
+        **({"training": trained} if trained else {}),
+    }
+    return Prepared(items, action + _fits_action(fits), manifest, n_steps)
 
-    world, scenario = plan.world, plan.scenario
+
+def _prepare_drives(plan, world: DriveSet, store: Path, progress) -> Prepared:
+    """Protocol drives: tune per test dataset, run every drive whole."""
+    scenario = plan.scenario
     inputs = {d.id: segment_inputs(d, d.segment, scenario.eval_period_s) for d in world.drives}
     # Trained filters (kalmannet): one fit per fold, on its training drives only (or the cache).
-    run_scenario, trained = fit_on_drives(scenario, world, inputs, target / RUNS_DIR, progress)
-    if trained:
-        for name, folds in trained.items():
-            how = "read from the cache" if all(r["cached"] for r in folds.values()) else "trained"
-            action += f"; {name} {how} per fold (on dataset(s) {', '.join(folds)})"
+    run_scenario, trained = fit_on_drives(scenario, world, inputs, store, progress)
+    action = ""
+    for name, folds in trained.items():
+        how = "read from the cache" if all(r["cached"] for r in folds.values()) else "trained"
+        action += f"; {name} {how} per fold (on dataset(s) {', '.join(folds)})"
     tuned_for, tuning = {}, None
     if scenario.reference() is not None:
         tuned_for, tuning = tune_drives(scenario, inputs, world, plan.jobs)
         action += f"; ekf-tuned tuned per dataset on the others' drives ({tuning['seconds']:.1f} s)"
     n_steps = max(len(i.t) for i in inputs.values())
     fitted, fits = fit_on_own_innovations(
-        scenario, [inputs[d.id] for d in world.drives], [d.id for d in world.drives],
-        target / RUNS_DIR, plan.jobs,
+        scenario, [inputs[d.id] for d in world.drives], [d.id for d in world.drives], store,
+        plan.jobs,
     )  # fmt: skip
-    action += _fits_action(fits)
-    if on_start is not None:
-        on_start(action, len(done), plan.runs)
-    calls = [
-        delayed(_run_one)(
+    items = {
+        d.segment.index: partial(
+            run_segment,
             run_scenario[d.id],
             inputs[d.id],
             tuned_for.get(d.id),
@@ -848,20 +752,29 @@ def _execute_drives(plan, target, done, action, fingerprint, on_start, on_result
             plan.engine,
         )  # fmt: skip
         for d in world.drives
-        if d.segment.index not in done
-    ]
-    results, run_seconds = _run_and_save(plan, target, fingerprint, done, calls, on_result)
-    summary = _write_result(
-        plan, target, fingerprint, results, done, started, run_seconds,
-        landmarks=world.landmarks, n_steps=n_steps, data=world.summary(), tuning=tuning,
-        alignment="run r is drive r of data.drives, whole from its ground-truth start; step k is"
-        " its k-th evaluation time (odometry stamps at least eval_period_s apart); t is seconds"
-        " since the cold start; shorter drives are padded with NaN",
-        protocol="drives", tuning_seconds=tuning["seconds"] if tuning else 0.0,
+    }
+    manifest = {
+        **_recorded_manifest(scenario, world.summary(), tuning, DRIVES_ALIGNMENT),
+        "protocol": "drives",
+        "tuning_seconds": tuning["seconds"] if tuning else 0.0,
         **({"fits": fits} if fits else {}),
         **({"training": trained} if trained else {}),
-    )  # fmt: skip
-    return summary, target
+    }
+    return Prepared(items, action + _fits_action(fits), manifest, n_steps)
+
+
+def _recorded_manifest(scenario: RealScenario, data: dict, tuning, alignment: str) -> dict:
+    """The manifest keys only a recorded result has (report.real reads them)."""
+    return {
+        "kind": "recorded",
+        "filters": [
+            {"name": n, "base": spec.name, "kind": spec.kind, "start": m}
+            for n, spec, m in scenario.instances()
+        ],
+        "data": data,
+        "tuning": tuning,
+        "alignment": alignment,
+    }
 
 
 def _fits_action(fits: dict) -> str:
@@ -873,73 +786,3 @@ def _fits_action(fits: dict) -> str:
         f"; ekf-ml fitted on each run's own innovations ({n} fits, {fits['fitted_now']} computed"
         f" now, {fits['seconds']:.1f} s)"
     )
-
-
-def _run_and_save(plan, target, fingerprint, done, calls, on_result) -> tuple[dict, float]:
-    """Run the delayed `calls` (one per run not saved yet) on local workers, saving each run as it
-    finishes; returns every run's result by index (the saved ones too) and the seconds taken."""
-    started = time.perf_counter()
-    results = dict(done)
-    if calls:
-        with local_workers():
-            chunks = Parallel(n_jobs=min(plan.jobs, len(calls)), return_as="generator_unordered")(
-                calls
-            )
-        for chunk in chunks:
-            for result in chunk:
-                save_run(target, result, fingerprint)
-                results[result["run"]] = result
-                if on_result is not None:
-                    on_result(result)
-    return results, time.perf_counter() - started
-
-
-def _write_result(
-    plan, target, fingerprint, results, done, started, run_seconds, *, landmarks, n_steps, data,
-    tuning, alignment, **extra,
-) -> list[dict]:  # fmt: skip
-    """The batch's tables and manifest, staged and then swapped in whole (outputs.finish_result),
-    the same for segments and drives (`extra`: what only one protocol records); returns the
-    summary records."""
-    scenario = plan.scenario
-    tables = real_result_tables(plan, [results[i] for i in range(plan.runs)])
-    staging = result_staging(target)
-    write_result_tables(
-        staging,
-        tables,
-        steps_table=scenario.steps_table,
-        metadata={"scenario": plan.name, "seed": str(plan.seed), "fingerprint": fingerprint},
-    )
-    manifest = {
-        "scenario": scenario.model_dump(mode="json"),
-        "kind": "recorded",
-        "format": RESULT_FORMAT,
-        "runs": plan.runs,
-        "seed": plan.seed,
-        "jobs": plan.jobs,
-        "backend": {"kind": "local"},
-        "engine": plan.engine,
-        "engines": {
-            name: engine_of(plan.engine, spec, model=Unicycle(scenario.odometry_period_s))
-            for name, spec, _ in scenario.instances()
-        },
-        "fast_compiled": fast_compiled(plan.engine),  # false: numba missing, plain Python
-        "fingerprint": fingerprint,
-        "filters": [
-            {"name": n, "base": spec.name, "kind": spec.kind, "start": m}
-            for n, spec, m in scenario.instances()
-        ],
-        "world": {"landmarks": landmarks.tolist(), "waypoints": [], "control_steps": n_steps},
-        "data": data,
-        "tuning": tuning,
-        "alignment": alignment,
-        "resumed_runs": sorted(done),
-        "versions": package_versions(),
-        "machine": machine_info(),
-        **extra,
-        "run_seconds": round(run_seconds, 3),
-        "wall_time_s": round(time.time() - started, 3),
-    }
-    write_json(staging / MANIFEST_FILE, manifest)
-    finish_result(target, staging)
-    return tables.summary

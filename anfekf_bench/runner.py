@@ -1,6 +1,9 @@
 """Monte Carlo batches: worker calls of a few runs each, fanned out with joblib (benchopt style).
 
-`run_chunk` / `run_one` are top-level functions taking plain data and returning plain data; they
+`dispatch_runs` is the one way runs are dispatched, for every source: a batch is a list of
+picklable calls, one run each (a simulated run: `run_one`; a recorded segment or drive:
+real_experiment's), grouped into worker tasks (`run_chunk`) on local processes or a Dask
+cluster. The calls are top-level functions taking plain data and returning plain data; they
 mutate nothing shared. The truth path and the scans' landmark geometry are computed once per
 batch and shipped with the tasks.
 Run i draws from `SeedSequence(seed).spawn(runs)[i]` only (SPEC 6), so results do not depend on
@@ -19,6 +22,8 @@ import logging
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from functools import partial
 from typing import Literal
 
 import numpy as np
@@ -128,16 +133,23 @@ def run_one(
     }
 
 
-def run_chunk(
-    scenario: Scenario,
-    world: World,
-    runs: list[tuple[int, np.random.SeedSequence]],
-    path: WorldPath,
-    engine: Engine,
-) -> list[dict]:
+@dataclass(frozen=True)
+class Prepared:
+    """What a plan's source hands experiment's one pipeline once its preparation (fits, tuning,
+    training) is done: one picklable call per run (run index -> call, for `dispatch_runs`), the
+    start line's account of the preparation ("; ekf-ml fitted ...", appended to the action),
+    the manifest keys only this source writes, and the manifest's world.control_steps."""
+
+    items: dict[int, Callable[[], dict]]
+    action: str
+    manifest: dict
+    control_steps: int
+
+
+def run_chunk(items: list[Callable[[], dict]]) -> list[dict]:
     """Several runs in one worker task (a fast engine's run takes milliseconds: one task per run
-    would cost more in dispatch than in filtering)."""
-    return [run_one(scenario, world, run, seed, path, engine) for run, seed in runs]
+    would cost more in dispatch than in filtering). `items`: picklable calls, one run each."""
+    return [item() for item in items]
 
 
 def run_tasks(scenario: Scenario, world: World, runs: int, seed: int) -> Iterator[dict]:
@@ -146,9 +158,61 @@ def run_tasks(scenario: Scenario, world: World, runs: int, seed: int) -> Iterato
         yield {"scenario": scenario, "world": world, "run": i, "seed": child}
 
 
+def simulated_items(
+    scenario: Scenario, world: World, runs: int, seed: int, engine: Engine = "filterpy",
+    path: WorldPath | None = None,
+) -> dict[int, Callable[[], dict]]:  # fmt: skip
+    """The work of a simulated batch: run index -> its call (`run_one` with its own seed; the
+    truth path and the scans' geometry, the same in every run, computed once and shipped)."""
+    path = world_path(world) if path is None else path
+    return {
+        t["run"]: partial(run_one, scenario, world, t["run"], t["seed"], path, engine)
+        for t in run_tasks(scenario, world, runs, seed)
+    }
+
+
 def runs_per_task(n_runs: int, workers: int) -> int:
     """About four tasks per worker, so that the load balances and progress moves."""
     return max(1, math.ceil(n_runs / (4 * max(workers, 1))))
+
+
+def dispatch_runs(
+    items: list[Callable[[], dict]],
+    *,
+    jobs: int,
+    on_result: Callable[[dict], None] | None = None,
+    backend: Literal["local", "dask"] = "local",
+    scheduler: str | None = None,
+    connect_timeout_s: float = 10.0,
+    engine: Engine = "filterpy",
+    client=None,
+) -> Iterator[dict]:
+    """Run results as they finish (any order), whatever the source: `items` are picklable
+    calls, one run each (simulated: `simulated_items`; recorded: real_experiment's segments or
+    drives); `on_result` sees each result as it arrives (execute saves it there at once).
+
+    backend "local" uses `jobs` local processes; "dask" runs on the existing Dask cluster whose
+    scheduler listens at `scheduler` (all its worker threads; `jobs` is not used there). The
+    cluster is reached here (unless `client`, from `connect_dask`, is given: the caller reached it
+    before touching its output), before the first result is asked for, so a scheduler that cannot
+    be reached raises BackendUnavailable at once. Local workers end when this process dies.
+    """
+    if not items:
+        return iter(())
+    # A filterpy run takes a good part of a second: one task per run (progress and resume move
+    # with every run); a fast-engine run takes milliseconds, so its tasks hold several runs.
+    size = runs_per_task(len(items), jobs) if engine == "fast" and backend == "local" else 1
+    calls = (delayed(run_chunk)(items[i : i + size]) for i in range(0, len(items), size))
+    if backend == "dask":
+        if client is None:
+            client = connect_dask(scheduler, connect_timeout_s)
+        results = _run_on_dask(client, calls, scheduler, connect_timeout_s)
+    else:
+        n_calls = math.ceil(len(items) / size)
+        with local_workers():
+            parallel = Parallel(n_jobs=min(jobs, n_calls), return_as="generator_unordered")
+            results = parallel(calls)
+    return _announce(results, on_result)
 
 
 def run_batch(
@@ -166,36 +230,14 @@ def run_batch(
     engine: Engine = "filterpy",
     client=None,
 ) -> Iterator[dict]:
-    """Run results as they finish (any order); `skip` leaves out runs already done.
-
-    backend "local" uses `jobs` local processes; "dask" runs on the existing Dask cluster whose
-    scheduler listens at `scheduler` (all its worker threads; `jobs` is not used there). The
-    cluster is reached here (unless `client`, from `connect_dask`, is given: the caller reached it
-    before touching its output), before the first result is asked for, so a scheduler that cannot
-    be reached raises BackendUnavailable at once. Local workers end when this process dies.
-    """
-    tasks = [(t["run"], t["seed"]) for t in run_tasks(scenario, world, runs, seed)]
-    tasks = [task for task in tasks if task[0] not in skip]
-    if not tasks:
-        return iter(())
-    path = world_path(world)
-    # A filterpy run takes a good part of a second: one task per run (progress and resume move
-    # with every run); a fast-engine run takes milliseconds, so its tasks hold several runs.
-    size = runs_per_task(len(tasks), jobs) if engine == "fast" and backend == "local" else 1
-    calls = (
-        delayed(run_chunk)(scenario, world, tasks[i : i + size], path, engine)
-        for i in range(0, len(tasks), size)
-    )
-    if backend == "dask":
-        if client is None:
-            client = connect_dask(scheduler, connect_timeout_s)
-        results = _run_on_dask(client, calls, scheduler, connect_timeout_s)
-    else:
-        n_calls = math.ceil(len(tasks) / size)
-        with local_workers():
-            parallel = Parallel(n_jobs=min(jobs, n_calls), return_as="generator_unordered")
-            results = parallel(calls)
-    return _announce(results, on_result)
+    """A simulated batch's runs (`skip` leaves out runs already done) through `dispatch_runs`:
+    for scripts and benchmarks that want the runs without a result folder."""
+    items = simulated_items(scenario, world, runs, seed, engine)
+    return dispatch_runs(
+        [call for run, call in items.items() if run not in skip], jobs=jobs, on_result=on_result,
+        backend=backend, scheduler=scheduler, connect_timeout_s=connect_timeout_s,
+        engine=engine, client=client,
+    )  # fmt: skip
 
 
 def _announce(

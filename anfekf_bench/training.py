@@ -10,7 +10,7 @@ filters.kalmannet: `kalmannet`, trained on them).
    noise, `training.runs` of them) once per batch, and each fitted filter's `fit` is called on
    them (the fitting code decides its engine; the built-in kinds use the fast engine's kernels).
 3. **Cache.** What a fit returns is saved as `<out>/<name>/.runs/fit-<fingerprint>.json`, keyed
-   by `Plan.training_fingerprint(spec)` (the filter's parameters, the scenario fields a fit
+   by `SimulatedSource.training_fingerprint` (the filter's parameters, the scenario fields a fit
    depends on, the seed, the training settings, the code version): a resumed batch reuses it
    (no refit); --force and a completed batch remove it with the rest of the run store.
 4. **Hand out.** Every evaluation run gets a copy of the spec carrying the fitted values
@@ -112,7 +112,7 @@ def fit_filters(plan, cache_dir: Path | None, progress: Any = None) -> Fits:
     training: TrainingSet | None = None
     records, specs, fitted_now = {}, {}, 0
     for spec in todo:
-        fingerprint = plan.training_fingerprint(spec)
+        fingerprint = plan.source.training_fingerprint(plan, spec)
         path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fingerprint)
         fitted = None if path is None else read_cached_fit(path, fingerprint)
         cached = fitted is not None

@@ -159,6 +159,59 @@ def test_dask_batch_reports_each_run_and_skips_done_ones(tmp_path: Path, schedul
                 )
 
 
+@pytest.mark.slow  # two runs of a recorded log, each with its tuning: about 15 s
+def test_recorded_log_on_dask_equals_local_run(tmp_path: Path, scheduler: str) -> None:
+    """A recorded log's held-out segments go through the same dispatch as simulated runs: on
+    the cluster (one Dask task per segment) they write exactly the local run's tables."""
+    from .test_real_data import user_scenario
+
+    path = user_scenario(tmp_path)
+    before = finished_run_tasks(scheduler)
+    on_dask = invoke(
+        "run", path, "--out", tmp_path / "dask", "--backend", "dask", "--scheduler", scheduler
+    )
+    assert on_dask.exit_code == 0, on_dask.output
+    assert len(finished_run_tasks(scheduler) - before) == 2  # both segments ran there
+    local = invoke("run", path, "--out", tmp_path / "local")
+    assert local.exit_code == 0, local.output
+
+    dask_dir, local_dir = tmp_path / "dask" / "my-robot", tmp_path / "local" / "my-robot"
+    for table in ("steps", "runs", "summary", "comparisons"):
+        pd.testing.assert_frame_equal(
+            pd.read_parquet(dask_dir / f"{table}.parquet"),
+            pd.read_parquet(local_dir / f"{table}.parquet"),
+            check_exact=True,
+        )
+    for doc in ("summary.json", "claims.json"):
+        assert (dask_dir / doc).read_text() == (local_dir / doc).read_text()
+    dask_manifest = json.loads((dask_dir / "manifest.json").read_text())
+    local_manifest = json.loads((local_dir / "manifest.json").read_text())
+    assert dask_manifest["kind"] == local_manifest["kind"] == "recorded"
+    assert dask_manifest["backend"] == {"kind": "dask", "scheduler": scheduler,
+                                        "connect_timeout_s": 10.0}  # fmt: skip
+    assert local_manifest["backend"]["kind"] == "local"
+    assert dask_manifest["fingerprint"] == local_manifest["fingerprint"]
+    assert dask_manifest["tuning"]["sigma_v"] == local_manifest["tuning"]["sigma_v"]
+
+
+def test_recorded_plan_takes_the_backend_overrides(tmp_path: Path) -> None:
+    """One make_plan for every source: a recorded scenario's plan takes --backend dask and
+    --scheduler like a simulated one's (its resume fingerprint does not depend on them)."""
+    from anfekf_bench.real_experiment import RecordedSource
+
+    from .test_real_data import user_scenario
+
+    scenario, recording = load_scenario(user_scenario(tmp_path))
+    plan = make_plan(scenario, recording, None, None, None, backend="dask", scheduler="tcp://h:1")
+    assert isinstance(plan.source, RecordedSource) and plan.runs == 2
+    assert plan.backend == BackendConfig(kind="dask", scheduler="tcp://h:1")
+    local = make_plan(scenario, recording, None, None, None)
+    assert local.backend.kind == "local" and local.engine == "filterpy"
+    assert plan.fingerprint() == local.fingerprint()
+    fast = make_plan(scenario, recording, None, None, None, engine="fast")
+    assert fast.fingerprint() != local.fingerprint()  # the engine changes a run's bytes
+
+
 def test_unreachable_scheduler_is_one_line_within_timeout(tmp_path: Path) -> None:
     address = f"tcp://127.0.0.1:{unused_port()}"
     doc = tiny_scenario(backend={"kind": "dask", "scheduler": address, "connect_timeout_s": 2})

@@ -198,14 +198,11 @@ def test_fit_is_cached_by_fingerprint(tmp_path, monkeypatch):
     # another training set is another fingerprint: no cache hit
     other, _ = _scenario(training_runs=5)
     plan5 = make_plan(other, world, None, None, None)
-    assert plan5.training_fingerprint(other.filters[1]) != plan.training_fingerprint(
-        scenario.filters[1]
-    )
+    fingerprint = plan.source.training_fingerprint(plan, scenario.filters[1])
+    assert plan5.source.training_fingerprint(plan5, other.filters[1]) != fingerprint
     # the evaluation runs are not part of it
     plan9 = make_plan(scenario, world, 9, None, None)
-    assert plan9.training_fingerprint(scenario.filters[1]) == plan.training_fingerprint(
-        scenario.filters[1]
-    )
+    assert plan9.source.training_fingerprint(plan9, scenario.filters[1]) == fingerprint
 
 
 class _Stop(Exception):

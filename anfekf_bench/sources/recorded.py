@@ -34,6 +34,7 @@ import numpy as np
 from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from ..config import (
+    BackendConfig,
     ClaimSpec,
     ScenarioError,
     _format_validation_error,
@@ -187,6 +188,9 @@ class RealScenario(StrictModel):
 
     kind: ClassVar[str] = "recorded"
     sweep: ClassVar[None] = None  # a real-data scenario is not a sweep (config.SweepSpec)
+    # Not keys of the file: local processes and filterpy unless --backend / --engine say otherwise
+    backend: ClassVar[BackendConfig] = BackendConfig()
+    engine: ClassVar[str] = "filterpy"
 
     name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
     description: str = ""

@@ -78,9 +78,14 @@ class KalmanNetWeights:
 
     @functools.cached_property
     def net(self) -> tuple[np.ndarray, ...]:
-        """The arrays in the order of `NET_ARRAYS`, as both engines take them: C-contiguous,
-        writable float64 copies (a read-only array would be another compiled signature)."""
-        return tuple(np.array(self.arrays[n], dtype=np.float64, order="C") for n in NET_ARRAYS)
+        """The arrays in the order of `NET_ARRAYS`, as both engines take them: each layer's
+        weight matrix transposed (inputs x outputs: the compiled product then runs along
+        contiguous rows of outputs), C-contiguous, writable float64 copies (a read-only array
+        would be another compiled signature)."""
+        return tuple(
+            np.array(self.arrays[n].T, dtype=np.float64, order="C")  # (a bias: itself)
+            for n in NET_ARRAYS
+        )  # fmt: skip
 
     @property
     def scales(self) -> tuple[float, ...]:
@@ -214,9 +219,9 @@ def gru_unit(ir, iz, i_n, hr, hz, hn, h):
     return (1.0 - z) * n + z * h
 
 
-def affine(W, v, b, out):
-    """out = W v + b; returns out."""
-    np.matmul(W, v, out=out)
+def affine(Wt, v, b, out):
+    """out = W v + b, given Wt = W^T (inputs x outputs); returns out."""
+    np.matmul(v, Wt, out=out)
     out += b
     return out
 
@@ -236,25 +241,26 @@ def gru_update(gi, gh, h):
 
 def work_arrays(net):
     """The buffers `gain_network` writes (features, a, gi, gh, o, k), sized by `net`."""
-    W_in, W_ih, W_hh, W_o1, W_o2 = net[0], net[2], net[4], net[6], net[8]
+    Wt_in, Wt_ih, Wt_hh, Wt_o1, Wt_o2 = net[0], net[2], net[4], net[6], net[8]
     return (
-        np.zeros(W_in.shape[1]), np.zeros(W_in.shape[0]), np.zeros(W_ih.shape[0]),
-        np.zeros(W_hh.shape[0]), np.zeros(W_o1.shape[0]), np.zeros(W_o2.shape[0]),
+        np.zeros(Wt_in.shape[0]), np.zeros(Wt_in.shape[1]), np.zeros(Wt_ih.shape[1]),
+        np.zeros(Wt_hh.shape[1]), np.zeros(Wt_o1.shape[1]), np.zeros(Wt_o2.shape[1]),
     )  # fmt: skip
 
 
 def gain_network(net, hidden, work):
     """Architecture 1: FC + ReLU, GRU cell (torch.nn.GRUCell's equations), FC + ReLU, FC, on
-    the features in work[0]. `net`: the arrays of NET_ARRAYS; `hidden` is updated in place.
-    Returns the raw gain (n * m,), row-major (a buffer of `work`)."""
-    W_in, b_in, W_ih, b_ih, W_hh, b_hh, W_o1, b_o1, W_o2, b_o2 = net
+    the features in work[0]. `net`: the arrays of NET_ARRAYS (`KalmanNetWeights.net`: weights
+    transposed); `hidden` is updated in place. Returns the raw gain (n * m,), row-major (a
+    buffer of `work`)."""
+    Wt_in, b_in, Wt_ih, b_ih, Wt_hh, b_hh, Wt_o1, b_o1, Wt_o2, b_o2 = net
     features, a, gi, gh, o, k = work
-    relu_in_place(affine(W_in, features, b_in, a))
-    affine(W_ih, a, b_ih, gi)
-    affine(W_hh, hidden, b_hh, gh)
+    relu_in_place(affine(Wt_in, features, b_in, a))
+    affine(Wt_ih, a, b_ih, gi)
+    affine(Wt_hh, hidden, b_hh, gh)
     gru_update(gi, gh, hidden)
-    relu_in_place(affine(W_o1, hidden, b_o1, o))
-    return affine(W_o2, o, b_o2, k)
+    relu_in_place(affine(Wt_o1, hidden, b_o1, o))
+    return affine(Wt_o2, o, b_o2, k)
 
 
 def normalized2(a, b):

@@ -133,10 +133,11 @@ def run_kalmannet_kernel(
     hidden = np.zeros(net[4].shape[0])
     work = work_arrays(net)
     most = largest_scan(lm)
-    last_xy = np.empty((most, 2))  # the last scan's landmarks and measurements (F1)
-    last_z = np.empty((most, 2))
-    scan_xy = np.empty((most, 2))  # this scan's
-    scan_z = np.empty((most, 2))
+    # (landmark x, y, z0, z1) of the last scan's measurements (F1) and of this scan's: buffers
+    # `last` and 1 - `last` (swapping two arrays in the loop costs every stamp their
+    # reference counts)
+    seen_at = np.empty((2, most, 4))
+    last = 0
     n_last = 0
     n_updates = 0
     n_records = out_x.shape[0]
@@ -145,10 +146,10 @@ def run_kalmannet_kernel(
     for i in range(n_stamps):
         x, _, _ = predict(x, P, u[i, 0], u[i, 1], dt[i], motion, B, T0, Qu)
         first = lm[i]
-        last = lm[i + 1]
-        if last > first:
+        end = lm[i + 1]
+        if end > first:
             n_scan = 0
-            for m in range(first, last):
+            for m in range(first, end):
                 lx = xy[m, 0]
                 ly = xy[m, 1]
                 z0 = z[m, 0]
@@ -157,10 +158,10 @@ def run_kalmannet_kernel(
                 p0 = 0.0
                 p1 = 0.0
                 for q in range(n_last):  # the last match: a dict keeps a key's last value
-                    if last_xy[q, 0] == lx and last_xy[q, 1] == ly:
+                    if seen_at[last, q, 0] == lx and seen_at[last, q, 1] == ly:
                         seen = True
-                        p0 = last_z[q, 0]
-                        p1 = last_z[q, 1]
+                        p0 = seen_at[last, q, 2]
+                        p1 = seen_at[last, q, 3]
                 x_post = gain_update(
                     x, lx, ly, z0, z1, seen, p0, p1, post_prev, post_prev2, prior_prev, scales,
                     net, hidden, work,
@@ -175,13 +176,12 @@ def run_kalmannet_kernel(
                 prior_prev = x
                 x = x_post
                 n_updates += 1
-                scan_xy[n_scan, 0] = lx
-                scan_xy[n_scan, 1] = ly
-                scan_z[n_scan, 0] = z0
-                scan_z[n_scan, 1] = z1
+                seen_at[1 - last, n_scan, 0] = lx
+                seen_at[1 - last, n_scan, 1] = ly
+                seen_at[1 - last, n_scan, 2] = z0
+                seen_at[1 - last, n_scan, 3] = z1
                 n_scan += 1
-            last_xy, scan_xy = scan_xy, last_xy
-            last_z, scan_z = scan_z, last_z
+            last = 1 - last
             n_last = n_scan
         if record_at[i] and j < n_records:
             for c in range(3):

@@ -75,7 +75,9 @@ MIB = 2**20
 # The filter kinds timed on both engines: every built-in kind the fast engine runs, read from
 # the registry (each `adapt` mode of a family that has one), with defaults; the banks with a 3 x 3
 # grid (their cost grows with the grid; on filterpy the default 125 members take seconds a run).
-# Kinds fitted on training runs are the plain EKF with other noise (timed as `ekf`).
+# Kinds fitted on training runs are the plain EKF with other noise (timed as `ekf`), but for
+# `kalmannet`: a network of the default size with seeded random weights (no training, no torch:
+# its cost does not depend on the weights' values).
 SMALL_BANK = {"qu_factors": [0.1, 1.0, 10.0], "range_factors": [0.1, 1.0, 10.0],
               "bearing_factors": [1.0]}  # fmt: skip
 
@@ -87,6 +89,11 @@ def engine_kinds() -> dict[str, FilterSpec]:
 
     out: dict[str, FilterSpec] = {}
     for kind, cls in SPEC_BY_KIND.items():
+        if kind == "kalmannet":
+            spec = bench_kalmannet()
+            if fast.supports(spec):
+                out[kind] = spec
+            continue
         if cls.fitted_on_training or kind in ("custom", "ekf-oracle"):
             continue
         adapt = cls.model_fields.get("adapt")
@@ -101,6 +108,16 @@ def engine_kinds() -> dict[str, FilterSpec]:
             if fast.supports(spec):
                 out[kind if mode is None else f"{kind}_{mode}"] = spec
     return out
+
+
+def bench_kalmannet(seed: int = 0) -> FilterSpec:
+    """`kalmannet` with the default hidden size and seeded random weights (KalmanNetWeights.random),
+    built without PyTorch (model_construct skips the check that it is installed)."""
+    from .filters.kalmannet import KalmanNetSpec, KalmanNetWeights
+
+    hidden = KalmanNetSpec.model_fields["hidden_size"].default
+    spec = KalmanNetSpec.model_construct(name="kalmannet", kind="kalmannet", hidden_size=hidden)
+    return spec.with_weights(KalmanNetWeights.random(hidden_size=hidden, seed=seed))
 
 
 ENGINE_KINDS: dict[str, FilterSpec] = engine_kinds()
@@ -360,8 +377,11 @@ def _fast_passes(spec: FilterSpec, ctx: FilterContext, setup: StepSetup, n: int)
         fast.run_filter_fast(spec, ctx, setup.data, setup.world, every)
 
 
-def time_engine_costs(setup: StepSetup, repeats: int, inner: int) -> dict[str, dict[str, list]]:
-    """Seconds per pass of each filter kind on the filterpy and on the fast engine.
+def time_engine_costs(
+    setup: StepSetup, repeats: int, inner: int, kinds: dict[str, FilterSpec] | None = None
+) -> dict[str, dict[str, list]]:
+    """Seconds per pass of each filter kind (`kinds`, by default ENGINE_KINDS) on the filterpy
+    and on the fast engine.
 
     Within each repeat every kind is timed on filterpy and then on the fast engine, back to back
     (the fast side as the mean of `inner` passes); filters, contexts and the flattened scans are
@@ -370,9 +390,10 @@ def time_engine_costs(setup: StepSetup, repeats: int, inner: int) -> dict[str, d
     from .engines import fast
 
     every = setup.scenario.record_every
-    times = {kind: {"filterpy": [], "fast": []} for kind in ENGINE_KINDS}
+    kinds = ENGINE_KINDS if kinds is None else kinds
+    times = {kind: {"filterpy": [], "fast": []} for kind in kinds}
     for _ in range(repeats):
-        for kind, spec in ENGINE_KINDS.items():
+        for kind, spec in kinds.items():
             flt = setup._build(spec)
             times[kind]["filterpy"].append(
                 _timed(partial(run_filter, flt, setup.data, setup.world, every))
@@ -399,14 +420,16 @@ def time_scan_flattening(setup: StepSetup, repeats: int) -> list[float]:
     return out
 
 
-def engine_agreement(setup: StepSetup) -> tuple[dict[str, dict], float]:
-    """Each kind once on both engines: their counts (which must be equal) and the largest
-    |fast - filterpy| of x, P, R_diag and Q_diag."""
+def engine_agreement(
+    setup: StepSetup, kinds: dict[str, FilterSpec] | None = None
+) -> tuple[dict[str, dict], float]:
+    """Each kind (`kinds`, by default ENGINE_KINDS) once on both engines: their counts (which
+    must be equal) and the largest |fast - filterpy| of x, P, R_diag and Q_diag."""
     from .engines import fast
 
     every = setup.scenario.record_every
     counts, worst = {}, 0.0
-    for kind, spec in ENGINE_KINDS.items():
+    for kind, spec in (ENGINE_KINDS if kinds is None else kinds).items():
         ref = run_filter(setup._build(spec), setup.data, setup.world, every)
         out = fast.run_filter_fast(spec, setup.context(spec), setup.data, setup.world, every)
         keys = ("n_updates", "n_rejected", "diverged")

@@ -414,3 +414,31 @@ def test_make_learned_scores_the_runs_of_the_scenario_it_mirrors(name, source):
     assert learned.filter_noise == original.filter_noise
     assert [f.kind for f in learned.filters] == ["ekf", "anfekf", "ekf-oracle", "kalmannet"]
     assert ("kalmannet", "anfekf") in [tuple(p) for p in learned.compare]
+
+
+@pytest.mark.slow
+def test_anfekf_run_engine_fast_scores_kalmannet_as_the_filterpy_engine(tmp_path):
+    """The trained network end to end on the fast engine: `anfekf run --engine fast` trains the
+    same weights (cached in the run store, handed to the workers) and scores the same summary
+    as the filterpy engine, and the manifest says kalmannet ran on the fast engine."""
+    import json
+
+    import pandas as pd
+
+    path = tiny_run_scenario(tmp_path)
+    summaries, shas = {}, set()
+    for engine in ("filterpy", "fast"):
+        out = tmp_path / engine
+        args = ["run", str(path), "--out", str(out), "--engine", engine]
+        result = CliRunner().invoke(app, args)
+        assert result.exit_code == 0, result.output
+        manifest = json.loads((out / "small" / "manifest.json").read_text())
+        assert manifest["engines"] == {"ekf": engine, "kn": engine}
+        shas.add(manifest["training"]["kn"]["fitted"]["weights_sha256"])
+        summary = pd.read_parquet(out / "small" / "summary.parquet")
+        summaries[engine] = summary.drop(columns=[c for c in summary if "time" in c])
+    assert len(shas) == 1
+    a, b = summaries["filterpy"], summaries["fast"]
+    assert list(a["filter"]) == list(b["filter"]) == ["ekf", "kn"]
+    numeric = a.select_dtypes("number").columns
+    pd.testing.assert_frame_equal(a[numeric], b[numeric], rtol=1e-9, atol=0)

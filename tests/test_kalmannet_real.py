@@ -317,3 +317,26 @@ def test_two_drives_end_to_end_record_the_training_per_fold(tmp_path):
     assert folds["6"]["train_drives"] == ["d6-r1"] and folds["7"]["train_drives"] == ["d7-r1"]
     assert all(f["fitted"]["training_time_s"] > 0 for f in folds.values())
     assert [f["name"] for f in manifest["filters"]] == ["ekf-tuned", "kalmannet"]
+
+
+def test_each_folds_trained_weights_run_on_the_fast_engine_as_on_filterpy(stretches, monkeypatch):
+    """The drives protocol hands each drive its fold's weights (`with_fit`); `runner.run_spec`
+    runs them on the fast engine's kernel (the unicycle) with filterpy's results."""
+    from anfekf_bench.runner import engine_of, run_spec
+
+    from .test_fast_engine import assert_same_run
+
+    runs, _ = fit_folds(fold_scenario(epochs=1), stretches, monkeypatch)
+    updates = 0
+    for drive, scenario in runs.items():
+        spec = next(f for f in scenario.filters if f.name == "kn")
+        inp = stretches[drive]
+        ctx = FilterContext(x0=inp.segment.pose, P0=np.eye(3) * 1e-3, Qu=np.eye(2), R=np.eye(2),
+                            model=Unicycle(T0), dt=T0, gate=None)  # fmt: skip
+        assert engine_of("fast", spec, model=ctx.model) == "fast"
+        ref = run_spec("filterpy", spec, ctx, inp.timeline)
+        out = run_spec("fast", spec, ctx, inp.timeline)
+        assert not ref["diverged"] and np.isfinite(ref["x"]).all()
+        assert_same_run(ref, out, what=drive)
+        updates += ref["n_updates"]
+    assert updates > 0  # (d7-r1's stretch sees no landmark)

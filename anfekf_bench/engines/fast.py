@@ -11,11 +11,12 @@ adapt_from, bounds, window, rates, ...), `cm-scale` (the ANFEKF's kernel with it
 rule), the multiple-model banks `mmae` and `imm` with any of theirs (`kernels.run_bank_kernel`),
 the fading-factor EKF (`kernels.run_fading_kernel`), and `akhlaghi`, `vb-r`, `vbakf`, `swvb`,
 `sage-husa` and `iae` in every mode (`kernels.run_akhlaghi_kernel`, `run_vbr_kernel`,
-`run_vbakf_kernel`, `run_swvb_kernel`, `run_sage_husa_kernel`, `run_iae_kernel`), and `als`
-in every mode (`kernels_als.run_als_kernel`); each family's rules are the plain functions of its
-filter module, called by both engines; on both motion models (the bicycle of the simulated
-scenarios, the unicycle of recorded logs: a kernel argument). Anything else (a user's own
-filter) is not implemented here: the caller runs it on filterpy.
+`run_vbakf_kernel`, `run_swvb_kernel`, `run_sage_husa_kernel`, `run_iae_kernel`), `als`
+in every mode (`kernels_als.run_als_kernel`) and the trained `kalmannet`
+(`kernels_kalmannet.run_kalmannet_kernel`, its weights passed as arrays); each family's rules
+are the plain functions of its filter module, called by both engines; on both motion models
+(the bicycle of the simulated scenarios, the unicycle of recorded logs: a kernel argument).
+Anything else (a user's own filter) is not implemented here: the caller runs it on filterpy.
 
 Its input is the one contract of a run, a `timeline.Timeline` (a simulated run through
 `timeline.from_run`, a recorded span through `timeline.timeline`): every kernel loops over its
@@ -41,6 +42,7 @@ from ..filters.ekf import EKFSpec, OracleSpec
 from ..filters.fading import FadingSpec
 from ..filters.fitted import EKFMLSpec, EKFTunedSpec
 from ..filters.iae import IAESpec
+from ..filters.kalmannet import KalmanNetSpec, KalmanNetWeights
 from ..filters.registry import register_engine
 from ..filters.sage_husa import SageHusaSpec
 from ..filters.spec import FilterContext, FilterSpec
@@ -52,6 +54,7 @@ from ..timeline import Timeline, from_run
 from ..timeline import clear_cache as clear_timeline_cache
 from . import kernels as _jit_kernels
 from . import kernels_als as _jit_kernels_als
+from . import kernels_kalmannet as _jit_kernels_kalmannet
 
 JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 
@@ -61,6 +64,7 @@ JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
     VBRSpec, AkhlaghiSpec, VBAKFSpec, SWVBSpec, CMScaleSpec, SageHusaSpec, IAESpec, ALSSpec,
+    KalmanNetSpec,
 )  # fmt: skip
 RECORDED_SOURCE = "anfekf_bench.sources.recorded"  # its TunedEKFSpec: the plain EKF too
 
@@ -151,6 +155,8 @@ def run_filter_fast(
     # Without numba the module's own kernels are already plain Python.
     k = _pure_kernels() if (JIT and not jit) else _jit_kernels
 
+    if isinstance(spec, KalmanNetSpec):
+        return _run_kalmannet(spec, ctx, run, x, P, R, Qu, n, jit)
     if isinstance(spec, ALSSpec):
         ka = _jit_kernels_als.pure_module() if (JIT and not jit) else _jit_kernels_als
         diverged, j, nis_sum, n_updates, n_rejected = ka.run_als_kernel(
@@ -306,6 +312,18 @@ def _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl=
     }
 
 
+def _run_kalmannet(spec: KalmanNetSpec, ctx: FilterContext, run: tuple, x, P, R, Qu, n, jit):
+    """filters.kalmannet.KalmanNetFilter on `kernels_kalmannet.run_kalmannet_kernel`: the
+    spec's trained weights (`with_fit`: the fit of the simulated or the recorded training, from
+    the run store's cache or just trained) as arrays."""
+    weights = spec.trained_weights
+    kk = _jit_kernels_kalmannet.pure_module() if (JIT and not jit) else _jit_kernels_kalmannet
+    diverged, j, nis_sum, n_updates, n_rejected = kk.run_kalmannet_kernel(
+        *_common_args(ctx, run), weights.net, weights.scales, run[-1], x, P, R, Qu,
+    )  # fmt: skip
+    return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+
+
 def _run_bank(k, spec: MMAESpec, ctx: FilterContext, run: tuple, x, P, R, Qu):
     """filters.bank.BankEKF on `kernels.run_bank_kernel`."""
     factors = hypotheses(spec)
@@ -358,7 +376,7 @@ def _anfis_start(
 def warm_up(jit: bool = True) -> float:
     """Compile (or load from numba's cache) every kernel signature the engine uses by running
     a tiny EKF, ANFEKF (and cm-scale: the same kernel), akhlaghi, vb-r, vbakf, swvb, Sage-Husa,
-    IAE and ALS; returns the seconds it took."""
+    IAE, ALS and KalmanNet (a small random network); returns the seconds it took."""
     import time
 
     from ..sources.simulator import Scan, Truth
@@ -381,6 +399,9 @@ def warm_up(jit: bool = True) -> float:
         VBAKFSpec(name="vbakf", kind="vbakf"), SWVBSpec(name="swvb", kind="swvb"),
         SageHusaSpec(name="sage-husa", kind="sage-husa", adapt="RQ"),
         IAESpec(name="iae", kind="iae", adapt="Q"), ALSSpec(name="als", kind="als"),
+        KalmanNetSpec.model_construct(name="kalmannet", kind="kalmannet").with_weights(
+            KalmanNetWeights.random(hidden_size=4)
+        ),
     )  # fmt: skip
     for spec in specs:
         run_filter_fast(spec, ctx, data, world, 1, jit=jit)

@@ -31,6 +31,7 @@ This module needs only numpy (the trained filter runs without PyTorch); training
 from __future__ import annotations
 
 import base64
+import functools
 import hashlib
 import importlib.util
 import io
@@ -42,7 +43,7 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field, PrivateAttr, model_validator
 
-from ..models import residual_z, wrap_scalar
+from ..models import wrap_scalar
 from .ekf import FilterDiverged, RobotEKF
 from .fitted import FittedSpec
 from .spec import FilterContext
@@ -75,6 +76,22 @@ class KalmanNetWeights:
     range_scale: float  # [m]: divides the landmark range
     hidden_size: int
 
+    @functools.cached_property
+    def net(self) -> tuple[np.ndarray, ...]:
+        """The arrays in the order of `NET_ARRAYS`, as both engines take them: each layer's
+        weight matrix transposed (inputs x outputs: the compiled product then runs along
+        contiguous rows of outputs), C-contiguous, writable float64 copies (a read-only array
+        would be another compiled signature)."""
+        return tuple(
+            np.array(self.arrays[n].T, dtype=np.float64, order="C")  # (a bias: itself)
+            for n in NET_ARRAYS
+        )  # fmt: skip
+
+    @property
+    def scales(self) -> tuple[float, ...]:
+        """(obs_scale, state_scale, range_scale) as the 6 floats `gain_update` takes."""
+        return (*map(float, self.obs_scale), *map(float, self.state_scale), float(self.range_scale))
+
     def to_bytes(self) -> bytes:
         names = sorted(self.arrays)
         header = {
@@ -90,6 +107,40 @@ class KalmanNetWeights:
         for n in names:
             out.write(np.ascontiguousarray(self.arrays[n], dtype="<f8").tobytes())
         return out.getvalue()
+
+    @classmethod
+    def random(
+        cls, hidden_size: int = 32, seed: int = 0, obs_scale=(0.1, 0.02),
+        state_scale=(0.3, 0.3, 0.03), range_scale: float = 10.0,
+    ) -> KalmanNetWeights:  # fmt: skip
+        """An untrained network of seeded random weights (torch's default initialisation,
+        uniform within 1/sqrt(fan_in)) whose output layer starts near a damped inverse of the
+        sensor Jacobian (range corrects the position along the line of sight, bearing the
+        lateral position and the heading), so that a filter with it tracks: for tests and the
+        bench, which need a network without PyTorch, not a trained filter."""
+        rng = np.random.default_rng(seed)
+        H, n_out = hidden_size, N_STATE * N_OBS
+
+        def uniform(shape, fan_in):
+            return rng.uniform(-1.0, 1.0, shape) / math.sqrt(fan_in)
+
+        arrays = {
+            "fc_in.weight": uniform((H, N_FEATURES), N_FEATURES),
+            "fc_in.bias": uniform(H, N_FEATURES),
+            "gru.weight_ih": uniform((3 * H, H), H),
+            "gru.bias_ih": uniform(3 * H, H),
+            "gru.weight_hh": uniform((3 * H, H), H),
+            "gru.bias_hh": uniform(3 * H, H),
+            "fc_out1.weight": uniform((H, H), H),
+            "fc_out1.bias": uniform(H, H),
+            "fc_out2.weight": 0.05 * uniform((n_out, H), H),
+            "fc_out2.bias": np.array([-0.3, 0.0, 0.0, -0.1, 0.0, -0.2]),
+        }
+        return cls(
+            arrays=arrays, obs_scale=np.array(obs_scale, dtype=float),
+            state_scale=np.array(state_scale, dtype=float), range_scale=float(range_scale),
+            hidden_size=H,
+        )  # fmt: skip
 
     @classmethod
     def from_bytes(cls, data: bytes) -> KalmanNetWeights:
@@ -135,38 +186,143 @@ class TrainingResult:
 
 
 # ---------------------------------------------------------------------------------------------
-# The network and one update, in numpy (the same maths as kalmannet_train's torch modules)
+# The network and one landmark's update, written once as plain array functions: the filterpy
+# engine's `KalmanNetFilter` calls them with numpy, the fast engine's kernel
+# (engines/kernels_kalmannet.py) compiles the same functions with numba (`register_jitable`).
+# Scalars are floats and tuples (elementwise functions work on floats and on arrays alike); the
+# three primitives that map over a layer (`affine`, `relu_in_place`, `gru_update`) are numpy
+# here and plain loops there (numba `overload`s), each writing into a buffer of `work_arrays`.
+
+# The network's arrays in the order the functions below take them (torch's module names)
+NET_ARRAYS = (
+    "fc_in.weight", "fc_in.bias", "gru.weight_ih", "gru.bias_ih", "gru.weight_hh",
+    "gru.bias_hh", "fc_out1.weight", "fc_out1.bias", "fc_out2.weight", "fc_out2.bias",
+)  # fmt: skip
+N_FEATURES = 2 * N_OBS + 2 * N_STATE + 1  # F1, F2, F3, F4 and the range
 
 
-def _sigmoid(a: np.ndarray) -> np.ndarray:
+def sigmoid(a):
     return 1.0 / (1.0 + np.exp(-a))
 
 
-def _normalize(v: np.ndarray) -> np.ndarray:
-    """torch.nn.functional.normalize: v / max(|v|, 1e-12)."""
-    return v / max(float(np.sqrt(v @ v)), 1e-12)
+def relu(a):
+    return np.maximum(a, 0.0)
 
 
-def gain_network(w: dict[str, np.ndarray], features: np.ndarray, hidden: np.ndarray):
-    """Architecture 1: FC + ReLU, GRU cell (torch.nn.GRUCell's equations), FC + ReLU, FC.
-    Returns the raw 3x2 gain and the new hidden state."""
-    a = np.maximum(w["fc_in.weight"] @ features + w["fc_in.bias"], 0.0)
-    H = len(hidden)
-    gi = w["gru.weight_ih"] @ a + w["gru.bias_ih"]
-    gh = w["gru.weight_hh"] @ hidden + w["gru.bias_hh"]
-    r = _sigmoid(gi[:H] + gh[:H])
-    z = _sigmoid(gi[H : 2 * H] + gh[H : 2 * H])
-    n = np.tanh(gi[2 * H :] + r * gh[2 * H :])
-    hidden = (1.0 - z) * n + z * hidden
-    o = np.maximum(w["fc_out1.weight"] @ hidden + w["fc_out1.bias"], 0.0)
-    k = w["fc_out2.weight"] @ o + w["fc_out2.bias"]
-    return k.reshape(N_STATE, N_OBS), hidden
+def gru_unit(ir, iz, i_n, hr, hz, hn, h):
+    """torch.nn.GRUCell's equations for one unit (or elementwise over arrays of units): the
+    input's and the hidden state's parts of the reset, update and new gates, the old state h;
+    returns the new state."""
+    r = sigmoid(ir + hr)
+    z = sigmoid(iz + hz)
+    n = np.tanh(i_n + r * hn)
+    return (1.0 - z) * n + z * h
 
 
-def state_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    d = a - b
-    d[2] = wrap_scalar(d[2])
-    return d
+def affine(Wt, v, b, out):
+    """out = W v + b, given Wt = W^T (inputs x outputs); returns out."""
+    np.matmul(v, Wt, out=out)
+    out += b
+    return out
+
+
+def relu_in_place(v):
+    """v = relu(v); returns v."""
+    v[:] = relu(v)
+    return v
+
+
+def gru_update(gi, gh, h):
+    """h = the GRU cell's new state (`gru_unit` over every unit), gi = W_ih a + b_ih and
+    gh = W_hh h + b_hh stacked as (reset, update, new)."""
+    H = h.shape[0]
+    h[:] = gru_unit(gi[:H], gi[H : 2 * H], gi[2 * H :], gh[:H], gh[H : 2 * H], gh[2 * H :], h)
+
+
+def work_arrays(net):
+    """The buffers `gain_network` writes (features, a, gi, gh, o, k), sized by `net`."""
+    Wt_in, Wt_ih, Wt_hh, Wt_o1, Wt_o2 = net[0], net[2], net[4], net[6], net[8]
+    return (
+        np.zeros(Wt_in.shape[0]), np.zeros(Wt_in.shape[1]), np.zeros(Wt_ih.shape[1]),
+        np.zeros(Wt_hh.shape[1]), np.zeros(Wt_o1.shape[1]), np.zeros(Wt_o2.shape[1]),
+    )  # fmt: skip
+
+
+def gain_network(net, hidden, work):
+    """Architecture 1: FC + ReLU, GRU cell (torch.nn.GRUCell's equations), FC + ReLU, FC, on
+    the features in work[0]. `net`: the arrays of NET_ARRAYS (`KalmanNetWeights.net`: weights
+    transposed); `hidden` is updated in place. Returns the raw gain (n * m,), row-major (a
+    buffer of `work`)."""
+    Wt_in, b_in, Wt_ih, b_ih, Wt_hh, b_hh, Wt_o1, b_o1, Wt_o2, b_o2 = net
+    features, a, gi, gh, o, k = work
+    relu_in_place(affine(Wt_in, features, b_in, a))
+    affine(Wt_ih, a, b_ih, gi)
+    affine(Wt_hh, hidden, b_hh, gh)
+    gru_update(gi, gh, hidden)
+    relu_in_place(affine(Wt_o1, hidden, b_o1, o))
+    return affine(Wt_o2, o, b_o2, k)
+
+
+def normalized2(a, b):
+    """torch.nn.functional.normalize of (a, b): divided by max(|(a, b)|, 1e-12)."""
+    n = max(math.sqrt(a * a + b * b), 1e-12)
+    return a / n, b / n
+
+
+def normalized3(a, b, c):
+    """`normalized2` of a 3-vector."""
+    n = max(math.sqrt(a * a + b * b + c * c), 1e-12)
+    return a / n, b / n, c / n
+
+
+def state_change(a, b):
+    """a - b (3-tuples), heading wrapped."""
+    return a[0] - b[0], a[1] - b[1], wrap_scalar(a[2] - b[2])
+
+
+def gain_update(
+    x, lx, ly, z0, z1, seen, p0, p1, post_prev, post_prev2, prior_prev, scales, net, hidden,
+    work,
+):  # fmt: skip
+    """One landmark (module docstring): the features, the network's gain, x+ = x- + K nu.
+
+    x, post_prev (x+_{t-1}), post_prev2 (x+_{t-2}), prior_prev (x-_{t-1}): 3-tuples; (lx, ly)
+    the landmark, (z0, z1) its measurement, (p0, p1) its measurement at the last scan when
+    `seen`; scales = (obs_scale[0], obs_scale[1], state_scale[0..2], range_scale). Returns x+
+    (a 3-tuple, heading wrapped); `hidden` and `work` are updated in place."""
+    x0, x1, x2 = x
+    dx, dy = lx - x0, ly - x1
+    r = math.hypot(dx, dy)
+    c, s = dx / r, dy / r
+    # F2: nu = residual_z(z, h(x-)), F1: residual_z(z, z at the last scan) or 0
+    nu0 = z0 - r
+    nu1 = wrap_scalar(z1 - wrap_scalar(math.atan2(dy, dx) - x2))
+    d0, d1 = (z0 - p0, wrap_scalar(z1 - p1)) if seen else (0.0, 0.0)
+    f3 = state_change(post_prev, post_prev2)
+    f4 = state_change(post_prev, prior_prev)
+    so0, so1, ss0, ss1, ss2, sr = scales
+    features = work[0]
+    features[0], features[1] = normalized2(d0 / so0, d1 / so1)
+    features[2], features[3] = normalized2(nu0 / so0, nu1 / so1)
+    # F3, F4 in the landmark's line-of-sight frame
+    features[4], features[5], features[6] = normalized3(
+        (c * f3[0] + s * f3[1]) / ss0, (-s * f3[0] + c * f3[1]) / ss1, f3[2] / ss2
+    )
+    features[7], features[8], features[9] = normalized3(
+        (c * f4[0] + s * f4[1]) / ss0, (-s * f4[0] + c * f4[1]) / ss1, f4[2] / ss2
+    )
+    features[10] = r / sr
+    k = gain_network(net, hidden, work)
+    # K_local = k * H^-1's magnitude pattern [[1, r], [1, r], [1/r, 1]], rotated back
+    l00, l01, l10, l11 = k[0] * 1.0, k[1] * r, k[2] * 1.0, k[3] * r
+    l20, l21 = k[4] * (1.0 / r), k[5] * 1.0
+    K00, K01 = c * l00 - s * l10, c * l01 - s * l11
+    K10, K11 = s * l00 + c * l10, s * l01 + c * l11
+    return (
+        x0 + (K00 * nu0 + K01 * nu1),
+        x1 + (K10 * nu0 + K11 * nu1),
+        wrap_scalar(x2 + (l20 * nu0 + l21 * nu1)),
+    )
 
 
 class KalmanNetFilter(RobotEKF):
@@ -174,23 +330,25 @@ class KalmanNetFilter(RobotEKF):
 
     The engine's interface of `RobotEKF` (predict, update_scan, x, R, Qu, the update counts);
     no covariance (P is NaN, `has_covariance` False), no gate (it has no S to gate with), so
-    every measurement is fused and nis_sum stays NaN.
+    every measurement is fused and nis_sum stays NaN. Each landmark's update is `gain_update`.
     """
 
     has_covariance: ClassVar[bool] = False
 
     def __init__(self, *args, weights: KalmanNetWeights, **kwargs):
         super().__init__(*args, **kwargs)
-        self.w = weights.arrays
         self.weights = weights
+        self.net = weights.net
+        self.scales = weights.scales
+        self.work = work_arrays(self.net)
         self.P = np.full((3, 3), np.nan)
         self.nis_sum = math.nan
         self.hidden = np.zeros(weights.hidden_size)
-        self.x_post_prev = self.x.copy()  # x+_{t-1}
-        self.x_post_prev2 = self.x.copy()  # x+_{t-2}
-        self.x_prior_prev = self.x.copy()  # x-_{t-1}
-        self.z_last: dict[int, np.ndarray] = {}  # landmark -> its z at the last scan
-        self.z_scan: dict[int, np.ndarray] = {}
+        x = tuple(self.x.tolist())
+        self.x_post_prev = x  # x+_{t-1}
+        self.x_post_prev2 = x  # x+_{t-2}
+        self.x_prior_prev = x  # x-_{t-1}
+        self.z_last: dict[tuple[float, float], tuple[float, float]] = {}  # at the last scan
 
     def predict(self, u=0, dt: float | None = None):
         if dt is not None:
@@ -198,51 +356,27 @@ class KalmanNetFilter(RobotEKF):
         self.x = self.model.f(self.x, u, self.dt)
 
     def update_scan(self, zs: np.ndarray, landmarks: np.ndarray) -> None:
-        # Landmarks are told apart by their map position (the engine passes positions).
-        keys = [(float(lm[0]), float(lm[1])) for lm in landmarks]
-        self.z_scan = {}
-        for z, landmark, key in zip(zs, landmarks, keys, strict=True):
-            z = np.asarray(z, dtype=float)
-            prev = self.z_last.get(key)
-            d1 = residual_z(z.copy(), prev) if prev is not None else np.zeros(N_OBS)
-            self.update_with_gain(z, landmark, d1)
-            self.z_scan[key] = z
-        self.z_last = self.z_scan
+        # Landmarks are told apart by their map position (the engine passes positions); one
+        # seen twice in a scan keeps its last measurement, as the kernel does.
+        z_scan = {}
+        for (z0, z1), (lx, ly) in zip(zs.tolist(), landmarks.tolist(), strict=True):
+            prev = self.z_last.get((lx, ly))
+            self.update_with_gain(z0, z1, lx, ly, prev)
+            z_scan[(lx, ly)] = (z0, z1)
+        self.z_last = z_scan
 
-    def update_with_gain(self, z: np.ndarray, landmark: np.ndarray, d1: np.ndarray) -> None:
-        """One landmark: the features, the network's gain, x+ = x- + K nu."""
-        x = self.x
-        dx, dy = landmark[0] - x[0], landmark[1] - x[1]
-        r = math.hypot(dx, dy)
-        c, s = dx / r, dy / r
-        nu = residual_z(z.copy(), np.array([r, wrap_scalar(math.atan2(dy, dx) - x[2])]))
-        f3 = state_residual(self.x_post_prev, self.x_post_prev2)
-        f4 = state_residual(self.x_post_prev, self.x_prior_prev)
-
-        def local(v):  # world -> line-of-sight frame
-            return np.array([c * v[0] + s * v[1], -s * v[0] + c * v[1], v[2]])
-
-        wts = self.weights
-        features = np.concatenate(
-            [
-                _normalize(d1 / wts.obs_scale),
-                _normalize(nu / wts.obs_scale),
-                _normalize(local(f3) / wts.state_scale),
-                _normalize(local(f4) / wts.state_scale),
-                [r / wts.range_scale],
-            ]
-        )
-        k_raw, self.hidden = gain_network(self.w, features, self.hidden)
-        K_local = k_raw * np.array([[1.0, r], [1.0, r], [1.0 / r, 1.0]])
-        K = np.vstack(
-            [c * K_local[0] - s * K_local[1], s * K_local[0] + c * K_local[1], K_local[2]]
-        )
-        x_post = x + K @ nu
-        x_post[2] = wrap_scalar(x_post[2])
-        if not np.isfinite(x_post).all():
+    def update_with_gain(self, z0: float, z1: float, lx: float, ly: float, prev) -> None:
+        """One landmark (`gain_update`); `prev`: its measurement at the last scan, or None."""
+        x = tuple(self.x.tolist())
+        p0, p1 = (0.0, 0.0) if prev is None else prev
+        x_post = gain_update(
+            x, lx, ly, z0, z1, prev is not None, p0, p1, self.x_post_prev, self.x_post_prev2,
+            self.x_prior_prev, self.scales, self.net, self.hidden, self.work,
+        )  # fmt: skip
+        if not all(map(math.isfinite, x_post)):
             raise FilterDiverged("KalmanNet estimate is not finite")
         self.x_post_prev2, self.x_post_prev, self.x_prior_prev = self.x_post_prev, x_post, x
-        self.x = x_post
+        self.x = np.array(x_post)
         self.n_updates += 1
 
 
@@ -304,6 +438,13 @@ class KalmanNetSpec(FittedSpec):
         """Whether this spec carries trained weights (`with_fit` or `with_weights`)."""
         return self._weights is not None
 
+    @property
+    def trained_weights(self) -> KalmanNetWeights:
+        """The weights this spec carries (what both engines run); RuntimeError without them."""
+        if self._weights is None:
+            raise RuntimeError(f"kalmannet filter {self.name!r} has no trained weights")
+        return self._weights
+
     def with_weights(self, weights: KalmanNetWeights) -> KalmanNetSpec:
         """This spec carrying trained weights (what `build` needs)."""
         spec = self.model_copy()
@@ -364,6 +505,4 @@ class KalmanNetSpec(FittedSpec):
         return spec
 
     def build(self, ctx: FilterContext) -> KalmanNetFilter:
-        if self._weights is None:
-            raise RuntimeError(f"kalmannet filter {self.name!r} has no trained weights")
-        return KalmanNetFilter(**ctx.kwargs(), weights=self._weights)
+        return KalmanNetFilter(**ctx.kwargs(), weights=self.trained_weights)

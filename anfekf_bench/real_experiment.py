@@ -38,6 +38,7 @@ from joblib import Parallel, delayed
 from .analysis.metrics import add_trace_metrics
 from .engines.tuning import TimelineLikelihood, fit_noise, score_setting
 from .filters.ekf import gate_threshold
+from .filters.registry import FIXED_KINDS
 from .filters.spec import FilterContext
 from .models import Unicycle
 from .outputs import FIT_FILE, PlanError, code_version, read_cached_fit, write_fit
@@ -45,7 +46,6 @@ from .real_training import fit_on_drives, fit_on_segments, trained_filters
 from .runner import Prepared, engine_of, run_spec
 from .sources import mrclam
 from .sources.recorded import (
-    FIXED_KINDS,
     DriveSet,
     RealScenario,
     Recording,

@@ -27,8 +27,9 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+from .filters.registry import TRAINED_KINDS
 from .outputs import FIT_FILE, PlanError, code_version, read_cached_fit, write_fit
-from .sources.recorded import TRAINED_KINDS, DriveSet, RealScenario, log_digest
+from .sources.recorded import DriveSet, RealScenario, log_digest
 
 # The scenario fields a drive's timeline and scored truth depend on (real_experiment.segment_inputs)
 _INPUT_FIELDS = {"eval_period_s", "odometry_period_s", "max_gap_s", "misfit_detection"}

@@ -180,6 +180,46 @@ def expand_entry_points(item: object) -> object:
     return {"name": item.get("name"), "kind": "custom", "class": registered[kind], "params": params}
 
 
+# Naive starts (any scenario's `starts`): each filter runs once per multiplier of every standard
+# deviation of its assumed noise, as the instance "<name> x<m>"; a filter whose noise is not
+# assumed runs once under its own name.
+FIXED_KINDS = ("ekf-tuned", "ekf-ml")  # its noise fitted
+TRAINED_KINDS = ("kalmannet",)  # a trained network: no assumed noise to start from
+
+
+def start_label(m: float) -> str:
+    """'0.25', '1', '4': a start multiplier as it appears in instance names."""
+    return f"{m:.3g}"
+
+
+def runs_once(spec: FilterSpec) -> bool:
+    """Whether `spec` has no assumed noise to start from: fitted, learned, or told the truth."""
+    return spec.kind in FIXED_KINDS or spec.kind in TRAINED_KINDS or spec.uses_true_noise
+
+
+def instances(filters, starts) -> list[tuple[str, FilterSpec, float | None]]:
+    """(instance name, spec, start multiplier or None), in scenario order."""
+    out = []
+    for spec in filters:
+        if runs_once(spec):
+            out.append((spec.name, spec, None))
+        else:
+            out += [(f"{spec.name} x{start_label(m)}", spec, float(m)) for m in starts]
+    return out
+
+
+def instance_names(filters, starts) -> list[str]:
+    return [name for name, _, _ in instances(filters, starts)]
+
+
+def check_starts(starts: list[float]) -> list[float]:
+    """The starts, or ValueError when two print alike in instance names."""
+    labels = [start_label(m) for m in starts]
+    if len(set(labels)) != len(labels):
+        raise ValueError("starts must differ (as printed with 3 significant digits)")
+    return starts
+
+
 def filter_context(spec: FilterSpec, scenario, world) -> FilterContext:
     """What `spec`'s filter starts from in a run of `scenario` on the simulated `world`: the
     oracle gets the true noise, a filter fitted on training runs its fitted noise

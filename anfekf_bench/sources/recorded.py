@@ -44,7 +44,14 @@ from ..config import (
 )
 from ..filters.ekf import RobotEKF
 from ..filters.fitted import EKFMLSpec
-from ..filters.registry import SPECS, expand_entry_points
+from ..filters.registry import (
+    SPECS,
+    TRAINED_KINDS,
+    check_starts,
+    expand_entry_points,
+    instance_names,
+    instances,
+)
 from ..filters.spec import FilterContext, FilterSpec
 from ..schema import PositiveFloat, StrictModel
 from . import mrclam
@@ -72,7 +79,6 @@ REAL_SPECS: tuple[type[FilterSpec], ...] = (
 )
 # KalmanNet is trained on the training drives (protocol drives) or the training segments
 # (protocol segments) by anfekf_bench.real_training.
-TRAINED_KINDS = ("kalmannet",)  # one instance each (no naive noise to start from)
 REAL_SPECS += tuple(
     s for s in SPECS if s.model_fields["kind"].annotation.__args__[0] in TRAINED_KINDS
 )
@@ -288,10 +294,7 @@ class RealScenario(StrictModel):
     @field_validator("starts")
     @classmethod
     def _unique_starts(cls, starts: list[float]) -> list[float]:
-        labels = [start_label(m) for m in starts]
-        if len(set(labels)) != len(labels):
-            raise ValueError("starts must differ (as printed with 3 significant digits)")
-        return starts
+        return check_starts(starts)
 
     @field_validator("tuning")
     @classmethod
@@ -323,7 +326,7 @@ class RealScenario(StrictModel):
     def instances(self) -> list[tuple[str, FilterSpec, float | None]]:
         """(instance name, spec, start multiplier or None for ekf-tuned and ekf-ml), in
         scenario order."""
-        return list(_instances(self.filters, self.starts))
+        return instances(self.filters, self.starts)
 
     def instance_names(self) -> list[str]:
         return [name for name, _, _ in self.instances()]
@@ -331,27 +334,6 @@ class RealScenario(StrictModel):
     def reference(self) -> str | None:
         """The instance every other is compared with: the ekf-tuned filter, if any."""
         return next((f.name for f in self.filters if f.kind == "ekf-tuned"), None)
-
-
-def start_label(m: float) -> str:
-    """'0.25', '1', '4': a start multiplier as it appears in instance names."""
-    return f"{m:.3g}"
-
-
-FIXED_KINDS = ("ekf-tuned", "ekf-ml")  # one instance, its noise fitted: no naive starts
-
-
-def _instances(filters, starts):
-    for spec in filters:
-        if spec.kind in FIXED_KINDS or spec.kind in TRAINED_KINDS:
-            yield spec.name, spec, None
-        else:
-            for m in starts:
-                yield f"{spec.name} x{start_label(m)}", spec, float(m)
-
-
-def instance_names(filters, starts) -> list[str]:
-    return [name for name, _, _ in _instances(filters, starts)]
 
 
 # --------------------------------------------------------------------------------------------

@@ -27,7 +27,16 @@ from pydantic import (
 )
 
 from .filters.ekf import EKFSpec
-from .filters.registry import KINDS, SPEC_BY_KIND, AnyFilterSpec, expand_entry_points
+from .filters.registry import (
+    KINDS,
+    SPEC_BY_KIND,
+    AnyFilterSpec,
+    check_starts,
+    expand_entry_points,
+    instance_names,
+    instances,
+)
+from .filters.spec import FilterSpec
 from .schedule import NoiseSchedule
 from .schema import NonNegativeFloat, PositiveFloat, StrictModel
 from .storage import FileProblem, read_regular_bytes, scenario_name_problem
@@ -312,6 +321,14 @@ class Scenario(_Strict):
     filters: list[AnyFilterSpec] = Field(
         default_factory=lambda: [EKFSpec(name="ekf")], min_length=1
     )
+    starts: list[Annotated[PositiveFloat, Field(le=1e3)]] | None = Field(
+        None,
+        min_length=1,
+        max_length=20,
+        description="naive starts: each filter runs once per multiplier m of every standard"
+        " deviation of filter_noise (variances times m^2), named '<filter> x<m>'; the oracle and"
+        " the fitted and trained filters run once; absent: every filter once, as named",
+    )
     backend: BackendConfig = BackendConfig()
     claims: list[ClaimSpec] = Field(
         default_factory=list, description="claims checked on every run and by `anfekf check`"
@@ -333,7 +350,29 @@ class Scenario(_Strict):
     @field_validator("claims", "compare")
     @classmethod
     def _name_filters_of_the_scenario(cls, items: list, info: ValidationInfo) -> list:
-        return check_named_filters(items, {f.name for f in info.data.get("filters", [])})
+        names = instance_names(info.data.get("filters", []), info.data.get("starts"))
+        return check_named_filters(items, set(names))
+
+    @field_validator("starts")
+    @classmethod
+    def _distinct_starts(cls, starts: list[float] | None) -> list[float] | None:
+        return None if starts is None else check_starts(starts)
+
+    @model_validator(mode="after")
+    def _starts_not_in_sweeps(self) -> Scenario:
+        if self.starts is not None and self.sweep is not None:
+            raise ValueError(
+                "starts: not with sweep (a sweep's cells compare filters by name; run the"
+                " starts as separate scenarios)"
+            )
+        return self
+
+    def instances(self) -> list[tuple[str, FilterSpec, float | None]]:
+        """(instance name, spec, start multiplier or None), in scenario order."""
+        return instances(self.filters, self.starts)
+
+    def instance_names(self) -> list[str]:
+        return [name for name, _, _ in self.instances()]
 
     @field_validator("name")
     @classmethod

@@ -239,7 +239,7 @@ def memory_estimate(plan: Plan, control_steps: int) -> int:
     """Bytes a batch needs at its peak: every run's traces and the steps table in this process,
     plus each local worker's simulation of one run (its noise for every landmark at every scan)."""
     recorded = control_steps // plan.scenario.record_every
-    filters = len(plan.scenario.filters)
+    filters = len(plan.filter_names())
     per_run = recorded * (filters * FLOATS_PER_TRACE_STEP + 5) * 8
     parent = plan.runs * (per_run + recorded * filters * STEPS_TABLE_BYTES_PER_ROW)
     scans = control_steps // plan.world.sensor_every
@@ -274,7 +274,7 @@ class SimulatedSource:
     runs: int
 
     def filter_names(self, scenario: Scenario) -> list[str]:
-        return [f.name for f in scenario.filters]
+        return scenario.instance_names()
 
     def fingerprint_doc(self, plan: Plan) -> dict:
         return {
@@ -336,7 +336,7 @@ class SimulatedSource:
             recorded = control_steps // every
             raise PlanError(
                 f"runs: {plan.runs} runs of {recorded} recorded steps x"
-                f" {len(plan.scenario.filters)} filters (jobs {plan.jobs}) need about"
+                f" {len(plan.filter_names())} filters (jobs {plan.jobs}) need about"
                 f" {_bytes(need)} of memory, more than {MEMORY_SHARE:.0%} of this machine's"
                 f" {_bytes(have)}; use fewer runs, a larger record_every, fewer jobs or a smaller"
                 " map"
@@ -344,10 +344,20 @@ class SimulatedSource:
         return control_steps
 
     def engines(self, plan: Plan) -> dict[str, str]:
-        return {f.name: engine_of(plan.engine, f, plan.scenario) for f in plan.scenario.filters}
+        return {
+            name: engine_of(plan.engine, spec, plan.scenario)
+            for name, spec, _ in plan.scenario.instances()
+        }
 
     def comparison_pairs(self, scenario: Scenario) -> list[tuple[str, str]]:
-        return comparison_pairs(((f.name, f.kind) for f in scenario.filters), scenario.compare)
+        """Every instance against each reference kind's first instance, the one from the
+        assumed noise itself (start 1 or none) when there is one."""
+        found = [(name, spec.kind, m in (None, 1.0)) for name, spec, m in scenario.instances()]
+        return comparison_pairs(
+            [(name, kind) for name, kind, _ in found],
+            scenario.compare,
+            prefer={name for name, _, at_one in found if at_one},
+        )
 
     def summary(self, plan: Plan, records: list[dict], steps, ordered: list[dict]):
         """With a noise schedule (SPEC 14): per-phase metrics, recovery and tracking errors."""
@@ -471,6 +481,10 @@ def write_result(
         "backend": plan.backend.model_dump(mode="json"),
         "engine": plan.engine,
         "engines": plan.source.engines(plan),
+        "filters": [
+            {"name": name, "base": spec.name, "kind": spec.kind, "start": m}
+            for name, spec, m in plan.scenario.instances()
+        ],
         "fast_compiled": fast_compiled(plan.engine),  # false: numba missing, plain Python
         "format": RESULT_FORMAT,
         "fingerprint": fingerprint,

@@ -767,10 +767,6 @@ def _recorded_manifest(scenario: RealScenario, data: dict, tuning, alignment: st
     """The manifest keys only a recorded result has (report.real reads them)."""
     return {
         "kind": "recorded",
-        "filters": [
-            {"name": n, "base": spec.name, "kind": spec.kind, "start": m}
-            for n, spec, m in scenario.instances()
-        ],
         "data": data,
         "tuning": tuning,
         "alignment": alignment,

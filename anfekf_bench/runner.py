@@ -50,11 +50,16 @@ def simulate(
     return simulate_run(world, path.truth, sigmas, rng, path.geometry, scenario.noise_schedule)
 
 
-def run_filter_on(engine: Engine, spec: FilterSpec, scenario, world: World, data: RunData) -> dict:
-    """One filter over one run's data on `engine` (`run_spec` on the run's timeline)."""
+def run_filter_on(
+    engine: Engine, spec: FilterSpec, scenario, world: World, data: RunData,
+    start: float | None = None, name: str | None = None,
+) -> dict:  # fmt: skip
+    """One filter (the instance `name` from naive start `start`, when given) over one run's data
+    on `engine` (`run_spec` on the run's timeline)."""
     tl = from_run(data, world, scenario.record_every)
-    ctx = filter_context(spec, scenario, world)
-    return run_spec(engine, spec, ctx, tl, fast_ok=not follows_schedule(spec, scenario))
+    ctx = filter_context(spec, scenario, world, start)
+    fast_ok = not follows_schedule(spec, scenario)
+    return run_spec(engine, spec, ctx, tl, fast_ok=fast_ok, name=name)
 
 
 def run_spec(
@@ -115,13 +120,15 @@ def run_one(
     path: WorldPath | None = None,
     engine: Engine = "filterpy",
 ) -> dict:
-    """One Monte Carlo run: simulate once, feed the same data to every filter (CRN)."""
+    """One Monte Carlo run: simulate once, feed the same data to every filter instance (CRN)."""
     data = simulate(scenario, world, seed, path)
     steps = recorded_steps(len(data.u_odo), scenario.record_every)
     x_true = data.truth.x[steps]
     filters = {
-        spec.name: add_trace_metrics(run_filter_on(engine, spec, scenario, world, data), x_true)
-        for spec in scenario.filters
+        name: add_trace_metrics(
+            run_filter_on(engine, spec, scenario, world, data, start, name), x_true
+        )
+        for name, spec, start in scenario.instances()
     }
     return {
         "run": run,

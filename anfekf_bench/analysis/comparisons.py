@@ -33,17 +33,20 @@ COMPARISON_COLUMNS = [
 
 
 def comparison_pairs(
-    filters: Iterable[tuple[str, str]], extra: Iterable[tuple[str, str]] = ()
+    filters: Iterable[tuple[str, str]],
+    extra: Iterable[tuple[str, str]] = (),
+    prefer: frozenset[str] | set[str] = frozenset(),
 ) -> list[tuple[str, str]]:
     """(filter, vs) pairs: every filter against each reference present, then the user's pairs.
 
     `filters` is (name, kind) in scenario order; the first filter of each reference kind is that
-    reference. A reference is not compared with itself.
+    reference, the first of those in `prefer` if any is. A reference is not compared with itself.
     """
     filters = list(filters)
     refs = []
     for kind in REFERENCE_KINDS:
-        name = next((n for n, k in filters if k == kind), None)
+        of_kind = [n for n, k in filters if k == kind]
+        name = next((n for n in of_kind if n in prefer), of_kind[0] if of_kind else None)
         if name is not None:
             refs.append(name)
     pairs = [(name, ref) for ref in refs for name, _ in filters if name != ref]

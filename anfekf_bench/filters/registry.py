@@ -198,10 +198,11 @@ def runs_once(spec: FilterSpec) -> bool:
 
 
 def instances(filters, starts) -> list[tuple[str, FilterSpec, float | None]]:
-    """(instance name, spec, start multiplier or None), in scenario order."""
+    """(instance name, spec, start multiplier or None), in scenario order; `starts` None: every
+    filter once under its own name."""
     out = []
     for spec in filters:
-        if runs_once(spec):
+        if starts is None or runs_once(spec):
             out.append((spec.name, spec, None))
         else:
             out += [(f"{spec.name} x{start_label(m)}", spec, float(m)) for m in starts]
@@ -220,13 +221,16 @@ def check_starts(starts: list[float]) -> list[float]:
     return starts
 
 
-def filter_context(spec: FilterSpec, scenario, world) -> FilterContext:
+def filter_context(spec: FilterSpec, scenario, world, start: float | None = None) -> FilterContext:
     """What `spec`'s filter starts from in a run of `scenario` on the simulated `world`: the
     oracle gets the true noise, a filter fitted on training runs its fitted noise
-    (filters.fitted), every other filter the assumed one."""
+    (filters.fitted), every other filter the assumed one, each standard deviation times `start`
+    (a naive start, `instances`)."""
     noise = scenario.true_noise if spec.uses_true_noise else scenario.filter_noise
     fitted = spec.fitted_sigmas() if spec.fitted_on_training else None
     sv, sg, sr, sb = noise.radians() if fitted is None else fitted
+    if start is not None:
+        sv, sg, sr, sb = sv * start, sg * start, sr * start, sb * start
     schedule = getattr(scenario, "noise_schedule", None)
     true_noise = None
     if spec.uses_true_noise and schedule is not None:  # SPEC 14: the true noise of every step

@@ -61,7 +61,10 @@ def check_saved_result(folder: Path, steps: pd.DataFrame, manifest: dict) -> Non
     for filt in filters:
         if not FILTER_NAME_PATTERN.fullmatch(filt):
             raise ResultsError(f"{steps_path}: filter name {filt[:40]!r} is not plain text")
-    specs = scenario.get("filters")
+    # The filter instances the batch ran (a scenario with naive starts runs '<filter> x<m>');
+    # a result written before the manifest listed them: the scenario's filters.
+    specs = manifest.get("filters")
+    specs = specs if isinstance(specs, list) else scenario.get("filters")
     declared = (
         [s.get("name") for s in specs if isinstance(s, dict)] if isinstance(specs, list) else []
     )

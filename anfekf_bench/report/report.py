@@ -178,7 +178,12 @@ def _filter_specs(manifest: dict, path: Path) -> dict[str, dict]:
     specs = manifest["scenario"].get("filters")
     if not isinstance(specs, list) or not all(isinstance(s, dict) and "name" in s for s in specs):
         raise ResultsError(f"{path}: scenario.filters: expected a list of filters with names")
-    return {str(s["name"]): s for s in specs}
+    by_name = {str(s["name"]): s for s in specs}
+    # A scenario with naive starts: each instance '<filter> x<m>' is its base filter's spec.
+    for instance in manifest.get("filters") or []:
+        if isinstance(instance, dict) and instance.get("base") in by_name:
+            by_name.setdefault(str(instance.get("name")), by_name[instance["base"]])
+    return by_name
 
 
 def _adapts(spec: dict, noise: dict[str, np.ndarray] | None = None) -> frozenset[str]:

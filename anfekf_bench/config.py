@@ -286,6 +286,13 @@ def check_named_filters(items: list, names: set[str]) -> list:
     return items
 
 
+# A key every scenario has, simulated or recorded (sources.recorded.RealScenario).
+ENGINE_DESCRIPTION = (
+    "filterpy (the reference) or fast (numeric kernels, numba when installed); filters the fast"
+    " engine does not implement run on filterpy (`--engine` overrides)"
+)
+
+
 class TrainingConfig(_Strict):
     """Training runs for the filters fitted before the batch (`ekf-ml`, `ekf-tuned`,
     `kalmannet`: see anfekf_bench.training). Their seeds come from a branch of the root seed
@@ -306,11 +313,7 @@ class Scenario(_Strict):
     steps_table: bool = Field(
         True, description="write steps.parquet (false: summaries and per-run tables only)"
     )
-    engine: Engine = Field(
-        "filterpy",
-        description="filterpy (the reference) or fast (numeric kernels, numba when installed);"
-        " filters the fast engine does not implement run on filterpy",
-    )
+    engine: Engine = Field("filterpy", description=ENGINE_DESCRIPTION)
     world: WorldConfig = WorldConfig()
     true_noise: NoiseSigmas = NoiseSigmas()
     filter_noise: NoiseSigmas = NoiseSigmas()

@@ -623,7 +623,9 @@ class RecordedSource:
     def fingerprint_doc(self, plan) -> dict:
         """What determines a run's bytes: the scenario, the log's content, the engine."""
         return {
-            "scenario": plan.scenario.model_dump(mode="json", exclude={"jobs"}),
+            "scenario": plan.scenario.model_dump(
+                mode="json", exclude={"jobs", "backend", "engine"}
+            ),
             "data": self.world.digest,
             "engine": plan.engine,
         }

@@ -34,8 +34,10 @@ import numpy as np
 from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from ..config import (
+    ENGINE_DESCRIPTION,
     BackendConfig,
     ClaimSpec,
+    Engine,
     ScenarioError,
     _format_validation_error,
     check_named_filters,
@@ -194,15 +196,18 @@ class RealScenario(StrictModel):
 
     kind: ClassVar[str] = "recorded"
     sweep: ClassVar[None] = None  # a real-data scenario is not a sweep (config.SweepSpec)
-    # Not keys of the file: local processes and filterpy unless --backend / --engine say otherwise
-    backend: ClassVar[BackendConfig] = BackendConfig()
-    engine: ClassVar[str] = "filterpy"
 
     name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
     description: str = ""
     seed: int = Field(0, ge=0, le=2**63 - 1, description="seed of the bootstrap intervals")
     jobs: int = Field(2, ge=1, le=1024, description="local worker processes")
     steps_table: bool = True
+    engine: Engine = Field("filterpy", description=ENGINE_DESCRIPTION)
+    backend: BackendConfig = Field(
+        BackendConfig(),
+        description="where the segments or drives run (`--backend`, `--scheduler` override);"
+        " tuning and fits stay in this process",
+    )
     data: DataConfig
     split_fraction: Annotated[float, Field(gt=0, lt=1)] = Field(
         0.5, description="training part: this share of the ground-truth span, from its start"

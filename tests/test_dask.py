@@ -212,6 +212,26 @@ def test_recorded_plan_takes_the_backend_overrides(tmp_path: Path) -> None:
     assert fast.fingerprint() != local.fingerprint()  # the engine changes a run's bytes
 
 
+def test_a_recorded_scenario_file_sets_engine_and_backend_as_a_simulated_one_does(tmp_path: Path):
+    """engine: and backend: are keys of every scenario file; the command line overrides them."""
+    import yaml
+
+    from .test_real_data import user_scenario
+
+    path = user_scenario(tmp_path)
+    doc = yaml.safe_load(path.read_text())
+    doc.update(engine="fast", backend={"kind": "dask", "scheduler": "tcp://h:1"})
+    write_yaml(path, doc)
+    scenario, recording = load_scenario(path)
+    plan = make_plan(scenario, recording, None, None, None)
+    assert plan.engine == "fast" and plan.backend.scheduler == "tcp://h:1"
+    local = make_plan(scenario, recording, None, None, None, backend="local", engine="filterpy")
+    assert local.engine == "filterpy" and local.backend.kind == "local"
+    doc["engine"] = "turbo"
+    result = invoke("run", write_yaml(path, doc), "--out", tmp_path / "out")
+    assert result.exit_code == 2 and "engine" in result.stderr and "Traceback" not in result.output
+
+
 def test_unreachable_scheduler_is_one_line_within_timeout(tmp_path: Path) -> None:
     address = f"tcp://127.0.0.1:{unused_port()}"
     doc = tiny_scenario(backend={"kind": "dask", "scheduler": address, "connect_timeout_s": 2})

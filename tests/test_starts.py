@@ -138,3 +138,12 @@ def test_a_scenario_with_starts_runs_reports_and_compares_with_the_start_at_one(
     assert report.exit_code == 0, report.output
     text = (tmp_path / "report" / "report.md").read_text()
     assert all(name in text for name in names)
+
+
+def test_the_example_with_starts_parses_into_its_instances():
+    from anfekf_bench.scenarios import load_scenario
+
+    example = Path(__file__).resolve().parent.parent / "examples/starts/wrong_r_starts.yaml"
+    scenario, _ = load_scenario(example)
+    assert len(scenario.instance_names()) == 10 and scenario.engine == "fast"
+    assert scenario.instance_names()[-1] == "ekf-oracle"

@@ -768,7 +768,7 @@ if _NJIT is not None:
     for _rule in (
         _bank._wrap, _bank.innovation_loglik, _bank.log_sum_exp, _bank.normalise_log_weights,
         _bank.most_probable, _bank.mixture_weights, _bank.mix_moments, _bank.weighted_noise,
-        _bank.imm_mix,
+        _bank.imm_mix, _bank.active_members, _bank.mix_moments_at,
     ):  # fmt: skip
         register_jitable(_rule)
 
@@ -777,6 +777,8 @@ normalise_log_weights = _bank.normalise_log_weights
 most_probable = _bank.most_probable
 mixture_weights = _bank.mixture_weights
 mix_moments = _bank.mix_moments
+mix_moments_at = _bank.mix_moments_at
+active_members = _bank.active_members
 weighted_noise = _bank.weighted_noise
 imm_mix = _bank.imm_mix
 
@@ -814,15 +816,19 @@ def run_bank_kernel(
     nis_m = np.zeros(M)
     X0 = np.empty((M, 3))
     P0m = np.empty((M, 9))
-    s_logc = np.empty(M)
+    s_c = np.empty(M)
     s_mu = np.empty(M)
     s_w = np.empty(M)
     s_x = np.empty(3)
     s_P = np.empty(9)
+    s_heavy = np.empty(M, np.int64)
+    s_members = np.empty(M, np.int64)
+    active = np.empty(M, np.int64)  # the members in the mixture (weight not 0): n_active
     mixture_weights(logw, threshold, w)
+    n_active = active_members(w, active)
     weighted_noise(w, R_m, Rw)
     weighted_noise(w, Qu_m, Qw)
-    mix_moments(w, X, Pm, X[most_probable(logw), 2], xm, Pmix)
+    mix_moments_at(w, active, n_active, X, Pm, X[most_probable(logw), 2], xm, Pmix)
     nis_sum = 0.0
     n_updates = 0
     n_rejected = 0
@@ -844,9 +850,12 @@ def run_bank_kernel(
                 X[i, c] = x[c]
             for c in range(9):
                 Pm[i, c] = P[c]
-        mix_moments(w, X, Pm, X[most_probable(logw), 2], xm, Pmix)
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
+        if last == first and record_at[k] and j < n_rows:
+            # the predicted mixture is read only by a record without a scan (a scan mixes
+            # again, before its health check and its record)
+            mix_moments_at(w, active, n_active, X, Pm, X[most_probable(logw), 2], xm, Pmix)
         if last > first:
             best = most_probable(logw)
             before_nis = nis_m[best]
@@ -887,17 +896,22 @@ def run_bank_kernel(
             n_rejected += n_rej[best] - before_rej
             normalise_log_weights(logw, log_floor)
             mixture_weights(logw, threshold, w)
+            n_active = active_members(w, active)
             weighted_noise(w, R_m, Rw)
             weighted_noise(w, Qu_m, Qw)
-            mix_moments(w, X, Pm, X[most_probable(logw), 2], xm, Pmix)
+            mix_moments_at(w, active, n_active, X, Pm, X[most_probable(logw), 2], xm, Pmix)
             if imm:
-                imm_mix(logw, p_stay, threshold, X, Pm, X0, P0m, s_w, s_logc, s_mu, s_x, s_P)
+                imm_mix(
+                    logw, p_stay, threshold, X, Pm, X0, P0m, s_w, s_c, s_mu, s_x, s_P, s_heavy,
+                    s_members,
+                )  # fmt: skip
                 for i in range(M):
                     for c in range(3):
                         X[i, c] = X0[i, c]
                     for c in range(9):
                         Pm[i, c] = P0m[i, c]
                 mixture_weights(logw, threshold, w)
+                n_active = active_members(w, active)
                 weighted_noise(w, R_m, Rw)
                 weighted_noise(w, Qu_m, Qw)
             if not healthy(

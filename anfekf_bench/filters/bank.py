@@ -49,8 +49,12 @@ MAX_MODELS = 5000
 
 
 def _wrap(a):
-    """models.angles.wrap_scalar, repeated here so that numba can compile the rules."""
-    return -((-a + math.pi) % (2.0 * math.pi) - math.pi)
+    """models.angles.wrap_scalar, repeated here so that numba can compile the rules (the
+    modulo skipped where it is the identity: the same bits)."""
+    y = -a + math.pi
+    if not (0.0 <= y < 2.0 * math.pi):
+        y = y % (2.0 * math.pi)
+    return -(y - math.pi)
 
 
 def innovation_loglik(nis, S00, S01, S10, S11, censor_at):

@@ -765,3 +765,15 @@ def test_a_result_without_steps_is_reported_from_its_tables(tmp_path):
     assert sorted(p.name for p in out.glob("*.png")) == ["leaderboard.png", "overview.png"]
     checked = runner.invoke(app, ["check", str(tmp_path / "results")])
     assert checked.exit_code == 0, checked.output
+
+
+def test_read_steps_orders_the_filters_by_first_appearance(tmp_path):
+    """A steps table whose filter column is plain strings (not categorical) reads back with the
+    filters as categories in the order they first appear (not sorted)."""
+    pd.DataFrame(
+        {"scenario": "s", "filter": ["vb", "ekf", "vb", "anfekf", "ekf"], "run": 0,
+         "step": [0, 0, 1, 0, 1], "pos_err": 0.1, "nees": 3.0}
+    ).to_parquet(tmp_path / "steps.parquet")  # fmt: skip
+    steps = read_steps(tmp_path)
+    assert list(steps["filter"].cat.categories) == ["vb", "ekf", "anfekf"]
+    assert list(steps["filter"]) == ["vb", "ekf", "vb", "anfekf", "ekf"]

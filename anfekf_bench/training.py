@@ -19,6 +19,7 @@ filters.kalmannet: `kalmannet`, trained on them).
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -53,8 +54,8 @@ class TrainingSet:
     progress: Any = None  # the CLI's rich Progress, for a long fit's bar (kalmannet); None: quiet
     P0: np.ndarray = field(init=False)
     gate: float | None = field(init=False)
-    # (criterion, starts, max_evaluations) -> its starts' results, computed together for
-    # several fits by `prepare_noise_fits`
+    # (criterion, starts, max_evaluations) -> (its starts' results, seconds), computed together
+    # for several fits by `prepare_noise_fits`
     _starts_found: dict = field(init=False, default_factory=dict)
 
     def __post_init__(self):
@@ -70,17 +71,20 @@ class TrainingSet:
 
     def prepare_noise_fits(self, requests: list[tuple[str, list[float], int]]) -> None:
         """Run the Nelder-Mead starts of several `fit_noise` calls (criterion, starts,
-        max_evaluations) in one batch of workers; each call then finds its starts done."""
+        max_evaluations) in one batch of workers; each call then finds its starts done, and
+        counts an equal share of the batch's wall time in its "seconds"."""
         from .engines.tuning import start_results
 
         todo = list(dict.fromkeys((c, tuple(s), n) for c, s, n in requests))
         if self.jobs < 2 or len(todo) < 2:
             return
+        started = time.perf_counter()
         sigmas = np.array(self.scenario.filter_noise.radians())
         found = start_results(
             self._problem(), [(c, sigmas, list(s), n) for c, s, n in todo], self.jobs
         )
-        self._starts_found.update(zip(todo, found, strict=True))
+        share = (time.perf_counter() - started) / len(todo)
+        self._starts_found.update((key, (f, share)) for key, f in zip(todo, found, strict=True))
 
     def fit_noise(self, criterion: str, starts: list[float], max_evaluations: int) -> dict:
         """The four sigmas of a fixed EKF that optimise `criterion` ("likelihood": innovations
@@ -89,10 +93,11 @@ class TrainingSet:
         asks for it here and never imports an engine."""
         from .engines.tuning import SIGMA_NAMES, fit_noise
 
+        done, seconds = self._starts_found.get((criterion, tuple(starts), max_evaluations),
+                                               (None, 0.0))  # fmt: skip
         found = fit_noise(
             self._problem(), criterion, np.array(self.scenario.filter_noise.radians()), starts,
-            max_evaluations, jobs=self.jobs,
-            found=self._starts_found.get((criterion, tuple(starts), max_evaluations)),
+            max_evaluations, jobs=self.jobs, found=done, found_seconds=seconds,
         )  # fmt: skip
         found["sigmas_rad"] = dict(zip(SIGMA_NAMES, found.pop("sigmas"), strict=True))
         return found

@@ -411,11 +411,13 @@ def fit_noise(
     max_evaluations: int,
     jobs: int = 1,
     found: list[dict] | None = None,
+    found_seconds: float = 0.0,
 ) -> dict:
     """The sigmas (radians) minimising `criterion` ("likelihood" or "rmse", the latter for a
     `TrainingProblem` only) over `problem`, from each start multiplier of `start_sigmas`; what
     it found and what it cost. `found`: the starts' Nelder-Mead results if already computed
-    (`start_results`; the same numbers)."""
+    (`start_results`; the same numbers), `found_seconds` what they cost (counted in
+    "seconds")."""
     started = time.perf_counter()
     if found is None:
         found = start_results(problem, [(criterion, start_sigmas, starts, max_evaluations)], jobs)[
@@ -444,5 +446,5 @@ def fit_noise(
         ],  # fmt: skip
         "consistency_scale": scale,
         "evaluations": int(sum(f["evaluations"] for f in found)) + 2,
-        "seconds": round(time.perf_counter() - started, 3),
+        "seconds": round(time.perf_counter() - started + found_seconds, 3),
     }

@@ -535,7 +535,8 @@ def read_steps(scenario_dir: Path) -> pd.DataFrame:
         if df[column].isna().any():
             raise ResultsError(f"{Path(scenario_dir) / STEPS_FILE}: {column}: empty cells")
     if not isinstance(df["filter"].dtype, pd.CategoricalDtype):
-        df["filter"] = pd.Categorical(df["filter"], categories=list(dict.fromkeys(df["filter"])))
+        # the filters in order of first appearance (pd.unique: not a Python loop over the rows)
+        df["filter"] = pd.Categorical(df["filter"], categories=list(pd.unique(df["filter"])))
     return df
 
 

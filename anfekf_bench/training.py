@@ -19,6 +19,7 @@ filters.kalmannet: `kalmannet`, trained on them).
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -53,24 +54,50 @@ class TrainingSet:
     progress: Any = None  # the CLI's rich Progress, for a long fit's bar (kalmannet); None: quiet
     P0: np.ndarray = field(init=False)
     gate: float | None = field(init=False)
+    # (criterion, starts, max_evaluations) -> (its starts' results, seconds), computed together
+    # for several fits by `prepare_noise_fits`
+    _starts_found: dict = field(init=False, default_factory=dict)
 
     def __post_init__(self):
         self.P0 = np.eye(3) * self.scenario.p0
         self.gate = gate_threshold(self.scenario.gate_probability)
+
+    def _problem(self):
+        from .engines.tuning import TrainingProblem
+
+        return TrainingProblem.of(
+            self.runs, self.world, self.P0, self.gate, self.scenario.record_every
+        )
+
+    def prepare_noise_fits(self, requests: list[tuple[str, list[float], int]]) -> None:
+        """Run the Nelder-Mead starts of several `fit_noise` calls (criterion, starts,
+        max_evaluations) in one batch of workers; each call then finds its starts done, and
+        counts an equal share of the batch's wall time in its "seconds"."""
+        from .engines.tuning import start_results
+
+        todo = list(dict.fromkeys((c, tuple(s), n) for c, s, n in requests))
+        if self.jobs < 2 or len(todo) < 2:
+            return
+        started = time.perf_counter()
+        sigmas = np.array(self.scenario.filter_noise.radians())
+        found = start_results(
+            self._problem(), [(c, sigmas, list(s), n) for c, s, n in todo], self.jobs
+        )
+        share = (time.perf_counter() - started) / len(todo)
+        self._starts_found.update((key, (f, share)) for key, f in zip(todo, found, strict=True))
 
     def fit_noise(self, criterion: str, starts: list[float], max_evaluations: int) -> dict:
         """The four sigmas of a fixed EKF that optimise `criterion` ("likelihood": innovations
         only; "rmse": the truth) over these runs, from `starts` x the assumed sigmas
         (`engines.tuning.fit_noise`); a service of the training layer, so that a filter spec
         asks for it here and never imports an engine."""
-        from .engines.tuning import SIGMA_NAMES, TrainingProblem, fit_noise
+        from .engines.tuning import SIGMA_NAMES, fit_noise
 
-        problem = TrainingProblem.of(
-            self.runs, self.world, self.P0, self.gate, self.scenario.record_every
-        )
+        done, seconds = self._starts_found.get((criterion, tuple(starts), max_evaluations),
+                                               (None, 0.0))  # fmt: skip
         found = fit_noise(
-            problem, criterion, np.array(self.scenario.filter_noise.radians()), starts,
-            max_evaluations, jobs=self.jobs,
+            self._problem(), criterion, np.array(self.scenario.filter_noise.radians()), starts,
+            max_evaluations, jobs=self.jobs, found=done, found_seconds=seconds,
         )  # fmt: skip
         found["sigmas_rad"] = dict(zip(SIGMA_NAMES, found.pop("sigmas"), strict=True))
         return found
@@ -85,6 +112,17 @@ def simulate_training(
     runs = [simulate(scenario, world, s, path) for s in seeds]
     return TrainingSet(
         scenario=scenario, world=world, runs=runs, seeds=seeds, jobs=jobs, progress=progress
+    )
+
+
+def _cached(plan, spec: FilterSpec, cache_dir: Path | None) -> bool:
+    """Whether `spec`'s fit is in `cache_dir` (`fit_filters` reads it there)."""
+    if cache_dir is None:
+        return False
+    fingerprint = plan.source.training_fingerprint(plan, spec)
+    return (
+        read_cached_fit(cache_dir / FIT_FILE.format(fingerprint=fingerprint), fingerprint)
+        is not None
     )
 
 
@@ -111,6 +149,16 @@ def fit_filters(plan, cache_dir: Path | None, progress: Any = None) -> Fits:
         return Fits(scenario=scenario, records={}, fitted_now=0)
     training: TrainingSet | None = None
     records, specs, fitted_now = {}, {}, 0
+    if plan.jobs > 1:
+        # The noise fits not in the cache: their starts in one batch of workers
+        # (`prepare_noise_fits`); each fit below then finds its starts done, the same numbers.
+        fresh = [
+            r for spec in todo
+            if (r := spec.noise_fit_request()) is not None and not _cached(plan, spec, cache_dir)
+        ]  # fmt: skip
+        if len(fresh) > 1:
+            training = simulate_training(scenario, plan.world, plan.seed, plan.jobs, progress)
+            training.prepare_noise_fits(fresh)
     for spec in todo:
         fingerprint = plan.source.training_fingerprint(plan, spec)
         path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fingerprint)

@@ -120,3 +120,48 @@ def test_lstsq_singular_is_the_least_norm_solution(compiled, M):
 def test_lstsq_not_finite_raises_as_numpy(compiled):
     with pytest.raises(np.linalg.LinAlgError):
         compiled["lstsq"](np.array([[np.inf, 0.0], [0.0, 1.0]]), np.ones(2))
+
+
+def test_wrap_skips_the_modulo_with_the_same_bits():
+    """kernels.wrap and filters.bank._wrap (compiled and plain) skip the modulo where it is the
+    identity: bit for bit models.angles.wrap_scalar, at the edges and far from them."""
+    import math
+
+    from anfekf_bench.filters import bank
+    from anfekf_bench.models.angles import wrap_scalar
+
+    edges = [0.0, -0.0, math.pi, -math.pi, 2 * math.pi, -2 * math.pi, 1e-300, -1e-20,
+             math.nextafter(math.pi, 0), math.nextafter(math.pi, 4), math.nextafter(-math.pi, 0),
+             math.nextafter(-math.pi, -4), 3 * math.pi, -5 * math.pi, 1e17, -1e17, math.inf,
+             -math.inf, math.nan]  # fmt: skip
+    values = edges + list(rng.uniform(-20, 20, 2000)) + list(rng.uniform(-3.2, 3.2, 2000))
+    pure = kernels.pure_module()
+    with np.errstate(invalid="ignore"):
+        for a in values:
+            want = wrap_scalar(a)
+            for fn in (kernels.wrap, pure.wrap, bank._wrap):
+                got = fn(a)
+                assert (got == want and math.copysign(1, got) == math.copysign(1, want)) or (
+                    math.isnan(got) and math.isnan(want)
+                ), (fn, a, got, want)
+
+
+def test_jacobians_from_the_shared_step_terms_are_the_models():
+    """jacobians (via step_terms / jacobians_at, a bank's per-step sharing) equals the
+    models' own Jacobians bit for bit, on both motion models."""
+    from anfekf_bench.models import Bicycle, Unicycle
+
+    for _ in range(50):
+        x = np.array([*rng.normal(size=2), rng.uniform(-3.1, 3.1)])
+        u = np.array([rng.uniform(0.1, 3), rng.uniform(-0.5, 0.5)])
+        dt = float(rng.uniform(0.01, 0.2))
+        bic = Bicycle(T=dt, B=4.0)
+        F, G = bic.jacobians(x, u, dt)
+        f02, f12, Gk = kernels.jacobians(x[2], u[0], u[1], dt, kernels.MOTION_BICYCLE, 4.0)
+        assert (f02, f12) == (F[0, 2], F[1, 2])
+        np.testing.assert_array_equal(np.array(Gk).reshape(3, 2), G)
+        uni = Unicycle()
+        F, G = uni.jacobians(x, u, dt)
+        f02, f12, Gk = kernels.jacobians(x[2], u[0], u[1], dt, kernels.MOTION_UNICYCLE, 0.0)
+        assert (f02, f12) == (F[0, 2], F[1, 2])
+        np.testing.assert_array_equal(np.array(Gk).reshape(3, 2), G)

@@ -100,7 +100,7 @@ def test_imm_mix_equals_the_dense_textbook_interaction():
     logw = np.log(w)
     X0, P0 = np.empty_like(X), np.empty_like(P)
     imm_mix(logw, p_stay, 0.0, X, P, X0, P0, *(np.empty(M) for _ in range(3)), np.empty(3),
-            np.empty(9))  # fmt: skip
+            np.empty(9), np.empty(M, np.int64), np.empty(M, np.int64))  # fmt: skip
     np.testing.assert_allclose(np.exp(logw), c, rtol=1e-12)
     for j in range(M):
         mu = Pi[:, j] * w / c[j]
@@ -112,6 +112,40 @@ def test_imm_mix_equals_the_dense_textbook_interaction():
         D[:, 2] = wrap_angle(D[:, 2])
         Pj = sum(mu[i] * (P[i].reshape(3, 3) + np.outer(D[i], D[i])) for i in range(M))
         np.testing.assert_allclose(P0[j].reshape(3, 3), Pj, atol=1e-12)
+
+
+def test_imm_mix_with_a_threshold_equals_the_dense_rule():
+    """The members that cannot reach the threshold are skipped without their division: the
+    starts equal the dense rule's (every mu_i|j computed, those below the threshold dropped)."""
+    M, p_stay, threshold = 60, 0.98, 1e-4
+    w = rng.dirichlet(np.full(M, 0.05))  # a few heavy members, many light, some near the cut
+    w[7] = 1.2e-4  # one near the threshold (mu_7|j is about w_7 for a light member j)
+    w /= w.sum()
+    X = np.column_stack([rng.normal(size=(M, 2)), rng.uniform(-3, 3, M)])
+    P = np.array([(A @ A.T + np.eye(3)).ravel() for A in rng.normal(size=(M, 3, 3))])
+    p_off = (1 - p_stay) / (M - 1)
+    Pi = np.full((M, M), p_off) + (p_stay - p_off) * np.eye(M)
+    c = Pi.T @ w
+    logw = np.log(w)
+    X0, P0 = np.empty_like(X), np.empty_like(P)
+    imm_mix(logw, p_stay, threshold, X, P, X0, P0, *(np.empty(M) for _ in range(3)),
+            np.empty(3), np.empty(9), np.empty(M, np.int64), np.empty(M, np.int64))  # fmt: skip
+    np.testing.assert_allclose(np.exp(logw), c, rtol=1e-12)
+    kept = 0
+    for j in range(M):
+        mu = Pi[:, j] * w / c[j]
+        keep = (mu >= threshold) | (np.arange(M) == j)
+        kept += keep.sum()
+        mu = np.where(keep, mu, 0.0) / mu[keep].sum()
+        dh = wrap_angle(X[:, 2] - X[j, 2])
+        h = wrap_angle(X[j, 2] + mu @ dh)
+        xj = np.array([mu @ X[:, 0], mu @ X[:, 1], h])
+        np.testing.assert_allclose(X0[j], xj, atol=1e-12)
+        D = X - xj
+        D[:, 2] = wrap_angle(D[:, 2])
+        Pj = sum(mu[i] * (P[i].reshape(3, 3) + np.outer(D[i], D[i])) for i in range(M))
+        np.testing.assert_allclose(P0[j].reshape(3, 3), Pj, atol=1e-12)
+    assert M < kept < M * M  # some starts mix several members, none mixes all
 
 
 def test_grid_of_hypotheses_and_validation():

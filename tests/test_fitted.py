@@ -261,3 +261,24 @@ def test_a_recorded_log_keeps_its_own_ekf_tuned_and_fits_ekf_ml_on_its_own_runs(
     # ekf-ml is fitted on each recorded run's own innovations (tests/test_ekf_ml_real.py)
     assert REAL_KINDS.count("ekf-tuned") == 1 and REAL_KINDS.count("ekf-ml") == 1
     assert TunedEKFSpec.model_fields["kind"].annotation.__args__ == ("ekf-tuned",)
+
+
+def test_two_noise_fits_run_their_starts_in_one_batch_with_the_same_fits(monkeypatch):
+    """With workers, ekf-ml's and ekf-tuned's Nelder-Mead starts run in one batch
+    (TrainingSet.prepare_noise_fits): the fits are those of one process, start by start."""
+    from anfekf_bench.training import TrainingSet, fit_filters
+
+    scenario, world = _scenario(training_runs=2)
+    batches = []
+    prepare = TrainingSet.prepare_noise_fits
+    monkeypatch.setattr(
+        TrainingSet, "prepare_noise_fits",
+        lambda self, requests: batches.append(len(requests)) or prepare(self, requests),
+    )  # fmt: skip
+    fits = {jobs: fit_filters(make_plan(scenario, world, 2, None, jobs), None) for jobs in (1, 2)}
+    assert batches == [2]  # jobs 2 only, both fits at once
+    for name in ("ml", "tuned"):
+        one, two = fits[1].records[name]["fitted"], fits[2].records[name]["fitted"]
+        assert one["sigmas_rad"] == two["sigmas_rad"]
+        assert one["starts"] == two["starts"] and one["evaluations"] == two["evaluations"]
+        assert two["seconds"] > 0.1 * one["seconds"]  # counts its share of the batch (~1/4)

@@ -765,3 +765,36 @@ def test_a_result_without_steps_is_reported_from_its_tables(tmp_path):
     assert sorted(p.name for p in out.glob("*.png")) == ["leaderboard.png", "overview.png"]
     checked = runner.invoke(app, ["check", str(tmp_path / "results")])
     assert checked.exit_code == 0, checked.output
+
+
+def test_read_steps_orders_the_filters_by_first_appearance(tmp_path):
+    """A steps table whose filter column is plain strings (not categorical) reads back with the
+    filters as categories in the order they first appear (not sorted)."""
+    pd.DataFrame(
+        {"scenario": "s", "filter": ["vb", "ekf", "vb", "anfekf", "ekf"], "run": 0,
+         "step": [0, 0, 1, 0, 1], "pos_err": 0.1, "nees": 3.0}
+    ).to_parquet(tmp_path / "steps.parquet")  # fmt: skip
+    steps = read_steps(tmp_path)
+    assert list(steps["filter"].cat.categories) == ["vb", "ekf", "anfekf"]
+    assert list(steps["filter"]) == ["vb", "ekf", "vb", "anfekf", "ekf"]
+
+
+def test_sections_drawn_in_workers_are_the_same_files(results, tmp_path, monkeypatch):
+    """A large report draws its scenarios' sections in worker processes: the same report.md,
+    report.html and figure files, byte for byte, as drawn in this process."""
+    from anfekf_bench.report import report as report_module
+
+    monkeypatch.setattr(report_module, "PARALLEL_MIN_SERIES", 10**9)
+    one = write_report([results], tmp_path / "one", dpi=40)
+    monkeypatch.setattr(report_module, "PARALLEL_MIN_SERIES", 0)
+    called = []
+    draw = report_module._scenario_sections_in_workers
+    monkeypatch.setattr(
+        report_module, "_scenario_sections_in_workers",
+        lambda *a: called.append(1) or draw(*a),
+    )  # fmt: skip
+    many = write_report([results], tmp_path / "many", dpi=40)
+    assert called and len(one.files) == len(many.files) > 2
+    for a, b in zip(one.files, many.files, strict=True):
+        assert a.name == b.name
+        assert a.read_bytes() == b.read_bytes(), a.name

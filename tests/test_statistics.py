@@ -330,3 +330,36 @@ def test_few_runs_and_too_wide_intervals():
     assert interval_too_wide(wide, 0.75) is None
     undefined = Interval(float("inf"), float("nan"), float("nan"), 0.95, 2000, "undefined")
     assert interval_too_wide(undefined, 0.6) is not None
+
+
+def test_the_memo_of_resampled_statistics_gives_the_same_bits(monkeypatch):
+    """A table bootstraps each filter against several references with one seed: the resampled
+    statistics are computed once and reused (statistics._RESAMPLED_MEMO), and the intervals
+    are the bytes computed without the memo."""
+    rng = np.random.default_rng(3)
+    a, b, c = (np.abs(rng.normal(size=(20, 40))) * s for s in (1.0, 1.1, 0.9))
+    pairs = [(a, b), (c, b), (a, c), (b, c)]
+
+    def intervals():
+        return [paired_bootstrap(x, y, rmse_statistic, resamples=300, seed=5) for x, y in pairs]
+
+    monkeypatch.setattr(statistics, "_MEMO_ENTRIES", 0)  # every entry dropped as it is made
+    statistics._RESAMPLED_MEMO.clear()
+    without = intervals()
+    monkeypatch.setattr(statistics, "_MEMO_ENTRIES", 1024)
+    statistics._RESAMPLED_MEMO.clear()
+    calls = []
+    compute = statistics._resampled_by_weights
+
+    def counted(form, x):
+        of = compute(form, x)
+        return lambda idx: calls.append(1) or of(idx)
+
+    monkeypatch.setattr(statistics, "_resampled_by_weights", counted)
+    with_memo = intervals()
+    assert with_memo == without  # every field, the same floats
+    batches = len(calls)
+    assert intervals() == without and len(calls) == batches  # all from the memo
+    # the memo keys on the data: another array, another statistic
+    other = paired_bootstrap(a * 2.0, b, rmse_statistic, resamples=300, seed=5)
+    assert (other.lo, other.hi) == pytest.approx((2.0 * without[0].lo, 2.0 * without[0].hi))

@@ -14,9 +14,11 @@ value `summarize_filter` reports for the same (non-diverged) runs.
 
 from __future__ import annotations
 
+import hashlib
 import inspect
 import math
 import warnings
+from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
@@ -148,12 +150,53 @@ rmse_statistic.run_mean_form = (np.square, lambda m: nan_aware_mean(np.sqrt(m), 
 mean_statistic.run_mean_form = (lambda x: x, lambda m: nan_aware_mean(m, axis=-1))
 
 
+# A comparison table bootstraps every filter against each of its references with one seed, so
+# the same resamples of run indices reach the same filter's data again and again (a reference in
+# each of its rows, a filter once per reference). Their statistics are kept, keyed by digests of
+# the data and the indices: the same product on the same arrays, so the same bits, computed once.
+_RESAMPLED_MEMO: OrderedDict[bytes, np.ndarray] = OrderedDict()
+_MEMO_ENTRIES = 1024
+
+
+def _digest(*parts: np.ndarray | str) -> bytes:
+    h = hashlib.blake2b(digest_size=20)
+    for part in parts:
+        if isinstance(part, str):
+            h.update(part.encode())
+            continue
+        a = np.ascontiguousarray(part)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.data)
+    return h.digest()
+
+
 def _resampled(statistic: Statistic, x: np.ndarray) -> Callable[[np.ndarray], np.ndarray] | None:
     """statistic(x[idx]) for stacks of run indices idx (..., k), through the weights of each
-    resample's runs; None when the statistic has no run-mean form."""
+    resample's runs (memoised: `_RESAMPLED_MEMO`); None when the statistic has no run-mean
+    form."""
     form = getattr(statistic, "run_mean_form", None)
     if form is None:
         return None
+    compute = _resampled_by_weights(form, x)
+    of_x = _digest(f"{statistic.__module__}.{statistic.__qualname__}", x)
+
+    def of(idx: np.ndarray) -> np.ndarray:
+        key = of_x + _digest(idx)
+        found = _RESAMPLED_MEMO.get(key)
+        if found is None:
+            found = compute(idx)
+            _RESAMPLED_MEMO[key] = found
+            if len(_RESAMPLED_MEMO) > _MEMO_ENTRIES:
+                _RESAMPLED_MEMO.popitem(last=False)
+        else:
+            _RESAMPLED_MEMO.move_to_end(key)
+        return found.copy()
+
+    return of
+
+
+def _resampled_by_weights(form: tuple, x: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """`_resampled`'s computation: the run means of every resample as one matrix product."""
     h, g = form
     hx = h(x)
     scored = ~np.isnan(hx)

@@ -88,8 +88,12 @@ M0, D0, W0 = 0, 10, 20
 
 @maybe_njit
 def wrap(a):
-    """models.angles.wrap_scalar: angle to (-pi, pi] (Python's float modulo)."""
-    return -((-a + PI) % TWO_PI - PI)
+    """models.angles.wrap_scalar: angle to (-pi, pi] (Python's float modulo). The modulo is
+    skipped where it is the identity (0 <= -a + pi < 2 pi, the usual case): the same bits."""
+    y = -a + PI
+    if not (0.0 <= y < TWO_PI):
+        y = y % TWO_PI
+    return -(y - PI)
 
 
 @maybe_njit
@@ -127,19 +131,42 @@ def jacobians(x2, u0, u1, dt, motion, B):
     (f02, f12, G) with F = [[1, 0, f02], [0, 1, f12], [0, 0, 1]] and G = (g00, g01, g10, g11,
     g20, g21) row-major (bicycle.jacobians, Unicycle.jacobians, their products in
     their order). Both models' position step is (f12, -f02), bit for bit: negation is exact."""
+    return jacobians_at(x2, step_terms(u0, u1, dt, motion, B))
+
+
+@maybe_njit
+def step_terms(u0, u1, dt, motion, B):
+    """What `jacobians` and the predicted heading of one step share whatever the heading:
+    (turn, cf0, cf1, cg0, cg1, cg3, g20, g21, dh), computed once for a bank's M members.
+    Bicycle: a = x2 + gamma, F and G from T = dt, V = u0; unicycle: a = x2 + w dt / 2."""
     if motion == MOTION_UNICYCLE:
-        a = x2 + 0.5 * u1 * dt
-        ca = math.cos(a)
-        sa = math.sin(a)
         half = 0.5 * u0 * dt * dt
         vdt = u0 * dt
-        return -vdt * sa, vdt * ca, (dt * ca, -half * sa, dt * sa, half * ca, 0.0, dt)
+        return 0.5 * u1 * dt, -vdt, vdt, dt, -half, half, 0.0, dt, u1 * dt
     T, V, g = dt, u0, u1
-    a = x2 + g
+    TV = T * V
+    nTV = -T * V
+    return (
+        g,
+        nTV,
+        TV,
+        T,
+        nTV,
+        TV,
+        T * math.sin(g) / B,
+        TV * math.cos(g) / B,
+        (dt * u0 * math.sin(u1) / B),
+    )
+
+
+@maybe_njit
+def jacobians_at(x2, terms):
+    """`jacobians` from heading x2 and the step's `step_terms` (the same products)."""
+    turn, cf0, cf1, cg0, cg1, cg3, g20, g21, _ = terms
+    a = x2 + turn
     ca = math.cos(a)
     sa = math.sin(a)
-    G = (T * ca, -T * V * sa, T * sa, T * V * ca, T * math.sin(g) / B, T * V * math.cos(g) / B)
-    return -T * V * sa, T * V * ca, G
+    return cf0 * sa, cf1 * ca, (cg0 * ca, cg1 * sa, cg0 * sa, cg3 * ca, g20, g21)
 
 
 @maybe_njit
@@ -164,6 +191,15 @@ def predict(x, P, u0, u1, dt, motion, B, T0, Qu):
 def predict_with(x, P, f02, f12, G, u0, u1, dt, motion, B, T0, Qu):
     """`predict` given the step's Jacobians (f02, f12, G) = jacobians(x[2], ...): a kernel that
     needs them for its own bookkeeping too (`interval_step`) computes them once."""
+    if motion == MOTION_UNICYCLE:
+        return predict_from(x, P, f02, f12, G, u1 * dt, noise_scale(dt, motion, T0), Qu)
+    return predict_from(x, P, f02, f12, G, dt * u0 * math.sin(u1) / B, 1.0, Qu)
+
+
+@maybe_njit
+def predict_from(x, P, f02, f12, G, dh, c, Qu):
+    """`predict_with` given the heading's step dh (x2- = wrap(x2 + dh)) and the factor c on
+    G Qu G^T (noise_scale; 1.0 leaves Q as it is): a bank computes both once per step."""
     x0, x1, x2 = x
     q00, q01, q10, q11 = Qu
     g00, g01, g10, g11, g20, g21 = G
@@ -179,17 +215,13 @@ def predict_with(x, P, f02, f12, G, u0, u1, dt, motion, B, T0, Qu):
         a10 * g00 + a11 * g01, a10 * g10 + a11 * g11, a10 * g20 + a11 * g21,
         a20 * g00 + a21 * g01, a20 * g10 + a21 * g11, a20 * g20 + a21 * g21,
     )  # fmt: skip
-    if motion == MOTION_UNICYCLE:
-        c = noise_scale(dt, motion, T0)
+    if c != 1.0:  # the unicycle's T0 / dt (Unicycle.Q); 1.0 * q is q, so the test is exact
         Q = (
             c * Q[0], c * Q[1], c * Q[2], c * Q[3], c * Q[4], c * Q[5], c * Q[6], c * Q[7],
             c * Q[8],
         )  # fmt: skip
-        # x- = f(x, u) (Unicycle.f)
-        xn = (x0 + f12, x1 - f02, wrap(x2 + u1 * dt))
-    else:
-        # x- = f(x, u) (bicycle.f)
-        xn = (x0 + f12, x1 - f02, wrap(x2 + dt * u0 * math.sin(u1) / B))
+    # x- = f(x, u) (bicycle.f, Unicycle.f)
+    xn = (x0 + f12, x1 - f02, wrap(x2 + dh))
     return xn, propagate(P, f02, f12, Q), Q
 
 
@@ -768,7 +800,7 @@ if _NJIT is not None:
     for _rule in (
         _bank._wrap, _bank.innovation_loglik, _bank.log_sum_exp, _bank.normalise_log_weights,
         _bank.most_probable, _bank.mixture_weights, _bank.mix_moments, _bank.weighted_noise,
-        _bank.imm_mix,
+        _bank.imm_mix, _bank.active_members, _bank.mix_moments_at,
     ):  # fmt: skip
         register_jitable(_rule)
 
@@ -777,6 +809,8 @@ normalise_log_weights = _bank.normalise_log_weights
 most_probable = _bank.most_probable
 mixture_weights = _bank.mixture_weights
 mix_moments = _bank.mix_moments
+mix_moments_at = _bank.mix_moments_at
+active_members = _bank.active_members
 weighted_noise = _bank.weighted_noise
 imm_mix = _bank.imm_mix
 
@@ -814,15 +848,19 @@ def run_bank_kernel(
     nis_m = np.zeros(M)
     X0 = np.empty((M, 3))
     P0m = np.empty((M, 9))
-    s_logc = np.empty(M)
+    s_c = np.empty(M)
     s_mu = np.empty(M)
     s_w = np.empty(M)
     s_x = np.empty(3)
     s_P = np.empty(9)
+    s_heavy = np.empty(M, np.int64)
+    s_members = np.empty(M, np.int64)
+    active = np.empty(M, np.int64)  # the members in the mixture (weight not 0): n_active
     mixture_weights(logw, threshold, w)
+    n_active = active_members(w, active)
     weighted_noise(w, R_m, Rw)
     weighted_noise(w, Qu_m, Qw)
-    mix_moments(w, X, Pm, X[most_probable(logw), 2], xm, Pmix)
+    mix_moments_at(w, active, n_active, X, Pm, X[most_probable(logw), 2], xm, Pmix)
     nis_sum = 0.0
     n_updates = 0
     n_rejected = 0
@@ -833,20 +871,28 @@ def run_bank_kernel(
         u0 = u_odo[k, 0]
         u1 = u_odo[k, 1]
         dt_k = dt[k]
+        # `predict` of every member, what does not depend on its heading computed once
+        terms = step_terms(u0, u1, dt_k, motion, B)
+        dh = terms[8]
+        q_scale = noise_scale(dt_k, motion, T0) if motion == MOTION_UNICYCLE else 1.0
         for i in range(M):
-            x, P, _ = predict(
+            f02, f12, G = jacobians_at(X[i, 2], terms)
+            x, P, _ = predict_from(
                 (X[i, 0], X[i, 1], X[i, 2]),
                 (Pm[i, 0], Pm[i, 1], Pm[i, 2], Pm[i, 3], Pm[i, 4], Pm[i, 5], Pm[i, 6], Pm[i, 7],
                  Pm[i, 8]),
-                u0, u1, dt_k, motion, B, T0, (Qu_m[i, 0], 0.0, 0.0, Qu_m[i, 1]),
+                f02, f12, G, dh, q_scale, (Qu_m[i, 0], 0.0, 0.0, Qu_m[i, 1]),
             )  # fmt: skip
             for c in range(3):
                 X[i, c] = x[c]
             for c in range(9):
                 Pm[i, c] = P[c]
-        mix_moments(w, X, Pm, X[most_probable(logw), 2], xm, Pmix)
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
+        if last == first and record_at[k] and j < n_rows:
+            # the predicted mixture is read only by a record without a scan (a scan mixes
+            # again, before its health check and its record)
+            mix_moments_at(w, active, n_active, X, Pm, X[most_probable(logw), 2], xm, Pmix)
         if last > first:
             best = most_probable(logw)
             before_nis = nis_m[best]
@@ -887,17 +933,22 @@ def run_bank_kernel(
             n_rejected += n_rej[best] - before_rej
             normalise_log_weights(logw, log_floor)
             mixture_weights(logw, threshold, w)
+            n_active = active_members(w, active)
             weighted_noise(w, R_m, Rw)
             weighted_noise(w, Qu_m, Qw)
-            mix_moments(w, X, Pm, X[most_probable(logw), 2], xm, Pmix)
+            mix_moments_at(w, active, n_active, X, Pm, X[most_probable(logw), 2], xm, Pmix)
             if imm:
-                imm_mix(logw, p_stay, threshold, X, Pm, X0, P0m, s_w, s_logc, s_mu, s_x, s_P)
+                imm_mix(
+                    logw, p_stay, threshold, X, Pm, X0, P0m, s_w, s_c, s_mu, s_x, s_P, s_heavy,
+                    s_members,
+                )  # fmt: skip
                 for i in range(M):
                     for c in range(3):
                         X[i, c] = X0[i, c]
                     for c in range(9):
                         Pm[i, c] = P0m[i, c]
                 mixture_weights(logw, threshold, w)
+                n_active = active_members(w, active)
                 weighted_noise(w, R_m, Rw)
                 weighted_noise(w, Qu_m, Qw)
             if not healthy(

@@ -378,6 +378,31 @@ def _consistent_scale(problem: TrainingProblem, sigmas: np.ndarray, at_fit: dict
     return best
 
 
+def start_results(problem, fits: list[tuple], jobs: int = 1) -> list[list[dict]]:
+    """The Nelder-Mead result of every start of every fit (criterion, start_sigmas, starts,
+    max_evaluations) over `problem`, per fit: all the fits' starts in one batch of `jobs`
+    workers, so that two fits of one scenario keep both cores busy where each alone would
+    leave one idle (3 starts on 2 workers). Each start is computed as alone: the same numbers."""
+    tasks = [
+        (i, criterion, np.log(np.asarray(start_sigmas, float) * m), max_evaluations)
+        for i, (criterion, start_sigmas, starts, max_evaluations) in enumerate(fits)
+        for m in starts
+    ]
+    if jobs > 1 and len(tasks) > 1:
+        from ..workers import local_workers
+
+        with local_workers():
+            done = Parallel(n_jobs=min(jobs, len(tasks)))(
+                delayed(_one_start)(problem, c, t, n) for _, c, t, n in tasks
+            )
+    else:
+        done = [_one_start(problem, c, t, n) for _, c, t, n in tasks]
+    out: list[list[dict]] = [[] for _ in fits]
+    for (i, *_), result in zip(tasks, done, strict=True):
+        out[i].append(result)
+    return out
+
+
 def fit_noise(
     problem,
     criterion: str,
@@ -385,21 +410,19 @@ def fit_noise(
     starts: list[float],
     max_evaluations: int,
     jobs: int = 1,
+    found: list[dict] | None = None,
+    found_seconds: float = 0.0,
 ) -> dict:
     """The sigmas (radians) minimising `criterion` ("likelihood" or "rmse", the latter for a
     `TrainingProblem` only) over `problem`, from each start multiplier of `start_sigmas`; what
-    it found and what it cost."""
+    it found and what it cost. `found`: the starts' Nelder-Mead results if already computed
+    (`start_results`; the same numbers), `found_seconds` what they cost (counted in
+    "seconds")."""
     started = time.perf_counter()
-    thetas = [np.log(np.asarray(start_sigmas, float) * m) for m in starts]
-    if jobs > 1 and len(thetas) > 1:
-        from ..workers import local_workers
-
-        with local_workers():
-            found = Parallel(n_jobs=min(jobs, len(thetas)))(
-                delayed(_one_start)(problem, criterion, t, max_evaluations) for t in thetas
-            )
-    else:
-        found = [_one_start(problem, criterion, t, max_evaluations) for t in thetas]
+    if found is None:
+        found = start_results(problem, [(criterion, start_sigmas, starts, max_evaluations)], jobs)[
+            0
+        ]
     best = min(range(len(found)), key=lambda i: found[i]["value"])
     sigmas = np.exp(found[best]["theta"])
     at_fit = problem.evaluate(sigmas)
@@ -423,5 +446,5 @@ def fit_noise(
         ],  # fmt: skip
         "consistency_scale": scale,
         "evaluations": int(sum(f["evaluations"] for f in found)) + 2,
-        "seconds": round(time.perf_counter() - started, 3),
+        "seconds": round(time.perf_counter() - started + found_seconds, 3),
     }

@@ -49,8 +49,12 @@ MAX_MODELS = 5000
 
 
 def _wrap(a):
-    """models.angles.wrap_scalar, repeated here so that numba can compile the rules."""
-    return -((-a + math.pi) % (2.0 * math.pi) - math.pi)
+    """models.angles.wrap_scalar, repeated here so that numba can compile the rules (the
+    modulo skipped where it is the identity: the same bits)."""
+    y = -a + math.pi
+    if not (0.0 <= y < 2.0 * math.pi):
+        y = y % (2.0 * math.pi)
+    return -(y - math.pi)
 
 
 def innovation_loglik(nis, S00, S01, S10, S11, censor_at):
@@ -116,12 +120,31 @@ def mixture_weights(logw, threshold, w):
 
 
 def mix_moments(w, X, P, ref, out_x, out_P):
-    """The moment-matched mixture (B.3) into out_x (3,) and out_P (9,): heading differences
-    wrapped about `ref`, members with zero weight skipped."""
+    """The moment-matched mixture (B.3) of all members into out_x (3,) and out_P (9,): heading
+    differences wrapped about `ref`, members with zero weight skipped."""
+    mix_moments_at(w, np.arange(w.shape[0]), w.shape[0], X, P, ref, out_x, out_P)
+
+
+def active_members(w, members):
+    """Into `members`: the indices of the members whose weight is not 0 (NaN counts), in
+    order; returns how many. The mixture over them is the mixture over all."""
+    n = 0
+    for i in range(w.shape[0]):
+        if w[i] != 0.0:
+            members[n] = i
+            n += 1
+    return n
+
+
+def mix_moments_at(w, members, n, X, P, ref, out_x, out_P):
+    """`mix_moments` over the members members[:n] (increasing indices; w, X, P indexed by
+    member): the same sums in the same order as over all members when every member left out
+    has weight 0, so the same bits at the cost of the few members that count."""
     m0 = 0.0
     m1 = 0.0
     m2 = 0.0
-    for i in range(w.shape[0]):
+    for k in range(n):
+        i = members[k]
         wi = w[i]
         if wi == 0.0:
             continue
@@ -132,9 +155,10 @@ def mix_moments(w, X, P, ref, out_x, out_P):
     out_x[0] = m0
     out_x[1] = m1
     out_x[2] = h
-    for k in range(9):
-        out_P[k] = 0.0
-    for i in range(w.shape[0]):
+    for c in range(9):
+        out_P[c] = 0.0
+    for k in range(n):
+        i = members[k]
         wi = w[i]
         if wi == 0.0:
             continue
@@ -162,38 +186,73 @@ def weighted_noise(w, N, out):
             out[1] += w[i] * N[i, 1]
 
 
-def imm_mix(logw, p_stay, threshold, X, P, X0, P0, w, logc, mu, x_tmp, P_tmp):
+def imm_mix(logw, p_stay, threshold, X, P, X0, P0, w, c, mu, x_tmp, P_tmp, heavy, members):
     """The IMM interaction (B.4): the members' mixed starts into X0 (M, 3), P0 (M, 9), and the
     (normalised) logw replaced by the predicted log c_j. Switching is uniform: p_jj = p_stay,
     p_ij = (1 - p_stay) / (M - 1). As in the output mixture, the mixing weights mu_i|j below
     `threshold` are left out of member j's start (its own never is) and the rest renormalised.
-    w, logc, mu (M,), x_tmp (3,), P_tmp (9,) are scratch."""
+    w, c, mu (M,), x_tmp (3,), P_tmp (9,), heavy and members (M,) int are scratch.
+
+    Cost O(M h), h the number of members that can reach the threshold: mu_i|j =
+    p_off w_i / c_j <= p_off w_i / min c, so a member with p_off w_i below half of
+    threshold * min c has mu_i|j below the threshold for every j (the half covers the roundings)
+    and is left out of every start without its division; the others are computed as the dense
+    rule computes them, in the same order (the same bits)."""
     M = logw.shape[0]
     p_off = (1.0 - p_stay) / (M - 1) if M > 1 else 0.0
     total = 0.0
     for i in range(M):
         w[i] = math.exp(logw[i])
         total += w[i]
+    c_min = math.inf
     for j in range(M):
         # c_j = sum_i p_ij w_i, in O(1) per member
-        c = p_off * (total - w[j]) + p_stay * w[j]
+        c[j] = p_off * (total - w[j]) + p_stay * w[j]
+        if c[j] < c_min:
+            c_min = c[j]
+    cut = 0.5 * threshold * c_min
+    if not (cut >= 0.0 and cut < math.inf):
+        cut = -math.inf  # NaN or inf weights: every member computed, as the dense rule
+    n_heavy = 0
+    for i in range(M):
+        if not p_off * w[i] < cut:
+            heavy[n_heavy] = i
+            n_heavy += 1
+    for j in range(M):
+        cj = c[j]
+        # member j's candidates: the heavy members and j itself, in increasing order
+        n = 0
+        own = False
+        for k in range(n_heavy):
+            i = heavy[k]
+            if not own and j <= i:
+                own = True
+                if j < i:
+                    members[n] = j
+                    n += 1
+            members[n] = i
+            n += 1
+        if not own:
+            members[n] = j
+            n += 1
         s = 0.0
-        for i in range(M):
-            m = (p_stay if i == j else p_off) * w[i] / c
+        for k in range(n):
+            i = members[k]
+            m = (p_stay if i == j else p_off) * w[i] / cj
             if m < threshold and i != j:
                 m = 0.0
             mu[i] = m
             s += m
-        for i in range(M):
+        for k in range(n):
+            i = members[k]
             mu[i] = mu[i] / s
-        mix_moments(mu, X, P, X[j, 2], x_tmp, P_tmp)
+        mix_moments_at(mu, members, n, X, P, X[j, 2], x_tmp, P_tmp)
         for k in range(3):
             X0[j, k] = x_tmp[k]
         for k in range(9):
             P0[j, k] = P_tmp[k]
-        logc[j] = math.log(c)
     for j in range(M):
-        logw[j] = logc[j]
+        logw[j] = math.log(c[j])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -397,6 +456,7 @@ class BankEKF(AdaptiveEKF):
         imm_mix(
             self.logw, self.params.p_stay, self.params.mixture_threshold, X, P, X0, P0,
             np.empty(M), np.empty(M), np.empty(M), np.empty(3), np.empty(9),
+            np.empty(M, np.int64), np.empty(M, np.int64),
         )  # fmt: skip
         for m, x0, p0 in zip(self.members, X0, P0, strict=True):
             m.x, m.P = x0, p0.reshape(3, 3)

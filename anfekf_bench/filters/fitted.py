@@ -55,6 +55,11 @@ class FittedSpec(FilterSpec):
         """What the manifest's `training` key records of `fitted` (all of it, unless bulky)."""
         return fitted
 
+    def noise_fit_request(self) -> tuple[str, list[float], int] | None:
+        """(criterion, starts, max_evaluations) when `fit` is a `fit_noise` of the training
+        set (so that several such fits can run their starts together), else None."""
+        return None
+
     def fitted_sigmas(self) -> tuple[float, float, float, float] | None:
         """The fitted (sv, sg, sr, sb) in radians the filter starts from, or None: the
         scenario's assumed noise (a kind that fits something else)."""
@@ -84,7 +89,10 @@ class FittedNoiseSpec(FittedSpec):
 
     def fit(self, training: Any) -> dict:
         # The training layer fits the sigmas on its tuning kernel (training.TrainingSet).
-        return training.fit_noise(self.criterion, list(self.starts), self.max_evaluations)
+        return training.fit_noise(*self.noise_fit_request())
+
+    def noise_fit_request(self) -> tuple[str, list[float], int]:
+        return self.criterion, list(self.starts), self.max_evaluations
 
     def fitted_sigmas(self) -> tuple[float, float, float, float]:
         """(sv, sg, sr, sb) in radians, as `NoiseSigmas.radians` gives them."""

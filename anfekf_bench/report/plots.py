@@ -75,6 +75,12 @@ def palette(names: Sequence[str]):
         _ORDER = saved
 
 
+def palette_names() -> list[str]:
+    """The filter names in their palette order now (`palette(palette_names())` restores it, in
+    a worker process that draws part of a report)."""
+    return list(_ORDER)
+
+
 def _place(name: str) -> int:
     return _ORDER.setdefault(name, len(_ORDER))
 

@@ -918,14 +918,64 @@ def build_document(
     doc.add(Paragraph(INTRO), Contents())
     if scenarios:
         doc.add(*summary_blocks(scenarios, rows, save))
+    drawn = _scenario_sections_in_workers(scenarios, save, out_dir)
     started = set()
-    for result in [*scenarios, *others]:
+    for i, result in enumerate([*scenarios, *others]):
         for kind, text, anchor in GROUPS:
             if isinstance(result, kind) and kind not in started:
                 doc.add(Heading(text, anchor=anchor))
                 started.add(kind)
-        doc.add(*section(result, save, out_dir))
+        if i in drawn:
+            blocks, files = drawn[i]
+            save.files += files
+            doc.add(*blocks)
+        else:
+            doc.add(*section(result, save, out_dir))
     return doc
+
+
+# A report whose simulated scenarios hold at least this many (run, filter) series draws their
+# sections in worker processes, one scenario each (the zoo: 6 x 1350, about 25 s of figures
+# each); below, starting the workers would cost more than it saves.
+PARALLEL_MIN_SERIES = 2000
+
+
+def _series(sc: ScenarioData) -> int:
+    return sc.runs * len(sc.filters)
+
+
+def _scenario_sections_in_workers(
+    scenarios: Sequence[ScenarioData], save: plots.FigureSaver, out_dir: Path
+) -> dict[int, tuple[list[Block], list[Path]]]:
+    """The sections of the simulated scenarios with steps (index -> (blocks, files saved)),
+    drawn in parallel when the report is large (`PARALLEL_MIN_SERIES`); empty otherwise (then
+    `build_document` draws every section itself). Each worker draws with this process's
+    palette order (every scenario's filters are in it), so the files are the same bytes."""
+    todo = [i for i, sc in enumerate(scenarios) if sc.has_steps]
+    jobs = min(len(todo), os.cpu_count() or 1)
+    if jobs < 2 or sum(_series(scenarios[i]) for i in todo) < PARALLEL_MIN_SERIES:
+        return {}
+    from joblib import Parallel, delayed
+
+    from ..workers import local_workers
+
+    names = plots.palette_names()
+    with local_workers():
+        drawn = Parallel(n_jobs=jobs)(
+            delayed(_draw_section)(scenarios[i], names, save.fmt, save.dpi, save.html, out_dir)
+            for i in todo
+        )
+    return dict(zip(todo, drawn, strict=True))
+
+
+def _draw_section(
+    sc: ScenarioData, names: list[str], fmt: str, dpi: int, html: bool, out_dir: Path
+) -> tuple[list[Block], list[Path]]:
+    """A worker's part of `_scenario_sections_in_workers`: one scenario's section and files."""
+    save = plots.FigureSaver(out_dir, fmt, dpi, html)
+    with plots.palette(names):
+        blocks = scenario_section(sc, save, out_dir)
+    return blocks, save.files
 
 
 # --------------------------------------------------------------------------- the command

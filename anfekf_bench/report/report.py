@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from joblib import Parallel, delayed
 from pydantic import ValidationError
 from rich import box
 from rich.table import Table
@@ -59,6 +60,7 @@ from ..storage import (
     scenario_dirs,
     write_atomic,
 )
+from ..workers import local_workers
 from . import changing, plots, real
 from . import sweep as sweep_report
 from .consistency import check_saved_result
@@ -955,10 +957,6 @@ def _scenario_sections_in_workers(
     jobs = min(len(todo), os.cpu_count() or 1)
     if jobs < 2 or sum(_series(scenarios[i]) for i in todo) < PARALLEL_MIN_SERIES:
         return {}
-    from joblib import Parallel, delayed
-
-    from ..workers import local_workers
-
     names = plots.palette_names()
     with local_workers():
         drawn = Parallel(n_jobs=jobs)(

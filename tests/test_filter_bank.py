@@ -90,6 +90,16 @@ def test_mix_moments_by_hand_with_headings_across_the_cut():
     np.testing.assert_allclose(Pm.reshape(3, 3), ref, atol=1e-14)
 
 
+def dense_mixture(mu: np.ndarray, X: np.ndarray, P: np.ndarray, j: int):
+    """Member j's mixed start by the textbook: the weighted mean (heading around member j's) and
+    the weighted covariance with the spread of the means."""
+    dh = wrap_angle(X[:, 2] - X[j, 2])
+    xj = np.array([mu @ X[:, 0], mu @ X[:, 1], wrap_angle(X[j, 2] + mu @ dh)])
+    D = X - xj
+    D[:, 2] = wrap_angle(D[:, 2])
+    return xj, sum(mu[i] * (P[i].reshape(3, 3) + np.outer(D[i], D[i])) for i in range(len(mu)))
+
+
 def test_imm_mix_equals_the_dense_textbook_interaction():
     M, p_stay = 4, 0.9
     w = rng.dirichlet(np.ones(M))
@@ -104,13 +114,8 @@ def test_imm_mix_equals_the_dense_textbook_interaction():
     np.testing.assert_allclose(np.exp(logw), c, rtol=1e-12)
     for j in range(M):
         mu = Pi[:, j] * w / c[j]
-        dh = wrap_angle(X[:, 2] - X[j, 2])
-        h = wrap_angle(X[j, 2] + mu @ dh)
-        xj = np.array([mu @ X[:, 0], mu @ X[:, 1], h])
+        xj, Pj = dense_mixture(mu, X, P, j)
         np.testing.assert_allclose(X0[j], xj, atol=1e-12)
-        D = X - xj
-        D[:, 2] = wrap_angle(D[:, 2])
-        Pj = sum(mu[i] * (P[i].reshape(3, 3) + np.outer(D[i], D[i])) for i in range(M))
         np.testing.assert_allclose(P0[j].reshape(3, 3), Pj, atol=1e-12)
 
 
@@ -137,13 +142,8 @@ def test_imm_mix_with_a_threshold_equals_the_dense_rule():
         keep = (mu >= threshold) | (np.arange(M) == j)
         kept += keep.sum()
         mu = np.where(keep, mu, 0.0) / mu[keep].sum()
-        dh = wrap_angle(X[:, 2] - X[j, 2])
-        h = wrap_angle(X[j, 2] + mu @ dh)
-        xj = np.array([mu @ X[:, 0], mu @ X[:, 1], h])
+        xj, Pj = dense_mixture(mu, X, P, j)
         np.testing.assert_allclose(X0[j], xj, atol=1e-12)
-        D = X - xj
-        D[:, 2] = wrap_angle(D[:, 2])
-        Pj = sum(mu[i] * (P[i].reshape(3, 3) + np.outer(D[i], D[i])) for i in range(M))
         np.testing.assert_allclose(P0[j].reshape(3, 3), Pj, atol=1e-12)
     assert M < kept < M * M  # some starts mix several members, none mixes all
 

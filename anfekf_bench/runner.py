@@ -282,11 +282,15 @@ def _run_on_dask(
     try:
         for func, args, kwargs in calls:
             futures.append(client.submit(func, *args, pure=False, **kwargs))
-        finished = as_completed(futures, loop=client.loop)
+        # with_results: a result is fetched before its future counts as ready, while the loop
+        # below watches the workers. Fetching it here after "ready" would wait forever for a
+        # result whose worker died in between (the scheduler then recomputes it, on no worker).
+        finished = as_completed(futures, loop=client.loop, with_results=True)
         lonely_since: float | None = None
         while not finished.is_empty():
             if _wait_ready(finished, DASK_POLL_S):
-                yield next(finished).result()  # an error inside a run keeps its own type
+                _, result = next(finished)  # an error inside a run is raised with its own type
+                yield result
                 lonely_since = None
                 continue
             if client.status not in ("running", "connecting"):

@@ -400,3 +400,49 @@ def test_file_timeout_survives_flag_override() -> None:
     scenario = parse_scenario(tiny_scenario(backend={"connect_timeout_s": 3}))
     plan_backend = make_plan(scenario, None, 1, 1, 1, backend="dask", scheduler="tcp://h:1").backend
     assert plan_backend == BackendConfig(kind="dask", scheduler="tcp://h:1", connect_timeout_s=3)
+
+
+def test_results_finished_when_the_only_worker_dies_never_hang_the_batch() -> None:
+    """Runs that finished on a worker, whose results were not fetched yet when it was killed:
+    the batch ends (with those results, or with BackendUnavailable) within its watchdog's bound.
+    Fetching a result only after its future was ready waited forever here (the scheduler
+    recomputes the lost result, on no worker): CI hung once on it."""
+    import subprocess
+    import threading
+    import time
+
+    from anfekf_bench.runner import _run_on_dask
+
+    cluster = distributed.LocalCluster(
+        n_workers=0, processes=True, host="127.0.0.1", dashboard_address=None
+    )
+    address = cluster.scheduler_address
+    worker = subprocess.Popen(
+        [sys.executable, "-m", "distributed.cli.dask_worker", address, "--no-nanny",
+         "--nthreads", "1"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    outcome: list = []
+    try:
+        client = connect_dask(address, 2.0)
+        batch = _run_on_dask(client, [(int, (str(i),), {}) for i in range(6)], address, 2.0)
+        first = next(batch)
+        time.sleep(1.0)  # the other five finish on the worker meanwhile
+        worker.kill()
+        worker.wait()
+
+        def rest() -> None:
+            try:
+                outcome.append(sorted([first, *batch]))
+            except BackendUnavailable as exc:
+                outcome.append(str(exc))
+
+        consumer = threading.Thread(target=rest, daemon=True)
+        consumer.start()
+        consumer.join(timeout=30)
+        assert not consumer.is_alive(), "the batch still waits 30 s after its worker died"
+    finally:
+        if worker.poll() is None:
+            worker.kill()
+        cluster.close()
+    assert outcome[0] == list(range(6)) or "has had no workers for 2 s" in outcome[0], outcome

@@ -659,6 +659,31 @@ def test_ctrl_c_in_the_first_second_is_one_line(tmp_path, after_s: float) -> Non
         assert lines and lines[0].startswith("error: "), err
 
 
+def test_an_import_error_raised_from_a_ctrl_c_counts_as_the_ctrl_c() -> None:
+    """pybind11 extensions (scipy's HiGHS) turn a Ctrl-C during their initialisation into
+    `ImportError: initialization failed` raised from the KeyboardInterrupt (CI saw it once)."""
+    from anfekf_bench.entry import caused_by_interrupt
+
+    def raised_from(inner: BaseException, outer: Exception) -> Exception:
+        try:
+            try:
+                raise inner
+            except BaseException as exc:
+                raise outer from exc
+        except Exception as exc:
+            return exc
+
+    assert caused_by_interrupt(KeyboardInterrupt())
+    assert caused_by_interrupt(raised_from(KeyboardInterrupt(), ImportError("init failed")))
+    nested = raised_from(KeyboardInterrupt(), ImportError("inner"))
+    assert caused_by_interrupt(raised_from(nested, RuntimeError("outer")))
+    assert not caused_by_interrupt(ImportError("initialization failed"))
+    assert not caused_by_interrupt(raised_from(ValueError("x"), ImportError("y")))
+    looped = ImportError("loop")
+    looped.__context__ = looped
+    assert not caused_by_interrupt(looped)
+
+
 @pytest.mark.parametrize("n_axes", [1, 2])
 def test_a_sweep_without_the_oracle_is_reported(sandbox: Sandbox, n_axes: int) -> None:
     axes = [{"scale": "R", "values": [1.0, 4.0]}, {"scale": "Qu", "values": [1.0, 4.0]}]

@@ -289,7 +289,9 @@ def _run_on_dask(
         lonely_since: float | None = None
         while not finished.is_empty():
             if _wait_ready(finished, DASK_POLL_S):
-                _, result = next(finished)  # an error inside a run is raised with its own type
+                future, result = next(finished)  # a run's own error is raised with its type
+                if future.cancelled():  # the cluster went away: `result` is its CancelledError
+                    raise concurrent.futures.CancelledError
                 yield result
                 lonely_since = None
                 continue

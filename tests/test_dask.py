@@ -446,3 +446,16 @@ def test_results_finished_when_the_only_worker_dies_never_hang_the_batch() -> No
             worker.kill()
         cluster.close()
     assert outcome[0] == list(range(6)) or "has had no workers for 2 s" in outcome[0], outcome
+
+
+def test_an_error_inside_a_run_on_dask_keeps_its_type() -> None:
+    """A run's own failure (a user's filter raising, say) is not taken for a lost cluster."""
+    from anfekf_bench.runner import _run_on_dask
+
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
+        client = connect_dask(cluster.scheduler_address, 5.0)
+        batch = _run_on_dask(client, [(int, ("not a number",), {})], cluster.scheduler_address)
+        with pytest.raises(ValueError, match="invalid literal for int"):
+            list(batch)

@@ -3,6 +3,7 @@ the report's noise figures and `anfekf kinds`: one place, declared on each spec 
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 from typing import ClassVar, Literal
@@ -180,3 +181,10 @@ def test_the_noise_figure_has_a_line_for_every_adaptive_filter_and_none_for_fixe
     # every legend is outside the axes: none overlaps a panel
     assert not any(ax.get_legend() for ax in fig.axes)
     assert fig.legends
+    # small multiples go without minor ticks (the labels mark 1-2-5 steps); one row keeps them
+    shown = [ax for ax in fig.axes if ax.get_visible()]
+    assert shown and not any(ax.yaxis.get_minorticklocs().size for ax in shown)
+    few = dataclasses.replace(sc, filters=[f for f in sc.filters if f.name in ("ekf", "anfekf")])
+    with plots.palette([f.name for f in few.filters]):
+        one_row = plots.noise_figure(few)
+    assert all(ax.yaxis.get_minorticklocs().size for ax in one_row.axes if ax.get_visible())

@@ -780,21 +780,28 @@ def test_read_steps_orders_the_filters_by_first_appearance(tmp_path):
 
 
 def test_sections_drawn_in_workers_are_the_same_files(results, tmp_path, monkeypatch):
-    """A large report draws its scenarios' sections in worker processes: the same report.md,
-    report.html and figure files, byte for byte, as drawn in this process."""
+    """A large report reads its scenarios and draws their sections in worker processes: the
+    same report.md, report.html and figure files, byte for byte, as done in this process."""
     from anfekf_bench.report import report as report_module
 
+    in_workers: list[str] = []
+
+    class Recording(report_module.Parallel):
+        def __call__(self, tasks):
+            tasks = list(tasks)
+            in_workers.append(tasks[0][0].__name__)
+            return super().__call__(tasks)
+
+    monkeypatch.setattr(report_module, "Parallel", Recording)
     monkeypatch.setattr(report_module, "PARALLEL_MIN_SERIES", 10**9)
+    monkeypatch.setattr(report_module, "PARALLEL_MIN_STEPS_BYTES", 10**15)
     one = write_report([results], tmp_path / "one", dpi=40)
+    assert in_workers == []
     monkeypatch.setattr(report_module, "PARALLEL_MIN_SERIES", 0)
-    called = []
-    draw = report_module._scenario_sections_in_workers
-    monkeypatch.setattr(
-        report_module, "_scenario_sections_in_workers",
-        lambda *a: called.append(1) or draw(*a),
-    )  # fmt: skip
+    monkeypatch.setattr(report_module, "PARALLEL_MIN_STEPS_BYTES", 0)
     many = write_report([results], tmp_path / "many", dpi=40)
-    assert called and len(one.files) == len(many.files) > 2
+    assert in_workers == ["_load_one", "_draw_section"]
+    assert len(one.files) == len(many.files) > 2
     for a, b in zip(one.files, many.files, strict=True):
         assert a.name == b.name
         assert a.read_bytes() == b.read_bytes(), a.name

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import subprocess
+import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -165,3 +169,26 @@ def corrupted_half_way(data, what: str):
     i = data.scans.index(bad)
     scans = data.scans[:i] + (dataclasses.replace(bad, z=z),) + data.scans[i + 1 :]
     return RunData(truth=data.truth, u_odo=data.u_odo, scans=scans), bad
+
+
+@contextlib.contextmanager
+def cluster_with_one_worker() -> Iterator[tuple[str, subprocess.Popen]]:
+    """A Dask LocalCluster with no workers of its own and one worker process without a nanny
+    (one thread): killing that process leaves the cluster with no worker at all, as nothing
+    restarts it. Yields (scheduler address, the worker's process)."""
+    distributed = pytest.importorskip("distributed")
+    cluster = distributed.LocalCluster(
+        n_workers=0, processes=True, host="127.0.0.1", dashboard_address=None
+    )
+    worker = subprocess.Popen(
+        [sys.executable, "-m", "distributed.cli.dask_worker", cluster.scheduler_address,
+         "--no-nanny", "--nthreads", "1"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        yield cluster.scheduler_address, worker
+    finally:
+        if worker.poll() is None:
+            worker.kill()
+            worker.wait()
+        cluster.close()

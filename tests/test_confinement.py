@@ -50,7 +50,7 @@ from anfekf_bench.storage import (
     write_parquet,
 )
 
-from .conftest import small_scenario, write_scenario
+from .conftest import cluster_with_one_worker, small_scenario, write_scenario
 
 EXIT_USAGE = 2
 PWNED_NAME = "PWNED"  # a planted file's code would create this file in the sandbox
@@ -933,41 +933,30 @@ def test_dask_batch_whose_workers_all_die_ends_in_one_line(tmp_path) -> None:
     import sys
     import time
 
-    distributed = pytest.importorskip("distributed")
-    cluster = distributed.LocalCluster(
-        n_workers=0, processes=True, host="127.0.0.1", dashboard_address=None
-    )
-    address = cluster.scheduler_address
-    worker = subprocess.Popen(
-        [sys.executable, "-m", "distributed.cli.dask_worker", address, "--no-nanny",
-         "--nthreads", "1"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
-    doc = small_scenario(runs=40, record_every=8)
-    doc["backend"] = {"kind": "dask", "scheduler": address, "connect_timeout_s": 2}
-    path = write_scenario(tmp_path / "s.yaml", doc)
-    out = tmp_path / "out"
-    command = [sys.executable, "-c", "from anfekf_bench.cli import main; main()"]
-    proc = subprocess.Popen(
-        [*command, "run", str(path), "--out", str(out)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    try:
-        deadline = time.monotonic() + 120
-        while not list((out / "small" / RUNS_DIR).glob("run-*.npz")):
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "no run finished within 120 s"
-            time.sleep(0.05)
-        os.kill(worker.pid, signal.SIGKILL)
-        killed = time.monotonic()
-        _, stderr = proc.communicate(timeout=60)
-        took = time.monotonic() - killed
-    finally:
-        for p in (proc, worker):
-            if p.poll() is None:
-                p.kill()
-                p.wait()
-        cluster.close()
+    with cluster_with_one_worker() as (address, worker):
+        doc = small_scenario(runs=40, record_every=8)
+        doc["backend"] = {"kind": "dask", "scheduler": address, "connect_timeout_s": 2}
+        path = write_scenario(tmp_path / "s.yaml", doc)
+        out = tmp_path / "out"
+        command = [sys.executable, "-c", "from anfekf_bench.cli import main; main()"]
+        proc = subprocess.Popen(
+            [*command, "run", str(path), "--out", str(out)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        try:
+            deadline = time.monotonic() + 120
+            while not list((out / "small" / RUNS_DIR).glob("run-*.npz")):
+                assert proc.poll() is None, proc.communicate()
+                assert time.monotonic() < deadline, "no run finished within 120 s"
+                time.sleep(0.05)
+            os.kill(worker.pid, signal.SIGKILL)
+            killed = time.monotonic()
+            _, stderr = proc.communicate(timeout=60)
+            took = time.monotonic() - killed
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
     assert proc.returncode == EXIT_USAGE, stderr
     assert stderr.splitlines() == [
         f"error: Dask cluster at {address} has had no workers for 2 s during the batch (they"

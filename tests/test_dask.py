@@ -23,6 +23,8 @@ from anfekf_bench.experiment import make_plan
 from anfekf_bench.runner import BackendUnavailable, connect_dask, run_batch
 from anfekf_bench.scenarios import load_scenario
 
+from .conftest import cluster_with_one_worker
+
 distributed = pytest.importorskip("distributed")
 
 # A second scheduler (or another project's) finds the default HTTP port taken and picks another.
@@ -407,23 +409,13 @@ def test_results_finished_when_the_only_worker_dies_never_hang_the_batch() -> No
     the batch ends (with those results, or with BackendUnavailable) within its watchdog's bound.
     Fetching a result only after its future was ready waited forever here (the scheduler
     recomputes the lost result, on no worker): CI hung once on it."""
-    import subprocess
     import threading
     import time
 
     from anfekf_bench.runner import _run_on_dask
 
-    cluster = distributed.LocalCluster(
-        n_workers=0, processes=True, host="127.0.0.1", dashboard_address=None
-    )
-    address = cluster.scheduler_address
-    worker = subprocess.Popen(
-        [sys.executable, "-m", "distributed.cli.dask_worker", address, "--no-nanny",
-         "--nthreads", "1"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
     outcome: list = []
-    try:
+    with cluster_with_one_worker() as (address, worker):
         client = connect_dask(address, 2.0)
         batch = _run_on_dask(client, [(int, (str(i),), {}) for i in range(6)], address, 2.0)
         first = next(batch)
@@ -441,10 +433,6 @@ def test_results_finished_when_the_only_worker_dies_never_hang_the_batch() -> No
         consumer.start()
         consumer.join(timeout=30)
         assert not consumer.is_alive(), "the batch still waits 30 s after its worker died"
-    finally:
-        if worker.poll() is None:
-            worker.kill()
-        cluster.close()
     assert outcome[0] == list(range(6)) or "has had no workers for 2 s" in outcome[0], outcome
 
 

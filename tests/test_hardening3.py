@@ -754,3 +754,23 @@ def test_a_recorded_log_whose_odometry_misses_the_truth_keeps_the_previous_resul
     before = snapshot(out)
     assert_one_line_error(cli("run", path, "--out", out, "--force"), "holds no odometry")
     assert snapshot(out) == before
+
+
+def test_loky_restarting_a_worker_is_not_passed_on_as_a_warning() -> None:
+    """loky ends a worker whose memory grew by 300 MB and starts another (nothing is lost); its
+    UserWarning about it stays inside `local_workers`, other warnings pass."""
+    import warnings
+
+    from anfekf_bench.workers import local_workers
+
+    loky_says = (
+        "A worker stopped while some jobs were given to the executor. This can be caused by a too"
+        " short worker timeout or by a memory leak."
+    )
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        with local_workers():
+            warnings.warn(loky_says, UserWarning, stacklevel=1)
+            warnings.warn("a user's own warning", UserWarning, stacklevel=1)
+        warnings.warn(loky_says, UserWarning, stacklevel=1)  # outside: as it was
+    assert [str(w.message) for w in seen] == ["a user's own warning", loky_says]

@@ -36,7 +36,7 @@ import numpy as np
 from joblib import Parallel, delayed
 
 from .analysis.metrics import add_trace_metrics
-from .engines.tuning import TimelineLikelihood, fit_noise, score_setting
+from .engines.tuning import TimelineLikelihood, fit_noise, score_setting, unicycle_terms
 from .filters.ekf import gate_threshold
 from .filters.registry import FIXED_KINDS
 from .filters.spec import FilterContext
@@ -132,11 +132,12 @@ def _score_chunk(exps: np.ndarray, naive: np.ndarray, segs, P0, gate, T0) -> np.
     """(G, 5): sq_sum, count, max_err, n_updates, n_rejected of each setting over every training
     segment (the tuning kernel, one setting at a time)."""
     out = np.zeros((len(exps), 5))
+    terms = [unicycle_terms(s.timeline) for s in segs]
     for g, e in enumerate(exps):
         sig = naive * np.exp2(e)
-        for s in segs:
+        for s, tk in zip(segs, terms, strict=True):
             sq, mx, nu, nr, _ = score_setting(
-                s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth, s.scored
+                s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth, s.scored, terms=tk
             )
             out[g] += (sq, int(s.scored.sum()), 0.0, nu, nr)
             out[g, 2] = max(out[g, 2], mx)
@@ -240,13 +241,14 @@ def _bnb_chunk(exps: np.ndarray, naive, inputs, P0, gate, T0, bound: float) -> n
     `inputs`, stopping a setting once its sum passes the best complete sum seen (or `bound`)."""
     out = np.zeros((len(exps), 5))
     best = bound
+    terms = [unicycle_terms(s.timeline) for s in inputs]
     for g, e in enumerate(exps):
         sig = naive * np.exp2(e)
         total, worst, upd, rej, finished = 0.0, 0.0, 0, 0, True
-        for s in inputs:
+        for s, tk in zip(inputs, terms, strict=True):
             sq, mx, nu, nr, fin = score_setting(
                 s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth, s.scored,
-                best - total,
+                best - total, terms=tk,
             )  # fmt: skip
             total, worst, upd, rej = total + sq, max(worst, mx), upd + nu, rej + nr
             if not fin or not math.isfinite(total):

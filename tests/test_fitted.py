@@ -282,3 +282,37 @@ def test_two_noise_fits_run_their_starts_in_one_batch_with_the_same_fits(monkeyp
         assert one["sigmas_rad"] == two["sigmas_rad"]
         assert one["starts"] == two["starts"] and one["evaluations"] == two["evaluations"]
         assert two["seconds"] > 0.1 * one["seconds"]  # counts its share of the batch (~1/4)
+
+
+@pytest.mark.parametrize("motion", ["bicycle", "unicycle"])
+def test_the_fit_kernels_table_of_step_terms_gives_predicts_bits(motion: str) -> None:
+    """The tuning kernel reads each stamp's heading-free terms from `step_terms_table` (computed
+    once per run, not at each of a fit's hundreds of passes): its predict is kernels.predict's,
+    bit for bit, on both motion models, a stamp of no length included."""
+    from anfekf_bench.engines.kernels import (
+        MOTION_BICYCLE,
+        MOTION_UNICYCLE,
+        jacobians_at,
+        noise_scale,
+        predict,
+        predict_from,
+    )
+    from anfekf_bench.engines.tuning import step_terms_table
+
+    rng = np.random.default_rng(7)
+    n = 300
+    u = np.column_stack([rng.uniform(0.0, 3.0, n), rng.uniform(-0.6, 0.6, n)])
+    dt = rng.uniform(0.001, 0.2, n)
+    dt[5] = 0.0
+    code, B, T0 = (
+        (MOTION_BICYCLE, 4.0, 0.0) if motion == "bicycle" else (MOTION_UNICYCLE, 0.0, 0.12)
+    )
+    table = step_terms_table(u, dt, code, B)
+    x, P, Qu = (1.0, -2.0, 3.0), tuple(np.diag([0.1, 0.2, 0.01]).ravel()), (0.09, 0.0, 0.0, 0.003)
+    for k in range(n):
+        expected = predict(x, P, u[k, 0], u[k, 1], dt[k], code, B, T0, Qu)
+        terms = tuple(table[k])
+        f02, f12, G = jacobians_at(x[2], terms)
+        got = predict_from(x, P, f02, f12, G, terms[8], noise_scale(dt[k], code, T0), Qu)
+        assert got == expected, k
+        x, P = expected[0], expected[1]

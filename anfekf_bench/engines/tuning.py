@@ -62,9 +62,12 @@ from .kernels import (
     correct,
     healthy,
     innovation,
+    jacobians_at,
     maybe_njit,
     nis,
-    predict,
+    noise_scale,
+    predict_from,
+    step_terms,
     wrap,
 )
 
@@ -77,13 +80,29 @@ DIVERGED = 2  # the estimate or its covariance stopped being finite and positive
 
 
 @maybe_njit
+def step_terms_table(u, dt, motion, B):
+    """`kernels.step_terms` of every stamp, (n, 9): what a stamp's predict computes whatever the
+    heading (the steering's sine and cosine among them). A fit runs the same stamps hundreds of
+    times, so they are computed once per run; `ekf_fit_kernel` gives the same bits as with
+    `kernels.predict`, which computes them at every step."""
+    n = len(dt)
+    out = np.empty((n, 9))
+    for k in range(n):
+        terms = step_terms(u[k, 0], u[k, 1], dt[k], motion, B)
+        for c in range(9):
+            out[k, c] = terms[c]
+    return out
+
+
+@maybe_njit
 def ekf_fit_kernel(
     motion, dt, u, lm, z, xy, record, x0, P0, Qu, R, gate, has_gate, T0, B, truth, scored,
-    bound, out_sq, out_nees,
+    bound, out_sq, out_nees, terms,
 ):  # fmt: skip
     """The plain EKF with one noise setting over one run (see the module doc).
 
-    x0 (3,), P0 (9,) row-major, Qu and R (4,) row-major (the unicycle reads Qu's diagonal); T0:
+    terms: the run's `step_terms_table`. x0 (3,), P0 (9,) row-major, Qu and R (4,) row-major
+    (the unicycle reads Qu's diagonal); T0:
     the unicycle's reference step of Qu; B: the bicycle's wheelbase (its step is dt[k]). truth
     (n_rec, 3) and scored (n_rec,) are indexed by record stamp: at the j-th record stamp with
     scored[j], the squared position error goes to out_sq[j] and into the sum, the NEES to
@@ -103,7 +122,13 @@ def ekf_fit_kernel(
     n_rej = 0
     j = 0
     for k in range(len(dt)):
-        x, P, _ = predict(x, P, u[k, 0], u[k, 1], dt[k], motion, B, T0, Qt)
+        # kernels.predict, its heading-free terms read from the table
+        tk = (
+            terms[k, 0], terms[k, 1], terms[k, 2], terms[k, 3], terms[k, 4], terms[k, 5],
+            terms[k, 6], terms[k, 7], terms[k, 8],
+        )  # fmt: skip
+        f02, f12, G = jacobians_at(x[2], tk)
+        x, P, _ = predict_from(x, P, f02, f12, G, tk[8], noise_scale(dt[k], motion, T0), Qt)
         first = lm[k]
         last = lm[k + 1]
         if last > first:
@@ -173,11 +198,17 @@ def _gate(gate: float | None) -> tuple[float, bool]:
 # Recorded runs (the unicycle): one setting scored against ground truth, and the likelihood
 
 
-def score_setting(tl, x0, P0, sig, gate, T0, truth, scored, bound=math.inf) -> tuple:
+def unicycle_terms(tl) -> np.ndarray:
+    """A recorded `Timeline`'s `step_terms_table` (the unicycle), for `score_setting`'s `terms`."""
+    return step_terms_table(tl.u, tl.dt, MOTION_UNICYCLE, 0.0)
+
+
+def score_setting(tl, x0, P0, sig, gate, T0, truth, scored, bound=math.inf, terms=None) -> tuple:
     """One setting sig = (sv, sw, sr, sb) over a recorded `Timeline`, scored at its record stamps
     (truth (n_rec, 2 or 3): the heading is not needed for the position error): (sq_sum, max_err,
     n_updates, n_rejected, finished). `finished` is False when the sum passed `bound`; a filter
-    that diverges scores infinity (finished True)."""
+    that diverges scores infinity (finished True). `terms`: the timeline's `step_terms_table`
+    (unicycle), if the caller scores many settings on it (computed here otherwise)."""
     Qu, R = _variances(sig)
     g, has_gate = _gate(gate)
     truth = np.asarray(truth, dtype=float)
@@ -190,6 +221,7 @@ def score_setting(tl, x0, P0, sig, gate, T0, truth, scored, bound=math.inf) -> t
         np.ascontiguousarray(P0, dtype=float).ravel(), Qu, R, g, has_gate, float(T0), 0.0,
         np.ascontiguousarray(truth), np.ascontiguousarray(scored, dtype=np.bool_),
         float(bound), np.empty(n_rec), np.empty(n_rec),
+        unicycle_terms(tl) if terms is None else terms,
     )  # fmt: skip
     return sq, mx, nu, nr, status != STOPPED
 
@@ -209,6 +241,7 @@ class TimelineLikelihood:
     P0: np.ndarray  # (9,) row-major
     gate: float | None
     T0: float
+    terms: np.ndarray  # step_terms_table of the timeline (unicycle)
 
     @classmethod
     def of(cls, tl, x0, P0, gate: float | None, T0: float) -> TimelineLikelihood:
@@ -216,6 +249,7 @@ class TimelineLikelihood:
             dt=tl.dt, u=tl.u, lm=tl.lm, z=tl.z, xy=tl.xy,
             x0=np.ascontiguousarray(x0, dtype=float).reshape(3),
             P0=np.ascontiguousarray(P0, dtype=float).ravel(), gate=gate, T0=float(T0),
+            terms=unicycle_terms(tl),
         )  # fmt: skip
 
     def nll(self, sigmas) -> tuple[int, float, int, int]:
@@ -226,7 +260,7 @@ class TimelineLikelihood:
         status, _, _, nll, nu, nr = ekf_fit_kernel(
             MOTION_UNICYCLE, self.dt, self.u, self.lm, self.z, self.xy, none, self.x0, self.P0,
             Qu, R, g, has_gate, self.T0, 0.0, np.zeros((0, 3)), np.zeros(0, np.bool_),
-            math.inf, np.zeros(0), np.zeros(0),
+            math.inf, np.zeros(0), np.zeros(0), self.terms,
         )  # fmt: skip
         return status, nll, nu, nr
 
@@ -255,7 +289,8 @@ def _fixed_rate_timeline(data: RunData, world: World, steps: np.ndarray) -> tupl
     record = np.zeros(len(tl.t), np.bool_)
     record[steps - 1] = True
     truth = np.ascontiguousarray(data.truth.x[steps], dtype=float)
-    return tl.dt, tl.u, tl.lm, tl.z, tl.xy, record, truth
+    terms = step_terms_table(tl.u, tl.dt, MOTION_BICYCLE, float(world.B))
+    return tl.dt, tl.u, tl.lm, tl.z, tl.xy, record, truth, terms
 
 
 @dataclass(frozen=True)
@@ -263,7 +298,7 @@ class TrainingProblem:
     """What every objective evaluation needs: the training runs as the kernel reads them, the
     filter's start, the gate and which steps the scorer records."""
 
-    runs: tuple  # per run: (dt, u, lm, z, xy, record, truth at the record stamps)
+    runs: tuple  # per run: (dt, u, lm, z, xy, record, truth at the record stamps, step terms)
     B: float
     x0: np.ndarray
     P0: np.ndarray  # (9,) row-major
@@ -297,12 +332,12 @@ class TrainingProblem:
         nll, n_inn, n_rej, diverged = 0.0, 0, 0, False
         sq, nees = [], []
         scored = np.ones(len(self.steps), np.bool_)
-        for dt, u, lm, z, xy, record, truth in self.runs:
+        for dt, u, lm, z, xy, record, truth, terms in self.runs:
             out_sq = np.full(len(self.steps), np.nan)
             out_nees = np.full(len(self.steps), np.nan)
             status, _, _, ll, nu, nr = ekf_fit_kernel(
                 MOTION_BICYCLE, dt, u, lm, z, xy, record, self.x0, self.P0, Qu, R, g, has_gate,
-                0.0, self.B, truth, scored, math.inf, out_sq, out_nees,
+                0.0, self.B, truth, scored, math.inf, out_sq, out_nees, terms,
             )  # fmt: skip
             diverged |= status == DIVERGED
             nll += ll

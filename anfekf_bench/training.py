@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -62,7 +63,10 @@ class TrainingSet:
         self.P0 = np.eye(3) * self.scenario.p0
         self.gate = gate_threshold(self.scenario.gate_probability)
 
-    def _problem(self):
+    @cached_property
+    def problem(self):
+        """The training runs as the tuning kernel reads them (`engines.tuning.TrainingProblem`),
+        built once for every fit of this set."""
         from .engines.tuning import TrainingProblem
 
         return TrainingProblem.of(
@@ -81,7 +85,7 @@ class TrainingSet:
         started = time.perf_counter()
         sigmas = np.array(self.scenario.filter_noise.radians())
         found = start_results(
-            self._problem(), [(c, sigmas, list(s), n) for c, s, n in todo], self.jobs
+            self.problem, [(c, sigmas, list(s), n) for c, s, n in todo], self.jobs
         )
         share = (time.perf_counter() - started) / len(todo)
         self._starts_found.update((key, (f, share)) for key, f in zip(todo, found, strict=True))
@@ -96,7 +100,7 @@ class TrainingSet:
         done, seconds = self._starts_found.get((criterion, tuple(starts), max_evaluations),
                                                (None, 0.0))  # fmt: skip
         found = fit_noise(
-            self._problem(), criterion, np.array(self.scenario.filter_noise.radians()), starts,
+            self.problem, criterion, np.array(self.scenario.filter_noise.radians()), starts,
             max_evaluations, jobs=self.jobs, found=done, found_seconds=seconds,
         )  # fmt: skip
         found["sigmas_rad"] = dict(zip(SIGMA_NAMES, found.pop("sigmas"), strict=True))
@@ -112,17 +116,6 @@ def simulate_training(
     runs = [simulate(scenario, world, s, path) for s in seeds]
     return TrainingSet(
         scenario=scenario, world=world, runs=runs, seeds=seeds, jobs=jobs, progress=progress
-    )
-
-
-def _cached(plan, spec: FilterSpec, cache_dir: Path | None) -> bool:
-    """Whether `spec`'s fit is in `cache_dir` (`fit_filters` reads it there)."""
-    if cache_dir is None:
-        return False
-    fingerprint = plan.source.training_fingerprint(plan, spec)
-    return (
-        read_cached_fit(cache_dir / FIT_FILE.format(fingerprint=fingerprint), fingerprint)
-        is not None
     )
 
 
@@ -149,20 +142,26 @@ def fit_filters(plan, cache_dir: Path | None, progress: Any = None) -> Fits:
         return Fits(scenario=scenario, records={}, fitted_now=0)
     training: TrainingSet | None = None
     records, specs, fitted_now = {}, {}, 0
+    # Each fit's (fingerprint, cache file, cached values or None), the cache read once
+    stored = {}
+    for spec in todo:
+        fingerprint = plan.source.training_fingerprint(plan, spec)
+        path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fingerprint)
+        stored[spec.name] = (
+            fingerprint, path, None if path is None else read_cached_fit(path, fingerprint)
+        )  # fmt: skip
     if plan.jobs > 1:
         # The noise fits not in the cache: their starts in one batch of workers
         # (`prepare_noise_fits`); each fit below then finds its starts done, the same numbers.
         fresh = [
             r for spec in todo
-            if (r := spec.noise_fit_request()) is not None and not _cached(plan, spec, cache_dir)
+            if stored[spec.name][2] is None and (r := spec.noise_fit_request()) is not None
         ]  # fmt: skip
         if len(fresh) > 1:
             training = simulate_training(scenario, plan.world, plan.seed, plan.jobs, progress)
             training.prepare_noise_fits(fresh)
     for spec in todo:
-        fingerprint = plan.source.training_fingerprint(plan, spec)
-        path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fingerprint)
-        fitted = None if path is None else read_cached_fit(path, fingerprint)
+        fingerprint, path, fitted = stored[spec.name]
         cached = fitted is not None
         if fitted is None:
             if training is None:

@@ -411,13 +411,21 @@ def load_scenarios(folders: Sequence[Path]) -> list[ScenarioData]:
     steps tables are large (`PARALLEL_MIN_STEPS_BYTES`), the same data either way."""
     folders = [Path(f) for f in folders]
     sizes = [_steps_bytes(f) for f in folders]
-    jobs = min(sum(size is not None for size in sizes), os.cpu_count() or 1)
-    if jobs < 2 or sum(size or 0 for size in sizes) < PARALLEL_MIN_STEPS_BYTES:
-        return [_load_one(f, size is not None) for f, size in zip(folders, sizes, strict=True)]
+    calls = [(_load_one, f, size is not None) for f, size in zip(folders, sizes, strict=True)]
+    large = sum(size or 0 for size in sizes) >= PARALLEL_MIN_STEPS_BYTES
+    loaded = _in_workers(calls, large, sum(size is not None for size in sizes))
+    return [func(*args) for func, *args in calls] if loaded is None else loaded
+
+
+def _in_workers(calls: list[tuple], large: bool, heavy: int) -> list | None:
+    """The results of `calls` (func, *args), in order, computed in worker processes when the
+    work is `large` and at least two of the calls are `heavy` and there are two CPUs; None
+    otherwise (the caller does the work itself: starting workers would cost more)."""
+    jobs = min(heavy, os.cpu_count() or 1)
+    if jobs < 2 or not large:
+        return None
     with local_workers():
-        return Parallel(n_jobs=jobs)(
-            delayed(_load_one)(f, size is not None) for f, size in zip(folders, sizes, strict=True)
-        )
+        return Parallel(n_jobs=jobs)(delayed(func)(*args) for func, *args in calls)
 
 
 def _steps_bytes(folder: Path) -> int | None:
@@ -986,16 +994,13 @@ def _scenario_sections_in_workers(
     `build_document` draws every section itself). Each worker draws with this process's
     palette order (every scenario's filters are in it), so the files are the same bytes."""
     todo = [i for i, sc in enumerate(scenarios) if sc.has_steps]
-    jobs = min(len(todo), os.cpu_count() or 1)
-    if jobs < 2 or sum(_series(scenarios[i]) for i in todo) < PARALLEL_MIN_SERIES:
-        return {}
     names = plots.palette_names()
-    with local_workers():
-        drawn = Parallel(n_jobs=jobs)(
-            delayed(_draw_section)(scenarios[i], names, save.fmt, save.dpi, save.html, out_dir)
-            for i in todo
-        )
-    return dict(zip(todo, drawn, strict=True))
+    calls = [
+        (_draw_section, scenarios[i], names, save.fmt, save.dpi, save.html, out_dir) for i in todo
+    ]
+    large = sum(_series(scenarios[i]) for i in todo) >= PARALLEL_MIN_SERIES
+    drawn = _in_workers(calls, large, len(todo))
+    return {} if drawn is None else dict(zip(todo, drawn, strict=True))
 
 
 def _draw_section(

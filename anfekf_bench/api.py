@@ -62,8 +62,9 @@ class Experiment:
 def load(source: str | Path | dict, *, base: str | Path = ".") -> Experiment:
     """A scenario from a YAML file, or from a dict shaped like one (relative paths in a dict are
     taken relative to `base`)."""
+    base = arguments.path(base, "base")
     if isinstance(source, dict):
-        path = arguments.path(base, "base") / "<dict>"
+        path = base / "<dict>"
         return Experiment(*scenario_from_data(source, path), source=path)
     if not isinstance(source, (str, os.PathLike)):
         raise PlanError(f"source: must be a scenario file's path or a dict shaped like one (got"

@@ -265,6 +265,7 @@ def test_report_takes_one_path_as_one_result(box) -> None:
 BAD_CALLS = {
     "load-a-number": (lambda box: api.load(5), "source"),
     "load-base-a-number": (lambda box: api.load({"name": "x"}, base=5), "base"),
+    "load-file-base-a-number": (lambda box: api.load(box / "sib.yaml", base=5), "base"),
     "run-experiment-a-number": (lambda box: api.run(5, out=box / "out"), "experiment"),
     "open-result-a-number": (lambda box: api.open_result(5), "folder"),
     "open-result-a-list": (lambda box: api.open_result([box]), "folder"),

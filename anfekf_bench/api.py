@@ -10,18 +10,22 @@
 
 It goes through the same plan, execute and report code as `anfekf run` and `anfekf report`, so a
 result written here is the same bytes as the command line's for the same scenario, seed and
-engine, and the same validation applies: bad input raises `ScenarioError` (a scenario) or
-`PlanError` (the overrides) with the command line's one-line message as its text.
+engine, and the same validation applies (`anfekf_bench.arguments`, shared with the command line):
+bad input raises `ScenarioError` (a scenario), `PlanError` (an argument: its type or range, or
+an output folder inside another result) or `ResultsError` (a saved result that is missing,
+damaged or mixed from two batches), each with the command line's one-line message as its text.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
 
+from . import arguments
 from .config import ScenarioError
 from .experiment import Plan, PlanError, execute, make_plan
 from .scenarios import load_scenario, scenario_from_data
@@ -31,13 +35,15 @@ from .storage import (
     RUNS_FILE,
     STEPS_FILE,
     SUMMARY_PARQUET,
+    ResultsError,
+    check_one_batch,
     read_json,
     read_manifest,
     read_parquet,
 )
 
-__all__ = ["Experiment", "PlanError", "Result", "ScenarioError", "load", "open_result", "report",
-           "run"]  # fmt: skip
+__all__ = ["Experiment", "PlanError", "Result", "ResultsError", "ScenarioError", "load",
+           "open_result", "report", "run"]  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -56,10 +62,14 @@ class Experiment:
 def load(source: str | Path | dict, *, base: str | Path = ".") -> Experiment:
     """A scenario from a YAML file, or from a dict shaped like one (relative paths in a dict are
     taken relative to `base`)."""
+    base = arguments.path(base, "base")
     if isinstance(source, dict):
-        path = Path(base) / "<dict>"
+        path = base / "<dict>"
         return Experiment(*scenario_from_data(source, path), source=path)
-    path = Path(source)
+    if not isinstance(source, (str, os.PathLike)):
+        raise PlanError(f"source: must be a scenario file's path or a dict shaped like one (got"
+                        f" {arguments.shown(source)})")  # fmt: skip
+    path = arguments.path(source, "source")
     return Experiment(*load_scenario(path), source=path)
 
 
@@ -69,14 +79,20 @@ class Result:
 
     folder: Path
 
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "folder", arguments.path(self.folder, "folder"))
+
     def manifest(self) -> dict:
         """What ran: the scenario, runs, seed, engines, fingerprint, versions, timings."""
         return read_manifest(self.folder)
 
     def _table(self, name: str) -> pd.DataFrame:
+        """A table of this result; ResultsError when it belongs to another batch than the
+        manifest's (the check `anfekf report` and `anfekf check` apply)."""
         path = self.folder / name
         if not path.exists():
             raise FileNotFoundError(f"{path}: not written for this result")
+        check_one_batch(self.folder, read_manifest(self.folder))
         return read_parquet(path)
 
     def summary(self) -> pd.DataFrame:
@@ -117,28 +133,38 @@ def run(
     seed, jobs, engine, backend) and write its result to `out/<name>` exactly as `anfekf run`
     does (resume, `force`, the lock); `backend="dask"` with `scheduler="tcp://HOST:PORT"` runs
     on a Dask cluster."""
+    checked = arguments.run_arguments(
+        runs=runs, seed=seed, jobs=jobs, engine=engine, backend=backend, scheduler=scheduler,
+        force=force,
+    )  # fmt: skip
+    folder = arguments.output_folder(out, "out")
+    arguments.callback(on_result, "on_result")
+    if not isinstance(experiment, (Experiment, dict, str, os.PathLike)):
+        raise PlanError(f"experiment: must be an Experiment, a scenario file's path or a dict"
+                        f" (got {arguments.shown(experiment)})")  # fmt: skip
     if not isinstance(experiment, Experiment):
         experiment = load(experiment)
-    plan: Plan = make_plan(
-        experiment.scenario, experiment.world, runs, seed, jobs, backend=backend,
-        scheduler=scheduler, engine=engine,
-    )  # fmt: skip
-    _, folder = execute(plan, Path(out), force=force, on_result=on_result)
-    return Result(Path(folder))
+    plan: Plan = make_plan(experiment.scenario, experiment.world, **checked.plan_overrides())
+    arguments.scenario_target(folder, plan.name, "out")
+    _, target = execute(plan, folder, force=checked.force, on_result=on_result)
+    return Result(Path(target))
 
 
 def open_result(folder: str | Path) -> Result:
     """A result written earlier (by `run` or `anfekf run`)."""
-    folder = Path(folder)
+    folder = arguments.path(folder, "folder")
     read_manifest(folder)  # a folder that holds no result fails here, with its reason
     return Result(folder)
 
 
-def report(results: Iterable[Result | str | Path], out: str | Path) -> Path:
+def report(results: Result | str | Path | Iterable[Result | str | Path], out: str | Path) -> Path:
     """Write the report of these results (figures, report.md, report.html) into `out`; returns
-    the path of report.md. Results folders or their parents, as `anfekf report` takes them."""
+    the path of report.md. Results folders or their parents (one, or a list), as `anfekf
+    report` takes them, sweeps included."""
     from .report import REPORT_FILE, write_report
+    from .report.sweep import find_sweeps
 
-    folders = [r.folder if isinstance(r, Result) else Path(r) for r in results]
-    write_report(folders, Path(out))
-    return Path(out) / REPORT_FILE
+    folders = arguments.result_paths(results, "results")
+    out = arguments.output_folder(out, "out")
+    write_report(folders, out, sweeps=find_sweeps(folders))
+    return out / REPORT_FILE

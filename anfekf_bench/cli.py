@@ -29,10 +29,8 @@ from rich.text import Text
 from typer.core import TyperArgument, TyperGroup, TyperOption
 
 from .analysis.metrics import format_number, format_share, format_sig
+from .arguments import output_folder, run_arguments
 from .config import (
-    MAX_JOBS,
-    MAX_RUNS,
-    MAX_SEED,
     ScenarioError,
     one_line,
     scenario_files,
@@ -56,7 +54,6 @@ from .storage import (
     MANIFEST_FILE,
     RUNS_DIR,
     ResultsError,
-    output_path_problem,
     read_manifest,
 )
 from .sweeps import SweepError, cell_plans, expand, run_sweep, validate_sweep
@@ -293,9 +290,10 @@ def plural(n: int, noun: str) -> str:
 
 
 def _check_out_dir(out: Path) -> None:
-    problem = output_path_problem(out, folder=True)
-    if problem:
-        fail(f"{out}: {problem}")
+    try:
+        output_folder(out, "--out")
+    except PlanError as exc:
+        fail(str(exc))
 
 
 @app.command()
@@ -341,30 +339,18 @@ def run(
 ) -> None:
     """Run Monte Carlo batches of every filter of a scenario and write Parquet results."""
     warnings.showwarning = _one_line_warning  # a library's warning may quote a name
-    # Checked here rather than by typer's min=/max=, whose error is a multi-line box.
-    for flag, value, least, most in (
-        ("--runs", runs, 1, MAX_RUNS),
-        ("--jobs", jobs, 1, MAX_JOBS),
-        ("--seed", seed, 0, MAX_SEED),
-    ):
-        if value is not None and value < least:
-            fail(f"{flag}: must be an integer >= {least} (got {value})")
-        if value is not None and value > most:
-            fail(f"{flag}: must be an integer <= {most} (got {value})")
+    # The checks the Python API applies too (rather than typer's min=/max=: a multi-line box).
+    with one_line_errors(debug, (PlanError,)):
+        checked = run_arguments(
+            runs=runs, seed=seed, jobs=jobs, engine=engine, backend=backend,
+            scheduler=scheduler, force=force, option=lambda name: f"--{name}",
+        )  # fmt: skip
     if force and skip_existing:
         fail("--force and --skip-existing: choose one (overwrite complete results, or keep them)")
-    kind = None if backend is None else backend.value
+    kind = checked.backend
     with one_line_errors(debug, (ScenarioError, PlanError)):
         plans = [
-            make_plan(
-                *load_scenario(p),
-                runs,
-                seed,
-                jobs,
-                backend=kind,
-                scheduler=scheduler,
-                engine=None if engine is None else engine.value,
-            )
+            make_plan(*load_scenario(p), **checked.plan_overrides())
             for p in scenario_files(scenario)
         ]
     if any(p.engine == "fast" for p in plans):

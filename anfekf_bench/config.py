@@ -524,9 +524,31 @@ def _shown_loc(err: dict) -> list[str]:
     return loc
 
 
+SHOWN_ERRORS = 4  # errors of a scenario shown after the first one; the rest are counted
+
+
 def _format_validation_error(exc: ValidationError) -> tuple[str, str]:
+    """The first error's field and message, followed by the other fields' errors (one each, at
+    most SHOWN_ERRORS, then how many more) on the same line: `[+2 more errors: seed: ...;
+    jobs: ...]`."""
     errors = exc.errors()
-    err = errors[0]
+    field, msg = _error_field_message(errors[0])
+    others: dict[str, str] = {}
+    for err in errors[1:]:
+        other, text = _error_field_message(err)
+        if other != field:
+            others.setdefault(other, text)
+    if others:
+        shown = [f"{name}: {text}" for name, text in list(others.items())[:SHOWN_ERRORS]]
+        rest = len(others) - len(shown)
+        if rest:
+            shown.append(f"and {rest} more")
+        msg += f" [+{len(others)} more error{'s' if len(others) > 1 else ''}: {'; '.join(shown)}]"
+    return field, msg
+
+
+def _error_field_message(err: dict) -> tuple[str, str]:
+    """One pydantic error as (the field a user wrote, what is allowed there)."""
     loc = _shown_loc(err)
     field = ".".join(loc) or "(top level)"
     msg = err["msg"]
@@ -548,9 +570,6 @@ def _format_validation_error(exc: ValidationError) -> tuple[str, str]:
         msg += f" (got {shown})"
     if err["type"] == "union_tag_invalid":
         msg += _did_you_mean(str(err.get("ctx", {}).get("tag", "")), KINDS)
-    extra = len({".".join(_shown_loc(e)) for e in errors} - {field})
-    if extra:
-        msg += f" [+{extra} more error{'s' if extra > 1 else ''}]"
     return field, msg
 
 

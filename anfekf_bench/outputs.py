@@ -11,6 +11,7 @@ import os
 import platform
 import re
 import shutil
+from contextlib import suppress
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -35,6 +36,8 @@ from .storage import (
     STEPS_FILE,
     SUMMARY_JSON,
     SUMMARY_PARQUET,
+    SWEEP_CELLS_DIR,
+    SWEEP_KIND,
     FileProblem,
     ResultsError,
     RunFileRefused,
@@ -175,17 +178,98 @@ def _is_our_store(runs_dir: Path) -> bool:
     return all(_is_temporary(e.name) for e in os.scandir(runs_dir))
 
 
+def _what_folder_holds(folder: Path) -> str | None:
+    """'result' or 'sweep' when `folder` is one of this tool's (its manifest says so, or it holds
+    a stamped run store: a batch in progress), else None. Reads only; unreadable: None."""
+    try:
+        if os.path.lexists(folder / RUNS_DIR / FINGERPRINT_FILE):
+            return "result"
+        if not os.path.lexists(folder / MANIFEST_FILE):
+            return None
+        doc = read_json(folder / MANIFEST_FILE)
+    except (ResultsError, OSError, ValueError):
+        return None
+    if is_result_manifest(doc):
+        return "result"
+    return "sweep" if isinstance(doc, dict) and doc.get("kind") == SWEEP_KIND else None
+
+
+def check_not_nested(target: Path) -> None:
+    """OutputExists when <out>/<name> would sit inside another result: in its folder or its run
+    store (which --force and a finished batch remove), or in a sweep's folder other than as
+    one of its cells (<sweep>/cells/<cell>). Every ancestor is looked at, symbolic links
+    resolved. Reads only."""
+    real = Path(os.path.realpath(target))
+    for folder in real.parents:
+        kind = _what_folder_holds(folder)
+        if kind is None or (kind == "sweep" and real.parent == folder / SWEEP_CELLS_DIR):
+            continue
+        inner = real.relative_to(folder).parts[0]
+        where = f"the run store of the {kind} in {folder}" if inner == RUNS_DIR else (
+            f"the {kind} folder {folder}")  # fmt: skip
+        raise OutputExists(
+            f"{target}: would be inside {where}; results are never written inside another"
+            " result (its --force or its next batch would remove them): use another --out"
+        )
+
+
+def _is_staging(folder: str | os.PathLike) -> bool:
+    """The run store's staged result (STAGING_DIR): regular files of ours only, no lock (a
+    result folder has one), no sub-folder."""
+    with os.scandir(folder) as entries:
+        return all(e.is_file(follow_symlinks=False) and e.name != LOCK_FILE for e in entries)
+
+
+def nested_in_store(runs_dir: Path) -> list[str]:
+    """Folders in a run store that this tool did not put there (a result nested in it by an
+    older version: `--out <result>/.runs`). Neither --force nor a finished batch removes them."""
+    if runs_dir.is_symlink() or not runs_dir.is_dir():
+        return []
+    with os.scandir(runs_dir) as entries:
+        return sorted(
+            f"{RUNS_DIR}/{e.name}"
+            for e in entries
+            if e.is_dir(follow_symlinks=False) and not (e.name == STAGING_DIR and _is_staging(e))
+        )
+
+
+def remove_run_store(runs_dir: Path) -> None:
+    """Remove a run store entry by entry, never wholesale: its files and its staged result; a
+    folder of anything else stays, and with it the store."""
+    if runs_dir.is_symlink() or not runs_dir.is_dir():
+        return
+    with os.scandir(runs_dir) as entries:
+        for entry in entries:
+            if not entry.is_dir(follow_symlinks=False):
+                os.unlink(entry.path)
+            elif entry.name == STAGING_DIR and _is_staging(entry):
+                for staged in os.scandir(entry.path):
+                    os.unlink(staged.path)
+                os.rmdir(entry.path)
+    with suppress(OSError):  # not empty: something nested stays
+        os.rmdir(runs_dir)
+
+
 def survey_output(plan: BatchPlan, target: Path, force: bool) -> list[str]:
     """What preparing `target` may replace (--force), or OutputExists when it must not be
     touched. Reads only; run before anything is written and again under the folder's lock.
 
     A folder is this tool's only when its manifest.json says so (`is_result_manifest`) or it
     holds a run store of ours; a folder holding anything else is refused, with or without
-    --force, and nothing in it is removed."""
+    --force, and nothing in it is removed. Nor is a folder inside another result's, nor one
+    holding another result in its run store."""
+    check_not_nested(target)
     if not os.path.lexists(target):
         return []
     target = scenario_folder(target.parent, target.name)
     foreign = foreign_entries(target)
+    nested = nested_in_store(target / RUNS_DIR)
+    if nested:
+        raise OutputExists(
+            f"{target}: its run store holds folders this tool did not write there"
+            f" ({', '.join(nested[:3])}{' and more' if len(nested) > 3 else ''}: a result nested"
+            " in it?); nothing is removed, --force or not: move them away"
+        )
     runs_dir = target / RUNS_DIR
     if foreign:
         shown = ", ".join(foreign[:3]) + (
@@ -267,7 +351,7 @@ def prepare_output(
     complete = os.path.lexists(target / MANIFEST_FILE)  # ours: survey_output checked it
     stamp = _stamp(runs_dir)
     if stamp is not None and stamp != plan.fingerprint():  # --force: another batch's runs
-        shutil.rmtree(runs_dir)
+        remove_run_store(runs_dir)
         stamp = None
     action = "new results"
     if complete:
@@ -287,8 +371,10 @@ def prepare_output(
     staging = runs_dir / STAGING_DIR
     if staging.is_symlink() or staging.is_file():
         staging.unlink()
-    elif staging.is_dir():
-        shutil.rmtree(staging)  # files of a batch killed before it replaced the result
+    elif staging.is_dir():  # files of a batch killed before it replaced the result
+        for staged in os.scandir(staging):
+            os.unlink(staged.path)  # files only (survey_output refused anything else)
+        staging.rmdir()
     stamp_path = runs_dir / FINGERPRINT_FILE
     write_atomic(stamp_path, lambda tmp: tmp.write_text(plan.fingerprint() + "\n"))
     # Without a manifest the folder is ours by its run store: results of an earlier, unfinished
@@ -315,7 +401,8 @@ def result_staging(target: Path) -> Path:
 def finish_result(target: Path, staging: Path) -> None:
     """Swap the staged complete result in, then drop the run store."""
     install_result(target, staging)
-    shutil.rmtree(Path(target) / RUNS_DIR, ignore_errors=True)
+    with suppress(OSError):  # the result is in place; a store left behind is redone or removed
+        remove_run_store(Path(target) / RUNS_DIR)
 
 
 def save_run(target: Path, result: dict, fingerprint: str) -> None:

@@ -184,9 +184,9 @@ def write_atomic(path: Path, write: Callable[[Path], None], *, durable: bool = T
         raise
 
 
-def output_path_problem(path: Path, *, folder: bool) -> str | None:
+def output_path_problem(path: Path, *, folder: bool, option: str = "--out") -> str | None:
     """Why `path` cannot be written as an output folder (or file), checked before long work;
-    None when it can. The sentence names the --out option it came from."""
+    None when it can. The sentence names the option it came from (`out` in the Python API)."""
     path = Path(path)
     try:
         name_max = os.pathconf(path.anchor or ".", "PC_NAME_MAX")
@@ -194,29 +194,29 @@ def output_path_problem(path: Path, *, folder: bool) -> str | None:
         name_max = 255
     for part in path.parts:
         if len(os.fsencode(part)) > name_max:
-            return f"--out has a component longer than {name_max} bytes"
+            return f"{option} has a component longer than {name_max} bytes"
     if len(os.fsencode(str(path))) > 3000:
-        return "--out is too long a path"
+        return f"{option} is too long a path"
     try:
-        return _output_path_problem(path, folder)
+        return _output_path_problem(path, folder, option)
     except OSError as exc:
-        return f"--out cannot be used ({exc.strerror or exc})"
+        return f"{option} cannot be used ({exc.strerror or exc})"
 
 
-def _output_path_problem(path: Path, folder: bool) -> str | None:
+def _output_path_problem(path: Path, folder: bool, option: str) -> str | None:
     if path.exists() and path.is_dir() != folder:
         return (
-            "--out must be a folder, but a file of that name exists"
+            f"{option} must be a folder, but a file of that name exists"
             if folder
-            else "--out must be a file path, but it is a folder"
+            else f"{option} must be a file path, but it is a folder"
         )
     probe = path if folder else path.parent
     while not probe.exists():
         probe = probe.parent
     if not probe.is_dir():
-        return f"--out cannot be created: {probe} is a file, not a folder"
+        return f"{option} cannot be created: {probe} is a file, not a folder"
     if not os.access(probe, os.W_OK):
-        return "--out is not writable"
+        return f"{option} is not writable"
     return None
 
 

@@ -36,6 +36,7 @@ from .experiment import (
     package_versions,
     survey_output,
 )
+from .outputs import check_not_nested
 from .storage import (
     COMPARISONS_FILE,
     LOCK_FILE,
@@ -250,6 +251,10 @@ def validate_sweep(
     folder, each cell's route and memory (check_plan) and each cell folder (survey_output).
     SweepError, PlanError or OutputExists; reads only."""
     survey_sweep(name, out_dir)
+    try:
+        check_not_nested(Path(out_dir) / name)
+    except OutputExists as exc:
+        raise SweepError(str(exc)) from None
     cells_dir = Path(out_dir) / name / CELLS_DIR
     for cell, plan in zip(cells, plans, strict=True):
         try:

@@ -6,9 +6,11 @@ from pathlib import Path
 from anfekf_bench import api
 
 out = Path(sys.argv[1]) if len(sys.argv) > 1 else Path("results/api")
+# The repository's configs/, found from this file: the example runs from any working directory.
+configs = Path(__file__).resolve().parents[2] / "configs"
 
 # A scenario file, or a dict shaped like one (relative paths in a dict: base=...).
-experiment = api.load("configs/wrong_r.yaml")
+experiment = api.load(configs / "wrong_r.yaml")
 result = api.run(experiment, out=out, runs=4, engine="fast", force=True)
 
 summary = result.summary()  # one row per filter

@@ -173,3 +173,87 @@ def test_each_commented_out_option_of_the_starter_validates_when_uncommented(tmp
         check_plan(
             make_plan(scenario, world, None, None, None)
         )  # the route and the memory, as `run` checks
+
+
+# --------------------------------------------------------------------------------------------
+# Noise schedules: the factors in force at any instant multiply within [1e-6, 1e6]
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+def _scheduled(tmp_path: Path, schedule: dict) -> Path:
+    from .conftest import small_scenario, write_scenario
+
+    return write_scenario(tmp_path / "sched.yaml", small_scenario(noise_schedule=schedule))
+
+
+def _step(factor: float, start: float = 0.0, end: float | None = None, channels=("range",)):
+    return {"channels": list(channels), "factor": factor, "start_s": start, "end_s": end}
+
+
+def _ramp(factor: float, start: float, end: float, channels=("range",)):
+    return {**_step(factor, start, end, channels), "shape": "ramp"}
+
+
+SCHEDULES_OUT_OF_RANGE = {
+    # 52 valid factors of 1e6 at once: 1e312, past the float range (main: every run diverged)
+    "steps-overflow": {"changes": [_step(1e6) for _ in range(52)]},
+    "steps-two-of-1e6": {"changes": [_step(1e6, 0, 10), _step(1e6, 5, 20)]},
+    "factor-1e-300": {"changes": [_step(1e-300)]},  # no lower bound on main
+    "factor-below-1e-6": {"changes": [_step(1e-7, 3, 9)]},
+    "ramp-to-1e-300": {"changes": [_ramp(1e-300, 3, 9)]},
+    "steps-product-below": {"changes": [_step(1e-4, 0, 10), _step(1e-3, 2, 4, ["R"])]},
+    "ramps-product-at-end": {"changes": [_ramp(1e4, 0, 10), _ramp(1e4, 5, 15, ["R"])]},
+    # each pair cancels at both ends, but halfway (5e5)^2 x 0.5^2 = 6e10: only inside a segment
+    "ramps-product-inside": {
+        "changes": [_ramp(1e6, 0, 10), _ramp(1e6, 0, 10), _ramp(1e-6, 0, 10), _ramp(1e-6, 0, 10)]
+    },
+    "student-t-dof-near-2": {"outliers": {"model": "student_t", "dof": 2.0000001}},
+    "outliers-times-change": {
+        "changes": [_step(1e6, 0, 5, ["bearing"])],
+        "outliers": {"model": "contaminated", "probability": 1.0, "variance_factor": 1e6},
+    },
+    "control-channel": {"changes": [_step(1e3, 0, None, ["Qu"]), _step(1e4, 1, 2, ["speed"])]},
+}
+
+
+@pytest.mark.parametrize("case", list(SCHEDULES_OUT_OF_RANGE))
+def test_a_schedule_whose_factors_multiply_out_of_range_is_refused(tmp_path, case):
+    from anfekf_bench.config import ScenarioError
+
+    path = _scheduled(tmp_path, SCHEDULES_OUT_OF_RANGE[case])
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(path)
+    message = str(err.value)
+    assert message.startswith(f"{path}: noise_schedule"), message
+    assert "[1e-06, 1e+06]" in message and "\n" not in message
+
+
+def test_a_schedule_out_of_range_is_one_line_before_any_run(tmp_path):
+    path = _scheduled(tmp_path, SCHEDULES_OUT_OF_RANGE["steps-overflow"])
+    result = runner.invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    line = _one_error_line(result)
+    assert "noise_schedule" in line and "[1e-06, 1e+06]" in line
+    assert not (tmp_path / "out").exists()
+
+
+SCHEDULES_IN_RANGE = {
+    "at-the-bounds": {"changes": [_step(1e3, 0, 10), _step(1e3, 10, 20), _step(1e-6, 20, 30)]},
+    "bounds-met-exactly": {"changes": [_step(1e3), _step(1e3, 0, None, ["R"])]},
+    "ramp-back": {"changes": [_ramp(1e6, 0, 10), _ramp(1e-6, 10, 20)]},
+    "disjoint-steps": {"changes": [_step(1e6, 0, 5), _step(1e6, 5, 10), _step(1e6, 10, 15)]},
+    "other-channels": {"changes": [_step(1e6, 0, None, ["range"]), _step(1e6, 0, None, ["Qu"])]},
+    "blackouts": {"blackouts": [{"start_s": 0, "end_s": 1e7}, {"start_s": 5, "end_s": 6}]},
+}
+
+
+@pytest.mark.parametrize("case", list(SCHEDULES_IN_RANGE))
+def test_a_schedule_within_range_is_accepted(tmp_path, case):
+    load_scenario(_scheduled(tmp_path, SCHEDULES_IN_RANGE[case]))
+
+
+def test_every_shipped_schedule_is_within_range():
+    shipped = [p for p in CONFIGS.rglob("*.yaml") if "noise_schedule" in p.read_text()]
+    assert len(shipped) >= 6
+    for path in shipped:
+        load_scenario(path)

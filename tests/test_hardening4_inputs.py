@@ -257,3 +257,265 @@ def test_every_shipped_schedule_is_within_range():
     assert len(shipped) >= 6
     for path in shipped:
         load_scenario(path)
+
+
+# --------------------------------------------------------------------------------------------
+# Fit caches in the run store: checked like run files, a bad one refitted with one warning
+
+
+def _fit_scenario():
+    from anfekf_bench.config import parse_scenario, resolve_world
+
+    from .conftest import small_scenario
+
+    doc = small_scenario(
+        name="fitcache", runs=2, record_every=4, training={"runs": 3},
+        filter_noise={"sigma_range": 0.5, "sigma_bearing_deg": 0.5},
+        filters=[{"name": "ekf", "kind": "ekf"},
+                 {"name": "ml", "kind": "ekf-ml", "starts": [1.0], "max_evaluations": 30}],
+    )  # fmt: skip
+    scenario = parse_scenario(doc)
+    return scenario, resolve_world(scenario.world, ".")
+
+
+@pytest.fixture(scope="module")
+def fitted_cache(tmp_path_factory):
+    """A real ekf-ml fit and its cache file (fitted once for the module)."""
+    from anfekf_bench.training import fit_filters
+
+    scenario, world = _fit_scenario()
+    plan = make_plan(scenario, world, None, None, 1)
+    store = tmp_path_factory.mktemp("store")
+    fits = fit_filters(plan, store)
+    (path,) = store.glob("fit-*.json")
+    return plan, path.name, path.read_bytes(), fits.records["ml"]["fitted"]
+
+
+def _rehashed(doc: dict) -> dict:
+    """`doc` with its checksum recomputed: an edit only the content checks can see."""
+    from anfekf_bench.outputs import fit_digest
+
+    return {**doc, "sha256": fit_digest(doc["fingerprint"], doc["fitted"])}
+
+
+def _with_sigma(doc: dict, value, drop: bool = False) -> dict:
+    import copy
+
+    doc = copy.deepcopy(doc)
+    if drop:
+        del doc["fitted"]["sigmas_rad"]["sigma_range"]
+    else:
+        doc["fitted"]["sigmas_rad"]["sigma_range"] = value
+    return doc
+
+
+def _json_bytes(doc) -> bytes:
+    import json
+
+    return json.dumps(doc).encode()
+
+
+NOISE_FIT_TAMPERED = {
+    "checksum-mismatch": lambda d: _json_bytes(_with_sigma(d, 0.3)),  # edited, not re-hashed
+    "negative-sigma": lambda d: _json_bytes(_rehashed(_with_sigma(d, -0.3))),  # used silently
+    "zero-sigma": lambda d: _json_bytes(_rehashed(_with_sigma(d, 0))),
+    "string-sigma": lambda d: _json_bytes(_rehashed(_with_sigma(d, "0.3"))),
+    "boolean-sigma": lambda d: _json_bytes(_rehashed(_with_sigma(d, True))),
+    "missing-sigma": lambda d: _json_bytes(_rehashed(_with_sigma(d, None, drop=True))),
+    "overflowing-sigma": lambda d: _json_bytes(_rehashed(_with_sigma(d, 1e300))),
+    "wrong-format": lambda d: _json_bytes({**d, "format": "anfekf-bench fit v0"}),
+    "another-fingerprint": lambda d: _json_bytes(_rehashed({**d, "fingerprint": "0" * 16})),
+    "fitted-a-list": lambda d: _json_bytes(_rehashed({**d, "fitted": [1, 2]})),
+    "non-utf8-bytes": lambda d: b'{"format": "\xff\xfe"}',
+    "truncated": lambda d: _json_bytes(d)[:40],
+    "nan": lambda d: _json_bytes(d).replace(b'"sigma_v": ', b'"sigma_v": NaN, "x": '),
+    "empty": lambda d: b"",
+}
+
+
+@pytest.mark.parametrize("case", list(NOISE_FIT_TAMPERED))
+def test_a_tampered_noise_fit_cache_is_refitted_with_a_warning(tmp_path, fitted_cache, case,
+                                                                monkeypatch):  # fmt: skip
+    import json
+
+    from anfekf_bench.filters.fitted import EKFMLSpec
+    from anfekf_bench.outputs import CachedFitRefused
+    from anfekf_bench.training import fit_filters
+
+    plan, name, good_bytes, good_fit = fitted_cache
+    (tmp_path / name).write_bytes(NOISE_FIT_TAMPERED[case](json.loads(good_bytes)))
+    calls = []
+
+    def refit(self, training):
+        calls.append(self.name)
+        return good_fit
+
+    monkeypatch.setattr(EKFMLSpec, "fit", refit)
+    with pytest.warns(CachedFitRefused) as caught:
+        fits = fit_filters(plan, tmp_path)
+    assert calls == ["ml"] and fits.records["ml"]["cached"] is False
+    (warning,) = [w for w in caught if issubclass(w.category, CachedFitRefused)]
+    assert name in str(warning.message) and "fitted again" in str(warning.message)
+    assert "\n" not in str(warning.message)
+    spec = next(f for f in fits.scenario.filters if f.name == "ml")
+    assert spec.fitted_sigmas() == tuple(good_fit["sigmas_rad"].values())  # never the bad one
+    assert json.loads((tmp_path / name).read_text())["fitted"] == good_fit  # replaced
+
+
+def test_an_intact_fit_cache_is_used_without_a_word(tmp_path, fitted_cache, monkeypatch):
+    import warnings
+
+    from anfekf_bench.filters.fitted import EKFMLSpec
+    from anfekf_bench.training import fit_filters
+
+    plan, name, good_bytes, good_fit = fitted_cache
+    (tmp_path / name).write_bytes(good_bytes)
+    monkeypatch.setattr(EKFMLSpec, "fit", lambda *a: pytest.fail("refitted an intact cache"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fits = fit_filters(plan, tmp_path)
+    assert fits.records["ml"]["cached"] is True and fits.records["ml"]["fitted"] == good_fit
+
+
+def test_a_tampered_fit_cache_on_resume_is_one_warning_line(tmp_path):
+    """Through `anfekf run`: a batch stopped after its first run, its fit cache given a
+    negative sigma (checksum recomputed), then the same command: one warning line, the fit
+    computed again, the result's fit the good one (main used the negative sigma silently)."""
+    import json
+
+    from anfekf_bench.experiment import execute
+    from anfekf_bench.storage import RUNS_DIR, read_manifest
+
+    from .conftest import small_scenario, write_scenario
+
+    doc = small_scenario(
+        name="fitcache", runs=2, record_every=4, training={"runs": 3},
+        filter_noise={"sigma_range": 0.5, "sigma_bearing_deg": 0.5},
+        filters=[{"name": "ekf", "kind": "ekf"},
+                 {"name": "ml", "kind": "ekf-ml", "starts": [1.0], "max_evaluations": 30}],
+    )  # fmt: skip
+    path = write_scenario(tmp_path / "fitcache.yaml", doc)
+    plan = make_plan(*load_scenario(path), None, None, None)
+
+    class Stop(Exception):
+        pass
+
+    def stop(_):
+        raise Stop
+
+    out = tmp_path / "out"
+    with pytest.raises(Stop):
+        execute(plan, out, on_result=stop)
+    (cache,) = (out / "fitcache" / RUNS_DIR).glob("fit-*.json")
+    good = json.loads(cache.read_text())
+    cache.write_text(json.dumps(_rehashed(_with_sigma(good, -0.3))))
+    result = runner.invoke(app, ["run", str(path), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    lines = [line for line in result.output.splitlines() if cache.name in line]
+    assert len(lines) == 1 and lines[0].startswith("warning: ") and "fitted again" in lines[0]
+    assert "sigma_range" in lines[0]
+    fitted = read_manifest(out / "fitcache")["training"]["ml"]
+    assert fitted["cached"] is False
+    assert fitted["fitted"]["sigmas_rad"] == good["fitted"]["sigmas_rad"]
+
+
+# KalmanNet's cached weights: checked without PyTorch (the cache file written by hand)
+
+
+def _kalmannet_fit(hidden: int = 4) -> dict:
+    from anfekf_bench.filters.kalmannet import KalmanNetSpec, KalmanNetWeights, TrainingResult
+
+    weights = KalmanNetWeights.random(hidden_size=hidden, seed=3)
+    result = TrainingResult(weights, 1.5, [0.5, 0.4], 1.2, [0.6, 0.5])
+    return KalmanNetSpec.fitted_doc(result)
+
+
+def _weights_bytes(hidden=4, **header_edits) -> bytes:
+    import json
+
+    from anfekf_bench.filters.kalmannet import KalmanNetWeights
+
+    data = KalmanNetWeights.random(hidden_size=hidden, seed=3).to_bytes()
+    head, _, body = data.partition(b"\n")
+    header = {**json.loads(head), **header_edits}
+    return json.dumps(header, sort_keys=True).encode() + b"\n" + body
+
+
+def _with_weights(fitted: dict, data: bytes, rehash: bool = True) -> dict:
+    import base64
+    import hashlib
+
+    out = {**fitted, "weights_base64": base64.b64encode(data).decode("ascii")}
+    if rehash:
+        out["weights_sha256"] = hashlib.sha256(data).hexdigest()
+    return out
+
+
+def _negative_shapes() -> bytes:
+    import json
+
+    head, _, body = _weights_bytes().partition(b"\n")
+    header = json.loads(head)
+    header["arrays"][0][1] = [-1]
+    return json.dumps(header).encode() + b"\n" + body
+
+
+def _nan_weight() -> bytes:
+    import numpy as np
+
+    data = bytearray(_weights_bytes())
+    data[-8:] = np.array([np.nan]).tobytes()
+    return bytes(data)
+
+
+KALMANNET_FIT_TAMPERED = {
+    "weights-hash-mismatch": lambda f: _with_weights(f, _weights_bytes()[:-8] + bytes(8), False),
+    "negative-shape": lambda f: _with_weights(f, _negative_shapes()),
+    "wrong-format": lambda f: _with_weights(f, _weights_bytes(format="other")),
+    "zero-scale": lambda f: _with_weights(f, _weights_bytes(obs_scale=[0.0, 0.02])),
+    "zero-range-scale": lambda f: _with_weights(f, _weights_bytes(range_scale=0)),
+    "non-utf8-header": lambda f: _with_weights(f, b"\xff\xfe{}\n" + bytes(16)),
+    "header-not-json": lambda f: _with_weights(f, b"not json\n"),
+    "other-hidden-size": lambda f: _with_weights(f, _weights_bytes(hidden=6)),
+    "body-short": lambda f: _with_weights(f, _weights_bytes()[:-8]),
+    "nan-weight": lambda f: _with_weights(f, _nan_weight()),
+    "not-base64": lambda f: {**f, "weights_base64": "%%%not base64%%%"},
+    "hash-not-hex": lambda f: {**f, "weights_sha256": "x" * 64},
+    "weights-a-number": lambda f: {**f, "weights_base64": 12},
+    "epochs-text": lambda f: {**f, "epochs": "30"},
+}
+
+
+@pytest.mark.parametrize("case", list(KALMANNET_FIT_TAMPERED))
+def test_a_tampered_kalmannet_fit_cache_is_refused(tmp_path, case):
+    from anfekf_bench.filters.kalmannet import fitted_weights_problem
+    from anfekf_bench.outputs import CachedFitRefused, read_cached_fit, write_fit
+
+    path = tmp_path / "fit-0123456789abcdef.json"
+    write_fit(path, "0123456789abcdef", KALMANNET_FIT_TAMPERED[case](_kalmannet_fit()))
+    with pytest.warns(CachedFitRefused, match="fitted again"):
+        found = read_cached_fit(path, "0123456789abcdef", lambda f: fitted_weights_problem(f, 4))
+    assert found is None
+
+
+def test_an_intact_kalmannet_fit_cache_gives_its_weights(tmp_path, monkeypatch):
+    import base64
+
+    import numpy as np
+
+    from anfekf_bench.filters import kalmannet
+    from anfekf_bench.outputs import read_cached_fit, write_fit
+
+    path = tmp_path / "fit-0123456789abcdef.json"
+    fitted = _kalmannet_fit()
+    write_fit(path, "0123456789abcdef", fitted)
+    monkeypatch.setattr(kalmannet, "torch_available", lambda: True)  # a spec without PyTorch
+    spec = kalmannet.KalmanNetSpec(name="k", kind="kalmannet", hidden_size=4)
+    found = read_cached_fit(path, "0123456789abcdef", spec.fit_problem)
+    assert found == fitted
+    weights = spec.with_fit(found).trained_weights
+    original = kalmannet.KalmanNetWeights.from_bytes(base64.b64decode(fitted["weights_base64"]))
+    for name, array in original.arrays.items():
+        np.testing.assert_array_equal(weights.arrays[name], array)
+    other = kalmannet.KalmanNetSpec(name="k", kind="kalmannet", hidden_size=8)
+    assert "hidden_size 4, not 8" in other.fit_problem(found)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import os
-import re
 import sys
 import warnings
 from collections.abc import Iterator
@@ -789,31 +788,6 @@ def kinds() -> None:
             console.print(one_line(line), markup=False, highlight=False, soft_wrap=True)
 
 
-STARTER_SCENARIO = """\
-# A starter scenario for `anfekf run` (written by `anfekf init`). Every key below is optional
-# except `name`; `anfekf kinds` lists the filter kinds with their parameters and defaults.
-name: {name}                  # results go to OUT/<name>/
-description: The EKF against the ANFEKF when the filters assume a wrong measurement noise R
-seed: 1                       # root seed: the same seed gives the same bytes
-runs: 20                      # Monte Carlo runs (the paper's scenarios use 50)
-record_every: 8               # steps.parquet keeps every 8th control step (one per sensor scan)
-# engine: fast                # the compiled engine (numba) for the kinds it runs; filterpy: all
-# The noise the simulator draws (true_noise) and the noise the filters assume (filter_noise):
-# standard deviations; angles in degrees.
-true_noise:   {{sigma_v: 0.3, sigma_gamma_deg: 3.0, sigma_range: 0.1, sigma_bearing_deg: 1.0}}
-filter_noise: {{sigma_v: 0.3, sigma_gamma_deg: 3.0, sigma_range: 2.0, sigma_bearing_deg: 0.1}}
-# world: {{landmarks: builtin, waypoints: builtin}}   # or CSV files of x,y rows
-filters:
-  - {{name: ekf, kind: ekf}}                     # fixed noise: the assumed one
-  - {{name: anfekf, kind: anfekf, adapt: R}}     # adapts R (Q: the control noise; RQ: both)
-  - {{name: sage-husa, kind: sage-husa}}         # a baseline that adapts R
-  - {{name: ekf-oracle, kind: ekf-oracle}}       # the reference: given the TRUE noise
-# Claims the run checks (and `anfekf check` gates), decided on the paired 95 % interval:
-claims:
-  - {{filter: anfekf, vs: ekf, metric: rmse_pos, at_most: 0.8}}
-"""
-
-
 @app.command()
 def init(
     path: Annotated[
@@ -821,19 +795,22 @@ def init(
     ] = Path("scenario.yaml"),
 ) -> None:
     """Write a commented starter scenario that `anfekf run` accepts (never overwrites a file)."""
-    from .storage import write_atomic
+    import errno
 
-    if path.exists() or path.is_symlink():
-        fail(f"{path}: already exists; choose another PATH (init never overwrites a file)")
-    if not path.parent.is_dir():
-        fail(f"{path.parent}: no such folder")
-    name = re.sub(r"[^A-Za-z0-9_-]", "_", path.stem) or "scenario"
+    from .starter import write_starter
+
     try:
-        write_atomic(path, lambda tmp: tmp.write_text(STARTER_SCENARIO.format(name=name)))
+        name = write_starter(path)
+    except FileExistsError:
+        fail(f"{path}: already exists; choose another PATH (init never overwrites a file)")
     except OSError as exc:
-        fail(f"{path}: cannot write the starter scenario: {exc}")
-    console.print(f"starter scenario written to {path}; run it with: anfekf run {path}",
-                  markup=False, highlight=False, soft_wrap=True)  # fmt: skip
+        if exc.errno in (errno.ENOENT, errno.ENOTDIR):
+            fail(f"{path.parent}: no such folder")
+        fail(f"{path}: cannot write the starter scenario ({exc.strerror or exc})")
+    console.print(
+        one_line(f"starter scenario {name!r} written to {path}; run it with: anfekf run {path}"),
+        markup=False, highlight=False, soft_wrap=True,
+    )  # fmt: skip
 
 
 def main() -> None:  # pragma: no cover - console entry point

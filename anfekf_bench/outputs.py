@@ -7,10 +7,13 @@ place, and the tables and provenance every result writes (docs/HARDENING.md).
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import platform
 import re
 import shutil
+import warnings
+from collections.abc import Callable
 from contextlib import suppress
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
@@ -23,6 +26,7 @@ from .analysis.tables import (
     column_units,
     parquet_frame,
 )
+from .config import one_line
 from .storage import (
     CLAIMS_FILE,
     COMPARISONS_FILE,
@@ -451,25 +455,66 @@ def write_result_tables(
 # Fitted filters' values in the run store (training.fit_filters, real_experiment's ekf-ml)
 
 FIT_FILE = "fit-{fingerprint}.json"
-FIT_FORMAT = "anfekf-bench fit v1"
+FIT_FORMAT = "anfekf-bench fit v2"  # v2: with the SHA-256 of the fingerprint and the fit
 
 
-def read_cached_fit(path: Path, fingerprint: str) -> dict | None:
-    """The values `write_fit` saved at `path` for `fingerprint`; None when the file is missing,
-    unreadable or another fit's."""
+class CachedFitRefused(UserWarning):
+    """A fit cache file that is there but cannot be used: the fit is computed again (the CLI
+    shows the warning as one line; the file is replaced by the new fit)."""
+
+
+def _plain(fitted: dict):
+    """`fitted` as write_json writes it and read_json gives it back (non-finite numbers: null)."""
+    return json.loads(json.dumps(fitted), parse_constant=lambda _: None)
+
+
+def fit_digest(fingerprint: str, fitted) -> str:
+    """The SHA-256 a fit cache file carries: over its fingerprint and its fit, canonical JSON."""
+    text = json.dumps({"fingerprint": fingerprint, "fitted": fitted}, sort_keys=True)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def read_cached_fit(
+    path: Path, fingerprint: str, problem: Callable[[dict], str | None] | None = None
+) -> dict | None:
+    """The fit `write_fit` saved at `path` for `fingerprint`, checked like a run file: its
+    format, fingerprint and SHA-256, then `problem(fitted)` (the kind's own check: sigmas
+    finite and positive, a network's shapes and hash; `FittedSpec.fit_problem`). None when
+    there is no file, and when there is one that fails any check: then a `CachedFitRefused`
+    warning says why, and the caller fits again. A refused file is never used."""
+    if not os.path.lexists(path):
+        return None
+    why = _cached_fit_problem(path, fingerprint, problem)
+    if why is None:
+        return read_json(path)["fitted"]
+    warnings.warn(
+        CachedFitRefused(one_line(f"{path}: {why}; fitted again (the cached fit is not used)")),
+        stacklevel=2,
+    )
+    return None
+
+
+def _cached_fit_problem(path: Path, fingerprint: str, problem) -> str | None:
     try:
         doc = read_json(path)
-    except ResultsError:
-        return None
-    if (
-        not isinstance(doc, dict)
-        or doc.get("format") != FIT_FORMAT
-        or doc.get("fingerprint") != fingerprint
-        or not isinstance(doc.get("fitted"), dict)
-    ):
-        return None
-    return doc["fitted"]
+    except ResultsError as exc:
+        return str(exc).removeprefix(f"{path}: ")
+    if not isinstance(doc, dict) or doc.get("format") != FIT_FORMAT:
+        return f"not a fit cache file (format {FIT_FORMAT!r})"
+    if doc.get("fingerprint") != fingerprint:
+        return "the fit of another fingerprint"
+    fitted = doc.get("fitted")
+    if not isinstance(fitted, dict):
+        return "fitted: must be a mapping"
+    if doc.get("sha256") != fit_digest(fingerprint, fitted):
+        return "its checksum does not match its content (damaged or edited)"
+    return None if problem is None else problem(fitted)
 
 
 def write_fit(path: Path, fingerprint: str, fitted: dict) -> None:
-    write_json(path, {"format": FIT_FORMAT, "fingerprint": fingerprint, "fitted": fitted})
+    plain = _plain(fitted)
+    write_json(
+        path,
+        {"format": FIT_FORMAT, "fingerprint": fingerprint, "fitted": plain,
+         "sha256": fit_digest(fingerprint, plain)},
+    )  # fmt: skip

@@ -38,6 +38,7 @@ from joblib import Parallel, delayed
 from .analysis.metrics import add_trace_metrics
 from .engines.tuning import TimelineLikelihood, fit_noise, score_setting, unicycle_terms
 from .filters.ekf import gate_threshold
+from .filters.fitted import sigmas_problem
 from .filters.registry import FIXED_KINDS
 from .filters.spec import FilterContext
 from .models import Unicycle
@@ -423,6 +424,12 @@ class OwnInnovations:
         return {**dict(zip(NOISE_KEYS, sigmas, strict=True)), **found}
 
 
+def own_fit_problem(fitted: dict) -> str | None:
+    """Why a cached fit of one run's own innovations (what `OwnInnovations.fit_noise` returns)
+    cannot be used: its four sigmas, each a number whose square is finite and positive."""
+    return sigmas_problem(fitted, NOISE_KEYS, "")
+
+
 def own_innovations(scenario: RealScenario, inputs: SegmentInputs) -> OwnInnovations:
     """The objective of `ekf-ml` on one run: its timeline from its cold start (the start pose,
     as every filter's), with the scenario's P0, gate and T0; `inputs.truth` is not passed on."""
@@ -472,7 +479,7 @@ def fit_on_own_innovations(
             own = own_innovations(scenario, inp)
             fp = own_fit_fingerprint(spec, own)
             path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fp)
-            cached = None if path is None else read_cached_fit(path, fp)
+            cached = None if path is None else read_cached_fit(path, fp, own_fit_problem)
             found[spec.name, inp.segment.index] = (fp, cached is not None, cached)
             if cached is None:
                 todo.append((spec, inp.segment.index, own, fp, path))

@@ -56,7 +56,7 @@ def _fit_or_read(spec, fingerprint: str, cache_dir: Path | None, fit) -> tuple[d
     """`fit()` (what `spec.fit_recorded` returns), or the cached fit of `fingerprint`; written
     to the cache when fitted. Returns (fitted, cached)."""
     path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fingerprint)
-    fitted = None if path is None else read_cached_fit(path, fingerprint)
+    fitted = None if path is None else read_cached_fit(path, fingerprint, spec.fit_problem)
     if fitted is not None:
         return fitted, True
     try:

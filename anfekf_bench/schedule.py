@@ -27,6 +27,7 @@ measure).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Annotated, Literal
 
 import numpy as np
@@ -37,9 +38,18 @@ from .schema import StrictModel
 CHANNELS: tuple[str, ...] = ("speed", "steering", "range", "bearing")  # the order of u and z
 GROUPS: dict[str, tuple[str, ...]] = {"Qu": ("speed", "steering"), "R": ("range", "bearing")}
 Channel = Literal["speed", "steering", "range", "bearing", "R", "Qu"]
+# The TRUE variance of a channel over true_noise's, at any instant: every factor, and the
+# product of the factors in force at once (changes and the outliers' variance inflation), lies
+# in [VARIANCE_FACTOR_MIN, VARIANCE_FACTOR_MAX]. Outside, the variances leave what a filter can
+# use (52 factors of 1e6 overflow to inf; 1e-300 makes the oracle's R vanish).
+VARIANCE_FACTOR_MIN = 1e-6
+VARIANCE_FACTOR_MAX = 1e6
 Seconds = Annotated[float, Field(ge=0, le=1e7, allow_inf_nan=False)]
-Factor = Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)]
+# (each factor's lower bound is the product's: a factor is in force at some instant; `gt=0`
+# here keeps the schema's text)
+Factor = Annotated[float, Field(gt=0, le=VARIANCE_FACTOR_MAX, allow_inf_nan=False)]
 MAX_ITEMS = 100
+SEARCH_STEPS = 48  # golden-section steps for a maximum inside a segment (0.618^48: 1e-10)
 
 
 def _window_ok(start: float, end: float | None, what: str) -> None:
@@ -167,6 +177,61 @@ class NoiseSchedule(StrictModel):
             raise ValueError("an empty schedule: give changes, outliers or blackouts (or drop it)")
         return self
 
+    @model_validator(mode="after")
+    def _factors_in_range(self) -> NoiseSchedule:
+        problem = self.factor_range_problem()
+        if problem:
+            raise ValueError(problem)
+        return self
+
+    def factor_range_problem(self) -> str | None:
+        """Why the product of the variance factors in force at some instant (the changes and
+        the outliers' inflation) leaves [VARIANCE_FACTOR_MIN, VARIANCE_FACTOR_MAX] on a
+        channel, or None. Exact: between two consecutive change points the steps and outliers
+        are constant and each ramp is affine, so the log of the product is a constant plus a
+        sum of logs of affine functions, concave: its minimum is at an end of the segment, its
+        maximum found by golden-section search (logs throughout: no overflow)."""
+        ends = self.change_points()
+        a = np.array([0.0, *ends])  # segments [a, b); the last one runs on with all constant
+        b = np.array([*ends, ends[-1] + 1.0 if ends else 1.0])
+        middle = (a + b) / 2
+        held = self._log_held(middle)  # (segments, 4): steps and outliers in force on [a, b)
+        ramps = _LogRamps([change for change in self.changes if change.shape == "ramp"])
+        lo = held + np.minimum(ramps(a), ramps(b))
+        hi = held + np.maximum(ramps(a), ramps(b))
+        # Inside a segment the product can only pass its ends where each ramp's own maximum
+        # would (a bound): search only there.
+        search = (held + ramps.upper(a, b) > np.log(VARIANCE_FACTOR_MAX)).any(axis=1)
+        if search.any():
+            hi[search] = held[search] + _concave_max(ramps, a[search], b[search])
+        for extreme, bound, beyond in (
+            (hi, VARIANCE_FACTOR_MAX, np.greater), (lo, VARIANCE_FACTOR_MIN, np.less),
+        ):  # fmt: skip
+            bad = beyond(extreme, np.log(bound) + (1e-9 if bound > 1 else -1e-9))
+            if bad.any():
+                seg, ch = np.argwhere(bad)[0]
+                return (
+                    f"the variance factors in force at once on {CHANNELS[ch]} (from"
+                    f" {a[seg]:g} s) multiply to {_power(extreme[seg, ch])}; allowed: every"
+                    f" factor and the product of those in force at any instant (changes and"
+                    f" outliers) within [{VARIANCE_FACTOR_MIN:g}, {VARIANCE_FACTOR_MAX:g}]"
+                )
+        return None
+
+    def _log_held(self, t: np.ndarray) -> np.ndarray:
+        """log of the steps' factors and the outliers' inflation at t, per channel."""
+        out = np.zeros((len(t), len(CHANNELS)))
+        for change in self.changes:
+            if change.shape == "step":
+                f = np.log(change.factor_at(t))
+                for c in change.affected():
+                    out[:, CHANNELS.index(c)] += f
+        if self.outliers is not None:
+            f = np.where(self.outliers.active(t), np.log(self.outliers.variance_inflation()), 0.0)
+            for c in self.outliers.affected():
+                out[:, CHANNELS.index(c)] += f
+        return out
+
     def change_points(self, t_end: float | None = None) -> list[float]:
         """Every time at which the true noise (or the sensor's presence) changes, sorted, those
         after 0 and (with `t_end`) before it: the phases' boundaries."""
@@ -208,6 +273,63 @@ class NoiseSchedule(StrictModel):
             for c in self.outliers.affected():
                 var[on, CHANNELS.index(c)] *= inflation
         return var
+
+
+class _LogRamps:
+    """t -> log of the ramps' factors at t, per channel (continuous in t): one matrix product
+    over all ramps, as the range search calls it often."""
+
+    def __init__(self, ramps: list[NoiseChange]):
+        self.start = np.array([r.start_s for r in ramps])
+        self.length = np.array([r.end_s - r.start_s for r in ramps])
+        self.factor = np.array([r.factor for r in ramps])
+        member = [[c in r.affected() for c in CHANNELS] for r in ramps]
+        self.member = np.array(member, dtype=float).reshape(len(ramps), len(CHANNELS))
+
+    def each(self, t: np.ndarray) -> np.ndarray:
+        share = np.clip((np.asarray(t)[:, None] - self.start) / self.length, 0.0, 1.0)
+        # (1 - share) + factor * share: exact at both ends, whatever the factor's size
+        return np.log((1.0 - share) + self.factor * share)
+
+    def __call__(self, t: np.ndarray) -> np.ndarray:
+        return self.each(t) @ self.member
+
+    def upper(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """A bound of the maximum on [a, b]: each ramp at its own largest end."""
+        return np.maximum(self.each(a), self.each(b)) @ self.member
+
+
+def _concave_max(f: Callable[[np.ndarray], np.ndarray], a: np.ndarray, b: np.ndarray):
+    """The maximum over [a, b] of f (t -> (len(t), channels), each column concave in t on every
+    segment), per segment and channel: golden-section search, the channels side by side."""
+    best = np.maximum(f(a), f(b))
+    n, channels = best.shape
+    ratio = (np.sqrt(5.0) - 1.0) / 2.0
+    lo, hi = np.repeat(a[:, None], channels, 1), np.repeat(b[:, None], channels, 1)
+    own = np.arange(channels)
+
+    def g(t: np.ndarray) -> np.ndarray:  # (n, channels) times -> each channel's own value
+        return f(t.ravel()).reshape(n, channels, channels)[:, own, own]
+
+    for _ in range(SEARCH_STEPS):
+        m1, m2 = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
+        right = g(m2) >= g(m1)
+        lo, hi = np.where(right, m1, lo), np.where(right, hi, m2)
+    return np.maximum(best, g((lo + hi) / 2))
+
+
+def _power(log_value: float) -> str:
+    """exp(log_value) as text, also where it is beyond the float range ('1e+312')."""
+    if not np.isfinite(log_value):
+        return "0" if log_value < 0 else "inf"
+    exponent = log_value / np.log(10.0)
+    if abs(exponent) < 300:
+        return f"{np.exp(log_value):.3g}"
+    whole = int(np.floor(exponent))
+    mantissa = f"{10 ** (exponent - whole):.3g}"
+    if mantissa == "10":  # 9.9996 rounded
+        mantissa, whole = "1", whole + 1
+    return f"{mantissa}e{whole:+d}"
 
 
 class ScheduledNoise:

@@ -184,6 +184,33 @@ def write_atomic(path: Path, write: Callable[[Path], None], *, durable: bool = T
         raise
 
 
+def write_new(path: Path, data: bytes) -> None:
+    """Create `path` holding `data`, whole, only where nothing is: FileExistsError when anything
+    is there (a file, a folder, a symlink, a dangling one included). The bytes go to a
+    temporary file beside it first, which is then hard-linked to `path`: the link is created, or
+    fails because `path` exists, in one step, so of two writers racing for one path exactly one
+    succeeds and no reader sees a partial file (no check-then-rename race). On a file system
+    without hard links, `O_CREAT | O_EXCL` (exclusive as well; the bytes follow the creation)."""
+    path = Path(path)
+    fd, tmp_name = tempfile.mkstemp(prefix=".anfekf-new-", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp_name, _file_mode())
+        try:
+            os.link(tmp_name, path)
+        except OSError as exc:
+            if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK):
+                raise
+            flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
+            with os.fdopen(os.open(path, flags, _file_mode()), "wb") as fh:
+                fh.write(data)
+    finally:
+        os.unlink(tmp_name)
+
+
 def output_path_problem(path: Path, *, folder: bool, option: str = "--out") -> str | None:
     """Why `path` cannot be written as an output folder (or file), checked before long work;
     None when it can. The sentence names the option it came from (`out` in the Python API)."""

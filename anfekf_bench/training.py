@@ -147,9 +147,8 @@ def fit_filters(plan, cache_dir: Path | None, progress: Any = None) -> Fits:
     for spec in todo:
         fingerprint = plan.source.training_fingerprint(plan, spec)
         path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fingerprint)
-        stored[spec.name] = (
-            fingerprint, path, None if path is None else read_cached_fit(path, fingerprint)
-        )  # fmt: skip
+        cached = None if path is None else read_cached_fit(path, fingerprint, spec.fit_problem)
+        stored[spec.name] = (fingerprint, path, cached)
     if plan.jobs > 1:
         # The noise fits not in the cache: their starts in one batch of workers
         # (`prepare_noise_fits`); each fit below then finds its starts done, the same numbers.

@@ -15,6 +15,7 @@ fixed EKF (engines.tuning): `ekf-ml` maximises the innovation log-likelihood (no
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import Field, PrivateAttr
@@ -23,6 +24,25 @@ from .ekf import RobotEKF
 from .spec import FilterContext, FilterSpec
 
 Multiplier = Annotated[float, Field(gt=0, le=1e3, allow_inf_nan=False)]
+FITTED_SIGMAS = ("sigma_v", "sigma_gamma", "sigma_range", "sigma_bearing")  # `sigmas_rad` keys
+# A fitted sigma read back from the fit cache: a number whose square is finite and positive
+SIGMA_LIMITS = (1e-100, 1e100)
+
+
+def sigmas_problem(doc: Any, keys: tuple[str, ...], where: str) -> str | None:
+    """Why `doc` does not hold a usable sigma under every one of `keys` (a number within
+    SIGMA_LIMITS: a string, a missing key, zero, a negative or an overflowing value is
+    refused), or None; `where` prefixes the field named ("sigmas_rad.")."""
+    if not isinstance(doc, dict):
+        return f"{where.rstrip('.') or 'fit'}: must be a mapping of {', '.join(keys)}"
+    lo, hi = SIGMA_LIMITS
+    for key in keys:
+        value = doc.get(key)
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if not number or not (math.isfinite(value) and lo <= value <= hi):
+            shown = "missing" if key not in doc else f"got {str(value)[:40]!r}"
+            return f"{where}{key}: must be a number in [{lo:g}, {hi:g}] ({shown})"
+    return None
 
 
 class FilterNotFitted(RuntimeError):
@@ -54,6 +74,12 @@ class FittedSpec(FilterSpec):
     def fit_record(self, fitted: dict) -> dict:
         """What the manifest's `training` key records of `fitted` (all of it, unless bulky)."""
         return fitted
+
+    def fit_problem(self, fitted: Any) -> str | None:
+        """Why `fitted`, read back from the fit cache (outputs.read_cached_fit), cannot be
+        handed to `with_fit` ("<field>: <why>"), or None: what a hand-edited or damaged cache
+        file must never get past."""
+        return None if isinstance(fitted, dict) else "fitted: must be a mapping"
 
     def noise_fit_request(self) -> tuple[str, list[float], int] | None:
         """(criterion, starts, max_evaluations) when `fit` is a `fit_noise` of the training
@@ -93,6 +119,10 @@ class FittedNoiseSpec(FittedSpec):
 
     def noise_fit_request(self) -> tuple[str, list[float], int]:
         return self.criterion, list(self.starts), self.max_evaluations
+
+    def fit_problem(self, fitted: Any) -> str | None:
+        problem = super().fit_problem(fitted)
+        return problem or sigmas_problem(fitted.get("sigmas_rad"), FITTED_SIGMAS, "sigmas_rad.")
 
     def fitted_sigmas(self) -> tuple[float, float, float, float]:
         """(sv, sg, sr, sb) in radians, as `NoiseSigmas.radians` gives them."""

@@ -37,6 +37,7 @@ import importlib.util
 import io
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
@@ -144,26 +145,116 @@ class KalmanNetWeights:
 
     @classmethod
     def from_bytes(cls, data: bytes) -> KalmanNetWeights:
+        """The weights `to_bytes` wrote; ValueError (one phrase) for anything else: a header
+        that is not this format's, negative or inconsistent shapes, scales that are not
+        finite and positive, a body of another size, values that are not finite."""
         head, _, body = data.partition(b"\n")
-        header = json.loads(head)
-        if header.get("format") != "anfekf-kalmannet-1":
+        try:
+            header = json.loads(head.decode("utf-8"))
+        except ValueError:  # not UTF-8 (UnicodeDecodeError is one) or not JSON
+            raise ValueError("KalmanNet weights: the header is not JSON") from None
+        if not isinstance(header, dict) or header.get("format") != "anfekf-kalmannet-1":
             raise ValueError("not a KalmanNet weights file (format anfekf-kalmannet-1)")
+        hidden = header.get("hidden_size")
+        if not _whole(hidden) or not 1 <= hidden <= 1024:
+            raise ValueError("KalmanNet weights: hidden_size must be an integer in [1, 1024]")
+        obs_scale = _positive_floats(header.get("obs_scale"), N_OBS, "obs_scale")
+        state_scale = _positive_floats(header.get("state_scale"), N_STATE, "state_scale")
+        (range_scale,) = _positive_floats([header.get("range_scale")], 1, "range_scale")
+        expected = weight_shapes(hidden)
+        listed = header.get("arrays")
+        if not isinstance(listed, list) or not all(
+            isinstance(item, list) and len(item) == 2 and isinstance(item[0], str)
+            and isinstance(item[1], list) and all(_whole(n) and n >= 0 for n in item[1])
+            for item in listed
+        ):  # fmt: skip
+            raise ValueError("KalmanNet weights: arrays must be [name, [sizes >= 0]] pairs")
+        shapes = {name: tuple(shape) for name, shape in listed}
+        if len(shapes) != len(listed) or shapes != expected:
+            raise ValueError(
+                f"KalmanNet weights: the arrays and shapes of hidden_size {hidden} expected"
+            )
+        if len(body) != 8 * sum(math.prod(shape) for shape in shapes.values()):
+            raise ValueError("KalmanNet weights file: size does not match its header")
         arrays, offset = {}, 0
-        for name, shape in header["arrays"]:
+        for name, shape in listed:
             size = math.prod(shape)
             arrays[name] = np.frombuffer(body, dtype="<f8", count=size, offset=8 * offset).reshape(
                 shape
             )
             offset += size
-        if 8 * offset != len(body):
-            raise ValueError("KalmanNet weights file: size does not match its header")
+        if not all(np.isfinite(a).all() for a in arrays.values()):
+            raise ValueError("KalmanNet weights: a weight is not finite")
         return cls(
             arrays=arrays,
-            obs_scale=np.array(header["obs_scale"]),
-            state_scale=np.array(header["state_scale"]),
-            range_scale=float(header["range_scale"]),
-            hidden_size=int(header["hidden_size"]),
+            obs_scale=obs_scale,
+            state_scale=state_scale,
+            range_scale=float(range_scale),
+            hidden_size=int(hidden),
         )
+
+
+def _whole(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _positive_floats(values, n: int, name: str) -> np.ndarray:
+    """`values` as n finite, positive floats (the scales the features are divided by)."""
+    ok = isinstance(values, list) and len(values) == n and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+        for v in values
+    )  # fmt: skip
+    if not ok:
+        raise ValueError(f"KalmanNet weights: {name} must be {n} finite numbers > 0")
+    return np.array(values, dtype=float)
+
+
+def weight_shapes(hidden_size: int) -> dict[str, tuple[int, ...]]:
+    """Each array of a network of `hidden_size` and its shape (torch's layout, as `random`)."""
+    H = hidden_size
+    return {
+        "fc_in.weight": (H, N_FEATURES), "fc_in.bias": (H,),
+        "gru.weight_ih": (3 * H, H), "gru.bias_ih": (3 * H,),
+        "gru.weight_hh": (3 * H, H), "gru.bias_hh": (3 * H,),
+        "fc_out1.weight": (H, H), "fc_out1.bias": (H,),
+        "fc_out2.weight": (N_STATE * N_OBS, H), "fc_out2.bias": (N_STATE * N_OBS,),
+    }  # fmt: skip
+
+
+def fitted_weights_problem(fitted, hidden_size: int) -> str | None:
+    """Why `fitted` (what `KalmanNetSpec.fitted_doc` returns, read back from the fit cache)
+    cannot give a network of `hidden_size`, or None: the weights (base64, strict) must hash to
+    `weights_sha256` and be a valid weights file of that size (`from_bytes`); the cost fields
+    numbers. Needs no PyTorch."""
+    if not isinstance(fitted, dict):
+        return "fitted: must be a mapping"
+    digest, encoded = fitted.get("weights_sha256"), fitted.get("weights_base64")
+    if not isinstance(digest, str) or not re.fullmatch(r"[0-9a-f]{64}", digest):
+        return "weights_sha256: must be 64 hexadecimal digits"
+    if not isinstance(encoded, str):
+        return "weights_base64: must be text (base64)"
+    try:
+        data = base64.b64decode(encoded, validate=True)
+    except ValueError:  # binascii.Error is one
+        return "weights_base64: not valid base64"
+    if hashlib.sha256(data).hexdigest() != digest:
+        return "weights_base64: the weights do not match weights_sha256"
+    try:
+        weights = KalmanNetWeights.from_bytes(data)
+    except ValueError as exc:
+        return f"weights_base64: {exc}"
+    if weights.hidden_size != hidden_size:
+        return f"weights_base64: a network of hidden_size {weights.hidden_size}, not {hidden_size}"
+    epochs = fitted.get("epochs")
+    if not _whole(epochs) or epochs < 1 or not _whole(fitted.get("best_epoch")):
+        return "epochs, best_epoch: must be integers >= 1"
+    for key in ("epoch_loss", "validation_loss"):
+        values = fitted.get(key)
+        if not isinstance(values, list) or not all(
+            v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)) for v in values
+        ):
+            return f"{key}: must be a list of numbers"
+    return None
 
 
 @dataclass
@@ -495,6 +586,9 @@ class KalmanNetSpec(FittedSpec):
     def fit_record(self, fitted: dict) -> dict:
         """The manifest records the weights' hash and the cost, not the weights themselves."""
         return {k: v for k, v in fitted.items() if k != "weights_base64"}
+
+    def fit_problem(self, fitted) -> str | None:
+        return fitted_weights_problem(fitted, self.hidden_size)
 
     def with_fit(self, fitted: dict) -> KalmanNetSpec:
         data = base64.b64decode(fitted["weights_base64"])

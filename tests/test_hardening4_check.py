@@ -47,14 +47,20 @@ BAD_INTERVALS = {
     "comparison-infinite": ([_comparison(0.5, -math.inf, 0.55)], [HOLDS], "finite numbers"),
     "comparison-half-interval": ([_comparison(0.5, math.nan, 0.55)], [HOLDS], "both null"),
     "comparison-second-failing-row": (
-        [_comparison(0.5, 0.45, 0.55), _comparison(0.7, 0.65, 0.8)], [HOLDS], "second row"
+        [_comparison(0.5, 0.45, 0.55), _comparison(0.7, 0.65, 0.8)],
+        [HOLDS],
+        "second row",
     ),
     "claims-json-inverted": (None, [claim(CLAIM, "holds", 0.5, 1.9, 0.1)], "inverted"),
     "claims-json-estimate-outside": (
-        None, [claim(CLAIM, "holds", 5.0, 0.1, 0.2)], "outside its interval"
+        None,
+        [claim(CLAIM, "holds", 5.0, 0.1, 0.2)],
+        "outside its interval",
     ),
     "claims-json-second-different-record": (
-        None, [HOLDS, claim(CLAIM, "fails", 0.7, 0.65, 0.8)], "second, different result"
+        None,
+        [HOLDS, claim(CLAIM, "fails", 0.7, 0.65, 0.8)],
+        "second, different result",
     ),
 }
 

@@ -40,6 +40,7 @@ from .filters.spec import FilterSpec
 from .schedule import NoiseSchedule
 from .schema import NonNegativeFloat, PositiveFloat, StrictModel
 from .storage import FileProblem, read_regular_bytes, scenario_name_problem
+from .text import one_line  # noqa: F401  (re-exported: the one escaping helper)
 
 # Bounds: every value that passes validation can run. A coordinate beyond 10,000 km, a noise
 # sigma or P0 whose square overflows a float's range in the covariance algebra, or a map of more
@@ -65,11 +66,6 @@ YAML_MAX_DEPTH = 32
 YAML_MAX_VALUES = 3 * MAX_POINTS + 100_000  # an inline map of MAX_POINTS [x, y] and the rest
 # Filter names appear in tables, figure legends and file contents: plain characters only.
 FILTER_NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9 _.+-]{0,63}")
-
-
-def one_line(text: str) -> str:
-    """`text` with line breaks and other control characters escaped (a key may hold them)."""
-    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 class ScenarioError(Exception):

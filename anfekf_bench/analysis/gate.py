@@ -12,7 +12,8 @@ Verdicts, per row (every verdict but "ok" fails the gate; see RULES, also writte
 - ok: within tolerance.
 - worse / better (refresh the baseline): beyond tolerance, in the bad / good direction. An
   improvement fails too: results must not change silently, and the baseline has to follow.
-- changed: beyond tolerance for a metric without a direction, or the seed or run count differs.
+- changed: beyond tolerance for a metric without a direction.
+- not comparable: the seed or run count differs; that scenario's metrics are not compared.
 - missing: a scenario or filter of the baseline is not in the results.
 - new (not in the baseline): a scenario or filter of the results that the baseline does not guard.
 """
@@ -48,8 +49,10 @@ from ..storage import (
     sweep_folders,
     write_json,
 )
+from ..text import one_line
 from .comparisons import SHARE_METRICS, claim_text
 from .comparisons import _point_verdict as point_verdict
+from .statistics import DEGENERATE_RTOL
 from .statistics import verdict as interval_verdict
 
 BASELINE_FORMAT = "anfekf-bench baseline"
@@ -83,8 +86,9 @@ RULES = [
     "Each (scenario, filter, metric) of the results is compared with this file's value within the"
     " metric's tolerance: relative = |now - baseline| / |baseline|, absolute = |now - baseline|.",
     "Every verdict but 'ok' fails the gate (exit 1): 'worse' and 'better (refresh the baseline)'"
-    " (beyond tolerance either way: results must not change silently), 'changed' (no better side,"
-    " or other seed/runs), 'missing' and 'new' (scenario or filter only on one side).",
+    " (beyond tolerance either way: results must not change silently), 'changed' (no better"
+    " side), 'not comparable' (other seed or runs: the metrics are not compared), 'missing' and"
+    " 'new' (scenario or filter only on one side).",
     "Better is lower for rmse_pos, rmse_heading and diverged, higher for nees_in_bounds and"
     " runs_used, closer to 3 for anees and to 2 for anis (as |log(value / ideal)|).",
     "A null value means undefined (every run diverged); becoming undefined counts as 'worse'.",
@@ -575,19 +579,26 @@ def compare_metric(
     return Row(scenario, filt, metric, base, now, delta, verdict, detail)
 
 
+NOT_COMPARABLE = "not comparable"
+
+
 def _setup_rows(base: ScenarioSummary, now: ScenarioSummary) -> list[Row]:
-    """Seed and run count must match, or the metrics are not comparable."""
+    """Seed and run count must match, or the metrics are not comparable (and are not compared:
+    a 50-run result judged against a 20-run baseline would list changes that mean nothing)."""
     rows = []
     for key in ("seed", "runs"):
         b, n = getattr(base, key), getattr(now, key)
         detail = ""
         if b != n:
             detail = (
-                f"{base.name}: results made with {key} {n}, the baseline with {b}: not comparable"
-                " (run the baseline's configuration, or refresh the baseline)"
+                f"{base.name}: results made with {key} {n}, the baseline with {b}: not"
+                f" comparable, metrics not compared (run it with the baseline's seed {base.seed}"
+                f" and runs {base.runs}: anfekf run SCENARIO --seed {base.seed} --runs"
+                f" {base.runs}; or, to make these results the baseline, --update deliberately)"
             )
         delta = "" if b == n else f"{n - b:+d}"
-        rows.append(Row(base.name, "-", key, b, n, delta, "ok" if b == n else "changed", detail))
+        rows.append(Row(base.name, "-", key, b, n, delta, "ok" if b == n else NOT_COMPARABLE,
+                        detail))  # fmt: skip
     return rows
 
 
@@ -613,7 +624,10 @@ def compare(baseline: Baseline, results: dict[str, ScenarioSummary]) -> list[Row
         if base is None or now is None:
             rows.append(_presence_row(name, "-", in_baseline=base is not None))
             continue
-        rows.extend(_setup_rows(base, now))
+        setup = _setup_rows(base, now)
+        rows.extend(setup)
+        if not all(r.passed for r in setup):
+            continue
         for filt in _union(base.filters, now.filters):
             if filt not in base.filters or filt not in now.filters:
                 rows.append(_presence_row(name, filt, in_baseline=filt in base.filters))
@@ -640,24 +654,65 @@ def _optional(value) -> float | None:
     return None if value is None else _number(value)
 
 
-def _stored_claims(path: Path) -> list[dict]:
-    """claims.json's records (their intervals; their verdicts are never trusted)."""
+def interval_problem(estimate: float, lo: float, hi: float) -> str | None:
+    """What is wrong with a stored (estimate, lo, hi) (NaN = null), or None: what `anfekf run`
+    writes is finite numbers or null, lo <= estimate <= hi (within the writer's own slack), and
+    no interval without an estimate. A hand-edited row is refused, never decided on."""
+    if any(math.isinf(v) for v in (estimate, lo, hi)):
+        return "estimate, lo and hi must be finite numbers or null"
+    if math.isnan(lo) != math.isnan(hi):
+        return "lo and hi must both be numbers or both null"
+    if math.isnan(lo):
+        return None  # no interval (a share, too few runs, a biased bootstrap): a point only
+    shown = f"[{_fmt_value(lo)}, {_fmt_value(hi)}]"
+    if lo > hi:
+        return f"the interval {shown} is inverted; expected lo <= hi"
+    if math.isnan(estimate):
+        return f"an interval {shown} without an estimate"
+    slack = DEGENERATE_RTOL * abs(estimate)
+    if not lo - slack <= estimate <= hi + slack:
+        return (
+            f"estimate {_fmt_value(estimate)} outside its interval {shown};"
+            " expected lo <= estimate <= hi"
+        )
+    return None
+
+
+def _stored_claims(path: Path) -> dict[str, dict]:
+    """claims.json's records by claim text (their intervals; their verdicts are never trusted),
+    each interval valid and one result per claim."""
     if not path.exists():
-        return []
+        return {}
     doc = read_json(path)
     if not isinstance(doc, list):
         raise ResultsError(f"{path}: expected a list of claims")
-    out = []
-    for item in doc:
+    out: dict[str, dict] = {}
+    for i, item in enumerate(doc):
         try:
-            out.append(
-                {"claim": str(item["claim"]), "estimate": _optional(item["estimate"]),
-                 "lo": _optional(item["lo"]), "hi": _optional(item["hi"]),
-                 "verdict": str(item["verdict"]), "warning": str(item.get("warning", ""))}
-            )  # fmt: skip
+            record = {"claim": str(item["claim"]), "estimate": _optional(item["estimate"]),
+                      "lo": _optional(item["lo"]), "hi": _optional(item["hi"]),
+                      "verdict": str(item["verdict"]),
+                      "warning": str(item.get("warning", ""))}  # fmt: skip
         except (KeyError, TypeError, ValueError, BaselineError):
             raise ResultsError(f"{path}: not a claims file written by anfekf run") from None
+        found = tuple(_number(record[k]) for k in ("estimate", "lo", "hi"))
+        problem = interval_problem(*found)
+        if problem:
+            raise ResultsError(f"{path}: {i} ({record['claim'][:60]}): {problem}")
+        earlier = out.get(record["claim"])
+        if earlier is not None and _interval_of(earlier) != _interval_of(record):
+            # A scenario may declare one claim twice (two equal records); two different
+            # results for one claim leave nothing to decide on.
+            raise ResultsError(
+                f"{path}: {i} ({record['claim'][:60]}): a second, different result for one claim;"
+                " expected one result per claim"
+            )
+        out[record["claim"]] = record
     return out
+
+
+def _interval_of(record: dict) -> tuple:
+    return tuple(repr(record[k]) for k in ("estimate", "lo", "hi"))  # NaN equals NaN here
 
 
 def _declared_claims(folder: Path) -> list:
@@ -679,38 +734,50 @@ def _declared_claims(folder: Path) -> list:
     return out
 
 
-def _compared(folder: Path, claim) -> tuple[float, float, float] | None:
-    """The paired interval of a claim's (filter, vs, metric) in comparisons.parquet, if there."""
+Intervals = dict[tuple[str, str, str], tuple[float, float, float]]
+
+
+def compared_intervals(folder: Path) -> Intervals:
+    """comparisons.parquet's paired intervals by (filter, vs, metric), read once per scenario:
+    every row valid (`interval_problem`) and one row per (filter, vs, metric)."""
     path = Path(folder) / COMPARISONS_FILE
-    if claim.vs is None or not path.exists():
-        return None
+    if not path.exists():
+        return {}
     table = read_parquet(path)
     if not {"filter", "vs", "metric", "estimate", "lo", "hi"} <= set(table.columns):
         raise ResultsError(f"{path}: missing the filter, vs, metric or interval columns")
-    hit = table[
-        (table["filter"].astype(str) == claim.filter)
-        & (table["vs"].astype(str) == claim.vs)
-        & (table["metric"].astype(str) == claim.metric)
-    ]
-    if len(hit) == 0:
-        return None
+    keys = zip(*(table[k].astype(str).tolist() for k in ("filter", "vs", "metric")), strict=True)
     try:
-        return tuple(_number(hit.iloc[0][k]) for k in ("estimate", "lo", "hi"))
+        values = table[["estimate", "lo", "hi"]].to_numpy(dtype=float).tolist()
     except (TypeError, ValueError):
-        shown = claim_text(claim)
-        raise ResultsError(f"{path}: the interval of {shown!r} is not numbers") from None
+        raise ResultsError(f"{path}: estimate, lo, hi: expected numbers") from None
+    out: Intervals = {}
+    for i, (key, found) in enumerate(zip(keys, values, strict=True)):
+        where = f"{path}: row {i} ({key[0][:40]} vs {key[1][:40]}, {key[2][:20]})"
+        if key in out:
+            raise ResultsError(f"{where}: a second row for one comparison; expected one row each")
+        problem = interval_problem(*found)
+        if problem:
+            raise ResultsError(f"{where}: {problem}")
+        out[key] = tuple(found)
+    return out
 
 
 def read_claims(folder: Path, scenario: str) -> list[ClaimResult]:
     """Every claim the scenario declares (SPEC 8), its verdict decided here again on its paired
     interval (comparisons.parquet, else claims.json) and the declared threshold: a verdict
-    stored in claims.json is never trusted, and a declared claim without an interval fails."""
-    stored = {r["claim"]: r for r in _stored_claims(Path(folder) / CLAIMS_FILE)}
+    stored in claims.json is never trusted, and a declared claim without an interval fails.
+    Both files are read once and every stored interval is validated before any is decided on."""
+    declared = _declared_claims(folder)
+    if not declared:
+        return []
+    stored = _stored_claims(Path(folder) / CLAIMS_FILE)
+    compared = compared_intervals(folder)
     out = []
-    for claim in _declared_claims(folder):
+    for claim in declared:
         text = claim_text(claim)
         record = stored.get(text)
-        found = _compared(folder, claim)
+        found = None if claim.vs is None else compared.get((claim.filter, claim.vs, claim.metric))
         if found is None and record is not None:
             found = (record["estimate"], record["lo"], record["hi"])
         if found is None:
@@ -782,8 +849,14 @@ def _row_style(passed: bool) -> str:
     return "" if passed else "bold red"
 
 
+# Rows drawn as a table at most; beyond it (a baseline of thousands of scenarios) the table holds
+# the failing rows only, up to this many: drawing 27,000 rows took rich minutes. Every failing row
+# still gets its plain FAIL line.
+TABLE_ROWS = 200
+
+
 def comparison_table(rows: list[Row], title: str) -> Table:
-    table = Table(title=title, title_justify="left")
+    table = Table(title=Text(one_line(title)), title_justify="left")
     for col in ("scenario", "filter", "metric", "baseline", "now", "delta", "verdict"):
         right = col in ("baseline", "now", "delta")
         table.add_column(col, justify="right" if right else "left", overflow="fold")
@@ -797,7 +870,8 @@ def comparison_table(rows: list[Row], title: str) -> Table:
             r.delta,
             r.verdict,
         )
-        table.add_row(*(Text(c) for c in cells), style=_row_style(r.passed))
+        # Names come from hand-editable files: escaped, never acted on by the terminal.
+        table.add_row(*(Text(one_line(c)) for c in cells), style=_row_style(r.passed))
     return table
 
 
@@ -811,25 +885,40 @@ def claims_table(claims: list[ClaimResult], strict: bool) -> Table:
             "" if c.lo is None or c.hi is None else f"[{_fmt_value(c.lo)}, {_fmt_value(c.hi)}]"
         )
         cells = (c.scenario, c.text, _fmt_value(c.estimate), interval, c.verdict, c.note)
-        table.add_row(*(Text(x) for x in cells), style=_row_style(c.passed(strict)))
+        table.add_row(*(Text(one_line(x)) for x in cells), style=_row_style(c.passed(strict)))
     return table
+
+
+def _shown_rows(rows: list, passed) -> tuple[list, str]:
+    """The rows a table draws (all, or the first TABLE_ROWS failing ones) and a title note."""
+    if len(rows) <= TABLE_ROWS:
+        return rows, ""
+    failing = [r for r in rows if not passed(r)]
+    shown = failing[:TABLE_ROWS]
+    return shown, f" ({len(shown)} of {len(rows)} rows: failing rows only; each one below too)"
 
 
 def print_report(report: Report, console: Console) -> None:
     """The tables, then one plain line per failure (readable in CI logs), then the verdict."""
 
-    def say(text: str) -> None:
-        console.print(text, markup=False, highlight=False, soft_wrap=True)
+    def say(*lines: str) -> None:
+        if lines:  # one print of every line: thousands of prints took rich seconds each 1,000
+            text = "\n".join(one_line(line) for line in lines)
+            console.print(text, markup=False, highlight=False, soft_wrap=True)
 
     if report.rows:
-        title = f"{report.results_dir} against {report.baseline_path}"
-        console.print(comparison_table(report.rows, title))
+        rows, note = _shown_rows(report.rows, lambda r: r.passed)
+        title = f"{report.results_dir} against {report.baseline_path}{note}"
+        if rows:
+            console.print(comparison_table(rows, title))
     if report.claims:
-        console.print(claims_table(report.claims, report.strict))
-    for row in report.failed_rows:
-        say(f"FAIL {row.detail}")
-    for claim in report.broken_claims:
-        say(f"FAIL {claim.detail}")
+        claims, note = _shown_rows(report.claims, lambda c: c.passed(report.strict))
+        table = claims_table(claims, report.strict)
+        table.title = (table.title or "") + note
+        if claims:
+            console.print(table)
+    say(*(f"FAIL {row.detail}" for row in report.failed_rows))
+    say(*(f"FAIL {claim.detail}" for claim in report.broken_claims))
     if report.updated:
         say(f"baseline written to {report.baseline_path} from {report.results_dir}")
         if report.dropped:
@@ -854,7 +943,15 @@ def print_report(report: Report, console: Console) -> None:
     if report.broken_claims:
         parts.append(f"{len(report.broken_claims)} claims failed")
     say(f"regression gate FAILED: {', '.join(parts)}")
-    if report.failed_rows:
+    apart = sorted({r.scenario for r in report.failed_rows if r.verdict == NOT_COMPARABLE})
+    if apart:
+        say(
+            f"not comparable: {', '.join(apart)} (another seed or run count than the baseline's;"
+            " their metrics were not compared). Run them with the baseline's seed and runs; only"
+            " if these results are meant to become the baseline, replace it deliberately:"
+            f" anfekf check {report.results_dir} --baseline {report.baseline_path} --update"
+        )
+    if any(r.verdict != NOT_COMPARABLE for r in report.failed_rows):
         say(
             "if the change is intended, refresh the baseline on purpose:"
             f" anfekf check {report.results_dir} --baseline {report.baseline_path} --update"

@@ -1,0 +1,11 @@
+"""Text shown to the user: one line, control characters escaped.
+
+Imports nothing (the command line's fast paths, `--version`, `--help`, use it before any of the
+heavy modules load)."""
+
+from __future__ import annotations
+
+
+def one_line(text: str) -> str:
+    """`text` with line breaks and other control characters escaped (a key may hold them)."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)

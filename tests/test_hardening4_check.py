@@ -1,0 +1,168 @@
+"""Hardening 4 (issues 32 and 38): `anfekf check` on edited and huge result files, a result of
+another run count, hand-edited simulated manifests, write errors on stdout, and the fast paths of
+the command line (docs/HARDENING.md, "Hardening 4")."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from anfekf_bench.analysis import gate
+from anfekf_bench.storage import COMPARISONS_FILE, MANIFEST_FILE, write_parquet
+
+from .test_check import _fail_lines, check, claim, paper_like, write_results
+from .test_confinement import assert_one_line_error
+
+CLAIM = "anfekf rmse_pos <= 0.6 x ekf"  # what write_results declares in every scenario
+
+
+def _comparison(estimate: float, lo: float, hi: float, **keys) -> dict:
+    """One comparisons.parquet row as `anfekf run` writes it."""
+    row = {"scenario": "wrong_r", "filter": "anfekf", "vs": "ekf", "metric": "rmse_pos",
+           "kind": "ratio", "runs_used": 20, "estimate": estimate, "lo": lo, "hi": hi,
+           "method": "BCa", "p_value": 0.01, "test": "Wilcoxon signed-rank"}  # fmt: skip
+    return {**row, **keys}
+
+
+def _results_with(tmp_path: Path, comparisons: list[dict] | None, claims: list[dict]) -> Path:
+    results = write_results(tmp_path / "res", {"wrong_r": paper_like()["wrong_r"]},
+                            claims={"wrong_r": claims})  # fmt: skip
+    if comparisons is not None:
+        write_parquet(results / "wrong_r" / COMPARISONS_FILE, pd.DataFrame(comparisons))
+    return results
+
+
+HOLDS = claim(CLAIM, "holds", 0.5, 0.45, 0.55)
+
+# id: (comparisons.parquet rows or None, claims.json records, words of the one-line error). On
+# main each of these "held" (exit 0): the interval was decided on whatever it said.
+BAD_INTERVALS = {
+    "comparison-inverted": ([_comparison(0.5, 1.9, 0.1)], [HOLDS], "inverted"),
+    "comparison-estimate-outside": ([_comparison(5.0, 0.1, 0.2)], [HOLDS], "outside its interval"),
+    "comparison-infinite": ([_comparison(0.5, -math.inf, 0.55)], [HOLDS], "finite numbers"),
+    "comparison-half-interval": ([_comparison(0.5, math.nan, 0.55)], [HOLDS], "both null"),
+    "comparison-second-failing-row": (
+        [_comparison(0.5, 0.45, 0.55), _comparison(0.7, 0.65, 0.8)],
+        [HOLDS],
+        "second row",
+    ),
+    "claims-json-inverted": (None, [claim(CLAIM, "holds", 0.5, 1.9, 0.1)], "inverted"),
+    "claims-json-estimate-outside": (
+        None,
+        [claim(CLAIM, "holds", 5.0, 0.1, 0.2)],
+        "outside its interval",
+    ),
+    "claims-json-second-different-record": (
+        None,
+        [HOLDS, claim(CLAIM, "fails", 0.7, 0.65, 0.8)],
+        "second, different result",
+    ),
+}
+
+
+@pytest.mark.parametrize("comparisons, claims, words", BAD_INTERVALS.values(), ids=BAD_INTERVALS)
+def test_an_edited_interval_is_refused_before_any_claim_is_decided(
+    tmp_path, comparisons, claims, words
+):
+    results = _results_with(tmp_path, comparisons, claims)
+    where = COMPARISONS_FILE if comparisons is not None else "claims.json"
+    assert_one_line_error(check(results), where, words)
+
+
+def test_what_anfekf_run_writes_without_an_interval_still_decides(tmp_path):
+    """Null bounds (a share, too few runs, a biased bootstrap) and a declared claim written
+    twice are what `anfekf run` writes: inconclusive, not refused."""
+    point = claim(CLAIM, "inconclusive", 0.5, None, None)
+    results = _results_with(tmp_path, [_comparison(0.5, math.nan, math.nan)], [point, point])
+    result = check(results)
+    assert result.exit_code == 0, result.output
+    assert "1 inconclusive" in result.output or "2 inconclusive" in result.output
+
+
+def _many_claims(tmp_path: Path, n: int) -> Path:
+    """One scenario declaring `n` claims (thresholds apart), each decided on its comparison."""
+    results = _results_with(tmp_path, [_comparison(0.5, 0.45, 0.55)], [HOLDS])
+    path = results / "wrong_r" / MANIFEST_FILE
+    manifest = json.loads(path.read_text())
+    manifest["scenario"]["claims"] = [
+        {"filter": "anfekf", "vs": "ekf", "metric": "rmse_pos", "at_most": 0.5 + i * 1e-5}
+        for i in range(n)
+    ]
+    path.write_text(json.dumps(manifest))
+    return results
+
+
+def test_the_comparisons_file_is_read_once_per_scenario(tmp_path, monkeypatch):
+    """It was read (and filtered) once per claim: 10,000 claims took minutes."""
+    results = _many_claims(tmp_path, 50)
+    read = []
+    real = gate.read_parquet
+    monkeypatch.setattr(gate, "read_parquet", lambda p: read.append(Path(p).name) or real(p))
+    result = check(results)
+    assert result.exit_code == 0, result.output
+    assert read.count(COMPARISONS_FILE) == 1, read
+
+
+def test_ten_thousand_claims_take_seconds(tmp_path):
+    results = _many_claims(tmp_path, 10_000)
+    started = time.perf_counter()
+    result = check(results)
+    took = time.perf_counter() - started
+    assert result.exit_code == 0, result.output
+    assert "claims hold" in result.output
+    assert took < 60, f"{took:.1f} s (it was minutes)"
+
+
+def test_a_huge_baseline_draws_a_bounded_table_and_every_fail_line(tmp_path):
+    results = write_results(tmp_path / "res", {"wrong_r": paper_like()["wrong_r"]})
+    baseline = tmp_path / "ci.json"
+    assert check(results, "--baseline", baseline, "--update").exit_code == 0
+    doc = json.loads(baseline.read_text())
+    guarded = doc["scenarios"]["wrong_r"]
+    for i in range(1000):
+        doc["scenarios"][f"gone{i:04d}"] = guarded
+    baseline.write_text(json.dumps(doc))
+    result = check(results, "--baseline", baseline)
+    assert result.exit_code == 1, result.output
+    drawn = [line for line in result.output.splitlines() if line.startswith("│")]
+    assert len(drawn) <= gate.TABLE_ROWS + 10, len(drawn)
+    assert "failing rows only" in result.output
+    assert len(_fail_lines(result.output)) == 1000
+
+
+def test_results_of_another_run_count_are_not_judged_metric_by_metric(tmp_path):
+    """A 50-run result against the 20-run baseline: not comparable, said once per scenario with
+    what to do; no worse/better rows that mean nothing, no bare advice to --update."""
+    results = write_results(tmp_path / "res", paper_like())
+    baseline = tmp_path / "ci.json"
+    assert check(results, "--baseline", baseline, "--update").exit_code == 0
+    moved = paper_like()
+    moved["wrong_r"]["ekf"]["rmse_pos"] *= 2  # beyond tolerance: a row "worse" on main
+    write_results(results, moved, runs=50)
+    result = check(results, "--baseline", baseline)
+    assert result.exit_code == 1, result.output
+    out = result.output
+    for word in ("worse", "better", "within tolerance", "if the change is intended"):
+        assert word not in out, (word, out)
+    fails = _fail_lines(out)
+    assert len(fails) == 4, fails
+    assert all("not comparable" in f and "--runs 20" in f for f in fails), fails
+    assert "deliberately" in out and "--update" in out
+
+
+def test_escape_sequences_in_a_baseline_are_printed_escaped(tmp_path):
+    results = write_results(tmp_path / "res", {"wrong_r": paper_like()["wrong_r"]})
+    baseline = tmp_path / "ci.json"
+    assert check(results, "--baseline", baseline, "--update").exit_code == 0
+    doc = json.loads(baseline.read_text())
+    doc["scenarios"]["\x1b[2J\x1b[31mpwn"] = doc["scenarios"]["wrong_r"]
+    baseline.write_text(json.dumps(doc))
+    result = check(results, "--baseline", baseline)
+    assert result.exit_code == 1, result.output
+    assert "\x1b" not in result.output
+    assert "\\x1b[2J\\x1b[31mpwn" in result.output

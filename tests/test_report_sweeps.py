@@ -79,3 +79,45 @@ def test_the_sweep_heatmap_uses_the_one_ratio_scale_without_the_oracle_panel(swe
     # ... the colour the leaderboard gives a ratio of 1 (a fixed scale, not from the data)
     bar = [ax for ax in fig.axes if not ax.get_images() and ax.get_visible()][-1]
     assert "1.5" in [t.get_text() for t in bar.get_yticklabels()]
+
+
+def _run_sweep(root: Path, axes: list[dict]) -> Path:
+    doc = small_scenario(name="sc", runs=2, jobs=1, record_every=8)
+    doc["filter_noise"] = {}
+    doc["filters"] = [{"name": "ekf", "kind": "ekf"}, {"name": "ekf-oracle", "kind": "ekf-oracle"}]
+    doc["sweep"] = {"axes": axes}
+    path = write_scenario(root / "sc.yaml", doc)
+    scenario, _ = load_scenario(path)
+    cells = expand(scenario, path)
+    plans = cell_plans(cells, runs=None, seed=None, jobs=None)
+    return run_sweep(scenario.name, scenario.sweep.axes, cells, plans, root / "out")[1]
+
+
+@pytest.mark.parametrize(
+    "axis",
+    [
+        {"scale": "R", "factors": {"start": 0.5, "stop": 2.0, "num": 2}},  # as configs/sweeps
+        {"scale": "Qu", "values": [0.5, 2.0]},
+    ],
+    ids=["scale-factors", "scale-values"],
+)
+def test_a_sweep_with_a_scale_axis_renders(axis, tmp_path):
+    """A `scale:` axis has no `field` (its label is <scale>_factor): the report read the field
+    of every `factors:` axis and crashed with an AttributeError on None."""
+    target = _run_sweep(tmp_path, [axis])
+    data = read_sweep(target)
+    label = f"{axis['scale']}_factor"
+    assert data.axes == [label] and data.factor_axes == {label}
+    out = tmp_path / "report"
+    result = runner.invoke(app, ["report", str(target.parent), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert (out / "sweep-sc.png").is_file()
+    # a factor axis is drawn on a log scale
+    fig = line_figure_of(data)
+    assert all(ax.get_xscale() == "log" for ax in fig.axes if ax.axison)
+
+
+def line_figure_of(data):
+    from anfekf_bench.report.sweep import line_figure
+
+    return line_figure(data, data.axes[0], data.table, data.name)

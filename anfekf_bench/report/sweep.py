@@ -66,9 +66,15 @@ def read_sweep(folder: Path) -> SweepData:
     doc = read_json(folder / MANIFEST_FILE)
     table = read_parquet(folder / SWEEP_FILE)
     try:
-        axes = [a["field"] if a.get("field") else f"{a['scale']}_factor" for a in doc["axes"]]
-        factor_axes = {f"{a['scale']}_factor" for a in doc["axes"] if a.get("scale")}
-        factor_axes |= {a["field"] for a in doc["axes"] if a.get("factors")}
+        # an axis's label: its field, or "<scale>_factor" for a `scale:` axis (no field)
+        labels = [a["field"] if a.get("field") else f"{a['scale']}_factor" for a in doc["axes"]]
+        axes = [str(label) for label in labels]
+        # factor axes (log scale): every `scale:` axis, and any axis given as `factors:`
+        factor_axes = {
+            label
+            for a, label in zip(doc["axes"], axes, strict=True)
+            if a.get("scale") or a.get("factors")
+        }
         name, runs = str(doc["name"]), int(doc["runs"])
     except (KeyError, TypeError, ValueError):
         raise ResultsError(f"{folder / MANIFEST_FILE}: not a sweep manifest") from None

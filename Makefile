@@ -52,7 +52,7 @@ docs: setup
 bench: setup
 	$(ANFEKF) bench --out $(OUT)/bench.json
 
-## Regression gate (README): the four scenarios at 20 runs against the committed baseline.
+## Regression gate (docs/how-to/regression-gate.md): the four scenarios at 20 runs against the committed baseline.
 ## Refresh the baseline on purpose with: make gate GATE_FLAGS=--update
 GATE_OUT      ?= $(OUT)/ci-gate
 GATE_BASELINE ?= results/baselines/ci.json
@@ -64,7 +64,7 @@ gate: setup
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache
 
-## Beyond the paper (README): the adaptive-filter zoo, the mismatch sweeps, the real robot log.
+## Beyond the paper (docs/results/): the adaptive-filter zoo, the mismatch sweeps, the real robot log.
 zoo: setup
 	$(ANFEKF) run configs/zoo --out $(OUT)/zoo --force
 	$(ANFEKF) report $(OUT)/zoo --out $(OUT)/zoo/report

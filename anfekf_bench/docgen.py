@@ -180,7 +180,7 @@ def meaning(model: type[BaseModel], name: str) -> str:
 
 def _prose(text: str) -> str:
     """Text for Markdown outside code: `OUT/<name>/` must not read as an HTML tag."""
-    return text.replace("<", "&lt;")
+    return re.sub(r"<(?=[A-Za-z/!])", "&lt;", text)
 
 
 def _inner_model(annotation) -> tuple[type[BaseModel] | None, str]:
@@ -219,7 +219,7 @@ def field_rows(model: type[BaseModel], prefix: str = "", skip: tuple[str, ...] =
 
 def _table(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> list[str]:
     out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    out += ["| " + " | ".join(r) + " |" for r in rows]
+    out += ["|" + "|".join(f" {c} " if c else " " for c in r) + "|" for r in rows]
     return out
 
 

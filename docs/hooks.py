@@ -8,6 +8,8 @@ so this hook
 - turns a link to any other existing file or folder of the repository into its plain text (the
   site does not carry the code);
 and leaves every other link alone, so a link to nothing still fails `mkdocs build --strict`.
+It also starts a list that follows a paragraph line directly ("Common choices:" then "- ..."):
+GitHub renders it as a list, Python-Markdown as running text unless a blank line comes first.
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ ROOT = Path(__file__).resolve().parents[1]
 PUBLISHED = ("results/report/*.png", "results/report/*.svg")
 SITE_PREFIX = "repo/"
 LINK = re.compile(r"(!?)\[([^\]]*)\]\(([^)\s]+)\)")
+LIST_ITEM = re.compile(r"^ {0,3}(?:[-*+]|1[.)]) ")  # what may interrupt a paragraph (CommonMark)
+FENCE = re.compile(r"^ {0,3}(```|~~~)")
 
 
 def on_files(files, config):
@@ -43,7 +47,28 @@ def _outside_docs(page_uri: str, target: str) -> str | None:
     return resolved[len("../") :]
 
 
+def lists_after_paragraphs(markdown: str) -> str:
+    """A blank line before a list item that directly follows a paragraph's line (GitHub's
+    reading), outside code fences; lines of a list already begun are left alone."""
+    out: list[str] = []
+    in_fence = in_list = False
+    for line in markdown.split("\n"):
+        if FENCE.match(line):
+            in_fence = not in_fence
+        elif not in_fence:
+            if not line.strip():
+                in_list = False
+            elif LIST_ITEM.match(line):
+                previous = out[-1] if out else ""
+                if not in_list and previous.strip() and not previous.startswith((" ", "\t", "|")):
+                    out.append("")
+                in_list = True
+        out.append(line)
+    return "\n".join(out)
+
+
 def on_page_markdown(markdown, page, config, files):
+    markdown = lists_after_paragraphs(markdown)
     page_uri = page.file.src_uri
 
     def relink(match: re.Match) -> str:

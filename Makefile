@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 ANFEKF := $(VENV)/bin/anfekf
 OUT    ?= results
 
-.PHONY: setup reproduce run report test lint format bench gate clean readme zoo sweeps real changing drives learned learned-drives
+.PHONY: setup reproduce run report test lint format bench gate clean readme docs zoo sweeps real changing drives learned learned-drives
 
 setup: $(VENV)/.installed
 
@@ -37,14 +37,22 @@ format: setup
 	$(VENV)/bin/ruff check --fix .
 	$(VENV)/bin/ruff format .
 
-## The README's reference tables (scenario keys, filter kinds), generated from the models.
+## The generated parts of the README and the docs (scenario keys, filter kinds, the command line,
+## the bench figures, docs/*.schema.json), from the models, the commands and results/bench.json.
 readme: setup
-	$(PY) -m anfekf_bench.docgen README.md
+	$(PY) -m anfekf_bench.docgen
+
+## The documentation site (mkdocs.yml, docs/) into site/; any warning (a broken link or anchor
+## included) fails the build. Needs the docs extra: pip install -e ".[docs]".
+docs: setup
+	@$(PY) -c "import mkdocs, material, mkdocstrings_handlers.python" 2>/dev/null || { echo "make docs needs the docs extra: $(VENV)/bin/pip install -e '.[docs]'"; exit 2; }
+	$(PY) -m anfekf_bench.docgen --check
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site
 
 bench: setup
 	$(ANFEKF) bench --out $(OUT)/bench.json
 
-## Regression gate (README): the four scenarios at 20 runs against the committed baseline.
+## Regression gate (docs/how-to/regression-gate.md): the four scenarios at 20 runs against the committed baseline.
 ## Refresh the baseline on purpose with: make gate GATE_FLAGS=--update
 GATE_OUT      ?= $(OUT)/ci-gate
 GATE_BASELINE ?= results/baselines/ci.json
@@ -56,7 +64,7 @@ gate: setup
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache
 
-## Beyond the paper (README): the adaptive-filter zoo, the mismatch sweeps, the real robot log.
+## Beyond the paper (docs/results/): the adaptive-filter zoo, the mismatch sweeps, the real robot log.
 zoo: setup
 	$(ANFEKF) run configs/zoo --out $(OUT)/zoo --force
 	$(ANFEKF) report $(OUT)/zoo --out $(OUT)/zoo/report
@@ -80,15 +88,16 @@ drives: setup
 ## KalmanNet (docs/DESIGN.md): configs/learned, the four paper scenarios and the zoo's two mirrors
 ## with ekf, anfekf, ekf-oracle and kalmannet; `anfekf run` trains KalmanNet on 50 training runs
 ## (seeds disjoint from the 20 scored) and compares it with the others, paired over runs.
-## Needs the extra: pip install -e ".[learned]" (PyTorch; the CPU wheel is enough).
+## Needs the extra, PyTorch's CPU build first (else pip pulls the 3.2 GB CUDA build on Linux):
+##   pip install torch --index-url https://download.pytorch.org/whl/cpu && pip install -e ".[learned]"
 learned: setup
-	@$(PY) -c "import torch" 2>/dev/null || { echo "make learned needs PyTorch: pip install -e '.[learned]'"; exit 2; }
+	@$(PY) -c "import torch" 2>/dev/null || { echo "make learned needs PyTorch (the CPU build is enough):"; echo "  $(VENV)/bin/pip install torch --index-url https://download.pytorch.org/whl/cpu"; echo "  $(VENV)/bin/pip install -e '.[learned]'"; exit 2; }
 	$(ANFEKF) run configs/learned --out $(OUT)/learned --force
 	$(ANFEKF) report $(OUT)/learned --out $(OUT)/learned/report
 
 ## KalmanNet on the eleven MRCLAM drives (configs/learned-drives): trained per cross-drive fold on
 ## that fold's training drives (Dataset 6 scores 7, 7 scores 6, both score 9), against ekf-tuned.
 learned-drives: setup
-	@$(PY) -c "import torch" 2>/dev/null || { echo "make learned-drives needs PyTorch: pip install -e '.[learned]'"; exit 2; }
+	@$(PY) -c "import torch" 2>/dev/null || { echo "make learned-drives needs PyTorch (the CPU build is enough):"; echo "  $(VENV)/bin/pip install torch --index-url https://download.pytorch.org/whl/cpu"; echo "  $(VENV)/bin/pip install -e '.[learned]'"; exit 2; }
 	$(ANFEKF) run configs/learned-drives --out $(OUT)/learned-drives --force
 	$(ANFEKF) report $(OUT)/learned-drives --out $(OUT)/learned-drives/report

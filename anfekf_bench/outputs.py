@@ -226,14 +226,18 @@ def _is_staging(folder: str | os.PathLike) -> bool:
 
 def nested_in_store(runs_dir: Path) -> list[str]:
     """Folders in a run store that this tool did not put there (a result nested in it by an
-    older version: `--out <result>/.runs`). Neither --force nor a finished batch removes them."""
+    older version: `--out <result>/.runs`). Neither --force nor a finished batch removes them.
+    A folder under a run file's name is a run file planted wrong (no scenario name ends in
+    .npz): the resume refuses it and redoes the run (_load_saved_runs)."""
     if runs_dir.is_symlink() or not runs_dir.is_dir():
         return []
     with os.scandir(runs_dir) as entries:
         return sorted(
             f"{RUNS_DIR}/{e.name}"
             for e in entries
-            if e.is_dir(follow_symlinks=False) and not (e.name == STAGING_DIR and _is_staging(e))
+            if e.is_dir(follow_symlinks=False)
+            and not (e.name == STAGING_DIR and _is_staging(e))
+            and not _RUN_FILE.fullmatch(e.name)
         )
 
 

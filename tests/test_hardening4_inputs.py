@@ -477,6 +477,7 @@ KALMANNET_FIT_TAMPERED = {
     "non-utf8-header": lambda f: _with_weights(f, b"\xff\xfe{}\n" + bytes(16)),
     "header-not-json": lambda f: _with_weights(f, b"not json\n"),
     "other-hidden-size": lambda f: _with_weights(f, _weights_bytes(hidden=6)),
+    "other-shapes": lambda f: _with_weights(f, _weights_bytes(state_scale=[1.0, 1.0, 1.0, 1.0])),
     "body-short": lambda f: _with_weights(f, _weights_bytes()[:-8]),
     "nan-weight": lambda f: _with_weights(f, _nan_weight()),
     "not-base64": lambda f: {**f, "weights_base64": "%%%not base64%%%"},
@@ -519,3 +520,17 @@ def test_an_intact_kalmannet_fit_cache_gives_its_weights(tmp_path, monkeypatch):
         np.testing.assert_array_equal(weights.arrays[name], array)
     other = kalmannet.KalmanNetSpec(name="k", kind="kalmannet", hidden_size=8)
     assert "hidden_size 4, not 8" in other.fit_problem(found)
+
+
+def test_weights_of_another_system_still_round_trip():
+    """`from_bytes` checks what any network's file must hold; the robot's shapes are checked
+    only for a fit (kalmannet_train trains linear systems' networks too)."""
+    import numpy as np
+
+    from anfekf_bench.filters.kalmannet import NET_ARRAYS, KalmanNetWeights
+
+    rng = np.random.default_rng(0)
+    arrays = {name: rng.normal(size=(3, 5) if "weight" in name else 3) for name in NET_ARRAYS}
+    w = KalmanNetWeights(arrays, np.ones(2), np.ones(4), 1.0, 3)
+    back = KalmanNetWeights.from_bytes(w.to_bytes())
+    assert back.to_bytes() == w.to_bytes()

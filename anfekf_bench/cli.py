@@ -40,6 +40,7 @@ from .experiment import (
     PlanError,
     check_plan,
     execute,
+    long_plan_line,
     make_plan,
     scenario_folder,
     survey_output,
@@ -376,7 +377,7 @@ def run(
                 validate_sweep(plan.name, *sweeps[plan.name], out, force=force)
             continue
         with one_line_errors(debug, (PlanError,), prefix=f"{path}: "):
-            check_plan(plan)
+            control_steps = check_plan(plan)
         with one_line_errors(debug, (OutputExists, SweepError), prefix=f"{plan.name}: "):
             if plan.name not in sweeps:
                 target = scenario_folder(out, plan.name)
@@ -391,6 +392,9 @@ def run(
                         " or --out to write elsewhere"
                     )
                 survey_output(plan, target, force)
+        estimate = long_plan_line(plan, control_steps)  # a long batch says so before it starts
+        if estimate is not None:
+            console.print(one_line(estimate), markup=False, highlight=False, soft_wrap=True)
     for plan in plans:
         if plan.name in skipped:
             target = scenario_folder(out, plan.name)

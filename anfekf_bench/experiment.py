@@ -75,7 +75,7 @@ from .storage import (
     scenario_name_problem,
     write_json,
 )
-from .training import fit_filters
+from .training import fit_filters, fitted_filters
 
 __all__ = ["FolderBusy", "OutputExists", "PlanError", "RUNS_DIR", "execute", "make_plan"]
 
@@ -253,6 +253,100 @@ def memory_estimate(plan: Plan, control_steps: int) -> int:
     return parent + workers * per_worker
 
 
+# A fitted filter's training set in this process, per training run and control step [bytes]:
+# the simulated run (truth, odometry, scans) and the tuning kernel's copy of it, which every
+# worker of a parallel fit holds too (measured: 62 and 115 bytes on the builtin map)
+TRAINING_RUN_BYTES_PER_STEP = 64
+TRAINING_PROBLEM_BYTES_PER_STEP = 128
+
+
+def training_workers(plan: Plan) -> int:
+    """Worker processes a parallel noise fit starts (each with its copy of the training set):
+    one per Nelder-Mead start of every noise fit, at most `jobs`; 0 when the fits run here."""
+    starts = sum(len(spec.noise_fit_request()[1]) for spec in fitted_filters(plan.scenario)
+                 if spec.noise_fit_request() is not None)  # fmt: skip
+    return min(plan.jobs, starts) if plan.jobs > 1 and starts > 1 else 0
+
+
+def training_memory_estimate(plan: Plan, control_steps: int) -> int:
+    """Bytes the fitted filters' training needs at its peak (0 without fitted filters): the
+    `training.runs` simulated runs held in this process, the tuning kernel's copy here and in
+    each fitting worker (`training_workers`), and a process's base."""
+    if not fitted_filters(plan.scenario):
+        return 0
+    per_run = control_steps * (
+        TRAINING_RUN_BYTES_PER_STEP + TRAINING_PROBLEM_BYTES_PER_STEP * (1 + training_workers(plan))
+    )
+    return WORKER_BASE_BYTES + plan.scenario.training.runs * per_run
+
+
+# What a batch costs, for the line `anfekf run` prints before a long one [CPU seconds]: per
+# control step of a simulated run, of a filter on each engine (filterpy: the EKF 9.5 us, the
+# ANFEKF 14-22 us, results/bench.json), of one objective evaluation of a noise fit per training
+# run, and of one KalmanNet epoch per training run (README: 50 runs x 30 epochs in ~55 s)
+SIMULATE_STEP_S = 1.5e-6
+FILTER_STEP_S = {"filterpy": 20e-6, "fast": 0.2e-6}
+FIT_EVALUATION_STEP_S = 0.1e-6
+KALMANNET_EPOCH_STEP_S = 5e-6
+LONG_PLAN_S = 600.0  # plans estimated longer than this get a line with the estimate first
+
+
+def seconds_estimate(plan: Plan, control_steps: int) -> tuple[float, float]:
+    """(training, batch) wall seconds a simulated plan is estimated to take: CPU costs above
+    spread over the workers. Rough (a factor of 2 either way): for a warning, not a limit."""
+    scenario = plan.scenario
+    engines = plan.source.engines(plan)
+    per_run = control_steps * (
+        SIMULATE_STEP_S + sum(FILTER_STEP_S.get(e, FILTER_STEP_S["filterpy"])
+                              for e in engines.values())
+    )  # fmt: skip
+    batch = plan.runs * per_run / max(1, min(plan.jobs, plan.runs))
+    fitted = fitted_filters(scenario)
+    if not fitted:
+        return 0.0, batch
+    steps = scenario.training.runs * control_steps
+    training = steps * SIMULATE_STEP_S
+    for spec in fitted:
+        request = spec.noise_fit_request()
+        if request is not None:
+            _, starts, evaluations = request
+            parallel = max(1, min(plan.jobs, len(starts)))
+            training += steps * FIT_EVALUATION_STEP_S * evaluations * len(starts) / parallel
+        else:  # a trained network: its epochs over the training runs
+            training += steps * KALMANNET_EPOCH_STEP_S * getattr(spec, "epochs", 1)
+    return training, batch
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 3600:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 48 * 3600:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 86400:.1f} days"
+
+
+def long_plan_line(plan: Plan, control_steps: int) -> str | None:
+    """The line `anfekf run` prints before a plan estimated to take over LONG_PLAN_S (its
+    estimate, what it is made of), or None: a simulated plan under it, or a recorded one."""
+    if not isinstance(plan.source, SimulatedSource):
+        return None
+    training, batch = seconds_estimate(plan, control_steps)
+    if training + batch <= LONG_PLAN_S:
+        return None
+    parts = [f"{plan.runs} runs x {control_steps} control steps x"
+             f" {len(plan.filter_names())} filters on {min(plan.jobs, plan.runs)} workers"
+             f" ~{_duration(batch)}"]  # fmt: skip
+    if training:
+        parts.append(
+            f"training of {', '.join(f.name for f in fitted_filters(plan.scenario))} on"
+            f" {plan.scenario.training.runs} training runs ~{_duration(training)}"
+        )
+    return (
+        f"{plan.name}: estimated to take about {_duration(training + batch)} ({'; '.join(parts)});"
+        " Ctrl-C stops it, finished runs are saved and the same command resumes them"
+    )
+
+
 def check_plan(plan: Plan) -> int:
     """Everything about a plan that can fail before its batch, checked without touching disk
     (the source's checks: a simulated route, completed and long enough to record, and the
@@ -340,6 +434,15 @@ class SimulatedSource:
                 f" {_bytes(need)} of memory, more than {MEMORY_SHARE:.0%} of this machine's"
                 f" {_bytes(have)}; use fewer runs, a larger record_every, fewer jobs or a smaller"
                 " map"
+            )
+        need = training_memory_estimate(plan, control_steps)
+        if have is not None and need > MEMORY_SHARE * have:
+            workers = training_workers(plan)
+            raise PlanError(
+                f"training.runs: {plan.scenario.training.runs} training runs of {control_steps}"
+                f" control steps (fitted filters, {1 + workers} processes fitting) need about"
+                f" {_bytes(need)} of memory, more than {MEMORY_SHARE:.0%} of this machine's"
+                f" {_bytes(have)}; use fewer training runs or jobs, or a shorter route"
             )
         return control_steps
 

@@ -477,6 +477,7 @@ KALMANNET_FIT_TAMPERED = {
     "non-utf8-header": lambda f: _with_weights(f, b"\xff\xfe{}\n" + bytes(16)),
     "header-not-json": lambda f: _with_weights(f, b"not json\n"),
     "other-hidden-size": lambda f: _with_weights(f, _weights_bytes(hidden=6)),
+    "other-shapes": lambda f: _with_weights(f, _weights_bytes(state_scale=[1.0, 1.0, 1.0, 1.0])),
     "body-short": lambda f: _with_weights(f, _weights_bytes()[:-8]),
     "nan-weight": lambda f: _with_weights(f, _nan_weight()),
     "not-base64": lambda f: {**f, "weights_base64": "%%%not base64%%%"},
@@ -519,3 +520,118 @@ def test_an_intact_kalmannet_fit_cache_gives_its_weights(tmp_path, monkeypatch):
         np.testing.assert_array_equal(weights.arrays[name], array)
     other = kalmannet.KalmanNetSpec(name="k", kind="kalmannet", hidden_size=8)
     assert "hidden_size 4, not 8" in other.fit_problem(found)
+
+
+def test_weights_of_another_system_still_round_trip():
+    """`from_bytes` checks what any network's file must hold; the robot's shapes are checked
+    only for a fit (kalmannet_train trains linear systems' networks too)."""
+    import numpy as np
+
+    from anfekf_bench.filters.kalmannet import NET_ARRAYS, KalmanNetWeights
+
+    rng = np.random.default_rng(0)
+    arrays = {name: rng.normal(size=(3, 5) if "weight" in name else 3) for name in NET_ARRAYS}
+    w = KalmanNetWeights(arrays, np.ones(2), np.ones(4), 1.0, 3)
+    back = KalmanNetWeights.from_bytes(w.to_bytes())
+    assert back.to_bytes() == w.to_bytes()
+
+
+# --------------------------------------------------------------------------------------------
+# Training runs in the memory and time estimate
+
+
+def _training_plan(tmp_path: Path, training_runs: int, jobs: int = 1, **overrides):
+    from .conftest import small_scenario, write_scenario
+
+    filters = [{"name": "ekf", "kind": "ekf"}, {"name": "tuned", "kind": "ekf-tuned"}]
+    doc = small_scenario(
+        name="trained", runs=2, jobs=jobs, record_every=8, training={"runs": training_runs},
+        **{"filters": filters, **overrides},
+    )  # fmt: skip
+    path = write_scenario(tmp_path / "trained.yaml", doc)
+    return path, make_plan(*load_scenario(path), None, None, None)
+
+
+def test_training_runs_beyond_the_memory_are_refused_before_any_work(tmp_path, monkeypatch):
+    """`training: {runs: 10000}` with ekf-tuned ended in MemoryError under a memory limit: the
+    estimate now counts the training set (here 10,000 runs of ~770 steps: ~1.7 GB)."""
+    from anfekf_bench import experiment
+    from anfekf_bench.experiment import PlanError
+
+    monkeypatch.setattr(experiment, "machine_memory", lambda: 2 * 2**30)  # a 2 GB machine
+    path, plan = _training_plan(tmp_path, 10_000)
+    with pytest.raises(PlanError, match=r"^training\.runs: 10000 training runs") as err:
+        check_plan(plan)
+    assert "2.0 GB" in str(err.value) and "80%" in str(err.value)
+    result = runner.invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    line = _one_error_line(result)
+    assert "training.runs" in line and str(path) in line
+    assert not (tmp_path / "out").exists()
+    # the same scenario with the default 20 training runs passes the same check
+    check_plan(_training_plan(tmp_path, 20)[1])
+
+
+def test_the_training_estimate_counts_each_fitting_worker(tmp_path):
+    from anfekf_bench.experiment import training_memory_estimate, training_workers
+
+    _, alone = _training_plan(tmp_path, 1000, jobs=1)
+    _, three = _training_plan(tmp_path, 1000, jobs=8)  # ekf-tuned: 3 starts, 3 workers
+    assert training_workers(alone) == 0 and training_workers(three) == 3
+    steps = check_plan(alone)
+    assert training_memory_estimate(three, steps) > 1.5 * training_memory_estimate(alone, steps)
+    _, untrained = _training_plan(tmp_path, 1000, filters=[{"name": "ekf", "kind": "ekf"}])
+    assert training_memory_estimate(untrained, steps) == 0
+
+
+def test_the_estimate_is_of_the_order_of_what_training_takes(tmp_path):
+    """Measured here: what 30 more training runs take (simulated runs and the kernel's copy,
+    after a warm-up) against what the estimate adds for them: never below, nor far above."""
+    import tracemalloc
+
+    from anfekf_bench.experiment import training_memory_estimate
+    from anfekf_bench.training import simulate_training
+
+    def used(plan) -> int:
+        tracemalloc.start()
+        training = simulate_training(plan.scenario, plan.world, plan.seed)
+        _ = training.problem
+        found = tracemalloc.get_traced_memory()[0]
+        tracemalloc.stop()
+        return found
+
+    _, few = _training_plan(tmp_path, 10)
+    _, many = _training_plan(tmp_path, 40)
+    steps = check_plan(few)
+    used(few)  # warm-up: compiled kernels, caches
+    measured = used(many) - used(few)
+    estimated = training_memory_estimate(many, steps) - training_memory_estimate(few, steps)
+    assert 0.5 * estimated < measured < estimated, (measured, estimated)
+
+
+def test_a_long_plan_says_its_estimate_before_it_starts(tmp_path, monkeypatch):
+    from anfekf_bench import experiment
+    from anfekf_bench.experiment import long_plan_line, seconds_estimate
+
+    from .conftest import small_scenario, write_scenario
+
+    _, long_plan = _training_plan(tmp_path, 10_000, world={})  # the builtin map: 8,778 steps
+    long_plan = make_plan(long_plan.scenario, long_plan.world, 5000, None, 2)
+    steps = 8778  # check_plan's count for the builtin route
+    training, batch = seconds_estimate(long_plan, steps)
+    assert training > 600 and batch > 600
+    line = long_plan_line(long_plan, steps)
+    assert line.startswith("trained: estimated to take about ") and "\n" not in line
+    assert "5000 runs x 8778 control steps x 2 filters on 2 workers" in line
+    assert "training of tuned on 10000 training runs" in line
+    _, short = _training_plan(tmp_path, 3)
+    assert long_plan_line(short, check_plan(short)) is None  # seconds: no line
+    # Through `anfekf run`: the line comes before the batch starts (threshold lowered)
+    monkeypatch.setattr(experiment, "LONG_PLAN_S", 0.0)
+    doc = small_scenario(name="quick", runs=2, record_every=8)
+    path = write_scenario(tmp_path / "quick.yaml", doc)
+    result = runner.invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    first = next(i for i, x in enumerate(lines) if x.startswith("quick: estimated to take"))
+    started = next(i for i, x in enumerate(lines) if x.startswith("quick: new results"))
+    assert first < started

@@ -158,10 +158,9 @@ class KalmanNetWeights:
         hidden = header.get("hidden_size")
         if not _whole(hidden) or not 1 <= hidden <= 1024:
             raise ValueError("KalmanNet weights: hidden_size must be an integer in [1, 1024]")
-        obs_scale = _positive_floats(header.get("obs_scale"), N_OBS, "obs_scale")
-        state_scale = _positive_floats(header.get("state_scale"), N_STATE, "state_scale")
-        (range_scale,) = _positive_floats([header.get("range_scale")], 1, "range_scale")
-        expected = weight_shapes(hidden)
+        obs_scale = _positive_floats(header.get("obs_scale"), "obs_scale")
+        state_scale = _positive_floats(header.get("state_scale"), "state_scale")
+        (range_scale,) = _positive_floats([header.get("range_scale")], "range_scale")
         listed = header.get("arrays")
         if not isinstance(listed, list) or not all(
             isinstance(item, list) and len(item) == 2 and isinstance(item[0], str)
@@ -170,10 +169,8 @@ class KalmanNetWeights:
         ):  # fmt: skip
             raise ValueError("KalmanNet weights: arrays must be [name, [sizes >= 0]] pairs")
         shapes = {name: tuple(shape) for name, shape in listed}
-        if len(shapes) != len(listed) or shapes != expected:
-            raise ValueError(
-                f"KalmanNet weights: the arrays and shapes of hidden_size {hidden} expected"
-            )
+        if len(shapes) != len(listed) or set(shapes) != set(NET_ARRAYS):
+            raise ValueError(f"KalmanNet weights: the arrays must be {', '.join(NET_ARRAYS)}")
         if len(body) != 8 * sum(math.prod(shape) for shape in shapes.values()):
             raise ValueError("KalmanNet weights file: size does not match its header")
         arrays, offset = {}, 0
@@ -198,19 +195,20 @@ def _whole(value) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
-def _positive_floats(values, n: int, name: str) -> np.ndarray:
-    """`values` as n finite, positive floats (the scales the features are divided by)."""
-    ok = isinstance(values, list) and len(values) == n and all(
+def _positive_floats(values, name: str) -> np.ndarray:
+    """`values` as finite, positive floats (the scales the features are divided by)."""
+    ok = isinstance(values, list) and len(values) >= 1 and all(
         isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
         for v in values
     )  # fmt: skip
     if not ok:
-        raise ValueError(f"KalmanNet weights: {name} must be {n} finite numbers > 0")
+        raise ValueError(f"KalmanNet weights: {name} must be finite numbers > 0")
     return np.array(values, dtype=float)
 
 
 def weight_shapes(hidden_size: int) -> dict[str, tuple[int, ...]]:
-    """Each array of a network of `hidden_size` and its shape (torch's layout, as `random`)."""
+    """Each array of the robot's network of `hidden_size` and its shape (torch's layout, as
+    `random`; `kalmannet_train` trains other systems' networks too, of other shapes)."""
     H = hidden_size
     return {
         "fc_in.weight": (H, N_FEATURES), "fc_in.bias": (H,),
@@ -245,6 +243,11 @@ def fitted_weights_problem(fitted, hidden_size: int) -> str | None:
         return f"weights_base64: {exc}"
     if weights.hidden_size != hidden_size:
         return f"weights_base64: a network of hidden_size {weights.hidden_size}, not {hidden_size}"
+    shapes = {name: array.shape for name, array in weights.arrays.items()}
+    if shapes != weight_shapes(hidden_size) or (
+        (len(weights.obs_scale), len(weights.state_scale)) != (N_OBS, N_STATE)
+    ):
+        return "weights_base64: not the robot's network (its arrays' shapes or its scales)"
     epochs = fitted.get("epochs")
     if not _whole(epochs) or epochs < 1 or not _whole(fitted.get("best_epoch")):
         return "epochs, best_epoch: must be integers >= 1"

@@ -15,8 +15,9 @@ import pytest
 from anfekf_bench.analysis import gate
 from anfekf_bench.storage import COMPARISONS_FILE, MANIFEST_FILE, write_parquet
 
+from .conftest import small_scenario, write_scenario
 from .test_check import _fail_lines, check, claim, paper_like, write_results
-from .test_confinement import assert_one_line_error
+from .test_confinement import SMALL, assert_one_line_error, cli
 
 CLAIM = "anfekf rmse_pos <= 0.6 x ekf"  # what write_results declares in every scenario
 
@@ -166,3 +167,61 @@ def test_escape_sequences_in_a_baseline_are_printed_escaped(tmp_path):
     assert result.exit_code == 1, result.output
     assert "\x1b" not in result.output
     assert "\\x1b[2J\\x1b[31mpwn" in result.output
+
+
+# --- Hand-edited simulated manifests (last turn fixed these for recorded ones only) ---------------
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory) -> Path:
+    """A complete result of the small scenario (2 runs), made once."""
+    from anfekf_bench.experiment import execute, make_plan
+    from anfekf_bench.scenarios import load_scenario
+
+    root = tmp_path_factory.mktemp("simulated")
+    path = write_scenario(root / "small.yaml", small_scenario(**SMALL))
+    _, target = execute(make_plan(*load_scenario(path), None, None, 1), root / "out")
+    return target
+
+
+def _edited_copy(previous: Path, tmp_path: Path, edit) -> Path:
+    import shutil
+
+    folder = tmp_path / "res" / previous.name
+    shutil.copytree(previous, folder)
+    path = folder / MANIFEST_FILE
+    doc = json.loads(path.read_text())
+    edit(doc)
+    path.write_text(json.dumps(doc))
+    return folder
+
+
+def _all_landmarks_at(value: float):
+    def edit(doc):
+        doc["world"]["landmarks"] = [[value, value] for _ in doc["world"]["landmarks"]]
+
+    return edit
+
+
+def _two_waypoints_far_apart(doc):
+    doc["world"]["waypoints"][:2] = [[-1e308, -1e308], [1e308, 1e308]]
+
+
+def _lone_surrogate(doc):
+    doc["scenario"]["description"] = "\ud800"
+
+
+SIMULATED_EDITS = {
+    "landmarks-1e308": (_all_landmarks_at(1e308), "world.landmarks"),  # OverflowError
+    "waypoints-plus-minus-1e308": (_two_waypoints_far_apart, "world.waypoints"),  # ValueError
+    "description-lone-surrogate": (_lone_surrogate, "not valid Unicode"),  # UnicodeEncodeError
+}
+
+
+@pytest.mark.parametrize("edit", list(SIMULATED_EDITS))
+@pytest.mark.parametrize("command", ["report", "check"])
+def test_a_hand_edited_simulated_manifest_is_one_line(simulated, tmp_path, edit, command):
+    change, words = SIMULATED_EDITS[edit]
+    folder = _edited_copy(simulated, tmp_path, change)
+    args = ("--out", tmp_path / "report") if command == "report" else ()
+    assert_one_line_error(cli(command, folder, *args), str(folder / MANIFEST_FILE), words)

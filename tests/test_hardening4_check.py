@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -225,3 +227,24 @@ def test_a_hand_edited_simulated_manifest_is_one_line(simulated, tmp_path, edit,
     folder = _edited_copy(simulated, tmp_path, change)
     args = ("--out", tmp_path / "report") if command == "report" else ()
     assert_one_line_error(cli(command, folder, *args), str(folder / MANIFEST_FILE), words)
+
+
+# --- Output that cannot be written ------------------------------------------------------------
+
+ENTRY = [sys.executable, "-c", "from anfekf_bench.entry import main; main()"]
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (Linux)")
+@pytest.mark.parametrize(
+    "args", [["kinds"], ["--version"], ["-h"], ["init", "{tmp}/new.yaml"], ["check", "{res}"]]
+)
+def test_a_full_stdout_is_one_line_and_a_nonzero_exit(tmp_path, args):
+    """`anfekf kinds > /dev/full` was rich's traceback (exit 1): every printing command."""
+    results = write_results(tmp_path / "res", {"wrong_r": paper_like()["wrong_r"]})
+    argv = [a.format(tmp=tmp_path, res=results) for a in args]
+    with open("/dev/full", "w") as full:
+        done = subprocess.run([*ENTRY, *argv], stdout=full, stderr=subprocess.PIPE, text=True,
+                              timeout=120)  # fmt: skip
+    lines = done.stderr.splitlines()
+    assert done.returncode == 74, (done.returncode, done.stderr[-2000:])
+    assert lines == ["error: standard output: cannot write ([Errno 28] No space left on device)"]

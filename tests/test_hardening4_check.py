@@ -248,3 +248,66 @@ def test_a_full_stdout_is_one_line_and_a_nonzero_exit(tmp_path, args):
     lines = done.stderr.splitlines()
     assert done.returncode == 74, (done.returncode, done.stderr[-2000:])
     assert lines == ["error: standard output: cannot write ([Errno 28] No space left on device)"]
+
+
+# --- Dask: a scheduler killed mid-batch -----------------------------------------------------------
+
+
+def test_distributed_loggers_are_all_quiet_once_connected():
+    """distributed's config gives distributed.client (WARNING) and tornado.application (ERROR)
+    levels and handlers of their own: quieting their parents left their ERROR line and asyncio
+    traceback on stderr before our one line when the scheduler was killed."""
+    import logging
+
+    pytest.importorskip("distributed")
+    from anfekf_bench.runner import _quiet_dask_logs
+
+    _quiet_dask_logs()
+    for name in ("distributed", "distributed.client", "distributed.core", "tornado.application",
+                 "asyncio", "distributed.comm.tcp"):  # fmt: skip
+        assert not logging.getLogger(name).isEnabledFor(logging.CRITICAL), name
+
+
+@pytest.mark.slow
+def test_kill_9_of_the_scheduler_is_our_one_line_only(tmp_path):
+    """A scheduler and a worker in processes of their own, `anfekf run` on them, kill -9 of the
+    scheduler once the batch runs: stderr holds our one line, nothing of distributed's."""
+    import signal
+    import socket
+
+    pytest.importorskip("distributed")
+    from .conftest import small_scenario, write_scenario
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    address = f"tcp://127.0.0.1:{port}"
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+    scheduler = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler",
+                                  "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+                                 **quiet)  # fmt: skip
+    worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address,
+                               "--nthreads", "1", "--no-nanny"], **quiet)  # fmt: skip
+    try:
+        doc = small_scenario(name="dk", runs=200, backend={"kind": "dask", "scheduler": address,
+                                                           "connect_timeout_s": 60})  # fmt: skip
+        path = write_scenario(tmp_path / "dk.yaml", doc)
+        pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
+        run = subprocess.Popen([*ENTRY, "run", str(path), "--out", str(tmp_path / "o")], **pipes)
+        store = tmp_path / "o" / "dk" / ".runs"
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and len(list(store.glob("run-*.npz"))) < 2:
+            assert run.poll() is None, run.communicate()
+            time.sleep(0.2)
+        scheduler.send_signal(signal.SIGKILL)
+        _, err = run.communicate(timeout=180)
+    finally:
+        for proc in (scheduler, worker):
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait()
+    assert run.returncode == 2, err
+    assert err.splitlines() == [
+        f"error: Dask cluster at {address} failed during the batch (connection lost); finished"
+        " runs are saved: run the same command again to resume"
+    ], err

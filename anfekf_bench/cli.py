@@ -89,6 +89,17 @@ class OneLineUsageErrors(TyperGroup):
         except typer.Abort:
             err_console.print("error: aborted", markup=False, highlight=False)
             sys.exit(1)
+        except OSError as exc:
+            if not writing_stdout(exc):
+                raise
+            # `anfekf kinds > /dev/full`: the output cannot be written. One line, not rich's
+            # traceback (nor Python's "Exception ignored" at exit: stdout is pointed away).
+            stdout_gone()
+            try:
+                sys.stderr.write(one_line(f"error: standard output: cannot write ({exc})") + "\n")
+            except (OSError, ValueError):
+                pass
+            sys.exit(EXIT_OUTPUT_LOST)
         sys.exit(code if isinstance(code, int) else 0)
 
     def invoke(self, ctx):
@@ -103,6 +114,23 @@ class OneLineUsageErrors(TyperGroup):
 
 
 EXIT_BROKEN_PIPE = 128 + 13  # as a process killed by SIGPIPE
+EXIT_OUTPUT_LOST = 74  # sysexits' EX_IOERR: stdout cannot be written (a full disk, /dev/full)
+
+
+def writing_stdout(exc: BaseException) -> bool:
+    """Whether `exc` was raised while a rich Console (ours, or typer's for --help) wrote to
+    stdout (file descriptor 1): the output cannot be written, a full disk or /dev/full."""
+    tb = exc.__traceback__
+    while tb is not None:
+        writer = tb.tb_frame.f_locals.get("self")
+        if isinstance(writer, Console):
+            try:
+                if writer.file.fileno() == 1:
+                    return True
+            except (OSError, ValueError, AttributeError):  # a file without a descriptor
+                pass
+        tb = tb.tb_next
+    return False
 
 
 def stdout_gone() -> None:
@@ -252,7 +280,7 @@ def one_line_errors(
             raise
         fail(f"{prefix}{exc}")
     except OSError as exc:
-        if debug or os_error is None:
+        if debug or os_error is None or writing_stdout(exc):  # stdout's: said at the top
             raise
         fail(f"{os_error}: {exc}")
 

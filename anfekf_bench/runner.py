@@ -349,11 +349,19 @@ def _worker_count(client, timeout_s: float) -> int:
     return len(info)
 
 
+QUIETED_LOGGERS = ("distributed", "tornado", "asyncio", "bokeh")
+
+
 def _quiet_dask_logs() -> None:
     """The batch reports a cluster's failure in one line of its own; distributed's loggers would
-    add their own lines (with tracebacks) to stderr."""
-    for name in ("distributed", "tornado", "asyncio"):
-        logging.getLogger(name).setLevel(logging.CRITICAL)
+    add their own lines (with tracebacks) to stderr. Every logger of theirs: distributed's config
+    gives some children a level and a handler of their own (distributed.client at WARNING,
+    tornado.application at ERROR: its "Exception in callback" traceback after a kill -9 of the
+    scheduler), which the parent's level does not cover."""
+    names = [*QUIETED_LOGGERS, *logging.root.manager.loggerDict]
+    for name in names:
+        if name.split(".")[0] in QUIETED_LOGGERS:
+            logging.getLogger(name).setLevel(logging.CRITICAL + 1)
 
 
 async def _handshake(scheduler: str, timeout_s: float) -> None:

@@ -456,6 +456,51 @@ def read_manifest(folder: Path) -> dict:
     return doc
 
 
+COORDINATE_LIMIT = 1e7  # metres: a map further out is not a robot's (and 1e308 overflows a plot)
+
+
+def check_manifest_text(path: Path, manifest: dict) -> None:
+    """ResultsError unless every text of a manifest is valid Unicode: a hand-edited lone
+    surrogate (`"\\ud800"` is valid JSON) would end a report or a table in UnicodeEncodeError."""
+    try:
+        json.dumps(manifest, ensure_ascii=False).encode("utf-8")
+    except UnicodeEncodeError:
+        raise ResultsError(f"{path}: holds text that is not valid Unicode") from None
+
+
+def check_simulated_manifest(path: Path, manifest: dict) -> None:
+    """ResultsError unless the parts of a simulated result's manifest that `report` draws and
+    `check` prints are as `anfekf run` writes them: valid Unicode, and the map (world.landmarks,
+    world.waypoints, where present) lists of [x, y] finite within COORDINATE_LIMIT metres."""
+    check_manifest_text(path, manifest)
+    world = manifest.get("world")
+    if world is None:
+        return
+    if not isinstance(world, dict):
+        raise ResultsError(f"{path}: world: expected an object")
+    for key in ("landmarks", "waypoints"):
+        points = world.get(key)
+        if points is None:
+            continue
+        ok = isinstance(points, list) and all(
+            isinstance(p, list)
+            and len(p) == 2
+            and all(
+                isinstance(v, (int, float))
+                and not isinstance(v, bool)
+                and math.isfinite(v)
+                and abs(v) <= COORDINATE_LIMIT
+                for v in p
+            )
+            for p in points
+        )
+        if not ok:
+            raise ResultsError(
+                f"{path}: world.{key}: expected a list of [x, y] points, finite numbers within"
+                f" {COORDINATE_LIMIT:g} m"
+            )
+
+
 BATCH_FILES = (STEPS_FILE, RUNS_FILE, SUMMARY_PARQUET, COMPARISONS_FILE)
 
 

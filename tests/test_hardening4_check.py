@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -15,8 +17,9 @@ import pytest
 from anfekf_bench.analysis import gate
 from anfekf_bench.storage import COMPARISONS_FILE, MANIFEST_FILE, write_parquet
 
+from .conftest import small_scenario, write_scenario
 from .test_check import _fail_lines, check, claim, paper_like, write_results
-from .test_confinement import assert_one_line_error
+from .test_confinement import SMALL, assert_one_line_error, cli
 
 CLAIM = "anfekf rmse_pos <= 0.6 x ekf"  # what write_results declares in every scenario
 
@@ -166,3 +169,145 @@ def test_escape_sequences_in_a_baseline_are_printed_escaped(tmp_path):
     assert result.exit_code == 1, result.output
     assert "\x1b" not in result.output
     assert "\\x1b[2J\\x1b[31mpwn" in result.output
+
+
+# --- Hand-edited simulated manifests (last turn fixed these for recorded ones only) ---------------
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory) -> Path:
+    """A complete result of the small scenario (2 runs), made once."""
+    from anfekf_bench.experiment import execute, make_plan
+    from anfekf_bench.scenarios import load_scenario
+
+    root = tmp_path_factory.mktemp("simulated")
+    path = write_scenario(root / "small.yaml", small_scenario(**SMALL))
+    _, target = execute(make_plan(*load_scenario(path), None, None, 1), root / "out")
+    return target
+
+
+def _edited_copy(previous: Path, tmp_path: Path, edit) -> Path:
+    import shutil
+
+    folder = tmp_path / "res" / previous.name
+    shutil.copytree(previous, folder)
+    path = folder / MANIFEST_FILE
+    doc = json.loads(path.read_text())
+    edit(doc)
+    path.write_text(json.dumps(doc))
+    return folder
+
+
+def _all_landmarks_at(value: float):
+    def edit(doc):
+        doc["world"]["landmarks"] = [[value, value] for _ in doc["world"]["landmarks"]]
+
+    return edit
+
+
+def _two_waypoints_far_apart(doc):
+    doc["world"]["waypoints"][:2] = [[-1e308, -1e308], [1e308, 1e308]]
+
+
+def _lone_surrogate(doc):
+    doc["scenario"]["description"] = "\ud800"
+
+
+SIMULATED_EDITS = {
+    "landmarks-1e308": (_all_landmarks_at(1e308), "world.landmarks"),  # OverflowError
+    "waypoints-plus-minus-1e308": (_two_waypoints_far_apart, "world.waypoints"),  # ValueError
+    "description-lone-surrogate": (_lone_surrogate, "not valid Unicode"),  # UnicodeEncodeError
+}
+
+
+@pytest.mark.parametrize("edit", list(SIMULATED_EDITS))
+@pytest.mark.parametrize("command", ["report", "check"])
+def test_a_hand_edited_simulated_manifest_is_one_line(simulated, tmp_path, edit, command):
+    change, words = SIMULATED_EDITS[edit]
+    folder = _edited_copy(simulated, tmp_path, change)
+    args = ("--out", tmp_path / "report") if command == "report" else ()
+    assert_one_line_error(cli(command, folder, *args), str(folder / MANIFEST_FILE), words)
+
+
+# --- Output that cannot be written ------------------------------------------------------------
+
+ENTRY = [sys.executable, "-c", "from anfekf_bench.entry import main; main()"]
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (Linux)")
+@pytest.mark.parametrize(
+    "args", [["kinds"], ["--version"], ["-h"], ["init", "{tmp}/new.yaml"], ["check", "{res}"]]
+)
+def test_a_full_stdout_is_one_line_and_a_nonzero_exit(tmp_path, args):
+    """`anfekf kinds > /dev/full` was rich's traceback (exit 1): every printing command."""
+    results = write_results(tmp_path / "res", {"wrong_r": paper_like()["wrong_r"]})
+    argv = [a.format(tmp=tmp_path, res=results) for a in args]
+    with open("/dev/full", "w") as full:
+        done = subprocess.run([*ENTRY, *argv], stdout=full, stderr=subprocess.PIPE, text=True,
+                              timeout=120)  # fmt: skip
+    lines = done.stderr.splitlines()
+    assert done.returncode == 74, (done.returncode, done.stderr[-2000:])
+    assert lines == ["error: standard output: cannot write ([Errno 28] No space left on device)"]
+
+
+# --- Dask: a scheduler killed mid-batch -----------------------------------------------------------
+
+
+def test_distributed_loggers_are_all_quiet_once_connected():
+    """distributed's config gives distributed.client (WARNING) and tornado.application (ERROR)
+    levels and handlers of their own: quieting their parents left their ERROR line and asyncio
+    traceback on stderr before our one line when the scheduler was killed."""
+    import logging
+
+    pytest.importorskip("distributed")
+    from anfekf_bench.runner import _quiet_dask_logs
+
+    _quiet_dask_logs()
+    for name in ("distributed", "distributed.client", "distributed.core", "tornado.application",
+                 "asyncio", "distributed.comm.tcp"):  # fmt: skip
+        assert not logging.getLogger(name).isEnabledFor(logging.CRITICAL), name
+
+
+@pytest.mark.slow
+def test_kill_9_of_the_scheduler_is_our_one_line_only(tmp_path):
+    """A scheduler and a worker in processes of their own, `anfekf run` on them, kill -9 of the
+    scheduler once the batch runs: stderr holds our one line, nothing of distributed's."""
+    import signal
+    import socket
+
+    pytest.importorskip("distributed")
+    from .conftest import small_scenario, write_scenario
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    address = f"tcp://127.0.0.1:{port}"
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+    scheduler = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler",
+                                  "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+                                 **quiet)  # fmt: skip
+    worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address,
+                               "--nthreads", "1", "--no-nanny"], **quiet)  # fmt: skip
+    try:
+        doc = small_scenario(name="dk", runs=200, backend={"kind": "dask", "scheduler": address,
+                                                           "connect_timeout_s": 60})  # fmt: skip
+        path = write_scenario(tmp_path / "dk.yaml", doc)
+        pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
+        run = subprocess.Popen([*ENTRY, "run", str(path), "--out", str(tmp_path / "o")], **pipes)
+        store = tmp_path / "o" / "dk" / ".runs"
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and len(list(store.glob("run-*.npz"))) < 2:
+            assert run.poll() is None, run.communicate()
+            time.sleep(0.2)
+        scheduler.send_signal(signal.SIGKILL)
+        _, err = run.communicate(timeout=180)
+    finally:
+        for proc in (scheduler, worker):
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait()
+    assert run.returncode == 2, err
+    assert err.splitlines() == [
+        f"error: Dask cluster at {address} failed during the batch (connection lost); finished"
+        " runs are saved: run the same command again to resume"
+    ], err

@@ -39,6 +39,7 @@ from ..storage import (
     SWEEP_CELLS_DIR,
     ResultsError,
     check_one_batch,
+    check_simulated_manifest,
     is_sweep_folder,
     read_json,
     read_manifest,
@@ -245,6 +246,7 @@ def read_scenario(folder: Path, metrics: Iterable[str]) -> ScenarioSummary:
     """A scenario folder's summary and run settings; `metrics` must all be in the summary."""
     manifest_path = folder / MANIFEST_FILE
     manifest = read_manifest(folder)
+    check_simulated_manifest(manifest_path, manifest)  # as `report` does: no half-valid input
     check_one_batch(folder, manifest)
     seed = _manifest_int(manifest, "seed", manifest_path)
     runs = _manifest_int(manifest, "runs", manifest_path)

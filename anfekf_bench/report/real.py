@@ -19,7 +19,6 @@ simulated scenarios' sections, through the same figure writer) shows:
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -33,9 +32,11 @@ from ..config import FILTER_NAME_PATTERN
 from ..filters.registry import adapted_noise
 from ..storage import (
     COMPARISONS_FILE,
+    COORDINATE_LIMIT,
     MANIFEST_FILE,
     SUMMARY_JSON,
     ResultsError,
+    check_manifest_text,
     check_one_batch,
     read_json,
     read_manifest,
@@ -93,9 +94,6 @@ class RealData:
         return next(r for r in self.summary if r["filter"] == name)
 
 
-COORDINATE_LIMIT = 1e7  # metres: a map further out is not a robot's
-
-
 def _finite(value, limit: float = math.inf) -> bool:
     return (
         isinstance(value, (int, float))
@@ -108,10 +106,7 @@ def _finite(value, limit: float = math.inf) -> bool:
 def _check_real_manifest(path: Path, manifest: dict) -> None:
     """ResultsError unless the parts of a real-data manifest the report draws are as `anfekf
     run` writes them (a hand-edited one is refused in one line, before any figure)."""
-    try:
-        json.dumps(manifest, ensure_ascii=False).encode("utf-8")
-    except UnicodeEncodeError:
-        raise ResultsError(f"{path}: holds text that is not valid Unicode") from None
+    check_manifest_text(path, manifest)
     filters = manifest["filters"]
     if not isinstance(filters, list) or not filters:
         raise ResultsError(f"{path}: filters: expected a non-empty list of filter instances")

@@ -48,6 +48,7 @@ from ..storage import (
     STEPS_FILE,
     ResultsError,
     check_one_batch,
+    check_simulated_manifest,
     read_json,
     read_manifest,
     read_parquet,
@@ -150,11 +151,10 @@ def find_scenarios(results_dirs: Sequence[Path], out_dir: Path | None = None) ->
 
 
 def _manifest(folder: Path) -> dict:
-    doc = read_manifest(folder)
+    doc, path = read_manifest(folder), folder / MANIFEST_FILE
     if not isinstance(doc.get("scenario"), dict):
-        raise ResultsError(
-            f"{folder / MANIFEST_FILE}: expected an object with a 'scenario' mapping"
-        )
+        raise ResultsError(f"{path}: expected an object with a 'scenario' mapping")
+    check_simulated_manifest(path, doc)  # valid Unicode, a map within range (hand-edited files)
     return doc
 
 

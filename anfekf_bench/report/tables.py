@@ -6,15 +6,14 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-import numpy as np
 from rich import box
 from rich.table import Table
 from rich.text import Text
 
 from ..analysis.metrics import format_share, format_sig
-from . import plots
 from .data import FilterSeries, Ratio, ScenarioData, SummaryRow, first_of_kind
 from .document import Cell, Document, TableBlock, to_markdown
+from .ranking import CONSISTENCY_NOTE, consistent, rank, ranking_note, rmse_ratio
 
 
 def _ratio(value: float, reference: FilterSeries | None) -> float:
@@ -155,41 +154,45 @@ def summary_table(rows: Sequence[SummaryRow]) -> TableBlock:
 
 def leaderboard_table(rows: Sequence[SummaryRow]) -> TableBlock:
     """Filters x scenarios: position RMSE over the oracle's with its interval (sortable in the
-    HTML by any scenario or by the median), a dot where NEES is in bounds on >= 85 % of steps."""
-    scenarios = list(dict.fromkeys(r.scenario for r in rows))
+    HTML by any scenario or by the median), a dot where the filter is consistent
+    (`ranking.consistent`). Ranked as the figure is (`ranking.rank`): the median is over the
+    scenarios every ranked filter ran; filters that ran in fewer follow, unranked."""
+    ranking = rank(rows)
+    scenarios = ranking.all_scenarios
     cells = {(r.filter, r.scenario): r for r in rows}
     body = []
-    for name in dict.fromkeys(r.filter for r in rows):
+    for name in ranking.ranked + ranking.unranked:
         line: list[Cell] = [Cell(name)]
-        values = []
         for scen in scenarios:
             r = cells.get((name, scen))
             if r is None:
                 line.append(Cell("-"))
                 continue
             reference = r.filter == r.oracle_name
-            value = (
-                1.0
-                if reference
-                else (r.rmse_vs_oracle.estimate if r.rmse_vs_oracle is not None else r.vs_oracle)
-            )
-            values.append(value)
-            mark = " •" if r.nees_in_bounds >= plots.CONSISTENT_SHARE else ""
+            value = rmse_ratio(r)
+            mark = " •" if consistent(r) else ""
             text = format_ratio(r.rmse_vs_oracle, reference=reference)
             line.append(Cell(text + mark, value))
-        finite = [v for v in values if math.isfinite(v)]
-        median = float(np.median(finite)) if finite else math.nan
-        line.append(Cell(format_sig(median), median))
+        if name in ranking.median:
+            median = ranking.median[name]
+            line.append(Cell(format_sig(median) if math.isfinite(median) else "n/a", median))
+        else:
+            m = len(scenarios)
+            line.append(Cell(f"unranked ({ranking.ran_in[name]}/{m} scenarios)", math.inf))
         body.append(line)
-    body.sort(key=lambda line: (not math.isfinite(line[-1].sort), line[-1].sort))
     header = ("filter", *scenarios, "median")
-    return TableBlock(header, body, (False, *[True] * (len(scenarios) + 1)),
-                      caption="Position RMSE / oracle's [95 % interval]; •: NEES in bounds on"
-                      " >= 85 % of steps; click a header to sort")  # fmt: skip
+    caption = (
+        f"Position RMSE / oracle's [95 % interval]; {ranking_note(ranking)}; {CONSISTENCY_NOTE};"
+        " '-': not run in that scenario; click a header to sort"
+    )
+    return TableBlock(header, body, (False, *[True] * (len(scenarios) + 1)), caption=caption)
 
 
 LEADERBOARD_CAPTION = (
     "Leaderboard: each filter's position RMSE over the oracle EKF's in each scenario, on one"
     " log colour scale centred on 1 (white); frame: the 95 % paired interval includes 1;"
-    " dot: NEES in the 95 % bounds on at least 85 % of steps; filters sorted best first"
+    " dot: consistent (ANEES within the 95 % chi-square band of the run-averaged NEES, and NEES"
+    " in that band on at least 85 % of steps); grey: no value ('-': the filter was not run in"
+    " that scenario; 'n/a': every run diverged); filters ranked best first by the median over"
+    " the scenarios every ranked filter ran, those that ran in fewer listed below, unranked"
 )

@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 from rich import box
+from rich.console import Console, ConsoleOptions, RenderResult
+from rich.measure import Measurement
 from rich.table import Table
 from rich.text import Text
 
@@ -110,8 +113,8 @@ TERMINAL_HEADER = (
 _TERMINAL_SKIP = (3,)  # "diverged": the terminal shows it in "runs used" (48/50) only
 
 
-def rich_table(rows: Sequence[SummaryRow]) -> Table:
-    """The summary table for the terminal."""
+def _full_table(rows: Sequence[SummaryRow]) -> Table:
+    """Every column of the summary, one table (a terminal wide enough for it)."""
     table = Table(
         title="Summary across scenarios (RMSE: time mean of the RMSE-over-runs curve;"
         " ratios: paired, 95 % bootstrap interval below)",
@@ -134,6 +137,55 @@ def rich_table(rows: Sequence[SummaryRow]) -> Table:
         table.add_row(*(Text(c.text) for c in cells))
         previous = row.scenario
     return table
+
+
+# A narrow terminal (80 columns) gets the columns that decide a comparison, one table per
+# scenario (its name as the title instead of a column): squeezed into 80 columns, the full
+# table cut every number to "0.1…".
+COMPACT_HEADER = ("filter", "runs\nused", "RMSE\npos [m]", "ANEES", "NEES in\nbounds",
+                  "RMSE / oracle\n[95 % CI]")  # fmt: skip
+_COMPACT_CELLS = (1, 2, 4, 6, 7, 9)  # their places in table_row
+
+
+def _compact_tables(rows: Sequence[SummaryRow]) -> list:
+    out: list = [
+        Text(
+            "Summary (narrow terminal: RMSE heading, the ratios to the EKF, ANEES / oracle and"
+            " outlier runs are in report.md; a wider terminal shows them here)"
+        )
+    ]
+    for scenario in dict.fromkeys(r.scenario for r in rows):
+        table = Table(title=Text(scenario), title_justify="left", box=box.SIMPLE_HEAD,
+                      pad_edge=False, collapse_padding=True)  # fmt: skip
+        for i, col in enumerate(COMPACT_HEADER):
+            table.add_column(Text(col), justify="left" if i == 0 else "right", no_wrap=True)
+        for row in rows:
+            if row.scenario == scenario:
+                cells = table_row(row, sep=" ")
+                table.add_row(*(Text(cells[i].text) for i in _COMPACT_CELLS))
+        out.append(table)
+    return out
+
+
+@dataclass(frozen=True)
+class SummaryTable:
+    """The terminal's summary table: every column where the terminal fits it whole, else the
+    compact tables (decided when printed, from the console's width)."""
+
+    rows: Sequence[SummaryRow]
+
+    def __rich_console__(self, console: Console, options: ConsoleOptions) -> RenderResult:
+        full = _full_table(self.rows)
+        # the full table where it fits unsqueezed (its widest cells whole), else the compact one
+        if Measurement.get(console, options.update(width=10**4), full).maximum <= options.max_width:
+            yield full
+        else:
+            yield from _compact_tables(self.rows)
+
+
+def rich_table(rows: Sequence[SummaryRow]) -> SummaryTable:
+    """The summary table for the terminal (readable at 80 columns: `SummaryTable`)."""
+    return SummaryTable(list(rows))
 
 
 def markdown_table(rows: Sequence[SummaryRow]) -> str:

@@ -106,7 +106,7 @@ def test_the_leaderboard_sorts_best_first_and_marks_cells():
     texts = {t.get_gid(): t.get_text() for t in ax.texts}
     for r in rows:
         text = texts[f"leaderboard_value/{r.scenario}/{r.filter}"]
-        assert text.endswith("•") == (r.nees_in_bounds >= plots.CONSISTENT_SHARE)
+        assert text.endswith("•") == plots.consistent(r)
     frames = {p.get_gid() for p in ax.patches if p.get_gid()}
     assert frames == set()  # no interval of many_rows includes 1 except ...
     rows[0] = rows[0].__class__(

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import math
+import textwrap
 from collections.abc import Iterable, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -47,6 +48,15 @@ from .data import (  # noqa: E402
     SummaryRow,
 )
 from .document import FigureBlock  # noqa: E402
+from .ranking import (  # noqa: E402
+    CONSISTENCY_NOTE,
+    CONSISTENT_SHARE,  # noqa: F401  (the tables read it here)
+    GREY_NOTE,
+    consistent,
+    rank,
+    ranking_note,
+    rmse_ratio,
+)
 
 DPI = 110
 ELLIPSE_SIGMA = 3.0
@@ -739,8 +749,6 @@ def _percentiles() -> tuple[float, float]:
 RATIO_TICKS = (1.0, 1.5, 2.0, 3.0, 5.0, 10.0, 30.0)
 RATIO_MIN, RATIO_MAX = 1 / 1.5, 30.0
 RATIO_CMAP = "RdBu_r"
-# NEES in the 95 % bounds on at least this share of steps: the cell is marked consistent.
-CONSISTENT_SHARE = 0.85
 
 
 def ratio_norm():
@@ -785,28 +793,18 @@ def _text_colour(rgba) -> str:
 def leaderboard_figure(rows: Sequence[SummaryRow]) -> Figure:
     """Filters x scenarios: each cell the filter's position RMSE over the oracle's in that
     scenario (colour on the fixed ratio scale, the value written in), with a frame where the 95 %
-    interval of the ratio includes 1 and a dot where NEES is in bounds on >= 85 % of steps.
-    Filters are sorted by their median ratio over the scenarios, best first."""
-    scenarios = list(dict.fromkeys(r.scenario for r in rows))
+    interval of the ratio includes 1 and a dot where the filter is consistent
+    (`ranking.consistent`). Filters are ranked by their median ratio over the scenarios every
+    ranked filter ran (`ranking.rank`); those that ran in fewer are listed below a line,
+    unranked. Grey cells (no value) say why: '-' not run, 'n/a' every run diverged."""
+    ranking = rank(rows)
+    scenarios = ranking.all_scenarios
     cells: dict[tuple[str, str], SummaryRow] = {(r.filter, r.scenario): r for r in rows}
     oracle = next((r.oracle_name for r in rows if r.kind == "ekf-oracle"), "ekf-oracle")
-
-    def ratio_of(r: SummaryRow | None) -> float:
-        if r is None:
-            return math.nan
-        if r.filter == r.oracle_name:
-            return 1.0
-        return r.rmse_vs_oracle.estimate if r.rmse_vs_oracle is not None else r.vs_oracle
-
-    names = list(dict.fromkeys(r.filter for r in rows))
-    values = np.array([[ratio_of(cells.get((n, s))) for s in scenarios] for n in names])
-    with np.errstate(all="ignore"):
-        key = np.array([np.nanmedian(v) if np.isfinite(v).any() else np.inf for v in values])
-    order = np.argsort(key, kind="stable")
-    names = [names[i] for i in order]
-    values = values[order]
+    names = ranking.ranked + ranking.unranked
+    values = np.array([[rmse_ratio(cells.get((n, s))) for s in scenarios] for n in names])
     n, m = len(names), len(scenarios)
-    fig = Figure(figsize=(max(6.5, 3.6 + 1.15 * m), max(4.8, 2.4 + 0.3 * n)), layout="constrained")
+    fig = Figure(figsize=(max(6.5, 3.6 + 1.15 * m), max(5.6, 3.4 + 0.3 * n)), layout="constrained")
     ax = fig.subplots()
     with np.errstate(all="ignore"):
         logs = np.log10(np.where(values > 0, values, np.nan))
@@ -817,14 +815,13 @@ def leaderboard_figure(rows: Sequence[SummaryRow]) -> Figure:
         for j, scen in enumerate(scenarios):
             row = cells.get((name, scen))
             value = values[i, j]
-            if row is None:
-                continue
             colour = ratio_colour(value)
-            consistent = math.isfinite(row.nees_in_bounds) and (
-                row.nees_in_bounds >= CONSISTENT_SHARE
-            )
+            if row is None or not math.isfinite(value):
+                ax.text(j, i, "-" if row is None else "n/a", ha="center", va="center",
+                        fontsize=7, gid=f"leaderboard_none/{scen}/{name}")  # fmt: skip
+                continue
             text = ("ref." if name == row.oracle_name else format_sig(value)) + (
-                " •" if consistent else ""
+                " •" if consistent(row) else ""
             )
             ax.text(j, i, text, ha="center", va="center", fontsize=7,
                     color=_text_colour(colour), gid=f"leaderboard_value/{scen}/{name}")  # fmt: skip
@@ -834,19 +831,21 @@ def leaderboard_figure(rows: Sequence[SummaryRow]) -> Figure:
                                   edgecolor="black")  # fmt: skip
                 frame.set_gid(f"leaderboard_ci1/{scen}/{name}")
                 ax.add_patch(frame)
+    if ranking.unranked:  # a line between the ranked filters and those listed apart
+        ax.axhline(len(ranking.ranked) - 0.5, color="black", lw=2.0, gid="leaderboard_unranked")
     ax.set_xticks(np.arange(m), scenarios, rotation=30, ha="left", fontsize=8)
     ax.xaxis.tick_top()
-    ax.set_yticks(np.arange(n), names, fontsize=8)
+    labels = ranking.ranked + [f"{u} (unranked: {ranking.ran_in[u]}/{m})" for u in ranking.unranked]
+    ax.set_yticks(np.arange(n), labels, fontsize=8)
     for label, name in zip(ax.get_yticklabels(), names, strict=True):
-        label.set_color("black" if name != oracle else ORACLE_COLOUR)
+        grey = name == oracle or name in ranking.unranked
+        label.set_color(ORACLE_COLOUR if grey else "black")
     ax.grid(False)
     ax.set_xlim(-0.5, m - 0.5)
     ax.set_ylim(n - 0.5, -0.5)
     ratio_colourbar(fig, image, ax, f"position RMSE / {oracle}'s (log)")
     fig.suptitle(f"Leaderboard: position RMSE over {oracle}'s\n{n} filters x {m} scenarios")
-    ax.set_xlabel(
-        "sorted by the median over scenarios, best first\nframe: the 95 % interval includes 1"
-        f"\n•: NEES in bounds on >= {CONSISTENT_SHARE:.0%} of steps",
-        fontsize=7,
-    )
+    notes = [ranking_note(ranking), "frame: the 95 % paired interval includes 1",
+             CONSISTENCY_NOTE, GREY_NOTE]  # fmt: skip
+    ax.set_xlabel("\n".join(textwrap.fill(t, 95) for t in notes), fontsize=7)
     return fig

@@ -5,16 +5,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
-import numpy as np
 from rich import box
+from rich.console import Console, ConsoleOptions, RenderResult
+from rich.measure import Measurement
 from rich.table import Table
 from rich.text import Text
 
 from ..analysis.metrics import format_share, format_sig
-from . import plots
 from .data import FilterSeries, Ratio, ScenarioData, SummaryRow, first_of_kind
 from .document import Cell, Document, TableBlock, to_markdown
+from .ranking import CONSISTENCY_NOTE, consistent, rank, ranking_note, rmse_ratio
 
 
 def _ratio(value: float, reference: FilterSeries | None) -> float:
@@ -111,8 +113,8 @@ TERMINAL_HEADER = (
 _TERMINAL_SKIP = (3,)  # "diverged": the terminal shows it in "runs used" (48/50) only
 
 
-def rich_table(rows: Sequence[SummaryRow]) -> Table:
-    """The summary table for the terminal."""
+def _full_table(rows: Sequence[SummaryRow]) -> Table:
+    """Every column of the summary, one table (a terminal wide enough for it)."""
     table = Table(
         title="Summary across scenarios (RMSE: time mean of the RMSE-over-runs curve;"
         " ratios: paired, 95 % bootstrap interval below)",
@@ -137,6 +139,55 @@ def rich_table(rows: Sequence[SummaryRow]) -> Table:
     return table
 
 
+# A narrow terminal (80 columns) gets the columns that decide a comparison, one table per
+# scenario (its name as the title instead of a column): squeezed into 80 columns, the full
+# table cut every number to "0.1…".
+COMPACT_HEADER = ("filter", "runs\nused", "RMSE\npos [m]", "ANEES", "NEES in\nbounds",
+                  "RMSE / oracle\n[95 % CI]")  # fmt: skip
+_COMPACT_CELLS = (1, 2, 4, 6, 7, 9)  # their places in table_row
+
+
+def _compact_tables(rows: Sequence[SummaryRow]) -> list:
+    out: list = [
+        Text(
+            "Summary (narrow terminal: RMSE heading, the ratios to the EKF, ANEES / oracle and"
+            " outlier runs are in report.md; a wider terminal shows them here)"
+        )
+    ]
+    for scenario in dict.fromkeys(r.scenario for r in rows):
+        table = Table(title=Text(scenario), title_justify="left", box=box.SIMPLE_HEAD,
+                      pad_edge=False, collapse_padding=True)  # fmt: skip
+        for i, col in enumerate(COMPACT_HEADER):
+            table.add_column(Text(col), justify="left" if i == 0 else "right", no_wrap=True)
+        for row in rows:
+            if row.scenario == scenario:
+                cells = table_row(row, sep=" ")
+                table.add_row(*(Text(cells[i].text) for i in _COMPACT_CELLS))
+        out.append(table)
+    return out
+
+
+@dataclass(frozen=True)
+class SummaryTable:
+    """The terminal's summary table: every column where the terminal fits it whole, else the
+    compact tables (decided when printed, from the console's width)."""
+
+    rows: Sequence[SummaryRow]
+
+    def __rich_console__(self, console: Console, options: ConsoleOptions) -> RenderResult:
+        full = _full_table(self.rows)
+        # the full table where it fits unsqueezed (its widest cells whole), else the compact one
+        if Measurement.get(console, options.update(width=10**4), full).maximum <= options.max_width:
+            yield full
+        else:
+            yield from _compact_tables(self.rows)
+
+
+def rich_table(rows: Sequence[SummaryRow]) -> SummaryTable:
+    """The summary table for the terminal (readable at 80 columns: `SummaryTable`)."""
+    return SummaryTable(list(rows))
+
+
 def markdown_table(rows: Sequence[SummaryRow]) -> str:
     """The summary table as GitHub markdown."""
     return to_markdown(Document("", [summary_table(rows)])).split("\n", 2)[2].strip()
@@ -155,41 +206,45 @@ def summary_table(rows: Sequence[SummaryRow]) -> TableBlock:
 
 def leaderboard_table(rows: Sequence[SummaryRow]) -> TableBlock:
     """Filters x scenarios: position RMSE over the oracle's with its interval (sortable in the
-    HTML by any scenario or by the median), a dot where NEES is in bounds on >= 85 % of steps."""
-    scenarios = list(dict.fromkeys(r.scenario for r in rows))
+    HTML by any scenario or by the median), a dot where the filter is consistent
+    (`ranking.consistent`). Ranked as the figure is (`ranking.rank`): the median is over the
+    scenarios every ranked filter ran; filters that ran in fewer follow, unranked."""
+    ranking = rank(rows)
+    scenarios = ranking.all_scenarios
     cells = {(r.filter, r.scenario): r for r in rows}
     body = []
-    for name in dict.fromkeys(r.filter for r in rows):
+    for name in ranking.ranked + ranking.unranked:
         line: list[Cell] = [Cell(name)]
-        values = []
         for scen in scenarios:
             r = cells.get((name, scen))
             if r is None:
                 line.append(Cell("-"))
                 continue
             reference = r.filter == r.oracle_name
-            value = (
-                1.0
-                if reference
-                else (r.rmse_vs_oracle.estimate if r.rmse_vs_oracle is not None else r.vs_oracle)
-            )
-            values.append(value)
-            mark = " •" if r.nees_in_bounds >= plots.CONSISTENT_SHARE else ""
+            value = rmse_ratio(r)
+            mark = " •" if consistent(r) else ""
             text = format_ratio(r.rmse_vs_oracle, reference=reference)
             line.append(Cell(text + mark, value))
-        finite = [v for v in values if math.isfinite(v)]
-        median = float(np.median(finite)) if finite else math.nan
-        line.append(Cell(format_sig(median), median))
+        if name in ranking.median:
+            median = ranking.median[name]
+            line.append(Cell(format_sig(median) if math.isfinite(median) else "n/a", median))
+        else:
+            m = len(scenarios)
+            line.append(Cell(f"unranked ({ranking.ran_in[name]}/{m} scenarios)", math.inf))
         body.append(line)
-    body.sort(key=lambda line: (not math.isfinite(line[-1].sort), line[-1].sort))
     header = ("filter", *scenarios, "median")
-    return TableBlock(header, body, (False, *[True] * (len(scenarios) + 1)),
-                      caption="Position RMSE / oracle's [95 % interval]; •: NEES in bounds on"
-                      " >= 85 % of steps; click a header to sort")  # fmt: skip
+    caption = (
+        f"Position RMSE / oracle's [95 % interval]; {ranking_note(ranking)}; {CONSISTENCY_NOTE};"
+        " '-': not run in that scenario; click a header to sort"
+    )
+    return TableBlock(header, body, (False, *[True] * (len(scenarios) + 1)), caption=caption)
 
 
 LEADERBOARD_CAPTION = (
     "Leaderboard: each filter's position RMSE over the oracle EKF's in each scenario, on one"
     " log colour scale centred on 1 (white); frame: the 95 % paired interval includes 1;"
-    " dot: NEES in the 95 % bounds on at least 85 % of steps; filters sorted best first"
+    " dot: consistent (ANEES within the 95 % chi-square band of the run-averaged NEES, and NEES"
+    " in that band on at least 85 % of steps); grey: no value ('-': the filter was not run in"
+    " that scenario; 'n/a': every run diverged); filters ranked best first by the median over"
+    " the scenarios every ranked filter ran, those that ran in fewer listed below, unranked"
 )

@@ -23,6 +23,10 @@ the outlier distribution (moment matched: (1 - p + p f) sigma^2 for the contamin
 sigma^2 dof / (dof - 2) for Student-t, which is why dof > 2). That is the R the oracle is told and
 the reference of the noise-tracking error. Blackouts change no variance (there is just nothing to
 measure).
+
+Bounds: on every channel, each factor and the product of the factors in force at any instant
+(changes and the outliers' inflation) lie in [1e-6, 1e6] (`factor_range_problem`), refused up
+front otherwise: beyond, the true variance overflows or vanishes.
 """
 
 from __future__ import annotations

@@ -54,7 +54,7 @@ from .config import Scenario, World, parse_scenario, scenario_files
 from .engines.filterpy_engine import run_filter
 from .experiment import execute, machine_info, make_plan, package_versions
 from .filters import ANFEKFSpec, EKFSpec, FilterContext, FilterSpec, RobotEKF, build_filter
-from .filters.registry import filter_context
+from .filters.context import filter_context
 from .models import H_jacobian, f, h, jacobians, residual_z
 from .runner import run_batch, simulate
 from .scenarios import load_scenario

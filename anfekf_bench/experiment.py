@@ -45,8 +45,8 @@ from .analysis.tables import (
     update_statistics,
 )
 from .config import BackendConfig, Engine, Scenario, World
+from .filters.context import build_filter
 from .filters.custom import CustomFilterFailed, CustomSpec
-from .filters.registry import build_filter
 from .outputs import (
     OutputExists,
     PlanError,

@@ -33,8 +33,8 @@ from .analysis.metrics import add_trace_metrics, recorded_steps
 from .config import Engine, Scenario, World
 from .engines.filterpy_engine import run_filter
 from .filters import FilterContext, FilterSpec
+from .filters.context import filter_context
 from .filters.custom import CustomSpec, contained
-from .filters.registry import filter_context
 from .sources.simulator import RunData, WorldPath, simulate_run, world_path
 from .timeline import Timeline, from_run
 from .workers import local_workers

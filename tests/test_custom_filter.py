@@ -15,7 +15,7 @@ from anfekf_bench.cli import app
 from anfekf_bench.config import resolve_world
 from anfekf_bench.engines.filterpy_engine import run_filter
 from anfekf_bench.filters import custom
-from anfekf_bench.filters.registry import build_filter
+from anfekf_bench.filters.context import build_filter
 from anfekf_bench.runner import simulate
 from anfekf_bench.scenarios import load_scenario
 

@@ -184,7 +184,7 @@ import numpy as np
 from anfekf_bench.config import parse_scenario, resolve_world
 from anfekf_bench.engines import fast, kernels
 from anfekf_bench.engines.filterpy_engine import run_filter
-from anfekf_bench.filters.registry import build_filter
+from anfekf_bench.filters.context import build_filter
 from anfekf_bench.runner import simulate
 
 assert not fast.JIT and not kernels.JIT and type(kernels.run_kernel).__name__ == "function"

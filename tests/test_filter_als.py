@@ -20,8 +20,8 @@ from anfekf_bench.filters.als import (
     window_factor,
     window_push,
 )
+from anfekf_bench.filters.context import build_filter
 from anfekf_bench.filters.ekf import RobotEKF
-from anfekf_bench.filters.registry import build_filter
 from anfekf_bench.filters.spec import FilterContext
 from anfekf_bench.models import Unicycle, h
 from anfekf_bench.runner import simulate

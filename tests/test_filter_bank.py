@@ -24,7 +24,7 @@ from anfekf_bench.filters.bank import (
     mixture_weights,
     normalise_log_weights,
 )
-from anfekf_bench.filters.registry import build_filter
+from anfekf_bench.filters.context import build_filter
 from anfekf_bench.models import Bicycle, Unicycle, wrap_angle
 from anfekf_bench.runner import simulate
 

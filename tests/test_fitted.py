@@ -17,9 +17,9 @@ from anfekf_bench.engines import fast
 from anfekf_bench.engines.filterpy_engine import run_filter
 from anfekf_bench.engines.tuning import TrainingProblem
 from anfekf_bench.experiment import execute, make_plan
+from anfekf_bench.filters.context import build_filter, filter_context
 from anfekf_bench.filters.ekf import RobotEKF
 from anfekf_bench.filters.fitted import EKFMLSpec, EKFTunedSpec, FilterNotFitted
-from anfekf_bench.filters.registry import build_filter, filter_context
 from anfekf_bench.runner import run_tasks, simulate
 from anfekf_bench.storage import MANIFEST_FILE, RUNS_DIR
 from anfekf_bench.training import TRAINING_BRANCH, fit_filters, simulate_training, training_seeds

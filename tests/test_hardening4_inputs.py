@@ -489,7 +489,7 @@ KALMANNET_FIT_TAMPERED = {
 
 @pytest.mark.parametrize("case", list(KALMANNET_FIT_TAMPERED))
 def test_a_tampered_kalmannet_fit_cache_is_refused(tmp_path, case):
-    from anfekf_bench.filters.kalmannet import fitted_weights_problem
+    from anfekf_bench.filters.kalmannet_net import fitted_weights_problem
     from anfekf_bench.outputs import CachedFitRefused, read_cached_fit, write_fit
 
     path = tmp_path / "fit-0123456789abcdef.json"
@@ -527,7 +527,7 @@ def test_weights_of_another_system_still_round_trip():
     only for a fit (kalmannet_train trains linear systems' networks too)."""
     import numpy as np
 
-    from anfekf_bench.filters.kalmannet import NET_ARRAYS, KalmanNetWeights
+    from anfekf_bench.filters.kalmannet_net import NET_ARRAYS, KalmanNetWeights
 
     rng = np.random.default_rng(0)
     arrays = {name: rng.normal(size=(3, 5) if "weight" in name else 3) for name in NET_ARRAYS}

@@ -16,8 +16,9 @@ from anfekf_bench.analysis.metrics import add_trace_metrics, format_number, summ
 from anfekf_bench.cli import app
 from anfekf_bench.config import ScenarioError, parse_scenario, resolve_world
 from anfekf_bench.engines.filterpy_engine import run_filter
+from anfekf_bench.filters.context import build_filter, filter_context
 from anfekf_bench.filters.kalmannet import INSTALL_HINT, KalmanNetSpec, KalmanNetWeights
-from anfekf_bench.filters.registry import KINDS, build_filter, filter_context
+from anfekf_bench.filters.registry import KINDS
 from anfekf_bench.runner import simulate
 from anfekf_bench.sources.simulator import world_path
 from anfekf_bench.training import training_seeds

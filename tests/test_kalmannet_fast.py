@@ -18,7 +18,7 @@ import pytest
 from anfekf_bench.engines import fast
 from anfekf_bench.engines.filterpy_engine import run_filter
 from anfekf_bench.filters import FilterContext
-from anfekf_bench.filters import kalmannet as kn
+from anfekf_bench.filters import kalmannet_net as kn
 from anfekf_bench.filters.ekf import gate_threshold
 from anfekf_bench.filters.kalmannet import KalmanNetSpec, KalmanNetWeights
 from anfekf_bench.models import Unicycle

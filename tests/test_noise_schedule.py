@@ -12,8 +12,8 @@ from scipy import stats
 
 from anfekf_bench.config import ScenarioError, parse_scenario, resolve_world
 from anfekf_bench.engines.filterpy_engine import run_filter
+from anfekf_bench.filters.context import build_filter, filter_context
 from anfekf_bench.filters.ekf import RobotEKF, ScheduledOracle
-from anfekf_bench.filters.registry import build_filter, filter_context
 from anfekf_bench.models import wrap_angle
 from anfekf_bench.runner import engine_of, run_filter_on, simulate
 from anfekf_bench.scenarios import load_scenario

@@ -13,7 +13,8 @@ import pytest
 from anfekf_bench.config import parse_scenario, resolve_world
 from anfekf_bench.engines.filterpy_engine import run_filter
 from anfekf_bench.filters import AdaptiveEKF
-from anfekf_bench.filters.registry import SPECS, build_filter, kind_of
+from anfekf_bench.filters.context import build_filter
+from anfekf_bench.filters.registry import SPECS, kind_of
 from anfekf_bench.filters.spec import AdaptiveSpec
 from anfekf_bench.runner import simulate
 

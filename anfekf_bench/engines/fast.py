@@ -42,7 +42,8 @@ from ..filters.ekf import EKFSpec, OracleSpec
 from ..filters.fading import FadingSpec
 from ..filters.fitted import EKFMLSpec, EKFTunedSpec
 from ..filters.iae import IAESpec
-from ..filters.kalmannet import KalmanNetSpec, KalmanNetWeights
+from ..filters.kalmannet import KalmanNetSpec
+from ..filters.kalmannet_net import KalmanNetWeights
 from ..filters.registry import register_engine
 from ..filters.sage_husa import SageHusaSpec
 from ..filters.spec import FilterContext, FilterSpec

@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from ..filters import kalmannet as _kn
+from ..filters import kalmannet_net as _kn
 from ..models import angles as _angles
 from . import kernels as _kernels
 

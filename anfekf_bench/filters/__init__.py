@@ -7,8 +7,9 @@ deriving from `FilterParams` (or `AdaptiveParams`), and name it in a scenario fi
 
 from .adaptive import AdaptiveEKF, clip_to_bounds, qu_least_squares
 from .anfekf import ANFEKF, ANFEKFSpec, mismatch, q_step, r_step
+from .context import build_filter
 from .ekf import EKFSpec, FilterDiverged, Innovation, OracleSpec, RobotEKF, gate_threshold
-from .registry import KINDS, AnyFilterSpec, build_filter
+from .registry import KINDS, AnyFilterSpec
 from .spec import AdaptiveParams, FilterContext, FilterParams, FilterSpec
 
 __all__ = [

@@ -28,7 +28,7 @@ import torch
 from torch import nn
 
 from ..models import Bicycle, Unicycle, residual_z
-from .kalmannet import KalmanNetWeights, TrainingResult
+from .kalmannet_net import KalmanNetWeights, TrainingResult
 
 DTYPE = torch.float64
 HEADING_WEIGHT_M = 1.0  # loss = ex^2 + ey^2 + (HEADING_WEIGHT_M * ephi)^2 [m^2]

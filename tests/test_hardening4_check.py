@@ -311,3 +311,16 @@ def test_kill_9_of_the_scheduler_is_our_one_line_only(tmp_path):
         f"error: Dask cluster at {address} failed during the batch (connection lost); finished"
         " runs are saved: run the same command again to resume"
     ], err
+
+
+def test_the_one_worker_cluster_has_its_worker_before_a_test_starts():
+    """The tests on it gave the worker's process 2 s to start (connect_dask(address, 2.0)): under
+    load its import alone took longer. The fixture now waits for the worker to register."""
+    pytest.importorskip("distributed")
+    from .conftest import cluster_with_one_worker
+
+    with cluster_with_one_worker() as (address, _worker):
+        from distributed import Client
+
+        with Client(address, timeout=60, set_as_default=False) as client:
+            assert client.scheduler_info()["workers"], "no worker registered yet"

@@ -28,38 +28,10 @@ from rich.table import Table
 from rich.text import Text
 from typer.core import TyperArgument, TyperGroup, TyperOption
 
-from .analysis.metrics import format_number, format_share, format_sig
-from .config import (
-    MAX_JOBS,
-    MAX_RUNS,
-    MAX_SEED,
-    ScenarioError,
-    one_line,
-    scenario_files,
-)
-from .experiment import (
-    FolderBusy,
-    OutputExists,
-    PlanError,
-    check_plan,
-    execute,
-    make_plan,
-    scenario_folder,
-    survey_output,
-)
-from .filters.custom import CustomFilterFailed
+# Only light modules at import: `anfekf --version`, `-h` and `kinds` must not pay for numpy,
+# pandas, scipy, numba or matplotlib (about 3 s of CPU). Each command imports what it runs.
 from .provenance import version_line
-from .runner import BackendUnavailable
-from .scenarios import load_scenario
-from .sources.simulator import RouteNotCompleted
-from .storage import (
-    MANIFEST_FILE,
-    RUNS_DIR,
-    ResultsError,
-    output_path_problem,
-    read_manifest,
-)
-from .sweeps import SweepError, cell_plans, expand, run_sweep, validate_sweep
+from .text import one_line
 
 # click's exception classes as typer raises them (typer >= 0.17 vendors its own click): found
 # through typer's public BadParameter, so this works with either.
@@ -289,6 +261,8 @@ def one_line_errors(
 
 
 def summary_table(title: str, records: list[dict]) -> Table:
+    from .analysis.metrics import format_number, format_share
+
     table = Table(title=title, title_justify="left")
     for col in (
         "filter",
@@ -321,6 +295,8 @@ def plural(n: int, noun: str) -> str:
 
 
 def _check_out_dir(out: Path) -> None:
+    from .storage import output_path_problem
+
     problem = output_path_problem(out, folder=True)
     if problem:
         fail(f"{out}: {problem}")
@@ -368,6 +344,18 @@ def run(
     ] = False,
 ) -> None:
     """Run Monte Carlo batches of every filter of a scenario and write Parquet results."""
+    from .config import MAX_JOBS, MAX_RUNS, MAX_SEED, ScenarioError, scenario_files
+    from .experiment import (
+        OutputExists,
+        PlanError,
+        check_plan,
+        make_plan,
+        scenario_folder,
+        survey_output,
+    )
+    from .scenarios import load_scenario
+    from .sweeps import SweepError, cell_plans, expand, validate_sweep
+
     warnings.showwarning = _one_line_warning  # a library's warning may quote a name
     # Checked here rather than by typer's min=/max=, whose error is a multi-line box.
     for flag, value, least, most in (
@@ -464,6 +452,8 @@ def warn_fast_without_numba() -> None:
 def complete_result(target: Path, plan) -> str | None:
     """What a complete result in `target` holds ('the same runs and seed', 'runs 20, seed 7'),
     or None when the folder holds no complete result (no manifest.json)."""
+    from .storage import MANIFEST_FILE, ResultsError, read_manifest
+
     if not (target / MANIFEST_FILE).is_file():
         return None
     try:
@@ -507,6 +497,8 @@ def run_progress() -> Progress:
 def sweep_summary_table(name: str, table, runs: int) -> Table:
     """The end of a sweep: per filter, its position RMSE over the oracle's across the cells
     (best, median, worst cell) and the cells within 1.5 x, with divergences."""
+    from .analysis.metrics import format_number
+
     out = Table(title=f"sweep {name}: {plural(table['cell'].nunique(), 'cell')} x {runs} runs",
                 title_justify="left")  # fmt: skip
     for col in ("filter", "RMSE / oracle best", "median", "worst", "cells <= 1.5x", "diverged"):
@@ -527,6 +519,12 @@ def sweep_summary_table(name: str, table, runs: int) -> Table:
 
 def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
     """Every cell of a sweep with one progress bar over all its runs, then the sweep table."""
+    from .experiment import FolderBusy, OutputExists, PlanError
+    from .filters.custom import CustomFilterFailed
+    from .runner import BackendUnavailable
+    from .sources.simulator import RouteNotCompleted
+    from .sweeps import SweepError, run_sweep
+
     progress = run_progress()
     total = sum(p.runs for p in plans)
     task = progress.add_task(f"{plan.name}: {len(cells)} cells", total=total)
@@ -587,6 +585,12 @@ def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
 
 
 def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
+    from .experiment import FolderBusy, OutputExists, PlanError, execute
+    from .filters.custom import CustomFilterFailed
+    from .runner import BackendUnavailable
+    from .sources.simulator import RouteNotCompleted
+    from .storage import RUNS_DIR
+
     progress = run_progress()
     task = None
     saved = 0  # runs on disk in <out>/<name>/.runs, for the message if interrupted
@@ -638,6 +642,8 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
 def format_interval(estimate: float, lo: float, hi: float, digits: int = 3) -> str:
     """'0.496 [0.452, 0.543]', '0.0536 [0.0395, 0.0670]' (significant digits, as in the report),
     or the estimate alone when it has no interval."""
+    from .analysis.metrics import format_sig
+
     text = format_sig(estimate, digits)
     if math.isfinite(lo) and math.isfinite(hi):
         text += f" [{format_sig(lo, digits)}, {format_sig(hi, digits)}]"
@@ -646,6 +652,7 @@ def format_interval(estimate: float, lo: float, hi: float, digits: int = 3) -> s
 
 def print_comparisons(out: Console, target: Path) -> None:
     """The paired ratios (95 % bootstrap intervals) and the claims' verdicts of a result."""
+    from .analysis.metrics import format_number
     from .storage import CLAIMS_FILE, COMPARISONS_FILE, read_json, read_parquet
 
     comparisons = read_parquet(target / COMPARISONS_FILE)
@@ -804,6 +811,7 @@ def bench(
 ) -> None:
     """Measure harness overhead, ANFEKF cost, 2-worker speedup, memory, Parquet size, wall time."""
     from .bench import FULL, QUICK, BenchError, bench_table, run_bench
+    from .config import ScenarioError
 
     with one_line_errors(
         debug, (BenchError, ScenarioError), os_error=f"{out}: cannot write the bench figures"
@@ -814,12 +822,24 @@ def bench(
 
 
 @app.command()
-def kinds() -> None:
-    """List every filter kind: what it adapts, which engines run it, its parameters and defaults."""
-    from .engines import fast  # noqa: F401  (registers the fast engine's `supports`)
+def kinds(
+    names: Annotated[
+        Optional[list[str]],
+        typer.Argument(
+            metavar="KIND", help="Kinds to show (default: every kind).", show_default=False
+        ),
+    ] = None,
+) -> None:
+    """List every filter kind (or the KINDs named): what it adapts, which engines run it, its
+    parameters and defaults."""
+    from .engines import fast_support
     from .filters.registry import KINDS, adapts_line, capabilities
 
-    for kind in KINDS:
+    fast_support.register()  # the fast engine's kinds, without importing numba and its kernels
+    unknown = [n for n in names or () if n not in KINDS]
+    if unknown:
+        fail(f"kinds: unknown kind {unknown[0]!r} (known: {', '.join(KINDS)})")
+    for kind in dict.fromkeys(names or KINDS):
         info = capabilities(kind)
         console.print(f"{kind}: {info.doc}", markup=False, highlight=False, soft_wrap=True)
         console.print(

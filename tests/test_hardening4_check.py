@@ -324,3 +324,39 @@ def test_the_one_worker_cluster_has_its_worker_before_a_test_starts():
 
         with Client(address, timeout=60, set_as_default=False) as client:
             assert client.scheduler_info()["workers"], "no worker registered yet"
+
+
+# --- The command line's fast paths; `anfekf kinds NAME` ---------------------------------------
+
+HEAVY = ("numpy", "pandas", "scipy", "numba", "matplotlib", "pyarrow")
+
+
+def _modules_after(*args: str) -> list[str]:
+    """The heavy modules imported by `anfekf ARGS`, run in a fresh interpreter."""
+    code = (
+        "import sys\nfrom anfekf_bench.cli import app\n"
+        f"try:\n    app({list(args)!r})\nexcept SystemExit:\n    pass\n"
+        f"print([m for m in {HEAVY!r} if m in sys.modules])"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return eval(done.stdout.strip().splitlines()[-1])  # a list literal we printed
+
+
+@pytest.mark.parametrize("args", [["--version"], ["-h"], ["run", "-h"]])
+def test_version_and_help_import_nothing_heavy(args):
+    """They imported numpy, pandas, scipy, numba and matplotlib: about 3 s of CPU each."""
+    assert _modules_after(*args) == []
+
+
+def test_kinds_imports_no_compiler_nor_plots():
+    assert not {"numba", "matplotlib", "pandas"} & set(_modules_after("kinds"))
+
+
+def test_kinds_shows_the_kinds_named_and_refuses_an_unknown_one():
+    shown = cli("kinds", "anfekf", "sage-husa")
+    assert shown.exit_code == 0, shown.output
+    heads = [line.split(":")[0] for line in shown.stdout.splitlines() if not line.startswith(" ")]
+    assert heads == ["anfekf", "sage-husa"]
+    line = assert_one_line_error(cli("kinds", "anfekf", "bogus"), "'bogus'", "known: ekf,")
+    assert "kalmannet" in line

@@ -422,6 +422,8 @@ def run(
                         " or --out to write elsewhere"
                     )
                 survey_output(plan, target, force)
+    if any(p.engine == "fast" and p.name not in skipped for p in plans):
+        compile_fast_kernels_once()  # after every check: a typo never waits for a compiler
     for plan in plans:
         if plan.name in skipped:
             target = scenario_folder(out, plan.name)
@@ -447,6 +449,21 @@ def warn_fast_without_numba() -> None:
             " (`make setup` does). The manifest records it (fast_compiled: false).",
             markup=False, highlight=False, soft_wrap=True,
         )  # fmt: skip
+
+
+def compile_fast_kernels_once() -> None:
+    """The fast engine's first run compiles its numba kernels (a minute or two on a laptop):
+    when numba's cache does not hold them, say so in one line and compile them here, once, into
+    the cache every worker then loads (in a fraction of a second) instead of each compiling."""
+    from .engines import fast
+
+    if fast.kernels_cached() is False:
+        err_console.print(
+            f"compiling the fast engine's kernels once ({fast.COMPILE_ESTIMATE}; cached"
+            " afterwards)",
+            markup=False, highlight=False, soft_wrap=True,
+        )  # fmt: skip
+        fast.warm_up()
 
 
 def complete_result(target: Path, plan) -> str | None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -360,3 +361,55 @@ def test_kinds_shows_the_kinds_named_and_refuses_an_unknown_one():
     assert heads == ["anfekf", "sage-husa"]
     line = assert_one_line_error(cli("kinds", "anfekf", "bogus"), "'bogus'", "known: ekf,")
     assert "kalmannet" in line
+
+
+# --- The fast engine's first compilation is announced ----------------------------------------
+
+COMPILING = "compiling the fast engine's kernels once"
+
+
+@pytest.mark.parametrize("cached", [False, True, None])
+def test_the_compile_line_shows_only_when_the_kernels_are_not_cached(tmp_path, monkeypatch, cached):
+    from anfekf_bench.engines import fast
+
+    compiled = []
+    monkeypatch.setattr(fast, "kernels_cached", lambda: cached)
+    monkeypatch.setattr(fast, "warm_up", lambda: compiled.append(1) or 0.0)
+    path = write_scenario(tmp_path / "s.yaml", small_scenario(engine="fast", **SMALL))
+    done = cli("run", path, "--out", tmp_path / "o")
+    assert done.exit_code == 0, done.output
+    shown = [line for line in done.stderr.splitlines() if COMPILING in line]
+    assert len(shown) == (cached is False) and len(compiled) == (cached is False), done.stderr
+
+
+def test_an_empty_numba_cache_is_seen_as_cold(tmp_path):
+    """A fresh interpreter on an empty NUMBA_CACHE_DIR (numba reads it at import)."""
+    from anfekf_bench.engines import kernels
+
+    if not kernels.JIT:
+        pytest.skip("numba is not installed: nothing is compiled")
+    code = "from anfekf_bench.engines import fast; print(fast.kernels_cached())"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                          timeout=300)  # fmt: skip
+    assert done.stdout.strip().splitlines()[-1] == "False", done.stderr[-2000:]
+
+
+@pytest.mark.slow
+def test_the_first_fast_run_says_it_compiles_and_the_second_does_not(tmp_path):
+    """End to end on an empty numba cache: the line, the compilation (a minute or two), then a
+    second run that loads the cache and says nothing."""
+    from anfekf_bench.engines import kernels
+
+    if not kernels.JIT:
+        pytest.skip("numba is not installed: nothing is compiled")
+    path = write_scenario(tmp_path / "s.yaml", small_scenario(engine="fast", **SMALL))
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    errs = []
+    for _ in range(2):
+        done = subprocess.run([*ENTRY, "run", str(path), "--out", str(tmp_path / "o"), "--force"],
+                              capture_output=True, text=True, env=env, timeout=900)  # fmt: skip
+        assert done.returncode == 0, done.stderr[-2000:]
+        errs.append(done.stderr)
+    assert sum(COMPILING in line for line in errs[0].splitlines()) == 1, errs[0]
+    assert COMPILING not in errs[1], errs[1]

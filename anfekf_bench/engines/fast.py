@@ -352,6 +352,33 @@ def _anfis_start(
     return rows
 
 
+# The kernels `warm_up` calls directly (their callees compile, and are cached, with them).
+WARM_UP_KERNELS = (
+    (_jit_kernels, "run_kernel"), (_jit_kernels, "run_akhlaghi_kernel"),
+    (_jit_kernels, "run_vbr_kernel"), (_jit_kernels, "run_vbakf_kernel"),
+    (_jit_kernels, "run_swvb_kernel"), (_jit_kernels, "run_sage_husa_kernel"),
+    (_jit_kernels, "run_iae_kernel"), (_jit_kernels_als, "run_als_kernel"),
+    (_jit_kernels_kalmannet, "run_kalmannet_kernel"),
+)  # fmt: skip
+COMPILE_ESTIMATE = "about 1-2 min"  # results/bench.json: fast_compile_s 47 s on 2 free cores
+
+
+def kernels_cached() -> bool | None:
+    """Whether numba's on-disk cache holds every kernel `warm_up` compiles, valid for this
+    source (numba checks the file's stamp): False means the first fast run compiles them (a
+    minute or two); None when the kernels are not compiled (no numba) or the cache cannot be
+    inspected (numba's FunctionCache API changed: say nothing rather than something wrong)."""
+    if not JIT:
+        return None
+    try:
+        return all(
+            bool(getattr(module, name)._cache._cache_file._load_index())
+            for module, name in WARM_UP_KERNELS
+        )
+    except Exception:  # a private numba API: any change means "unknown"
+        return None
+
+
 def warm_up(jit: bool = True) -> float:
     """Compile (or load from numba's cache) every kernel signature the engine uses by running
     a tiny EKF, ANFEKF (and cm-scale: the same kernel), akhlaghi, vb-r, vbakf, swvb, Sage-Husa,

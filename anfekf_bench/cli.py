@@ -422,7 +422,8 @@ def run(
                         " or --out to write elsewhere"
                     )
                 survey_output(plan, target, force)
-    if any(p.engine == "fast" and p.name not in skipped for p in plans):
+    if any(p.engine == "fast" and p.backend.kind == "local" and p.name not in skipped
+           for p in plans):  # fmt: skip
         compile_fast_kernels_once()  # after every check: a typo never waits for a compiler
     for plan in plans:
         if plan.name in skipped:

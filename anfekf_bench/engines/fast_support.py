@@ -48,5 +48,6 @@ def supported_type(spec: FilterSpec) -> bool:
 
 def register() -> None:
     """Register the fast engine's kinds with the registry (for `anfekf kinds`); importing
-    `engines.fast` registers its own `supports` in its place."""
-    register_engine("fast", supported_type)
+    `engines.fast` registers its own `supports` in its place (kept, if it is loaded)."""
+    if "anfekf_bench.engines.fast" not in sys.modules:
+        register_engine("fast", supported_type)

@@ -77,6 +77,12 @@ class OneLineUsageErrors(TyperGroup):
             sys.exit(EXIT_OUTPUT_LOST)
         sys.exit(code if isinstance(code, int) else 0)
 
+    def make_context(self, *args, **kwargs):
+        try:  # parsing the command line (a Ctrl-C in its first instants lands here)
+            return super().make_context(*args, **kwargs)
+        except KeyboardInterrupt:
+            interrupted()
+
     def invoke(self, ctx):
         # The reader of our output went away (`anfekf ... | head`): stop quietly with the code a
         # process killed by SIGPIPE has, not click's exit 1 (which `check` uses for a
@@ -86,9 +92,12 @@ class OneLineUsageErrors(TyperGroup):
         except BrokenPipeError:
             stdout_gone()
             raise typer.Exit(EXIT_BROKEN_PIPE) from None
+        except KeyboardInterrupt:
+            interrupted()
 
 
 EXIT_BROKEN_PIPE = 128 + 13  # as a process killed by SIGPIPE
+EXIT_INTERRUPTED = 128 + 2  # as a shell reports a command ended by SIGINT
 EXIT_OUTPUT_LOST = 74  # sysexits' EX_IOERR: stdout cannot be written (a full disk, /dev/full)
 
 
@@ -106,6 +115,14 @@ def writing_stdout(exc: BaseException) -> bool:
                 pass
         tb = tb.tb_next
     return False
+
+
+def interrupted() -> None:
+    """A Ctrl-C while the command line is parsed or a command imports what it runs (this module
+    imports little, so the entry point's own handler no longer sees it): typer would exit 130
+    without a word."""
+    err_console.print("error: interrupted", markup=False, highlight=False)
+    raise typer.Exit(EXIT_INTERRUPTED) from None
 
 
 def stdout_gone() -> None:

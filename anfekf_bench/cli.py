@@ -27,36 +27,10 @@ from rich.table import Table
 from rich.text import Text
 from typer.core import TyperArgument, TyperGroup, TyperOption
 
-from .analysis.metrics import format_number, format_share, format_sig
-from .arguments import output_folder, run_arguments
-from .config import (
-    ScenarioError,
-    one_line,
-    scenario_files,
-)
-from .experiment import (
-    FolderBusy,
-    OutputExists,
-    PlanError,
-    check_plan,
-    execute,
-    long_plan_line,
-    make_plan,
-    scenario_folder,
-    survey_output,
-)
-from .filters.custom import CustomFilterFailed
+# Only light modules at import: `anfekf --version`, `-h` and `kinds` must not pay for numpy,
+# pandas, scipy, numba or matplotlib (about 3 s of CPU). Each command imports what it runs.
 from .provenance import version_line
-from .runner import BackendUnavailable
-from .scenarios import load_scenario
-from .sources.simulator import RouteNotCompleted
-from .storage import (
-    MANIFEST_FILE,
-    RUNS_DIR,
-    ResultsError,
-    read_manifest,
-)
-from .sweeps import SweepError, cell_plans, expand, run_sweep, validate_sweep
+from .text import one_line
 
 # click's exception classes as typer raises them (typer >= 0.17 vendors its own click): found
 # through typer's public BadParameter, so this works with either.
@@ -102,6 +76,12 @@ class OneLineUsageErrors(TyperGroup):
             sys.exit(EXIT_OUTPUT_LOST)
         sys.exit(code if isinstance(code, int) else 0)
 
+    def make_context(self, *args, **kwargs):
+        try:  # parsing the command line (a Ctrl-C in its first instants lands here)
+            return super().make_context(*args, **kwargs)
+        except KeyboardInterrupt:
+            interrupted()
+
     def invoke(self, ctx):
         # The reader of our output went away (`anfekf ... | head`): stop quietly with the code a
         # process killed by SIGPIPE has, not click's exit 1 (which `check` uses for a
@@ -111,9 +91,12 @@ class OneLineUsageErrors(TyperGroup):
         except BrokenPipeError:
             stdout_gone()
             raise typer.Exit(EXIT_BROKEN_PIPE) from None
+        except KeyboardInterrupt:
+            interrupted()
 
 
 EXIT_BROKEN_PIPE = 128 + 13  # as a process killed by SIGPIPE
+EXIT_INTERRUPTED = 128 + 2  # as a shell reports a command ended by SIGINT
 EXIT_OUTPUT_LOST = 74  # sysexits' EX_IOERR: stdout cannot be written (a full disk, /dev/full)
 
 
@@ -131,6 +114,14 @@ def writing_stdout(exc: BaseException) -> bool:
                 pass
         tb = tb.tb_next
     return False
+
+
+def interrupted() -> None:
+    """A Ctrl-C while the command line is parsed or a command imports what it runs (this module
+    imports little, so the entry point's own handler no longer sees it): typer would exit 130
+    without a word."""
+    err_console.print("error: interrupted", markup=False, highlight=False)
+    raise typer.Exit(EXIT_INTERRUPTED) from None
 
 
 def stdout_gone() -> None:
@@ -286,6 +277,8 @@ def one_line_errors(
 
 
 def summary_table(title: str, records: list[dict]) -> Table:
+    from .analysis.metrics import format_number, format_share
+
     table = Table(title=title, title_justify="left")
     for col in (
         "filter",
@@ -318,6 +311,9 @@ def plural(n: int, noun: str) -> str:
 
 
 def _check_out_dir(out: Path) -> None:
+    from .arguments import output_folder
+    from .outputs import PlanError
+
     try:
         output_folder(out, "--out")
     except PlanError as exc:
@@ -366,6 +362,20 @@ def run(
     ] = False,
 ) -> None:
     """Run Monte Carlo batches of every filter of a scenario and write Parquet results."""
+    from .arguments import run_arguments
+    from .config import ScenarioError, scenario_files
+    from .experiment import (
+        OutputExists,
+        PlanError,
+        check_plan,
+        long_plan_line,
+        make_plan,
+        scenario_folder,
+        survey_output,
+    )
+    from .scenarios import load_scenario
+    from .sweeps import SweepError, cell_plans, expand, validate_sweep
+
     warnings.showwarning = _one_line_warning  # a library's warning may quote a name
     # The checks the Python API applies too (rather than typer's min=/max=: a multi-line box).
     with one_line_errors(debug, (PlanError,)):
@@ -423,6 +433,9 @@ def run(
         estimate = long_plan_line(plan, control_steps)  # a long batch says so before it starts
         if estimate is not None:
             console.print(one_line(estimate), markup=False, highlight=False, soft_wrap=True)
+    if any(p.engine == "fast" and p.backend.kind == "local" and p.name not in skipped
+           for p in plans):  # fmt: skip
+        compile_fast_kernels_once()  # after every check: a typo never waits for a compiler
     for plan in plans:
         if plan.name in skipped:
             target = scenario_folder(out, plan.name)
@@ -450,9 +463,26 @@ def warn_fast_without_numba() -> None:
         )  # fmt: skip
 
 
+def compile_fast_kernels_once() -> None:
+    """The fast engine's first run compiles its numba kernels (a minute or two on a laptop):
+    when numba's cache does not hold them, say so in one line and compile them here, once, into
+    the cache every worker then loads (in a fraction of a second) instead of each compiling."""
+    from .engines import fast
+
+    if fast.kernels_cached() is False:
+        err_console.print(
+            f"compiling the fast engine's kernels once ({fast.COMPILE_ESTIMATE}; cached"
+            " afterwards)",
+            markup=False, highlight=False, soft_wrap=True,
+        )  # fmt: skip
+        fast.warm_up()
+
+
 def complete_result(target: Path, plan) -> str | None:
     """What a complete result in `target` holds ('the same runs and seed', 'runs 20, seed 7'),
     or None when the folder holds no complete result (no manifest.json)."""
+    from .storage import MANIFEST_FILE, ResultsError, read_manifest
+
     if not (target / MANIFEST_FILE).is_file():
         return None
     try:
@@ -496,6 +526,8 @@ def run_progress() -> Progress:
 def sweep_summary_table(name: str, table, runs: int) -> Table:
     """The end of a sweep: per filter, its position RMSE over the oracle's across the cells
     (best, median, worst cell) and the cells within 1.5 x, with divergences."""
+    from .analysis.metrics import format_number
+
     out = Table(title=f"sweep {name}: {plural(table['cell'].nunique(), 'cell')} x {runs} runs",
                 title_justify="left")  # fmt: skip
     for col in ("filter", "RMSE / oracle best", "median", "worst", "cells <= 1.5x", "diverged"):
@@ -516,6 +548,12 @@ def sweep_summary_table(name: str, table, runs: int) -> Table:
 
 def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
     """Every cell of a sweep with one progress bar over all its runs, then the sweep table."""
+    from .experiment import FolderBusy, OutputExists, PlanError
+    from .filters.custom import CustomFilterFailed
+    from .runner import BackendUnavailable
+    from .sources.simulator import RouteNotCompleted
+    from .sweeps import SweepError, run_sweep
+
     progress = run_progress()
     total = sum(p.runs for p in plans)
     task = progress.add_task(f"{plan.name}: {len(cells)} cells", total=total)
@@ -576,6 +614,12 @@ def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
 
 
 def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
+    from .experiment import FolderBusy, OutputExists, PlanError, execute
+    from .filters.custom import CustomFilterFailed
+    from .runner import BackendUnavailable
+    from .sources.simulator import RouteNotCompleted
+    from .storage import RUNS_DIR
+
     progress = run_progress()
     task = None
     saved = 0  # runs on disk in <out>/<name>/.runs, for the message if interrupted
@@ -627,6 +671,8 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
 def format_interval(estimate: float, lo: float, hi: float, digits: int = 3) -> str:
     """'0.496 [0.452, 0.543]', '0.0536 [0.0395, 0.0670]' (significant digits, as in the report),
     or the estimate alone when it has no interval."""
+    from .analysis.metrics import format_sig
+
     text = format_sig(estimate, digits)
     if math.isfinite(lo) and math.isfinite(hi):
         text += f" [{format_sig(lo, digits)}, {format_sig(hi, digits)}]"
@@ -635,6 +681,7 @@ def format_interval(estimate: float, lo: float, hi: float, digits: int = 3) -> s
 
 def print_comparisons(out: Console, target: Path) -> None:
     """The paired ratios (95 % bootstrap intervals) and the claims' verdicts of a result."""
+    from .analysis.metrics import format_number
     from .storage import CLAIMS_FILE, COMPARISONS_FILE, read_json, read_parquet
 
     comparisons = read_parquet(target / COMPARISONS_FILE)
@@ -793,6 +840,7 @@ def bench(
 ) -> None:
     """Measure harness overhead, ANFEKF cost, 2-worker speedup, memory, Parquet size, wall time."""
     from .bench import FULL, QUICK, BenchError, bench_table, run_bench
+    from .config import ScenarioError
 
     with one_line_errors(
         debug, (BenchError, ScenarioError), os_error=f"{out}: cannot write the bench figures"
@@ -803,12 +851,24 @@ def bench(
 
 
 @app.command()
-def kinds() -> None:
-    """List every filter kind: what it adapts, which engines run it, its parameters and defaults."""
-    from .engines import fast  # noqa: F401  (registers the fast engine's `supports`)
+def kinds(
+    names: Annotated[
+        Optional[list[str]],
+        typer.Argument(
+            metavar="KIND", help="Kinds to show (default: every kind).", show_default=False
+        ),
+    ] = None,
+) -> None:
+    """List every filter kind (or the KINDs named): what it adapts, which engines run it, its
+    parameters and defaults."""
+    from .engines import fast_support
     from .filters.registry import KINDS, adapts_line, capabilities
 
-    for kind in KINDS:
+    fast_support.register()  # the fast engine's kinds, without importing numba and its kernels
+    unknown = [n for n in names or () if n not in KINDS]
+    if unknown:
+        fail(f"kinds: unknown kind {unknown[0]!r} (known: {', '.join(KINDS)})")
+    for kind in dict.fromkeys(names or KINDS):
         info = capabilities(kind)
         console.print(f"{kind}: {info.doc}", markup=False, highlight=False, soft_wrap=True)
         console.print(

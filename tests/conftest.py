@@ -6,6 +6,7 @@ import contextlib
 import os
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -171,6 +172,9 @@ def corrupted_half_way(data, what: str):
     return RunData(truth=data.truth, u_odo=data.u_odo, scans=scans), bad
 
 
+WORKER_START_S = 180  # how long a Dask worker process may take to start and register
+
+
 @contextlib.contextmanager
 def cluster_with_one_worker() -> Iterator[tuple[str, subprocess.Popen]]:
     """A Dask LocalCluster with no workers of its own and one worker process without a nanny
@@ -186,6 +190,17 @@ def cluster_with_one_worker() -> Iterator[tuple[str, subprocess.Popen]]:
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip
     try:
+        # The worker's process imports distributed first (seconds on a loaded 2-core machine):
+        # a test that gave it 2 s to register failed under load. Wait for it here, generously.
+        deadline = time.monotonic() + WORKER_START_S
+        while not cluster.scheduler.workers:
+            if worker.poll() is not None:
+                pytest.fail(
+                    f"the Dask worker process ended (exit {worker.returncode}) unregistered"
+                )
+            if time.monotonic() > deadline:
+                pytest.fail(f"no Dask worker registered within {WORKER_START_S} s")
+            time.sleep(0.05)
         yield cluster.scheduler_address, worker
     finally:
         if worker.poll() is None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -311,3 +312,104 @@ def test_kill_9_of_the_scheduler_is_our_one_line_only(tmp_path):
         f"error: Dask cluster at {address} failed during the batch (connection lost); finished"
         " runs are saved: run the same command again to resume"
     ], err
+
+
+def test_the_one_worker_cluster_has_its_worker_before_a_test_starts():
+    """The tests on it gave the worker's process 2 s to start (connect_dask(address, 2.0)): under
+    load its import alone took longer. The fixture now waits for the worker to register."""
+    pytest.importorskip("distributed")
+    from .conftest import cluster_with_one_worker
+
+    with cluster_with_one_worker() as (address, _worker):
+        from distributed import Client
+
+        with Client(address, timeout=60, set_as_default=False) as client:
+            assert client.scheduler_info()["workers"], "no worker registered yet"
+
+
+# --- The command line's fast paths; `anfekf kinds NAME` ---------------------------------------
+
+HEAVY = ("numpy", "pandas", "scipy", "numba", "matplotlib", "pyarrow")
+
+
+def _modules_after(*args: str) -> list[str]:
+    """The heavy modules imported by `anfekf ARGS`, run in a fresh interpreter."""
+    code = (
+        "import sys\nfrom anfekf_bench.cli import app\n"
+        f"try:\n    app({list(args)!r})\nexcept SystemExit:\n    pass\n"
+        f"print([m for m in {HEAVY!r} if m in sys.modules])"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return eval(done.stdout.strip().splitlines()[-1])  # a list literal we printed
+
+
+@pytest.mark.parametrize("args", [["--version"], ["-h"], ["run", "-h"]])
+def test_version_and_help_import_nothing_heavy(args):
+    """They imported numpy, pandas, scipy, numba and matplotlib: about 3 s of CPU each."""
+    assert _modules_after(*args) == []
+
+
+def test_kinds_imports_no_compiler_nor_plots():
+    assert not {"numba", "matplotlib", "pandas"} & set(_modules_after("kinds"))
+
+
+def test_kinds_shows_the_kinds_named_and_refuses_an_unknown_one():
+    shown = cli("kinds", "anfekf", "sage-husa")
+    assert shown.exit_code == 0, shown.output
+    heads = [line.split(":")[0] for line in shown.stdout.splitlines() if not line.startswith(" ")]
+    assert heads == ["anfekf", "sage-husa"]
+    line = assert_one_line_error(cli("kinds", "anfekf", "bogus"), "'bogus'", "known: ekf,")
+    assert "kalmannet" in line
+
+
+# --- The fast engine's first compilation is announced ----------------------------------------
+
+COMPILING = "compiling the fast engine's kernels once"
+
+
+@pytest.mark.parametrize("cached", [False, True, None])
+def test_the_compile_line_shows_only_when_the_kernels_are_not_cached(tmp_path, monkeypatch, cached):
+    from anfekf_bench.engines import fast
+
+    compiled = []
+    monkeypatch.setattr(fast, "kernels_cached", lambda: cached)
+    monkeypatch.setattr(fast, "warm_up", lambda: compiled.append(1) or 0.0)
+    path = write_scenario(tmp_path / "s.yaml", small_scenario(engine="fast", **SMALL))
+    done = cli("run", path, "--out", tmp_path / "o")
+    assert done.exit_code == 0, done.output
+    shown = [line for line in done.stderr.splitlines() if COMPILING in line]
+    assert len(shown) == (cached is False) and len(compiled) == (cached is False), done.stderr
+
+
+def test_an_empty_numba_cache_is_seen_as_cold(tmp_path):
+    """A fresh interpreter on an empty NUMBA_CACHE_DIR (numba reads it at import)."""
+    from anfekf_bench.engines import kernels
+
+    if not kernels.JIT:
+        pytest.skip("numba is not installed: nothing is compiled")
+    code = "from anfekf_bench.engines import fast; print(fast.kernels_cached())"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                          timeout=300)  # fmt: skip
+    assert done.stdout.strip().splitlines()[-1] == "False", done.stderr[-2000:]
+
+
+@pytest.mark.slow
+def test_the_first_fast_run_says_it_compiles_and_the_second_does_not(tmp_path):
+    """End to end on an empty numba cache: the line, the compilation (a minute or two), then a
+    second run that loads the cache and says nothing."""
+    from anfekf_bench.engines import kernels
+
+    if not kernels.JIT:
+        pytest.skip("numba is not installed: nothing is compiled")
+    path = write_scenario(tmp_path / "s.yaml", small_scenario(engine="fast", **SMALL))
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    errs = []
+    for _ in range(2):
+        done = subprocess.run([*ENTRY, "run", str(path), "--out", str(tmp_path / "o"), "--force"],
+                              capture_output=True, text=True, env=env, timeout=900)  # fmt: skip
+        assert done.returncode == 0, done.stderr[-2000:]
+        errs.append(done.stderr)
+    assert sum(COMPILING in line for line in errs[0].splitlines()) == 1, errs[0]
+    assert COMPILING not in errs[1], errs[1]

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import functools
 import math
-import sys
 
 import numpy as np
 
@@ -38,9 +37,8 @@ from ..filters.als import ALSSpec
 from ..filters.anfekf import ANFEKFSpec
 from ..filters.bank import IMMSpec, MMAESpec, hypotheses
 from ..filters.cm_scale import CMScaleSpec
-from ..filters.ekf import EKFSpec, OracleSpec
+from ..filters.ekf import EKFSpec
 from ..filters.fading import FadingSpec
-from ..filters.fitted import EKFMLSpec, EKFTunedSpec
 from ..filters.iae import IAESpec
 from ..filters.kalmannet import KalmanNetSpec
 from ..filters.kalmannet_net import KalmanNetWeights
@@ -56,34 +54,15 @@ from ..timeline import clear_cache as clear_timeline_cache
 from . import kernels as _jit_kernels
 from . import kernels_als as _jit_kernels_als
 from . import kernels_kalmannet as _jit_kernels_kalmannet
+from .fast_support import SUPPORTED_SPECS, supported_type  # noqa: F401  (SUPPORTED_SPECS: re-exported)
 
 JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
-
-# Exactly these spec classes (a subclass may build a different filter).
-# ekf-ml and ekf-tuned are the plain EKF with fitted noise (filters.fitted; a recorded
-# scenario's ekf-tuned, sources.recorded.TunedEKFSpec, with grid-searched noise).
-SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
-    EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
-    VBRSpec, AkhlaghiSpec, VBAKFSpec, SWVBSpec, CMScaleSpec, SageHusaSpec, IAESpec, ALSSpec,
-    KalmanNetSpec,
-)  # fmt: skip
-RECORDED_SOURCE = "anfekf_bench.sources.recorded"  # its TunedEKFSpec: the plain EKF too
-
-
-def _supported_type(spec: FilterSpec) -> bool:
-    if type(spec) in SUPPORTED_SPECS:
-        return True
-    # A recorded scenario's ekf-tuned, looked up without importing its module (pandas and
-    # pyarrow: a worker that never loaded a recording must not pay for them): a spec of that
-    # class exists only once the module is loaded.
-    recorded = sys.modules.get(RECORDED_SOURCE)
-    return recorded is not None and type(spec) is recorded.TunedEKFSpec
 
 
 def supports(spec: FilterSpec, model: object | None = None) -> bool:
     """Whether the fast engine implements this filter (else run it on filterpy); with `model`,
     also whether it implements that motion model (the bicycle and the unicycle)."""
-    return _supported_type(spec) and (model is None or _motion(model) is not None)
+    return supported_type(spec) and (model is None or _motion(model) is not None)
 
 
 def _motion(model: object) -> tuple[int, float, float] | None:
@@ -372,6 +351,33 @@ def _anfis_start(
         rows[i] = np.concatenate([p.m.ravel(), p.delta.ravel(), p.w])
     rows.setflags(write=False)
     return rows
+
+
+# The kernels `warm_up` calls directly (their callees compile, and are cached, with them).
+WARM_UP_KERNELS = (
+    (_jit_kernels, "run_kernel"), (_jit_kernels, "run_akhlaghi_kernel"),
+    (_jit_kernels, "run_vbr_kernel"), (_jit_kernels, "run_vbakf_kernel"),
+    (_jit_kernels, "run_swvb_kernel"), (_jit_kernels, "run_sage_husa_kernel"),
+    (_jit_kernels, "run_iae_kernel"), (_jit_kernels_als, "run_als_kernel"),
+    (_jit_kernels_kalmannet, "run_kalmannet_kernel"),
+)  # fmt: skip
+COMPILE_ESTIMATE = "about 1-2 min"  # results/bench.json: fast_compile_s 47 s on 2 free cores
+
+
+def kernels_cached() -> bool | None:
+    """Whether numba's on-disk cache holds every kernel `warm_up` compiles, valid for this
+    source (numba checks the file's stamp): False means the first fast run compiles them (a
+    minute or two); None when the kernels are not compiled (no numba) or the cache cannot be
+    inspected (numba's FunctionCache API changed: say nothing rather than something wrong)."""
+    if not JIT:
+        return None
+    try:
+        return all(
+            bool(getattr(module, name)._cache._cache_file._load_index())
+            for module, name in WARM_UP_KERNELS
+        )
+    except Exception:  # a private numba API: any change means "unknown"
+        return None
 
 
 def warm_up(jit: bool = True) -> float:

@@ -89,12 +89,12 @@ def engine_kinds() -> dict[str, FilterSpec]:
 
     out: dict[str, FilterSpec] = {}
     for kind, cls in SPEC_BY_KIND.items():
-        if kind == "kalmannet":
+        if cls.role == "trained":  # seeded random weights: the per-step cost is the same
             spec = bench_kalmannet()
             if fast.supports(spec):
                 out[kind] = spec
             continue
-        if cls.fitted_on_training or kind in ("custom", "ekf-oracle"):
+        if cls.fitted_on_training or cls.user_defined or cls.role == "oracle":
             continue
         adapt = cls.model_fields.get("adapt")
         modes = list(adapt.annotation.__args__) if adapt is not None else [None]
@@ -102,7 +102,7 @@ def engine_kinds() -> dict[str, FilterSpec]:
             params = {"name": kind, "kind": kind}
             if mode is not None:
                 params["adapt"] = mode
-            if kind in ("mmae", "imm"):
+            if "qu_factors" in cls.model_fields:  # a bank: the small one
                 params.update(SMALL_BANK)
             spec = cls.model_validate(params)
             if fast.supports(spec):

@@ -455,9 +455,9 @@ class SimulatedSource:
     def comparison_pairs(self, scenario: Scenario) -> list[tuple[str, str]]:
         """Every instance against each reference kind's first instance, the one from the
         assumed noise itself (start 1 or none) when there is one."""
-        found = [(name, spec.kind, m in (None, 1.0)) for name, spec, m in scenario.instances()]
+        found = [(name, spec.role, m in (None, 1.0)) for name, spec, m in scenario.instances()]
         return comparison_pairs(
-            [(name, kind) for name, kind, _ in found],
+            [(name, role) for name, role, _ in found],
             scenario.compare,
             prefer={name for name, _, at_one in found if at_one},
         )
@@ -467,7 +467,7 @@ class SimulatedSource:
         schedule, phases = plan.scenario.noise_schedule, None
         if schedule is not None:
             sigmas = plan.scenario.true_noise.radians()
-            oracles = [f.name for f in plan.scenario.filters if f.kind == "ekf-oracle"]
+            oracles = [f.name for f in plan.scenario.filters if f.role == "oracle"]
             oracle = oracles[0] if oracles else None
             phases = phases_frame(steps, schedule, sigmas, oracle, seed=plan.seed)
             tracking = summary_tracking(steps, schedule, sigmas)

@@ -38,8 +38,7 @@ from joblib import Parallel, delayed
 from .analysis.metrics import add_trace_metrics
 from .engines.tuning import TimelineLikelihood, fit_noise, score_setting, unicycle_terms
 from .filters.ekf import gate_threshold
-from .filters.fitted import sigmas_problem
-from .filters.registry import FIXED_KINDS
+from .filters.fitted import EKFMLSpec, sigmas_problem
 from .filters.spec import FilterContext
 from .models import Unicycle
 from .outputs import FIT_FILE, PlanError, code_version, read_cached_fit, write_fit
@@ -469,7 +468,7 @@ def fit_on_own_innovations(
     processes, each cached in `cache_dir` by its fingerprint (a resumed batch does not refit).
     Returns, per run index, the noise of each ekf-ml instance (instance name -> the sigma keys
     of `tuned_covariances`), and the manifest's account of every fit and its cost."""
-    specs = [spec for spec in scenario.filters if spec.kind == "ekf-ml"]
+    specs = [spec for spec in scenario.filters if isinstance(spec, EKFMLSpec)]
     if not specs:
         return {}, {}
     started = time.perf_counter()
@@ -544,7 +543,7 @@ def run_segment(
     truth = _pad(inputs.truth, n_steps)
     filters = {}
     for name, spec, m in scenario.instances():
-        if m is None and spec.kind in FIXED_KINDS:
+        if m is None and spec.role == "fitted":
             Qu, R = tuned_covariances((fitted or {}).get(name, tuned))
         else:  # a trained filter (kalmannet, one instance) has no noise: the naive x1 is passed
             Qu, R = naive_covariances(scenario, 1.0 if m is None else m)

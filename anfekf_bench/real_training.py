@@ -27,7 +27,6 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from .filters.registry import TRAINED_KINDS
 from .outputs import FIT_FILE, PlanError, code_version, read_cached_fit, write_fit
 from .sources.recorded import DriveSet, RealScenario, log_digest
 
@@ -38,7 +37,7 @@ _INPUT_FIELDS = {"eval_period_s", "odometry_period_s", "max_gap_s", "misfit_dete
 def trained_filters(scenario: RealScenario) -> list:
     """The filters trained on training drives or segments (kalmannet); ekf-ml is fitted on each
     run's own innovations instead (real_experiment.fit_on_own_innovations)."""
-    return [f for f in scenario.filters if f.kind in TRAINED_KINDS]
+    return [f for f in scenario.filters if f.role == "trained"]
 
 
 def fold_fingerprint(scenario: RealScenario, spec, drives: list) -> str:

@@ -58,11 +58,11 @@ def errors() -> dict[str, np.ndarray]:
 
 
 def test_pairs_compare_every_filter_with_each_reference_then_the_users():
-    filters = [("ekf", "ekf"), ("a", "anfekf"), ("o", "ekf-oracle"), ("b", "sage-husa")]
+    filters = [("ekf", "reference"), ("a", "adaptive"), ("o", "oracle"), ("b", "adaptive")]
     assert comparison_pairs(filters, [("a", "b"), ("a", "ekf")]) == [
         ("a", "ekf"), ("o", "ekf"), ("b", "ekf"), ("ekf", "o"), ("a", "o"), ("b", "o"), ("a", "b"),
     ]  # fmt: skip
-    assert comparison_pairs([("x", "anfekf")]) == []
+    assert comparison_pairs([("x", "adaptive")]) == []
 
 
 def test_a_constant_ratio_is_that_ratio_with_a_zero_width_interval(errors):

@@ -24,8 +24,9 @@ from .tables import filter_arrays
 
 RATIO_METRICS = ("rmse_pos", "rmse_heading", "anees")
 SHARE_METRICS = ("nees_in_bounds",)
-# The references every filter is compared with, when the scenario has them (by kind).
-REFERENCE_KINDS = ("ekf", "ekf-oracle")
+# The references every filter is compared with, when the scenario has them: the roles
+# (filters.spec.ROLES) of the plain EKF and of the oracle, in this order.
+REFERENCE_ROLES = ("reference", "oracle")
 COMPARISON_COLUMNS = [
     "scenario", "filter", "vs", "metric", "kind", "runs_used", "estimate", "lo", "hi",
     "method", "p_value", "test",
@@ -39,13 +40,14 @@ def comparison_pairs(
 ) -> list[tuple[str, str]]:
     """(filter, vs) pairs: every filter against each reference present, then the user's pairs.
 
-    `filters` is (name, kind) in scenario order; the first filter of each reference kind is that
-    reference, the first of those in `prefer` if any is. A reference is not compared with itself.
+    `filters` is (name, role) in scenario order (the role its spec declares); the first filter of
+    each reference role is that reference, the first of those in `prefer` if any is. A reference
+    is not compared with itself.
     """
     filters = list(filters)
     refs = []
-    for kind in REFERENCE_KINDS:
-        of_kind = [n for n, k in filters if k == kind]
+    for role in REFERENCE_ROLES:
+        of_kind = [n for n, r in filters if r == role]
         name = next((n for n in of_kind if n in prefer), of_kind[0] if of_kind else None)
         if name is not None:
             refs.append(name)

@@ -20,7 +20,7 @@ import re
 import warnings
 from collections.abc import Callable
 from importlib.metadata import entry_points
-from typing import Any, Literal, TypeVar
+from typing import Any, ClassVar, Literal, TypeVar
 
 import numpy as np
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
@@ -95,6 +95,7 @@ class CustomSpec(FilterSpec):
     """A user's filter class, named by its import path, with its own parameters."""
 
     kind: Literal["custom"]
+    user_defined: ClassVar[bool] = True
     class_path: str = Field(alias="class", description="module:Class, e.g. mypkg.filters:MyFilter")
     params: dict[str, Any] = Field(default_factory=dict, description="the class's Params")
 

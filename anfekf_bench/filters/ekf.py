@@ -31,7 +31,7 @@ from scipy.stats import chi2
 
 from ..models import MotionModel, h, residual_z, wrap_scalar
 from ..models.range_bearing import H_jacobian
-from .spec import FilterContext, FilterSpec
+from .spec import FilterContext, FilterSpec, Role
 
 
 def _given(value: np.ndarray, *args) -> np.ndarray:
@@ -192,6 +192,7 @@ class EKFSpec(FilterSpec):
     """The plain EKF with the scenario's assumed noise (`filter_noise`)."""
 
     kind: Literal["ekf"] = "ekf"
+    role: ClassVar[Role] = "reference"
 
     def build(self, ctx: FilterContext) -> RobotEKF:
         return RobotEKF(**ctx.kwargs())
@@ -221,6 +222,7 @@ class OracleSpec(FilterSpec):
 
     kind: Literal["ekf-oracle"]
     uses_true_noise: ClassVar[bool] = True
+    role: ClassVar[Role] = "oracle"
 
     def build(self, ctx: FilterContext) -> RobotEKF:
         if ctx.true_noise is not None:

@@ -21,7 +21,7 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import Field, PrivateAttr
 
 from .ekf import RobotEKF
-from .spec import FilterContext, FilterSpec
+from .spec import FilterContext, FilterSpec, Role
 
 Multiplier = Annotated[float, Field(gt=0, le=1e3, allow_inf_nan=False)]
 FITTED_SIGMAS = ("sigma_v", "sigma_gamma", "sigma_range", "sigma_bearing")  # `sigmas_rad` keys
@@ -53,6 +53,7 @@ class FittedSpec(FilterSpec):
     """A filter kind whose parameters are fitted on the scenario's training runs."""
 
     fitted_on_training: ClassVar[bool] = True
+    role: ClassVar[Role] = "fitted"
     _fit: dict | None = PrivateAttr(default=None)
 
     def fit(self, training: Any) -> dict:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
-from typing import Literal
+from typing import ClassVar, Literal
 
 from pydantic import Field, PrivateAttr, model_validator
 
@@ -22,7 +22,7 @@ from .kalmannet_net import (
     fitted_weights_problem,
     torch_available,
 )
-from .spec import FilterContext
+from .spec import FilterContext, Role
 
 # ---------------------------------------------------------------------------------------------
 # The scenario's spec
@@ -40,6 +40,7 @@ class KalmanNetSpec(FittedSpec):
     experiment caches by fingerprint and records in the manifest's `training` key."""
 
     kind: Literal["kalmannet"]
+    role: ClassVar[Role] = "trained"
     epochs: int = Field(30, ge=1, le=10_000, description="passes over the training runs")
     learning_rate: float = Field(
         2e-3, gt=0, le=1, allow_inf_nan=False, description="Adam's step size"

@@ -24,7 +24,7 @@ from .fitted import EKFMLSpec, EKFTunedSpec
 from .iae import IAESpec
 from .kalmannet import KalmanNetSpec
 from .sage_husa import SageHusaSpec
-from .spec import FilterSpec
+from .spec import ROLES, FilterSpec
 from .swvb import SWVBSpec
 from .vb import VBAKFSpec, VBRSpec
 
@@ -57,6 +57,22 @@ def kind_of(spec_class: type[FilterSpec]) -> str:
 
 SPEC_BY_KIND: dict[str, type[FilterSpec]] = {kind_of(s): s for s in SPECS}
 KINDS: tuple[str, ...] = tuple(SPEC_BY_KIND)
+
+
+def role_of(kind: str) -> str | None:
+    """The role (spec.ROLES) of the filters of `kind`; None for a kind this registry does not
+    know (a stored result of a kind since removed)."""
+    cls = SPEC_BY_KIND.get(str(kind))
+    return None if cls is None else cls.role
+
+
+def kinds_with_role(*roles: str) -> tuple[str, ...]:
+    """The registered kinds whose role is one of `roles`, in registry order."""
+    unknown = set(roles) - set(ROLES)
+    if unknown:
+        raise ValueError(f"unknown role(s) {sorted(unknown)}: roles are {', '.join(ROLES)}")
+    return tuple(kind for kind, cls in SPEC_BY_KIND.items() if cls.role in roles)
+
 
 # ---------------------------------------------------------------------------------------------
 # Capabilities: what each kind adapts, which engines run it, its doc. Every consumer (the report,
@@ -180,8 +196,6 @@ def expand_entry_points(item: object) -> object:
 # Naive starts (any scenario's `starts`): each filter runs once per multiplier of every standard
 # deviation of its assumed noise, as the instance "<name> x<m>"; a filter whose noise is not
 # assumed runs once under its own name.
-FIXED_KINDS = ("ekf-tuned", "ekf-ml")  # its noise fitted
-TRAINED_KINDS = ("kalmannet",)  # a trained network: no assumed noise to start from
 
 
 def start_label(m: float) -> str:
@@ -191,7 +205,7 @@ def start_label(m: float) -> str:
 
 def runs_once(spec: FilterSpec) -> bool:
     """Whether `spec` has no assumed noise to start from: fitted, learned, or told the truth."""
-    return spec.kind in FIXED_KINDS or spec.kind in TRAINED_KINDS or spec.uses_true_noise
+    return spec.role in ("fitted", "trained", "oracle")
 
 
 def instances(filters, starts) -> list[tuple[str, FilterSpec, float | None]]:

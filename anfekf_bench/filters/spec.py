@@ -8,7 +8,7 @@ from a `FilterContext`: the starting noise, the motion model and the gate, resol
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated, ClassVar, Literal
+from typing import Annotated, ClassVar, Literal, get_args
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -20,6 +20,16 @@ Bounds = Annotated[
     tuple[Annotated[float, Field(gt=0, allow_inf_nan=False)], ...],
     Field(min_length=2, max_length=2),
 ]
+
+
+# What a filter is in a comparison, declared on its spec class (`FilterSpec.role`):
+# "reference": the plain EKF on the assumed noise, that every filter is compared with;
+# "oracle": the EKF told the true noise, the other reference;
+# "fitted": a fixed-noise EKF whose noise is fitted on training runs or drives (ekf-ml, ekf-tuned);
+# "trained": a learned filter trained on training runs or drives (no assumed noise to start from);
+# "adaptive": a filter that adapts online from the assumed noise (a user's class included).
+Role = Literal["reference", "oracle", "fitted", "trained", "adaptive"]
+ROLES: tuple[str, ...] = get_args(Role)
 
 
 @dataclass(frozen=True)
@@ -55,7 +65,10 @@ class FilterSpec(StrictModel):
     - `adapted()`: what one instance adapts (override it when a parameter decides, as the
       adaptive families' `adapt` and `adaptation` do: `AdaptiveSpec` does that already);
     - which engines run it: the reference engine (filterpy) runs every kind; a faster engine
-      registers its own `supports(spec)` with the registry (`registry.register_engine`).
+      registers its own `supports(spec)` with the registry (`registry.register_engine`);
+    - `role`: what the filter is in a comparison (ROLES); consumers ask the registry
+      (`registry.role_of`, `registry.kinds_with_role`), never compare a kind with a string;
+    - `user_defined`: a user's class (kind `custom` and entry points), run only where it is named.
     """
 
     name: str = Field(min_length=1)
@@ -63,6 +76,8 @@ class FilterSpec(StrictModel):
     uses_true_noise: ClassVar[bool] = False  # the oracle is given the TRUE Q and R
     fitted_on_training: ClassVar[bool] = False  # fitted before the batch (filters.fitted)
     adapts_noise: ClassVar[frozenset[str]] = frozenset()  # any of "R", "Q", "P" (see above)
+    role: ClassVar[Role] = "adaptive"
+    user_defined: ClassVar[bool] = False
 
     def build(self, ctx: FilterContext):
         """A fresh filter for one run."""

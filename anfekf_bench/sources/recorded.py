@@ -48,13 +48,12 @@ from ..filters.ekf import RobotEKF
 from ..filters.fitted import EKFMLSpec
 from ..filters.registry import (
     SPECS,
-    TRAINED_KINDS,
     check_starts,
     expand_entry_points,
     instance_names,
     instances,
 )
-from ..filters.spec import FilterContext, FilterSpec
+from ..filters.spec import FilterContext, FilterSpec, Role
 from ..schema import PositiveFloat, StrictModel
 from . import mrclam
 
@@ -66,6 +65,7 @@ class TunedEKFSpec(FilterSpec):
     training part found (one instance, no naive starts)."""
 
     kind: Literal["ekf-tuned"]
+    role: ClassVar[Role] = "fitted"
 
     def build(self, ctx: FilterContext) -> RobotEKF:
         return RobotEKF(**ctx.kwargs())
@@ -81,9 +81,7 @@ REAL_SPECS: tuple[type[FilterSpec], ...] = (
 )
 # KalmanNet is trained on the training drives (protocol drives) or the training segments
 # (protocol segments) by anfekf_bench.real_training.
-REAL_SPECS += tuple(
-    s for s in SPECS if s.model_fields["kind"].annotation.__args__[0] in TRAINED_KINDS
-)
+REAL_SPECS += tuple(s for s in SPECS if s.role == "trained")
 REAL_KINDS = tuple(s.model_fields["kind"].annotation.__args__[0] for s in REAL_SPECS)
 RealFilterSpec = Annotated[Union[REAL_SPECS], Field(discriminator="kind")]  # noqa: UP007
 
@@ -313,9 +311,9 @@ class RealScenario(StrictModel):
     def _filters(cls, filters: list) -> list:
         check_plain_names(filters)
         check_unique_names(filters)
-        if any(f.kind == "ekf-oracle" for f in filters):
+        if any(f.role == "oracle" for f in filters):
             raise ValueError("ekf-oracle needs the true noise, which a recorded log does not have")
-        if sum(f.kind == "ekf-tuned" for f in filters) > 1:
+        if sum(isinstance(f, TunedEKFSpec) for f in filters) > 1:
             raise ValueError("at most one ekf-tuned filter (the reference)")
         return filters
 
@@ -338,7 +336,7 @@ class RealScenario(StrictModel):
 
     def reference(self) -> str | None:
         """The instance every other is compared with: the ekf-tuned filter, if any."""
-        return next((f.name for f in self.filters if f.kind == "ekf-tuned"), None)
+        return next((f.name for f in self.filters if isinstance(f, TunedEKFSpec)), None)
 
 
 # --------------------------------------------------------------------------------------------

@@ -23,6 +23,7 @@ matplotlib.use("Agg")  # files only; never open a window
 import numpy as np  # noqa: E402
 from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.legend_handler import HandlerTuple  # noqa: E402
 from matplotlib.patches import Ellipse, Rectangle  # noqa: E402
 from matplotlib.ticker import (  # noqa: E402
     FuncFormatter,
@@ -107,26 +108,54 @@ _RC = {
 _METADATA = {"png": {}, "svg": {"Date": None}, "pdf": {"CreationDate": None}}
 
 
+MARKERS = ("o", "s", "^", "D")
+HATCHES = ("", "////", "....", "xxxx")  # bars: in step with the line style
+
+
+@dataclass(frozen=True)
+class FilterStyle:
+    """How one filter is drawn in every figure of a report: a colour, and beside it a line style,
+    a point marker and a bar hatch of the same round of the palette, so no two filters look
+    alike in any kind of figure (lines, points or bars) for up to 36 filters."""
+
+    colour: str
+    linestyle: object
+    marker: str
+    hatch: str
+
+    def line(self) -> dict:
+        """matplotlib keywords of a line in this style."""
+        return {"color": self.colour, "linestyle": self.linestyle}
+
+
+ORACLE_STYLE = FilterStyle(ORACLE_COLOUR, "--", "o", "")
+
+
+def filter_style(name: str, kind: str | None = None) -> FilterStyle:
+    """THE style map of a report: filter `name`'s colour, line style, marker and hatch, from its
+    place in the report (see `palette`); the oracle (by name or `kind`) grey and dashed, the
+    reference, in every figure. Every figure draws filters through this function only."""
+    if name == "ekf-oracle" or kind == "ekf-oracle":
+        return ORACLE_STYLE
+    place = _place(name)
+    turn = (place // len(PALETTE)) % len(LINE_STYLES)
+    return FilterStyle(PALETTE[place % len(PALETTE)], LINE_STYLES[turn], MARKERS[turn],
+                       HATCHES[turn])  # fmt: skip
+
+
 def filter_colour(name: str) -> str:
-    """The colour of filter `name`, the same in every figure of a report (see `palette`)."""
-    if name == "ekf-oracle":
-        return ORACLE_COLOUR
-    return PALETTE[_place(name) % len(PALETTE)]
+    """The colour of filter `name`, the same in every figure of a report (`filter_style`)."""
+    return filter_style(name).colour
 
 
 def filter_linestyle(name: str):
-    """The line style beside the colour: the palette's second round of colours is dashed, ..."""
-    return LINE_STYLES[(_place(name) // len(PALETTE)) % len(LINE_STYLES)]
-
-
-MARKERS = ("o", "s", "^", "D")
+    """The line style beside the colour (`filter_style`): the palette's second round is dashed."""
+    return filter_style(name).linestyle
 
 
 def filter_marker(name: str) -> str:
     """The point marker beside the colour (overview, leaderboard), in step with the line style."""
-    if name == "ekf-oracle":
-        return "o"
-    return MARKERS[(_place(name) // len(PALETTE)) % len(MARKERS)]
+    return filter_style(name).marker
 
 
 # Value labels beside points and bars only while a scenario's group is this small; beyond, the
@@ -136,9 +165,7 @@ MAX_LABELLED_GROUP = 5
 
 def _style(f: FilterSeries) -> dict:
     # The oracle is a reference, not a contender: grey and dashed, in every figure.
-    if f.kind == "ekf-oracle":
-        return {"color": ORACLE_COLOUR, "linestyle": "--"}
-    return {"color": filter_colour(f.name), "linestyle": filter_linestyle(f.name)}
+    return filter_style(f.name, f.kind).line()
 
 
 def save_figure(fig: Figure, path: Path | BinaryIO, fmt: str = "png", dpi: int = DPI) -> None:
@@ -316,12 +343,37 @@ def _ratio_panel(ax: Axes, sc: ScenarioData, ref: FilterSeries, others: list) ->
             ax.set_ylim(lo / 1.03, hi * 1.03)
             zoomed = f"; axis zoomed on the filters within {NEAR_FACTOR:g} x of {ref.name}"
     ax.set_ylabel(f"position RMSE / {ref.name} (log)")
-    ax.legend(loc="upper left", fontsize=7, ncols=min(len(others), 3),
-              title=f"RMSE / {ref.name}, time means [95 % interval]", title_fontsize=7)  # fmt: skip
+    # beside the panel: inside, it covered the lines it labels
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0, fontsize=7,
+              title=f"RMSE / {ref.name},\ntime means [95 % interval]",
+              title_fontsize=7)  # fmt: skip
     ax.set_title(
         f"ratio to {ref.name} at each step (dashed level: the ratio of the time means){zoomed}",
         fontsize=8,
     )
+
+
+def _ratio_heatmap(fig: Figure, ax: Axes, sc: ScenarioData, ref: FilterSeries, others: list):
+    """Many filters: each filter's position RMSE over the reference's at each step as one row
+    of colour (the report's one ratio scale), rows sorted by the time-mean ratio: 26 lines in
+    one log panel hid one another."""
+    ratios = {f.name: sc.ratio(f.name, ref) for f in others}
+    order = sorted(others, key=lambda f: (not math.isfinite(ratios[f.name].estimate),
+                                          ratios[f.name].estimate))  # fmt: skip
+    t = others[0].t
+    grid = np.vstack([rmse_ratio_curve(f, ref) for f in order])
+    with np.errstate(all="ignore"):
+        shown = np.clip(np.log10(grid), math.log10(RATIO_MIN), math.log10(RATIO_MAX))
+    image = ax.imshow(np.ma.masked_invalid(shown), cmap=ratio_cmap(), norm=ratio_norm(),
+                      aspect="auto", interpolation="nearest", gid="rmse_ratio_heatmap",
+                      extent=(t[0], t[-1], len(order) - 0.5, -0.5))  # fmt: skip
+    ax.set_yticks(np.arange(len(order)),
+                  [f"{f.name} {format_sig(ratios[f.name].estimate)}" for f in order],
+                  fontsize=6.5)  # fmt: skip
+    ax.grid(False)
+    ratio_colourbar(fig, image, ax, f"RMSE / {ref.name}'s (log)")
+    ax.set_title(f"position RMSE / {ref.name}'s at each step, one row a filter (its time-mean"
+                 " ratio beside its name), best first", fontsize=8)  # fmt: skip
 
 
 @matplotlib.rc_context(_RC)
@@ -332,32 +384,50 @@ def rmse_figure(sc: ScenarioData) -> Figure:
     ref = sc.reference()
     others = [f for f in sc.filters if ref is not None and f.name != ref.name]
     rows = 3 if others else 2
-    fig = Figure(figsize=(9, 8.4 if others else 6), layout="constrained")
-    axes = fig.subplots(rows, 1, sharex=True, height_ratios=[1.2, 1, 1][:rows])
+    # Many filters: one legend in one column beside the panels (below them, it was cut at both
+    # edges; in the ratio panel, it covered two thirds of the data), each entry with the ratio.
+    many = len(sc.filters) > MANY_FILTERS
+    width = 12.5 if many else 9
+    height = (6 + 0.16 * len(others) if many else 8.4) if others else 6
+    fig = Figure(figsize=(width, height), layout="constrained")
+    ratio_share = 0.065 * len(others) if many else 1
+    axes = fig.subplots(rows, 1, sharex=True, height_ratios=[1.2, 1, ratio_share][:rows])
     ax_pos, ax_head = axes[0], axes[1]
     lo, hi = _percentiles()
     for f in sc.filters:
         s = f.summary
         head = math.degrees(s["rmse_heading"]) if math.isfinite(s["rmse_heading"]) else math.nan
         label = f"{f.name}: {format_sig(s['rmse_pos'])} m, {format_sig(head)} deg{_lost(f)}"
+        if many and ref is not None and f.name != ref.name:
+            r = sc.ratio(f.name, ref)
+            ci = f" [{format_sig(r.lo)}, {format_sig(r.hi)}]" if r.has_interval else ""
+            label += f"; {format_sig(r.estimate)}{ci} x {ref.name}"
         _band(ax_pos, f.t, f.pos, f, "rmse_pos", label)
         _band(ax_head, f.t, f.heading, f, "rmse_heading", None)
     ax_pos.set_ylabel("position RMSE [m]")
     ax_head.set_ylabel("heading RMSE [deg]")
     for ax in (ax_pos, ax_head):
         ax.set_ylim(bottom=0)
-    if others:
+    if others and many:
+        _ratio_heatmap(fig, axes[2], sc, ref, others)
+    elif others:
         _ratio_panel(axes[2], sc, ref, others)
     axes[-1].set_xlabel("time [s]")
     for ax in axes:
         ax.set_xlim(sc.filters[0].t[0], sc.filters[0].t[-1])
     # Below the axes: error spikes reach any corner, a legend inside would hide some.
-    fig.legend(
-        *ax_pos.get_legend_handles_labels(),
-        loc="outside lower center",
-        ncols=min(len(sc.filters), 4),
-        title="filter: time mean of the position and heading lines",
-    )
+    if many:
+        title = "filter: time means of the position\nand heading RMSE; position RMSE /\n"
+        title += f"{ref.name}'s [95 % interval]" if ref else ""
+        fig.legend(*ax_pos.get_legend_handles_labels(), loc="outside right upper", ncols=1,
+                   fontsize=7, title=title, title_fontsize=7)  # fmt: skip
+    else:
+        fig.legend(
+            *ax_pos.get_legend_handles_labels(),
+            loc="outside lower center",
+            ncols=min(len(sc.filters), 4),
+            title="filter: time mean of the position and heading lines",
+        )
     fig.suptitle(f"{sc.name}: RMSE over time, {_runs_text(sc)}")
     ax_pos.set_title(
         f"line: RMSE over runs sqrt(mean(ex² + ey²)) at each step;"
@@ -388,11 +458,116 @@ def _mark_off_scale(ax: Axes, sc: ScenarioData, top: float) -> None:
             )  # fmt: skip
 
 
+# More filters than this in one panel and their lines hide one another: the NEES figure draws
+# them as small multiples, families (kinds) packed into panels of at most PANEL_FILTERS, the
+# reference in every panel, each panel's legend beside it (outside the data).
+MANY_FILTERS = 8
+PANEL_FILTERS = 4
+
+
+def family_panels(filters: Sequence[FilterSeries], size: int = PANEL_FILTERS) -> list[list]:
+    """`filters` in panels of at most `size`: whole families (kind) together where they fit,
+    consecutive families sharing a panel, a family larger than `size` split."""
+    kinds = dict.fromkeys(f.kind for f in filters)
+    panels: list[list] = []
+    for kind in kinds:
+        family = [f for f in filters if f.kind == kind]
+        while family:
+            if panels and len(panels[-1]) + len(family) <= size:
+                panels[-1] += family
+                family = []
+            else:
+                panels.append(family[:size])
+                family = family[size:]
+    return panels
+
+
+def _nees_label(f: FilterSeries) -> str:
+    s = f.summary
+    share = format_share(s["nees_in_bounds"])
+    if f.runs_used and np.isnan(f.nees).all():  # no covariance (KalmanNet): no NEES
+        return f"{f.name}: NEES not available (no covariance)"
+    return f"{f.name}: ANEES {format_sig(s['anees'])}, {share} in bounds{_lost(f)}"
+
+
+def _nees_limits(sc: ScenarioData) -> tuple[float, float] | None:
+    # Limits from the averages, medians and bounds: a single run's NEES swings over decades and
+    # would squeeze them (outlier runs may leave the axis).
+    shown = [f.nees for f in sc.filters] + [f.nees_median for f in sc.filters]
+    shown.append(np.array([b for f in sc.filters for b in f.bounds]))
+    values = np.concatenate(shown)
+    values = values[np.isfinite(values) & (values > 0)]
+    return (values.min() / 1.5, values.max() * 1.5) if values.size else None
+
+
+def _nees_panel(ax: Axes, sc: ScenarioData, filters: list, top: float | None) -> None:
+    """One panel of the small multiples: `filters`' NEES, medians and outlier runs (an outlier
+    that leaves the axis: a triangle at the top, its peak in its legend entry, never a text
+    that could print over another), the bounds; the legend beside the panel."""
+    for f in filters:
+        colour = filter_colour(f.name) if f.kind != "ekf-oracle" else ORACLE_COLOUR
+        ax.plot(f.t, f.nees, lw=1.1, label=_nees_label(f), gid=f"nees/{f.name}", **_style(f))
+        ax.plot(f.t, f.nees_median, lw=0.8, ls=":", color=colour, gid=f"nees_median/{f.name}")
+        for run, values in f.outlier_nees.items():
+            label = _outlier_label(f, run)
+            above = np.flatnonzero(np.nan_to_num(values, nan=0.0) > top) if top else []
+            if len(above):
+                peak = float(np.nanmax(values))
+                label += f", off scale (peak {format_sig(peak)}, ▲)"
+                ax.plot([f.t[above[0]]], [top], marker="^", ms=6, color=colour, ls="none",
+                        clip_on=False, gid=f"nees_off_scale/{f.name}/{run}")  # fmt: skip
+            ax.plot(f.t, values, lw=0.5, alpha=0.45, color=colour, label=label,
+                    gid=f"nees_outlier/{f.name}/{run}")  # fmt: skip
+    for n, (lo, hi) in sorted({(f.runs_used, f.bounds) for f in filters if f.runs_used}):
+        ax.axhspan(lo, hi, color="#2ca02c", alpha=0.08, lw=0)
+        ax.axhline(lo, color="black", lw=0.8, ls=(0, (1, 2)), gid=f"nees_bound_lo/{n}")
+        ax.axhline(hi, color="black", lw=0.8, ls=(0, (1, 2)), gid=f"nees_bound_hi/{n}")
+    plain_log_axis(ax)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0, fontsize=7)
+
+
+def _nees_small_multiples(sc: ScenarioData) -> Figure:
+    ref = sc.reference()
+    panels = family_panels([f for f in sc.filters if f is not ref])
+    cols = 2
+    rows = math.ceil(len(panels) / cols)
+    fig = Figure(figsize=(15, 2.5 * rows + 1.4), layout="constrained")
+    axes = fig.subplots(rows, cols, sharex=True, sharey=True, squeeze=False).ravel()
+    limits = _nees_limits(sc)
+    for ax, group in zip(axes, panels, strict=False):
+        _nees_panel(ax, sc, ([ref] if ref else []) + group, limits[1] if limits else None)
+        if limits:
+            ax.set_ylim(*limits)
+        ax.set_xlim(sc.filters[0].t[0], sc.filters[0].t[-1])
+    for ax in axes[len(panels) :]:
+        ax.set_visible(False)
+    for ax in axes[::cols]:
+        ax.set_ylabel("NEES [-] (log)")
+    for ax in axes[max(len(panels) - cols, 0) : len(panels)]:
+        ax.set_xlabel("time [s]")
+        ax.xaxis.set_tick_params(labelbottom=True)
+    bounds = "; ".join(
+        f"{n} runs: [{format_sig(lo)}, {format_sig(hi)}]"
+        for n, (lo, hi) in sorted({(f.runs_used, f.bounds) for f in sc.filters if f.runs_used})
+    )
+    fig.suptitle(f"{sc.name}: NEES averaged over {_runs_text(sc)}, filters by family")
+    reference = f"{ref.name} (grey, dashed) in every panel; " if ref else ""
+    note = (
+        f"{reference}solid: run-averaged NEES; dotted: median over runs; thin: outlier runs (mean"
+        f" NEES > {OUTLIER_FACTOR:g} x the median run's); shaded: 95 % bounds ({bounds}); a"
+        " consistent filter's NEES averages 3 (pose dim.)"
+    )
+    fig.supxlabel("\n".join(textwrap.wrap(note, 170)), fontsize=8)  # laid out below the panels
+    return fig
+
+
 @matplotlib.rc_context(_RC)
 def nees_figure(sc: ScenarioData) -> Figure:
     """Run-averaged NEES per filter (log scale) with the two-sided 95 % chi-square bounds, the
-    median over runs (dotted) and the outlier runs (thin) that pull the average up."""
-
+    median over runs (dotted) and the outlier runs (thin) that pull the average up. More than
+    MANY_FILTERS filters: small multiples by family (`family_panels`)."""
+    if len(sc.filters) > MANY_FILTERS:
+        return _nees_small_multiples(sc)
     fig = Figure(figsize=(9, 5.6), layout="constrained")
     ax = fig.subplots()
     for f in sc.filters:
@@ -696,6 +871,9 @@ def overview_figure(rows: Sequence[SummaryRow]) -> Figure:
                 value if math.isfinite(value) else 0.0,  # all runs diverged: an empty slot
                 width,
                 color=filter_colour(row.filter),
+                hatch=filter_style(row.filter).hatch,
+                edgecolor="white",
+                linewidth=0,
                 label=None if row.filter in labelled else row.filter,
                 gid=f"overview_nees_in_bounds/{scen}/{row.filter}",
             )
@@ -722,7 +900,14 @@ def overview_figure(rows: Sequence[SummaryRow]) -> Figure:
     ax_cons.set_ylim(0, 108)
     ax_cons.set_title("steps with NEES in 95 % bounds\n(higher is better)", fontsize=9)
     handles, labels = legend_entries((ax_rmse, ax_anees, ax_cons))
+    # each filter's marker and its bar (colour and hatch) side by side: the bars' key too
+    swatches = {name: Rectangle((0, 0), 1, 1, facecolor=filter_colour(name), edgecolor="white",
+                                hatch=filter_style(name).hatch, linewidth=0)
+                for name in dict.fromkeys(r.filter for r in rows)}  # fmt: skip
+    pairs = zip(handles, labels, strict=True)
+    handles = [(h, swatches[lab]) if lab in swatches else h for h, lab in pairs]
     fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 6),
+               handler_map={tuple: HandlerTuple(ndivide=None, pad=0.3)},
                title="error bars: 95 % paired bootstrap interval over runs")  # fmt: skip
     runs = "/".join(str(n) for n in sorted({r.runs for r in rows}))
     fig.suptitle(f"Overview: {len(scenarios)} scenarios, {runs} runs each")

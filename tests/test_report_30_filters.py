@@ -21,7 +21,7 @@ import pytest
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import to_hex
 
-from anfekf_bench.report import plots
+from anfekf_bench.report import plots, summary_figures
 from anfekf_bench.report.changing import changes_figure
 from anfekf_bench.report.data import Band, Ratio
 from anfekf_bench.report.report import load_scenario_data, summary_rows
@@ -93,8 +93,8 @@ def _figures(sc):
             "nees": plots.nees_figure(sc),
             "noise": plots.noise_figure(sc),
             "map": plots.map_figure(sc),
-            "overview": plots.overview_figure(rows),
-            "leaderboard": plots.leaderboard_figure(rows),
+            "overview": summary_figures.overview_figure(rows),
+            "leaderboard": summary_figures.leaderboard_figure(rows),
             "changing": changes_figure(sc, schedule),
         }
 

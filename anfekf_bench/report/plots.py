@@ -432,22 +432,6 @@ def _outlier_label(f: FilterSeries, run: int) -> str:
     return f"{f.name} run {run}: outlier, mean NEES {format_sig(float(f.run_mean_nees[i]))}"
 
 
-def _mark_off_scale(ax: Axes, sc: ScenarioData, top: float) -> None:
-    """Where an outlier run's NEES leaves the top of the axis, say so (with its peak)."""
-    for f in sc.filters:
-        for run, values in f.outlier_nees.items():
-            above = np.flatnonzero(np.nan_to_num(values, nan=0.0) > top)
-            if not len(above):
-                continue
-            peak = float(np.nanmax(values))
-            ax.annotate(
-                f"{f.name} run {run} off scale (peak {format_sig(peak)})",
-                (f.t[above[0]], top), xytext=(2, -2), textcoords="offset points",
-                ha="left", va="top", fontsize=7, color=filter_colour(f.name),
-                gid=f"nees_off_scale/{f.name}/{run}",
-            )  # fmt: skip
-
-
 # More filters than this in one panel and their lines hide one another: the NEES figure draws
 # them as small multiples, families (kinds) packed into panels of at most PANEL_FILTERS, the
 # reference in every panel, each panel's legend beside it (outside the data).
@@ -490,6 +474,21 @@ def _nees_limits(sc: ScenarioData) -> tuple[float, float] | None:
     return (values.min() / 1.5, values.max() * 1.5) if values.size else None
 
 
+def _outlier_lines(ax: Axes, f: FilterSeries, colour, top: float | None) -> None:
+    """`f`'s outlier runs as thin lines; one that leaves the axis (above `top`) gets a triangle
+    at the top where it leaves, and its peak in its legend entry: never a text on the plot,
+    which printed over the others' when several left the axis."""
+    for run, values in f.outlier_nees.items():
+        label = _outlier_label(f, run)
+        above = np.flatnonzero(np.nan_to_num(values, nan=0.0) > top) if top else []
+        if len(above):
+            label += f", off scale (peak {format_sig(float(np.nanmax(values)))}, ▲)"
+            ax.plot([f.t[above[0]]], [top], marker="^", ms=6, color=colour, ls="none",
+                    clip_on=False, gid=f"nees_off_scale/{f.name}/{run}")  # fmt: skip
+        ax.plot(f.t, values, lw=0.5, alpha=0.45, color=colour, label=label,
+                gid=f"nees_outlier/{f.name}/{run}")  # fmt: skip
+
+
 def _nees_panel(ax: Axes, sc: ScenarioData, filters: list, top: float | None) -> None:
     """One panel of the small multiples: `filters`' NEES, medians and outlier runs (an outlier
     that leaves the axis: a triangle at the top, its peak in its legend entry, never a text
@@ -498,16 +497,7 @@ def _nees_panel(ax: Axes, sc: ScenarioData, filters: list, top: float | None) ->
         colour = filter_colour(f.name) if f.kind != "ekf-oracle" else ORACLE_COLOUR
         ax.plot(f.t, f.nees, lw=1.1, label=_nees_label(f), gid=f"nees/{f.name}", **_style(f))
         ax.plot(f.t, f.nees_median, lw=0.8, ls=":", color=colour, gid=f"nees_median/{f.name}")
-        for run, values in f.outlier_nees.items():
-            label = _outlier_label(f, run)
-            above = np.flatnonzero(np.nan_to_num(values, nan=0.0) > top) if top else []
-            if len(above):
-                peak = float(np.nanmax(values))
-                label += f", off scale (peak {format_sig(peak)}, ▲)"
-                ax.plot([f.t[above[0]]], [top], marker="^", ms=6, color=colour, ls="none",
-                        clip_on=False, gid=f"nees_off_scale/{f.name}/{run}")  # fmt: skip
-            ax.plot(f.t, values, lw=0.5, alpha=0.45, color=colour, label=label,
-                    gid=f"nees_outlier/{f.name}/{run}")  # fmt: skip
+        _outlier_lines(ax, f, colour, top)
     for n, (lo, hi) in sorted({(f.runs_used, f.bounds) for f in filters if f.runs_used}):
         ax.axhspan(lo, hi, color="#2ca02c", alpha=0.08, lw=0)
         ax.axhline(lo, color="black", lw=0.8, ls=(0, (1, 2)), gid=f"nees_bound_lo/{n}")
@@ -560,6 +550,7 @@ def nees_figure(sc: ScenarioData) -> Figure:
         return _nees_small_multiples(sc)
     fig = Figure(figsize=(9, 5.6), layout="constrained")
     ax = fig.subplots()
+    limits = _nees_limits(sc)
     for f in sc.filters:
         s = f.summary
         share = format_share(s["nees_in_bounds"])
@@ -569,9 +560,7 @@ def nees_figure(sc: ScenarioData) -> Figure:
         ax.plot(f.t, f.nees, lw=1.2, label=label, gid=f"nees/{f.name}", **_style(f))
         ax.plot(f.t, f.nees_median, lw=0.9, ls=":", color=filter_colour(f.name),
                 gid=f"nees_median/{f.name}")  # fmt: skip
-        for run, values in f.outlier_nees.items():
-            ax.plot(f.t, values, lw=0.5, alpha=0.45, color=filter_colour(f.name),
-                    label=_outlier_label(f, run), gid=f"nees_outlier/{f.name}/{run}")  # fmt: skip
+        _outlier_lines(ax, f, filter_colour(f.name), limits[1] if limits else None)
     # Filters that lost runs to divergence average fewer runs: their bounds are wider.
     for n, (lo, hi) in sorted({(f.runs_used, f.bounds) for f in sc.filters if f.runs_used}):
         label = f"95 % bounds, {n} runs: [{format_sig(lo)}, {format_sig(hi)}]"
@@ -582,15 +571,8 @@ def nees_figure(sc: ScenarioData) -> Figure:
     ax.plot([], [], color="grey", ls=":", lw=0.9,
             label="dotted: median over runs (a consistent filter's: 2.37)")  # fmt: skip
     plain_log_axis(ax)
-    # Limits from the averages, medians and bounds: a single run's NEES swings over decades and
-    # would squeeze them (outlier runs may leave the axis).
-    shown = [f.nees for f in sc.filters] + [f.nees_median for f in sc.filters]
-    shown.append(np.array([b for f in sc.filters for b in f.bounds]))
-    values = np.concatenate(shown)
-    values = values[np.isfinite(values) & (values > 0)]
-    if values.size:
-        ax.set_ylim(values.min() / 1.5, values.max() * 1.5)
-        _mark_off_scale(ax, sc, values.max() * 1.5)
+    if limits:
+        ax.set_ylim(*limits)
     ax.set_xlim(sc.filters[0].t[0], sc.filters[0].t[-1])
     ax.set_xlabel("time [s]")
     ax.set_ylabel("NEES [-] (log)")

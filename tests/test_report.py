@@ -23,7 +23,7 @@ from typer.testing import CliRunner
 from anfekf_bench.analysis.metrics import format_sig
 from anfekf_bench.cli import app
 from anfekf_bench.experiment import execute, make_plan
-from anfekf_bench.report import plots
+from anfekf_bench.report import plots, summary_figures
 from anfekf_bench.report.report import (
     BAND_PERCENTILES,
     OUTLIER_FACTOR,
@@ -315,7 +315,7 @@ def test_map_figure_draws_the_world_run_zero_and_its_ellipses(results):
 def test_summary_rows_and_overview_ratios_equal_the_saved_summary_and_comparisons(results):
     scenarios = [load_scenario_data(results / s) for s in SCENARIOS]
     rows = summary_rows(scenarios)
-    fig = plots.overview_figure(rows)
+    fig = summary_figures.overview_figure(rows)
     for scenario in SCENARIOS:
         saved = pd.read_parquet(results / scenario / "summary.parquet").set_index("filter")
         comp = pd.read_parquet(results / scenario / "comparisons.parquet")
@@ -536,7 +536,7 @@ def test_log_axes_have_plain_tick_labels(results):
     """2, 3, 5, 10, 0.5, never 2x10^0 or 10^-1."""
     sc = load_scenario_data(results / "tiny_q")
     figs = [plots.rmse_figure(sc), plots.nees_figure(sc), plots.noise_figure(sc)]
-    figs.append(plots.overview_figure(summary_rows([sc])))
+    figs.append(summary_figures.overview_figure(summary_rows([sc])))
     checked = 0
     for fig in figs:
         _draw(fig)
@@ -567,7 +567,7 @@ def test_titles_do_not_repeat_the_scenario_name(results):
 
     sc = dataclasses.replace(load_scenario_data(results / "tiny_r"), name="consistency")
     figs = [plots.rmse_figure(sc), plots.nees_figure(sc), plots.noise_figure(sc)]
-    figs += [plots.map_figure(sc), plots.overview_figure(summary_rows([sc]))]
+    figs += [plots.map_figure(sc), summary_figures.overview_figure(summary_rows([sc]))]
     for fig in figs:
         titles = [fig.get_suptitle()] + [ax.get_title() for ax in fig.axes]
         for title in titles:
@@ -595,8 +595,10 @@ def test_outlier_runs_are_marked_and_the_median_shown(results, tmp_path):
                                _pivot(steps, "anfekf", "nees")[1])  # fmt: skip
     assert any("anfekf run 1: outlier" in t for t in _legend_texts(fig))
     # Off the top of the axis (its limits follow the averages): the figure says where.
-    marks = [t for t in fig.axes[0].texts if t.get_gid() == "nees_off_scale/anfekf/1"]
-    assert len(marks) == 1 and "anfekf run 1 off scale" in marks[0].get_text()
+    # (a triangle at the top, its peak in the legend: a text there printed over the others')
+    marks = [a for a in fig.axes[0].lines if a.get_gid() == "nees_off_scale/anfekf/1"]
+    assert len(marks) == 1 and not fig.axes[0].texts
+    assert any("anfekf run 1: outlier" in t and "off scale (peak" in t for t in _legend_texts(fig))
     assert "outlier" in fig.axes[0].get_title()
     median = _artist(fig, "nees_median/anfekf").get_ydata()
     np.testing.assert_allclose(median, np.median(_pivot(steps, "anfekf", "nees"), axis=0))

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import math
 
-from anfekf_bench.report import plots
+from anfekf_bench.report import summary_figures
 from anfekf_bench.report.data import Ratio, SummaryRow
-from anfekf_bench.report.ranking import rank
+from anfekf_bench.report.ranking import consistent, rank
 from anfekf_bench.report.tables import LEADERBOARD_CAPTION, leaderboard_table
 
 
@@ -48,7 +48,7 @@ def test_a_filter_run_in_fewer_scenarios_is_unranked_and_listed_apart():
     assert ranking.ranked == ["ekf-oracle", "anfekf", "ekf"]
     assert ranking.unranked == ["anfekf-q"] and ranking.ran_in["anfekf-q"] == 1
     assert ranking.scenarios == ["correct", "wrong_r", "wrong_q", "consistency"]
-    ax = plots.leaderboard_figure(rows).axes[0]
+    ax = summary_figures.leaderboard_figure(rows).axes[0]
     labels = [t.get_text() for t in ax.get_yticklabels()]
     assert labels == ["ekf-oracle", "anfekf", "ekf", "anfekf-q (unranked: 1/4)"]
     assert [line.get_gid() for line in ax.lines] == ["leaderboard_unranked"]
@@ -74,7 +74,7 @@ def test_grey_cells_are_explained_and_say_why():
     rows = paper_rows()
     diverged = row("wrong_r", "anfekf", math.nan)
     rows = [diverged if (r.scenario, r.filter) == ("wrong_r", "anfekf") else r for r in rows]
-    ax = plots.leaderboard_figure(rows).axes[0]
+    ax = summary_figures.leaderboard_figure(rows).axes[0]
     texts = {t.get_gid(): t.get_text() for t in ax.texts}
     assert texts["leaderboard_none/wrong_r/anfekf-q"] == "-"  # not run
     assert texts["leaderboard_none/wrong_r/anfekf"] == "n/a"  # every run diverged
@@ -91,8 +91,8 @@ def test_the_consistency_dot_needs_the_anees_within_the_chi_square_band():
             row("wrong_r", "vb-r", 1.02, anees=3.1, share=0.93),
             row("wrong_r", "iae", 1.04, anees=3.0, share=0.6),
             row("wrong_r", "ekf-oracle", 1.0)]  # fmt: skip
-    assert [plots.consistent(r) for r in rows] == [False, True, False, True]
-    ax = plots.leaderboard_figure(rows).axes[0]
+    assert [consistent(r) for r in rows] == [False, True, False, True]
+    ax = summary_figures.leaderboard_figure(rows).axes[0]
     texts = {t.get_gid(): t.get_text() for t in ax.texts}
     assert not texts["leaderboard_value/wrong_r/sage-husa"].endswith("•")
     assert texts["leaderboard_value/wrong_r/vb-r"].endswith("•")

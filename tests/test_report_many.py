@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-from anfekf_bench.report import plots
+from anfekf_bench.report import plots, ranking, summary_figures
 from anfekf_bench.report.report import Ratio, SummaryRow
 
 
@@ -80,7 +80,7 @@ def assert_readable(fig) -> None:
     ("filters", "scenarios"), [pytest.param(30, 6, marks=pytest.mark.slow), (18, 2), (3, 1)]
 )
 def test_the_leaderboard_has_no_overlapping_labels(filters, scenarios):
-    fig = plots.leaderboard_figure(many_rows(filters, scenarios))
+    fig = summary_figures.leaderboard_figure(many_rows(filters, scenarios))
     assert_readable(fig)
 
 
@@ -90,13 +90,13 @@ def test_the_leaderboard_has_no_overlapping_labels(filters, scenarios):
 def test_the_overview_has_no_overlapping_labels(filters, scenarios):
     rows = many_rows(filters, scenarios)
     with plots.palette([r.filter for r in rows]):
-        fig = plots.overview_figure(rows)
+        fig = summary_figures.overview_figure(rows)
     assert_readable(fig)
 
 
 def test_the_leaderboard_sorts_best_first_and_marks_cells():
     rows = many_rows(8, 3)
-    fig = plots.leaderboard_figure(rows)
+    fig = summary_figures.leaderboard_figure(rows)
     ax = fig.axes[0]
     names = [t.get_text() for t in ax.get_yticklabels()]
     median = {
@@ -106,13 +106,13 @@ def test_the_leaderboard_sorts_best_first_and_marks_cells():
     texts = {t.get_gid(): t.get_text() for t in ax.texts}
     for r in rows:
         text = texts[f"leaderboard_value/{r.scenario}/{r.filter}"]
-        assert text.endswith("•") == plots.consistent(r)
+        assert text.endswith("•") == ranking.consistent(r)
     frames = {p.get_gid() for p in ax.patches if p.get_gid()}
     assert frames == set()  # no interval of many_rows includes 1 except ...
     rows[0] = rows[0].__class__(
         **{**rows[0].__dict__, "rmse_vs_oracle": Ratio(1.02, 0.99, 1.05, 50)}
     )
-    ax = plots.leaderboard_figure(rows).axes[0]
+    ax = summary_figures.leaderboard_figure(rows).axes[0]
     assert {p.get_gid() for p in ax.patches if p.get_gid()} == {
         f"leaderboard_ci1/{rows[0].scenario}/{rows[0].filter}"
     }
@@ -124,7 +124,7 @@ def test_a_ratio_of_one_has_one_colour_everywhere():
     # the same in every leaderboard, whatever the data's range
     for rows in (many_rows(5, 2, seed=1), many_rows(12, 4, seed=2)):
         rows = [r for r in rows if r.filter == "ekf-oracle"] + rows
-        fig = plots.leaderboard_figure(rows)
+        fig = summary_figures.leaderboard_figure(rows)
         image = fig.axes[0].get_images()[0]
         names = [t.get_text() for t in fig.axes[0].get_yticklabels()]
         i = names.index("ekf-oracle")

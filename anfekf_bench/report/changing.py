@@ -19,7 +19,7 @@ from ..schedule import CHANNELS, NoiseSchedule
 from ..storage import PHASES_FILE, ResultsError, read_parquet
 from .data import NOISE_COLUMNS, FilterSeries, ScenarioData
 from .document import Cell, TableBlock
-from .plots import filter_colour, plain_log_axis
+from .plots import filter_style, legend_entries, plain_log_axis
 
 _CHANNEL_OF = {"R_rr": "range", "R_bb": "bearing", "Q_vv": "speed", "Q_gg": "steering"}
 
@@ -63,8 +63,8 @@ def changes_figure(sc: ScenarioData, schedule: NoiseSchedule) -> Figure:
     ax_pos, ax_ratio = fig.subplots(2, 1, sharex=True)
     t_end = float(sc.filters[0].t[-1])
     for f in sc.filters:
-        ax_pos.plot(f.t, f.pos.line, lw=1.1, color=filter_colour(f.name), label=f.name,
-                    gid=f"changing_rmse/{f.name}")  # fmt: skip
+        ax_pos.plot(f.t, f.pos.line, lw=1.1, label=f.name, gid=f"changing_rmse/{f.name}",
+                    **filter_style(f.name, f.kind).line())  # fmt: skip
     _mark_changes(ax_pos, schedule, t_end, label=True)
     ax_pos.set_ylabel("position RMSE [m]")
     ax_pos.set_ylim(bottom=0)
@@ -72,19 +72,19 @@ def changes_figure(sc: ScenarioData, schedule: NoiseSchedule) -> Figure:
         with np.errstate(all="ignore"):
             for f in others:
                 ratio = f.pos.line / ref.pos.line
-                ax_ratio.plot(f.t, ratio, lw=1.0, color=filter_colour(f.name),
-                              gid=f"changing_ratio/{f.name}")  # fmt: skip
+                ax_ratio.plot(f.t, ratio, lw=1.0, gid=f"changing_ratio/{f.name}",
+                              **filter_style(f.name, f.kind).line())  # fmt: skip
         ax_ratio.axhline(RECOVERY_TOLERANCE, color="black", lw=0.8, ls="--",
                          label=f"recovered below {RECOVERY_TOLERANCE:g}x")  # fmt: skip
         ax_ratio.axhline(1.0, color="0.6", lw=0.6)
         plain_log_axis(ax_ratio)
         ax_ratio.set_ylabel(f"position RMSE / {ref.name}'s (log)")
-        ax_ratio.legend(loc="upper right", fontsize=7)
     _mark_changes(ax_ratio, schedule, t_end, label=False)
     ax_ratio.set_xlabel("time [s]")
     ax_pos.set_xlim(sc.filters[0].t[0], t_end)
-    fig.legend(*ax_pos.get_legend_handles_labels(), loc="outside lower center",
-               ncols=min(len(sc.filters) + 2, 5))  # fmt: skip
+    # one legend below the panels (outside the data): the filters, the changes, the recovery line
+    handles, labels = legend_entries((ax_pos, ax_ratio))
+    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 5))
     fig.suptitle(f"{sc.name}: position RMSE over runs with the noise changes marked")
     return fig
 
@@ -115,15 +115,16 @@ def variances_figure(sc: ScenarioData, schedule: NoiseSchedule) -> Figure | None
         what, unit, factor = NOISE_COLUMNS[col]
         for f in sc.filters:
             if adapting(f, col):
-                ax.plot(f.t, f.noise[col].line, lw=1.0, color=filter_colour(f.name),
-                        label=f.name, gid=f"changing_noise/{col}/{f.name}")  # fmt: skip
+                ax.plot(f.t, f.noise[col].line, lw=1.0, label=f.name,
+                        gid=f"changing_noise/{col}/{f.name}",
+                        **filter_style(f.name, f.kind).line())  # fmt: skip
         ax.plot(t, true[:, CHANNELS.index(_CHANNEL_OF[col])] * factor, color="black", lw=1.4,
                 ls="--", label="true", gid=f"changing_true/{col}")  # fmt: skip
         _mark_changes(ax, schedule, float(t[-1]), label=False)
         plain_log_axis(ax)
         ax.set_title(f"{what} {col}", fontsize=9)
         ax.set_ylabel(f"{col} [{unit}] (log)")
-        ax.legend(loc="best", fontsize=7)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0, fontsize=7)
     for ax in axes[len(columns) :]:
         ax.set_visible(False)
     for ax in axes[max(len(columns) - 2, 0) : len(columns)]:

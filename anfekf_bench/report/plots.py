@@ -38,24 +38,15 @@ from ..storage import write_atomic  # noqa: E402
 from .data import (  # noqa: E402
     _ADAPTED,
     BAND_PERCENTILES,
-    FEW_RUNS,
     NOISE_COLUMNS,
     OUTLIER_FACTOR,
     Band,
     FilterSeries,
-    Ratio,
     ScenarioData,
-    SummaryRow,
 )
 from .document import FigureBlock  # noqa: E402
 from .ranking import (  # noqa: E402
-    CONSISTENCY_NOTE,
     CONSISTENT_SHARE,  # noqa: F401  (the tables read it here)
-    GREY_NOTE,
-    consistent,
-    rank,
-    ranking_note,
-    rmse_ratio,
 )
 
 DPI = 110
@@ -107,26 +98,54 @@ _RC = {
 _METADATA = {"png": {}, "svg": {"Date": None}, "pdf": {"CreationDate": None}}
 
 
+MARKERS = ("o", "s", "^", "D")
+HATCHES = ("", "////", "....", "xxxx")  # bars: in step with the line style
+
+
+@dataclass(frozen=True)
+class FilterStyle:
+    """How one filter is drawn in every figure of a report: a colour, and beside it a line style,
+    a point marker and a bar hatch of the same round of the palette, so no two filters look
+    alike in any kind of figure (lines, points or bars) for up to 36 filters."""
+
+    colour: str
+    linestyle: object
+    marker: str
+    hatch: str
+
+    def line(self) -> dict:
+        """matplotlib keywords of a line in this style."""
+        return {"color": self.colour, "linestyle": self.linestyle}
+
+
+ORACLE_STYLE = FilterStyle(ORACLE_COLOUR, "--", "o", "")
+
+
+def filter_style(name: str, kind: str | None = None) -> FilterStyle:
+    """THE style map of a report: filter `name`'s colour, line style, marker and hatch, from its
+    place in the report (see `palette`); the oracle (by name or `kind`) grey and dashed, the
+    reference, in every figure. Every figure draws filters through this function only."""
+    if name == "ekf-oracle" or kind == "ekf-oracle":
+        return ORACLE_STYLE
+    place = _place(name)
+    turn = (place // len(PALETTE)) % len(LINE_STYLES)
+    return FilterStyle(PALETTE[place % len(PALETTE)], LINE_STYLES[turn], MARKERS[turn],
+                       HATCHES[turn])  # fmt: skip
+
+
 def filter_colour(name: str) -> str:
-    """The colour of filter `name`, the same in every figure of a report (see `palette`)."""
-    if name == "ekf-oracle":
-        return ORACLE_COLOUR
-    return PALETTE[_place(name) % len(PALETTE)]
+    """The colour of filter `name`, the same in every figure of a report (`filter_style`)."""
+    return filter_style(name).colour
 
 
 def filter_linestyle(name: str):
-    """The line style beside the colour: the palette's second round of colours is dashed, ..."""
-    return LINE_STYLES[(_place(name) // len(PALETTE)) % len(LINE_STYLES)]
-
-
-MARKERS = ("o", "s", "^", "D")
+    """The line style beside the colour (`filter_style`): the palette's second round is dashed."""
+    return filter_style(name).linestyle
 
 
 def filter_marker(name: str) -> str:
     """The point marker beside the colour (overview, leaderboard), in step with the line style."""
-    if name == "ekf-oracle":
-        return "o"
-    return MARKERS[(_place(name) // len(PALETTE)) % len(MARKERS)]
+    return filter_style(name).marker
 
 
 # Value labels beside points and bars only while a scenario's group is this small; beyond, the
@@ -136,9 +155,7 @@ MAX_LABELLED_GROUP = 5
 
 def _style(f: FilterSeries) -> dict:
     # The oracle is a reference, not a contender: grey and dashed, in every figure.
-    if f.kind == "ekf-oracle":
-        return {"color": ORACLE_COLOUR, "linestyle": "--"}
-    return {"color": filter_colour(f.name), "linestyle": filter_linestyle(f.name)}
+    return filter_style(f.name, f.kind).line()
 
 
 def save_figure(fig: Figure, path: Path | BinaryIO, fmt: str = "png", dpi: int = DPI) -> None:
@@ -316,12 +333,37 @@ def _ratio_panel(ax: Axes, sc: ScenarioData, ref: FilterSeries, others: list) ->
             ax.set_ylim(lo / 1.03, hi * 1.03)
             zoomed = f"; axis zoomed on the filters within {NEAR_FACTOR:g} x of {ref.name}"
     ax.set_ylabel(f"position RMSE / {ref.name} (log)")
-    ax.legend(loc="upper left", fontsize=7, ncols=min(len(others), 3),
-              title=f"RMSE / {ref.name}, time means [95 % interval]", title_fontsize=7)  # fmt: skip
+    # beside the panel: inside, it covered the lines it labels
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0, fontsize=7,
+              title=f"RMSE / {ref.name},\ntime means [95 % interval]",
+              title_fontsize=7)  # fmt: skip
     ax.set_title(
         f"ratio to {ref.name} at each step (dashed level: the ratio of the time means){zoomed}",
         fontsize=8,
     )
+
+
+def _ratio_heatmap(fig: Figure, ax: Axes, sc: ScenarioData, ref: FilterSeries, others: list):
+    """Many filters: each filter's position RMSE over the reference's at each step as one row
+    of colour (the report's one ratio scale), rows sorted by the time-mean ratio: 26 lines in
+    one log panel hid one another."""
+    ratios = {f.name: sc.ratio(f.name, ref) for f in others}
+    order = sorted(others, key=lambda f: (not math.isfinite(ratios[f.name].estimate),
+                                          ratios[f.name].estimate))  # fmt: skip
+    t = others[0].t
+    grid = np.vstack([rmse_ratio_curve(f, ref) for f in order])
+    with np.errstate(all="ignore"):
+        shown = np.clip(np.log10(grid), math.log10(RATIO_MIN), math.log10(RATIO_MAX))
+    image = ax.imshow(np.ma.masked_invalid(shown), cmap=ratio_cmap(), norm=ratio_norm(),
+                      aspect="auto", interpolation="nearest", gid="rmse_ratio_heatmap",
+                      extent=(t[0], t[-1], len(order) - 0.5, -0.5))  # fmt: skip
+    ax.set_yticks(np.arange(len(order)),
+                  [f"{f.name} {format_sig(ratios[f.name].estimate)}" for f in order],
+                  fontsize=6.5)  # fmt: skip
+    ax.grid(False)
+    ratio_colourbar(fig, image, ax, f"RMSE / {ref.name}'s (log)")
+    ax.set_title(f"position RMSE / {ref.name}'s at each step, one row a filter (its time-mean"
+                 " ratio beside its name), best first", fontsize=8)  # fmt: skip
 
 
 @matplotlib.rc_context(_RC)
@@ -332,32 +374,50 @@ def rmse_figure(sc: ScenarioData) -> Figure:
     ref = sc.reference()
     others = [f for f in sc.filters if ref is not None and f.name != ref.name]
     rows = 3 if others else 2
-    fig = Figure(figsize=(9, 8.4 if others else 6), layout="constrained")
-    axes = fig.subplots(rows, 1, sharex=True, height_ratios=[1.2, 1, 1][:rows])
+    # Many filters: one legend in one column beside the panels (below them, it was cut at both
+    # edges; in the ratio panel, it covered two thirds of the data), each entry with the ratio.
+    many = len(sc.filters) > MANY_FILTERS
+    width = 12.5 if many else 9
+    height = (6 + 0.16 * len(others) if many else 8.4) if others else 6
+    fig = Figure(figsize=(width, height), layout="constrained")
+    ratio_share = 0.065 * len(others) if many else 1
+    axes = fig.subplots(rows, 1, sharex=True, height_ratios=[1.2, 1, ratio_share][:rows])
     ax_pos, ax_head = axes[0], axes[1]
     lo, hi = _percentiles()
     for f in sc.filters:
         s = f.summary
         head = math.degrees(s["rmse_heading"]) if math.isfinite(s["rmse_heading"]) else math.nan
         label = f"{f.name}: {format_sig(s['rmse_pos'])} m, {format_sig(head)} deg{_lost(f)}"
+        if many and ref is not None and f.name != ref.name:
+            r = sc.ratio(f.name, ref)
+            ci = f" [{format_sig(r.lo)}, {format_sig(r.hi)}]" if r.has_interval else ""
+            label += f"; {format_sig(r.estimate)}{ci} x {ref.name}"
         _band(ax_pos, f.t, f.pos, f, "rmse_pos", label)
         _band(ax_head, f.t, f.heading, f, "rmse_heading", None)
     ax_pos.set_ylabel("position RMSE [m]")
     ax_head.set_ylabel("heading RMSE [deg]")
     for ax in (ax_pos, ax_head):
         ax.set_ylim(bottom=0)
-    if others:
+    if others and many:
+        _ratio_heatmap(fig, axes[2], sc, ref, others)
+    elif others:
         _ratio_panel(axes[2], sc, ref, others)
     axes[-1].set_xlabel("time [s]")
     for ax in axes:
         ax.set_xlim(sc.filters[0].t[0], sc.filters[0].t[-1])
     # Below the axes: error spikes reach any corner, a legend inside would hide some.
-    fig.legend(
-        *ax_pos.get_legend_handles_labels(),
-        loc="outside lower center",
-        ncols=min(len(sc.filters), 4),
-        title="filter: time mean of the position and heading lines",
-    )
+    if many:
+        title = "filter: time means of the position\nand heading RMSE; position RMSE /\n"
+        title += f"{ref.name}'s [95 % interval]" if ref else ""
+        fig.legend(*ax_pos.get_legend_handles_labels(), loc="outside right upper", ncols=1,
+                   fontsize=7, title=title, title_fontsize=7)  # fmt: skip
+    else:
+        fig.legend(
+            *ax_pos.get_legend_handles_labels(),
+            loc="outside lower center",
+            ncols=min(len(sc.filters), 4),
+            title="filter: time mean of the position and heading lines",
+        )
     fig.suptitle(f"{sc.name}: RMSE over time, {_runs_text(sc)}")
     ax_pos.set_title(
         f"line: RMSE over runs sqrt(mean(ex² + ey²)) at each step;"
@@ -372,29 +432,125 @@ def _outlier_label(f: FilterSeries, run: int) -> str:
     return f"{f.name} run {run}: outlier, mean NEES {format_sig(float(f.run_mean_nees[i]))}"
 
 
-def _mark_off_scale(ax: Axes, sc: ScenarioData, top: float) -> None:
-    """Where an outlier run's NEES leaves the top of the axis, say so (with its peak)."""
-    for f in sc.filters:
-        for run, values in f.outlier_nees.items():
-            above = np.flatnonzero(np.nan_to_num(values, nan=0.0) > top)
-            if not len(above):
-                continue
-            peak = float(np.nanmax(values))
-            ax.annotate(
-                f"{f.name} run {run} off scale (peak {format_sig(peak)})",
-                (f.t[above[0]], top), xytext=(2, -2), textcoords="offset points",
-                ha="left", va="top", fontsize=7, color=filter_colour(f.name),
-                gid=f"nees_off_scale/{f.name}/{run}",
-            )  # fmt: skip
+# More filters than this in one panel and their lines hide one another: the NEES figure draws
+# them as small multiples, families (kinds) packed into panels of at most PANEL_FILTERS, the
+# reference in every panel, each panel's legend beside it (outside the data).
+MANY_FILTERS = 8
+PANEL_FILTERS = 4
+
+
+def family_panels(filters: Sequence[FilterSeries], size: int = PANEL_FILTERS) -> list[list]:
+    """`filters` in panels of at most `size`: whole families (kind) together where they fit,
+    consecutive families sharing a panel, a family larger than `size` split."""
+    kinds = dict.fromkeys(f.kind for f in filters)
+    panels: list[list] = []
+    for kind in kinds:
+        family = [f for f in filters if f.kind == kind]
+        while family:
+            if panels and len(panels[-1]) + len(family) <= size:
+                panels[-1] += family
+                family = []
+            else:
+                panels.append(family[:size])
+                family = family[size:]
+    return panels
+
+
+def _nees_label(f: FilterSeries) -> str:
+    s = f.summary
+    share = format_share(s["nees_in_bounds"])
+    if f.runs_used and np.isnan(f.nees).all():  # no covariance (KalmanNet): no NEES
+        return f"{f.name}: NEES not available (no covariance)"
+    return f"{f.name}: ANEES {format_sig(s['anees'])}, {share} in bounds{_lost(f)}"
+
+
+def _nees_limits(sc: ScenarioData) -> tuple[float, float] | None:
+    # Limits from the averages, medians and bounds: a single run's NEES swings over decades and
+    # would squeeze them (outlier runs may leave the axis).
+    shown = [f.nees for f in sc.filters] + [f.nees_median for f in sc.filters]
+    shown.append(np.array([b for f in sc.filters for b in f.bounds]))
+    values = np.concatenate(shown)
+    values = values[np.isfinite(values) & (values > 0)]
+    return (values.min() / 1.5, values.max() * 1.5) if values.size else None
+
+
+def _outlier_lines(ax: Axes, f: FilterSeries, colour, top: float | None) -> None:
+    """`f`'s outlier runs as thin lines; one that leaves the axis (above `top`) gets a triangle
+    at the top where it leaves, and its peak in its legend entry: never a text on the plot,
+    which printed over the others' when several left the axis."""
+    for run, values in f.outlier_nees.items():
+        label = _outlier_label(f, run)
+        above = np.flatnonzero(np.nan_to_num(values, nan=0.0) > top) if top else []
+        if len(above):
+            label += f", off scale (peak {format_sig(float(np.nanmax(values)))}, ▲)"
+            ax.plot([f.t[above[0]]], [top], marker="^", ms=6, color=colour, ls="none",
+                    clip_on=False, gid=f"nees_off_scale/{f.name}/{run}")  # fmt: skip
+        ax.plot(f.t, values, lw=0.5, alpha=0.45, color=colour, label=label,
+                gid=f"nees_outlier/{f.name}/{run}")  # fmt: skip
+
+
+def _nees_panel(ax: Axes, sc: ScenarioData, filters: list, top: float | None) -> None:
+    """One panel of the small multiples: `filters`' NEES, medians and outlier runs (an outlier
+    that leaves the axis: a triangle at the top, its peak in its legend entry, never a text
+    that could print over another), the bounds; the legend beside the panel."""
+    for f in filters:
+        colour = filter_colour(f.name) if f.kind != "ekf-oracle" else ORACLE_COLOUR
+        ax.plot(f.t, f.nees, lw=1.1, label=_nees_label(f), gid=f"nees/{f.name}", **_style(f))
+        ax.plot(f.t, f.nees_median, lw=0.8, ls=":", color=colour, gid=f"nees_median/{f.name}")
+        _outlier_lines(ax, f, colour, top)
+    for n, (lo, hi) in sorted({(f.runs_used, f.bounds) for f in filters if f.runs_used}):
+        ax.axhspan(lo, hi, color="#2ca02c", alpha=0.08, lw=0)
+        ax.axhline(lo, color="black", lw=0.8, ls=(0, (1, 2)), gid=f"nees_bound_lo/{n}")
+        ax.axhline(hi, color="black", lw=0.8, ls=(0, (1, 2)), gid=f"nees_bound_hi/{n}")
+    plain_log_axis(ax)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0, fontsize=7)
+
+
+def _nees_small_multiples(sc: ScenarioData) -> Figure:
+    ref = sc.reference()
+    panels = family_panels([f for f in sc.filters if f is not ref])
+    cols = 2
+    rows = math.ceil(len(panels) / cols)
+    fig = Figure(figsize=(15, 2.5 * rows + 1.4), layout="constrained")
+    axes = fig.subplots(rows, cols, sharex=True, sharey=True, squeeze=False).ravel()
+    limits = _nees_limits(sc)
+    for ax, group in zip(axes, panels, strict=False):
+        _nees_panel(ax, sc, ([ref] if ref else []) + group, limits[1] if limits else None)
+        if limits:
+            ax.set_ylim(*limits)
+        ax.set_xlim(sc.filters[0].t[0], sc.filters[0].t[-1])
+    for ax in axes[len(panels) :]:
+        ax.set_visible(False)
+    for ax in axes[::cols]:
+        ax.set_ylabel("NEES [-] (log)")
+    for ax in axes[max(len(panels) - cols, 0) : len(panels)]:
+        ax.set_xlabel("time [s]")
+        ax.xaxis.set_tick_params(labelbottom=True)
+    bounds = "; ".join(
+        f"{n} runs: [{format_sig(lo)}, {format_sig(hi)}]"
+        for n, (lo, hi) in sorted({(f.runs_used, f.bounds) for f in sc.filters if f.runs_used})
+    )
+    fig.suptitle(f"{sc.name}: NEES averaged over {_runs_text(sc)}, filters by family")
+    reference = f"{ref.name} (grey, dashed) in every panel; " if ref else ""
+    note = (
+        f"{reference}solid: run-averaged NEES; dotted: median over runs; thin: outlier runs (mean"
+        f" NEES > {OUTLIER_FACTOR:g} x the median run's); shaded: 95 % bounds ({bounds}); a"
+        " consistent filter's NEES averages 3 (pose dim.)"
+    )
+    fig.supxlabel("\n".join(textwrap.wrap(note, 170)), fontsize=8)  # laid out below the panels
+    return fig
 
 
 @matplotlib.rc_context(_RC)
 def nees_figure(sc: ScenarioData) -> Figure:
     """Run-averaged NEES per filter (log scale) with the two-sided 95 % chi-square bounds, the
-    median over runs (dotted) and the outlier runs (thin) that pull the average up."""
-
+    median over runs (dotted) and the outlier runs (thin) that pull the average up. More than
+    MANY_FILTERS filters: small multiples by family (`family_panels`)."""
+    if len(sc.filters) > MANY_FILTERS:
+        return _nees_small_multiples(sc)
     fig = Figure(figsize=(9, 5.6), layout="constrained")
     ax = fig.subplots()
+    limits = _nees_limits(sc)
     for f in sc.filters:
         s = f.summary
         share = format_share(s["nees_in_bounds"])
@@ -404,9 +560,7 @@ def nees_figure(sc: ScenarioData) -> Figure:
         ax.plot(f.t, f.nees, lw=1.2, label=label, gid=f"nees/{f.name}", **_style(f))
         ax.plot(f.t, f.nees_median, lw=0.9, ls=":", color=filter_colour(f.name),
                 gid=f"nees_median/{f.name}")  # fmt: skip
-        for run, values in f.outlier_nees.items():
-            ax.plot(f.t, values, lw=0.5, alpha=0.45, color=filter_colour(f.name),
-                    label=_outlier_label(f, run), gid=f"nees_outlier/{f.name}/{run}")  # fmt: skip
+        _outlier_lines(ax, f, filter_colour(f.name), limits[1] if limits else None)
     # Filters that lost runs to divergence average fewer runs: their bounds are wider.
     for n, (lo, hi) in sorted({(f.runs_used, f.bounds) for f in sc.filters if f.runs_used}):
         label = f"95 % bounds, {n} runs: [{format_sig(lo)}, {format_sig(hi)}]"
@@ -417,15 +571,8 @@ def nees_figure(sc: ScenarioData) -> Figure:
     ax.plot([], [], color="grey", ls=":", lw=0.9,
             label="dotted: median over runs (a consistent filter's: 2.37)")  # fmt: skip
     plain_log_axis(ax)
-    # Limits from the averages, medians and bounds: a single run's NEES swings over decades and
-    # would squeeze them (outlier runs may leave the axis).
-    shown = [f.nees for f in sc.filters] + [f.nees_median for f in sc.filters]
-    shown.append(np.array([b for f in sc.filters for b in f.bounds]))
-    values = np.concatenate(shown)
-    values = values[np.isfinite(values) & (values > 0)]
-    if values.size:
-        ax.set_ylim(values.min() / 1.5, values.max() * 1.5)
-        _mark_off_scale(ax, sc, values.max() * 1.5)
+    if limits:
+        ax.set_ylim(*limits)
     ax.set_xlim(sc.filters[0].t[0], sc.filters[0].t[-1])
     ax.set_xlabel("time [s]")
     ax.set_ylabel("NEES [-] (log)")
@@ -637,105 +784,6 @@ def _spacing(tr) -> float:
     return float(np.median(np.diff(tr.t[idx]))) if len(idx) > 1 else float(tr.t[idx[0]])
 
 
-# In every group: the plain EKF first, then the adaptive filters, the oracle (reference) last.
-_RANK = {"ekf": 0, "anfekf": 1, "ekf-oracle": 3}
-
-
-def _ratio_points(ax: Axes, groups: dict, width: float, key: str, get, labelled: set[str]) -> None:
-    """One point per filter and scenario at its ratio, with its 95 % interval as error bar."""
-    for j, (scen, group) in enumerate(groups.items()):
-        for i, row in enumerate(group):
-            ratio: Ratio | None = get(row)
-            if ratio is None or not math.isfinite(ratio.estimate) or ratio.estimate <= 0:
-                continue
-            x = j + (i - (len(group) - 1) / 2) * width
-            colour = filter_colour(row.filter)
-            if ratio.has_interval:
-                err = [[max(ratio.estimate - ratio.lo, 0.0)], [max(ratio.hi - ratio.estimate, 0.0)]]
-            else:
-                err = None
-            bars = ax.errorbar(
-                [x], [ratio.estimate], yerr=err, fmt=filter_marker(row.filter), ms=5,
-                color=colour, ecolor=colour,
-                elinewidth=1.4, capsize=3,
-                label=None if row.filter in labelled else row.filter,
-            )  # fmt: skip
-            bars.lines[0].set_gid(f"overview_{key}/{scen}/{row.filter}")
-            if err is not None:
-                bars.lines[2][0].set_gid(f"overview_{key}_ci/{scen}/{row.filter}")
-            labelled.add(row.filter)
-            if len(group) > MAX_LABELLED_GROUP:
-                continue
-            ax.annotate(format_sig(ratio.estimate), (x, ratio.hi if ratio.has_interval else
-                        ratio.estimate), xytext=(0, 3), textcoords="offset points",
-                        ha="center", va="bottom", fontsize=6.5)  # fmt: skip
-
-
-@matplotlib.rc_context(_RC)
-def overview_figure(rows: Sequence[SummaryRow]) -> Figure:
-    """Per scenario and filter: position RMSE and ANEES divided by the oracle EKF's (log scale,
-    95 % paired bootstrap intervals as error bars), and the share of steps with NEES in bounds.
-
-    Ratios to the reference on a log axis: a filter 1 % worse than the oracle shows as 1.01, and
-    one diverging filter (RMSE 20 x) cannot flatten the others into the floor."""
-    scenarios = list(dict.fromkeys(r.scenario for r in rows))
-    ordered = sorted(rows, key=lambda r: _RANK.get(r.kind, 2))
-    groups = {s: [r for r in ordered if r.scenario == s] for s in scenarios}
-    width = 0.8 / max(len(g) for g in groups.values())
-    fig = Figure(figsize=(max(11.0, 3.4 * len(scenarios) + 1.5), 5.0), layout="constrained")
-    ax_rmse, ax_anees, ax_cons = fig.subplots(1, 3, width_ratios=[1.2, 1.2, 1])
-    labelled: set[str] = set()
-    _ratio_points(ax_rmse, groups, width, "rmse_ratio", lambda r: r.rmse_vs_oracle, labelled)
-    _ratio_points(ax_anees, groups, width, "anees_ratio", lambda r: r.anees_vs_oracle, labelled)
-    for j, (scen, group) in enumerate(groups.items()):
-        for i, row in enumerate(group):
-            centre = j + (i - (len(group) - 1) / 2) * width
-            value = 100 * row.nees_in_bounds
-            bars = ax_cons.bar(
-                centre,
-                value if math.isfinite(value) else 0.0,  # all runs diverged: an empty slot
-                width,
-                color=filter_colour(row.filter),
-                label=None if row.filter in labelled else row.filter,
-                gid=f"overview_nees_in_bounds/{scen}/{row.filter}",
-            )
-            labelled.add(row.filter)
-            if len(group) <= MAX_LABELLED_GROUP:
-                ax_cons.bar_label(bars, labels=[format_sig(value)], fontsize=6, padding=2,
-                                  rotation=90)  # fmt: skip
-    ticks = [_tick(s, groups[s]) for s in scenarios]
-    for ax in (ax_rmse, ax_anees, ax_cons):
-        ax.set_xticks(np.arange(len(scenarios)), ticks)
-        ax.set_xlim(-0.6, len(scenarios) - 0.4)
-        ax.grid(axis="x", visible=False)
-    oracle = next((r.oracle_name for r in rows if r.kind == "ekf-oracle"), "ekf-oracle")
-    for ax, what in ((ax_rmse, "position RMSE"), (ax_anees, "ANEES")):
-        ax.axhline(1.0, color=filter_colour(oracle), lw=1.0, ls="--",
-                   label=f"{oracle} (= 1)" if oracle not in labelled else None)  # fmt: skip
-        labelled.add(oracle)
-        plain_log_axis(ax)
-        ax.set_ylabel(f"{what} / {oracle}'s (log)")
-        ax.margins(y=0.12)
-    ax_rmse.set_title("accuracy: position RMSE / oracle's\n(lower is better)", fontsize=9)
-    ax_anees.set_title("ANEES / oracle's\n(oracle's ANEES is about 3)", fontsize=9)
-    ax_cons.set_ylabel("steps with run-averaged NEES in bounds [%]")
-    ax_cons.set_ylim(0, 108)
-    ax_cons.set_title("steps with NEES in 95 % bounds\n(higher is better)", fontsize=9)
-    handles, labels = legend_entries((ax_rmse, ax_anees, ax_cons))
-    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 6),
-               title="error bars: 95 % paired bootstrap interval over runs")  # fmt: skip
-    runs = "/".join(str(n) for n in sorted({r.runs for r in rows}))
-    fig.suptitle(f"Overview: {len(scenarios)} scenarios, {runs} runs each")
-    return fig
-
-
-def _tick(scenario: str, group: list) -> str:
-    """The scenario's x label, with a warning when its runs are too few."""
-
-    used = min(r.runs_used for r in group)
-    return f"{scenario}\n(only {used} runs)" if used < FEW_RUNS else scenario
-
-
 def _percentiles() -> tuple[float, float]:
 
     return BAND_PERCENTILES
@@ -782,70 +830,3 @@ def ratio_colourbar(fig: Figure, mappable, ax, label: str) -> None:
     bar.set_ticks([math.log10(t) for t in (RATIO_MIN, *RATIO_TICKS)])
     bar.set_ticklabels([plain_number(t) for t in (RATIO_MIN, *RATIO_TICKS)])
     bar.set_label(label)
-
-
-def _text_colour(rgba) -> str:
-    r, g, b = rgba[:3]
-    return "black" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "white"
-
-
-@matplotlib.rc_context(_RC)
-def leaderboard_figure(rows: Sequence[SummaryRow]) -> Figure:
-    """Filters x scenarios: each cell the filter's position RMSE over the oracle's in that
-    scenario (colour on the fixed ratio scale, the value written in), with a frame where the 95 %
-    interval of the ratio includes 1 and a dot where the filter is consistent
-    (`ranking.consistent`). Filters are ranked by their median ratio over the scenarios every
-    ranked filter ran (`ranking.rank`); those that ran in fewer are listed below a line,
-    unranked. Grey cells (no value) say why: '-' not run, 'n/a' every run diverged."""
-    ranking = rank(rows)
-    scenarios = ranking.all_scenarios
-    cells: dict[tuple[str, str], SummaryRow] = {(r.filter, r.scenario): r for r in rows}
-    oracle = next((r.oracle_name for r in rows if r.kind == "ekf-oracle"), "ekf-oracle")
-    names = ranking.ranked + ranking.unranked
-    values = np.array([[rmse_ratio(cells.get((n, s))) for s in scenarios] for n in names])
-    n, m = len(names), len(scenarios)
-    fig = Figure(figsize=(max(6.5, 3.6 + 1.15 * m), max(5.6, 3.4 + 0.3 * n)), layout="constrained")
-    ax = fig.subplots()
-    with np.errstate(all="ignore"):
-        logs = np.log10(np.where(values > 0, values, np.nan))
-    shown = np.clip(logs, math.log10(RATIO_MIN), math.log10(RATIO_MAX))
-    image = ax.imshow(np.ma.masked_invalid(shown), cmap=ratio_cmap(), norm=ratio_norm(),
-                      aspect="auto", interpolation="nearest", gid="leaderboard")  # fmt: skip
-    for i, name in enumerate(names):
-        for j, scen in enumerate(scenarios):
-            row = cells.get((name, scen))
-            value = values[i, j]
-            colour = ratio_colour(value)
-            if row is None or not math.isfinite(value):
-                ax.text(j, i, "-" if row is None else "n/a", ha="center", va="center",
-                        fontsize=7, gid=f"leaderboard_none/{scen}/{name}")  # fmt: skip
-                continue
-            text = ("ref." if name == row.oracle_name else format_sig(value)) + (
-                " •" if consistent(row) else ""
-            )
-            ax.text(j, i, text, ha="center", va="center", fontsize=7,
-                    color=_text_colour(colour), gid=f"leaderboard_value/{scen}/{name}")  # fmt: skip
-            ratio = row.rmse_vs_oracle
-            if ratio is not None and ratio.has_interval and ratio.lo <= 1.0 <= ratio.hi:
-                frame = Rectangle((j - 0.46, i - 0.44), 0.92, 0.88, fill=False, lw=1.2,
-                                  edgecolor="black")  # fmt: skip
-                frame.set_gid(f"leaderboard_ci1/{scen}/{name}")
-                ax.add_patch(frame)
-    if ranking.unranked:  # a line between the ranked filters and those listed apart
-        ax.axhline(len(ranking.ranked) - 0.5, color="black", lw=2.0, gid="leaderboard_unranked")
-    ax.set_xticks(np.arange(m), scenarios, rotation=30, ha="left", fontsize=8)
-    ax.xaxis.tick_top()
-    labels = ranking.ranked + [f"{u} (unranked: {ranking.ran_in[u]}/{m})" for u in ranking.unranked]
-    ax.set_yticks(np.arange(n), labels, fontsize=8)
-    for label, name in zip(ax.get_yticklabels(), names, strict=True):
-        grey = name == oracle or name in ranking.unranked
-        label.set_color(ORACLE_COLOUR if grey else "black")
-    ax.grid(False)
-    ax.set_xlim(-0.5, m - 0.5)
-    ax.set_ylim(n - 0.5, -0.5)
-    ratio_colourbar(fig, image, ax, f"position RMSE / {oracle}'s (log)")
-    fig.suptitle(f"Leaderboard: position RMSE over {oracle}'s\n{n} filters x {m} scenarios")
-    notes = [ranking_note(ranking), "frame: the 95 % paired interval includes 1",
-             CONSISTENCY_NOTE, GREY_NOTE]  # fmt: skip
-    ax.set_xlabel("\n".join(textwrap.fill(t, 95) for t in notes), fontsize=7)
-    return fig

@@ -97,6 +97,6 @@ def ranking_note(ranking: Ranking) -> str:
 
 CONSISTENCY_NOTE = (
     "•: consistent: ANEES within the 95 % chi-square band of the run-averaged NEES and NEES in"
-    f" that band on >= {CONSISTENT_SHARE:.0%} of steps"
+    f" that band on >= {CONSISTENT_SHARE * 100:.0f} % of steps"
 )
 GREY_NOTE = "grey: no value (not run in that scenario, '-', or every run diverged, 'n/a')"

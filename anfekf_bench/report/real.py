@@ -45,11 +45,18 @@ from ..storage import (
     scenario_name_problem,
 )
 from .document import Block, Cell, Heading, ListBlock, Paragraph, TableBlock
-from .plots import FigureSaver, filter_colour, filter_linestyle, legend_entries, plain_log_axis
+from .plots import (
+    FigureSaver,
+    filter_colour,
+    filter_linestyle,
+    filter_style,
+    legend_entries,
+    plain_log_axis,
+)
 
 LOST_LOCK_M = 1.0
-# The track and error figures show three filters: the reference, the naive EKF, the best adaptive.
-SHOWN_COLOURS = ("#1f77b4", "#d62728", "#2ca02c")
+# The track and error figures show three filters: the reference, the naive EKF, the best adaptive
+# (each in its style of the whole report: plots.filter_style).
 
 
 def is_real_result(folder: Path) -> bool:
@@ -299,9 +306,10 @@ def track_figure(rd: RealData):
         truth = _broken(_one(rd, names[0]), ["x_true", "y_true"])
         ax.plot(truth[:, 0], truth[:, 1], color="k", lw=1.6, alpha=0.45, gid="truth",
                 label="Vicon (scored times)")  # fmt: skip
-    for name, colour in zip(names, SHOWN_COLOURS, strict=False):
+    for name in names:
         est = _broken(_one(rd, name), ["x_est", "y_est"])
-        ax.plot(est[:, 0], est[:, 1], lw=0.9, color=colour, gid=f"est/{name}", label=name)
+        ax.plot(est[:, 0], est[:, 1], lw=0.9, gid=f"est/{name}", label=name,
+                **filter_style(name).line())  # fmt: skip
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
@@ -322,12 +330,11 @@ def _mark_segments(ax, rd: RealData) -> None:
 
 def errors_figure(rd: RealData):
     fig, axes = _figure(2, 1, (9.5, 6.5))
-    for name, colour in zip(shown_filters(rd), SHOWN_COLOURS, strict=False):
+    for name in shown_filters(rd):
         sub = _broken(_one(rd, name), ["t_abs", "pos_err", "heading_err"])
-        axes[0, 0].plot(sub[:, 0], sub[:, 1], lw=0.8, color=colour, gid=f"pos/{name}",
-                        label=name)  # fmt: skip
-        axes[1, 0].plot(sub[:, 0], np.degrees(sub[:, 2]), lw=0.8, color=colour,
-                        gid=f"heading/{name}")  # fmt: skip
+        style = filter_style(name).line()
+        axes[0, 0].plot(sub[:, 0], sub[:, 1], lw=0.8, gid=f"pos/{name}", label=name, **style)
+        axes[1, 0].plot(sub[:, 0], np.degrees(sub[:, 2]), lw=0.8, gid=f"heading/{name}", **style)
     for ax, label in ((axes[0, 0], "position error [m]"), (axes[1, 0], "heading error [deg]")):
         _mark_segments(ax, rd)
         ax.set_yscale("log")
@@ -670,8 +677,8 @@ def drives_track_figure(rd: RealData):
             if k == 0:
                 ax.plot(sub["x_true"], sub["y_true"], color="k", lw=1.4, alpha=0.4,
                         gid=f"truth/{drive}", label="Vicon")  # fmt: skip
-            ax.plot(sub["x_est"], sub["y_est"], lw=0.6, color=SHOWN_COLOURS[k % 3],
-                    gid=f"est/{drive}/{name}", label=name)  # fmt: skip
+            ax.plot(sub["x_est"], sub["y_est"], lw=0.6, gid=f"est/{drive}/{name}", label=name,
+                    **filter_style(name).line())  # fmt: skip
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_title(drive, fontsize=8)
         ax.tick_params(labelsize=6)
@@ -690,10 +697,10 @@ def drives_errors_figure(rd: RealData):
     """Every drive: position error over time of the shown filters (log scale)."""
     ids, fig, axes = _drive_grid(rd, (3.6, 2.4))
     for run, (drive, ax) in enumerate(zip(ids, axes, strict=False)):
-        for k, name in enumerate(shown_filters(rd)):
+        for name in shown_filters(rd):
             sub = _one_run(rd, name, run)
-            ax.plot(sub["t"], sub["pos_err"], lw=0.5, color=SHOWN_COLOURS[k % 3],
-                    gid=f"pos/{drive}/{name}", label=name)  # fmt: skip
+            ax.plot(sub["t"], sub["pos_err"], lw=0.5, gid=f"pos/{drive}/{name}", label=name,
+                    **filter_style(name).line())  # fmt: skip
         ax.set_yscale("log")
         ax.set_title(drive, fontsize=8)
         ax.tick_params(labelsize=6)

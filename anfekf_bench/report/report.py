@@ -58,7 +58,7 @@ from ..storage import (
     write_atomic,
 )
 from ..workers import local_workers
-from . import changing, plots, real
+from . import changing, plots, real, summary_figures
 from . import sweep as sweep_report
 from .consistency import check_saved_result
 from .data import (
@@ -723,9 +723,9 @@ def summary_blocks(
     if any(r.kind == "ekf-oracle" for r in rows):
         name = figure_name("", "leaderboard", fmt)
         out += [Heading("Leaderboard", level=3, anchor="leaderboard"),
-                save(plots.leaderboard_figure(rows), name, LEADERBOARD_CAPTION),
+                save(summary_figures.leaderboard_figure(rows), name, LEADERBOARD_CAPTION),
                 leaderboard_table(rows)]  # fmt: skip
-    out.append(save(plots.overview_figure(rows), figure_name("", "overview", fmt),
+    out.append(save(summary_figures.overview_figure(rows), figure_name("", "overview", fmt),
                     OVERVIEW_CAPTION))  # fmt: skip
     return out
 

@@ -31,7 +31,8 @@ from .plots import (
     RATIO_MAX,
     RATIO_MIN,
     FigureSaver,
-    filter_colour,
+    filter_style,
+    legend_entries,
     ratio_cmap,
     ratio_colourbar,
     ratio_norm,
@@ -118,8 +119,10 @@ def line_figure(data: SweepData, axis: str, rows: pd.DataFrame, title: str) -> F
         for name, sub in rows.groupby("filter", observed=True, sort=False):
             sub = sub.sort_values(axis)
             x, y = sub[axis].to_numpy(float), sub[column].to_numpy(float)
-            colour = filter_colour(str(name))
-            ax.plot(x, y, "o-", color=colour, label=str(name), gid=f"{column}/{name}", ms=3)
+            style = filter_style(str(name))
+            colour = style.colour
+            ax.plot(x, y, marker=style.marker, label=str(name), gid=f"{column}/{name}", ms=3,
+                    **style.line())  # fmt: skip
             if interval is not None:
                 lo, hi = sub[interval[0]].to_numpy(float), sub[interval[1]].to_numpy(float)
                 ax.fill_between(x, lo, hi, color=colour, alpha=0.15, linewidth=0)
@@ -138,9 +141,9 @@ def line_figure(data: SweepData, axis: str, rows: pd.DataFrame, title: str) -> F
             _log_axis(ax.yaxis)
         ax.set_xlabel(axis)
         ax.set_title(label)
-    drawn = [ax for ax in grid.ravel() if ax.get_legend_handles_labels()[0]]
-    if drawn:
-        drawn[0].legend(loc="best")
+    handles, labels = legend_entries(grid.ravel())
+    if handles:  # beside the panels, never over the data
+        fig.legend(handles, labels, loc="outside right upper", fontsize=8)
     fig.suptitle(title)
     return fig
 

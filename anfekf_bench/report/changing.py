@@ -15,6 +15,7 @@ from pydantic import ValidationError
 
 from ..analysis.metrics import format_share, format_sig
 from ..analysis.phases import RECOVERY_HOLD_S, RECOVERY_TOLERANCE
+from ..filters.registry import role_of
 from ..schedule import CHANNELS, NoiseSchedule
 from ..storage import PHASES_FILE, ResultsError, read_parquet
 from .data import NOISE_COLUMNS, FilterSeries, ScenarioData
@@ -92,7 +93,7 @@ def changes_figure(sc: ScenarioData, schedule: NoiseSchedule) -> Figure:
 def adapting(f: FilterSeries, col: str) -> bool:
     """Whether `f` changes its `col` variance during the runs (any filter kind: read from its
     recorded values; the oracle, told the schedule, is drawn as the truth instead)."""
-    if f.kind == "ekf-oracle":
+    if role_of(f.kind) == "oracle":
         return False
     values = np.concatenate([f.noise[col].lo, f.noise[col].hi])
     values = values[np.isfinite(values)]

@@ -34,6 +34,7 @@ from matplotlib.ticker import (  # noqa: E402
 )
 
 from ..analysis.metrics import format_share, format_sig  # noqa: E402
+from ..filters.registry import role_of  # noqa: E402
 from ..storage import write_atomic  # noqa: E402
 from .data import (  # noqa: E402
     _ADAPTED,
@@ -125,7 +126,7 @@ def filter_style(name: str, kind: str | None = None) -> FilterStyle:
     """THE style map of a report: filter `name`'s colour, line style, marker and hatch, from its
     place in the report (see `palette`); the oracle (by name or `kind`) grey and dashed, the
     reference, in every figure. Every figure draws filters through this function only."""
-    if name == "ekf-oracle" or kind == "ekf-oracle":
+    if name == "ekf-oracle" or role_of(kind) == "oracle":
         return ORACLE_STYLE
     place = _place(name)
     turn = (place // len(PALETTE)) % len(LINE_STYLES)
@@ -494,7 +495,7 @@ def _nees_panel(ax: Axes, sc: ScenarioData, filters: list, top: float | None) ->
     that leaves the axis: a triangle at the top, its peak in its legend entry, never a text
     that could print over another), the bounds; the legend beside the panel."""
     for f in filters:
-        colour = filter_colour(f.name) if f.kind != "ekf-oracle" else ORACLE_COLOUR
+        colour = filter_colour(f.name) if role_of(f.kind) != "oracle" else ORACLE_COLOUR
         ax.plot(f.t, f.nees, lw=1.1, label=_nees_label(f), gid=f"nees/{f.name}", **_style(f))
         ax.plot(f.t, f.nees_median, lw=0.8, ls=":", color=colour, gid=f"nees_median/{f.name}")
         _outlier_lines(ax, f, colour, top)
@@ -618,7 +619,7 @@ def noise_figure(sc: ScenarioData) -> Figure:
     fig = Figure(figsize=(max(9.0, 3.2 * ncols), height), layout="constrained")
     axes = fig.subplots(nrows, ncols, sharex=True, squeeze=False)
     lo, hi = _percentiles()
-    ekf = next((f for f in sc.filters if f.kind == "ekf"), None)
+    ekf = next((f for f in sc.filters if role_of(f.kind) == "reference"), None)
     for g, group in enumerate(groups):
         for j, col in enumerate(columns):
             ax = axes[g * per_group + j // ncols, j % ncols]

@@ -38,7 +38,7 @@ from ..analysis.metrics import (
 from ..analysis.statistics import Interval, interval_too_wide
 from ..analysis.tables import filter_arrays
 from ..config import NoiseSigmas
-from ..filters.registry import adapted_noise
+from ..filters.registry import adapted_noise, role_of
 from ..models import control_covariance, measurement_covariance
 from ..storage import (
     CLAIMS_FILE,
@@ -720,7 +720,7 @@ def summary_blocks(
     out: list[Block] = [Heading("Summary", anchor="summary")]
     out += [Warning(text) for sc in scenarios for text in scenario_warnings(sc)]
     out.append(summary_table(rows))
-    if any(r.kind == "ekf-oracle" for r in rows):
+    if any(role_of(r.kind) == "oracle" for r in rows):
         name = figure_name("", "leaderboard", fmt)
         out += [Heading("Leaderboard", level=3, anchor="leaderboard"),
                 save(summary_figures.leaderboard_figure(rows), name, LEADERBOARD_CAPTION),

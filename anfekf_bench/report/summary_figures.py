@@ -16,6 +16,7 @@ from matplotlib.legend_handler import HandlerTuple
 from matplotlib.patches import Rectangle
 
 from ..analysis.metrics import format_sig
+from ..filters.registry import role_of
 from .data import FEW_RUNS, Ratio, SummaryRow
 from .plots import (
     _RC,
@@ -109,7 +110,7 @@ def overview_figure(rows: Sequence[SummaryRow]) -> Figure:
         ax.set_xticks(np.arange(len(scenarios)), ticks)
         ax.set_xlim(-0.6, len(scenarios) - 0.4)
         ax.grid(axis="x", visible=False)
-    oracle = next((r.oracle_name for r in rows if r.kind == "ekf-oracle"), "ekf-oracle")
+    oracle = next((r.oracle_name for r in rows if role_of(r.kind) == "oracle"), "ekf-oracle")
     for ax, what in ((ax_rmse, "position RMSE"), (ax_anees, "ANEES")):
         ax.axhline(1.0, color=filter_colour(oracle), lw=1.0, ls="--",
                    label=f"{oracle} (= 1)" if oracle not in labelled else None)  # fmt: skip
@@ -160,7 +161,7 @@ def leaderboard_figure(rows: Sequence[SummaryRow]) -> Figure:
     ranking = rank(rows)
     scenarios = ranking.all_scenarios
     cells: dict[tuple[str, str], SummaryRow] = {(r.filter, r.scenario): r for r in rows}
-    oracle = next((r.oracle_name for r in rows if r.kind == "ekf-oracle"), "ekf-oracle")
+    oracle = next((r.oracle_name for r in rows if role_of(r.kind) == "oracle"), "ekf-oracle")
     names = ranking.ranked + ranking.unranked
     values = np.array([[rmse_ratio(cells.get((n, s))) for s in scenarios] for n in names])
     n, m = len(names), len(scenarios)

@@ -68,7 +68,7 @@ def live_group_members(pgid: int) -> list[int]:
 # The fast tier, `pytest -m "not slow"`: these end-to-end tests (each several seconds on the
 # 2-core machine: whole scenarios, worker pools, killed processes, a Dask cluster) are marked
 # slow here, by module and test function (every parameter), besides those marked in their own
-# files. `make test` runs everything. Measured with `pytest --durations` (README, Testing).
+# files. `make test` runs everything. Measured with `pytest --durations` (docs/getting-started.md).
 SLOW_TESTS: dict[str, set[str]] = {
     "test_pipeline": {
         "test_ekf_consistency_acceptance",

@@ -957,5 +957,5 @@ def print_report(report: Report, console: Console) -> None:
         say(
             "if the change is intended, refresh the baseline on purpose:"
             f" anfekf check {report.results_dir} --baseline {report.baseline_path} --update"
-            " (README: Regression gate)"
+            " (docs/how-to/regression-gate.md)"
         )

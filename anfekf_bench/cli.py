@@ -797,7 +797,11 @@ def check(
         typer.Option(help="Baseline JSON to compare with; without it only the claims are checked."),
     ] = None,
     update: Annotated[
-        bool, typer.Option("--update", help="Rewrite BASELINE from RESULTS, on purpose (docs/how-to/regression-gate.md).")
+        bool,
+        typer.Option(
+            "--update",
+            help="Rewrite BASELINE from RESULTS, on purpose (docs/how-to/regression-gate.md).",
+        ),
     ] = False,
     strict: Annotated[
         bool, typer.Option("--strict", help="An inconclusive claim fails the gate too.")

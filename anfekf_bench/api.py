@@ -14,6 +14,8 @@ engine, and the same validation applies (`anfekf_bench.arguments`, shared with t
 bad input raises `ScenarioError` (a scenario), `PlanError` (an argument: its type or range, or
 an output folder inside another result) or `ResultsError` (a saved result that is missing,
 damaged or mixed from two batches), each with the command line's one-line message as its text.
+Two states of the output folder are exceptions of their own, also with that line: `OutputExists`
+(it holds a complete result and `force` is False) and `FolderBusy` (another process holds it).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import pandas as pd
 
 from . import arguments
 from .config import ScenarioError
-from .experiment import Plan, PlanError, execute, make_plan
+from .experiment import FolderBusy, OutputExists, Plan, PlanError, execute, make_plan
 from .scenarios import load_scenario, scenario_from_data
 from .storage import (
     CLAIMS_FILE,
@@ -42,8 +44,8 @@ from .storage import (
     read_parquet,
 )
 
-__all__ = ["Experiment", "PlanError", "Result", "ResultsError", "ScenarioError", "load",
-           "open_result", "report", "run"]  # fmt: skip
+__all__ = ["Experiment", "FolderBusy", "OutputExists", "PlanError", "Result", "ResultsError",
+           "ScenarioError", "load", "open_result", "report", "run"]  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -724,7 +724,9 @@ def _declared_claims(folder: Path) -> list:
 
     path = Path(folder) / MANIFEST_FILE
     scenario = read_manifest(folder).get("scenario")
-    declared = scenario.get("claims", []) if isinstance(scenario, dict) else []
+    if not isinstance(scenario, dict):  # read as "no claims", a declared claim went unchecked
+        raise ResultsError(f"{path}: scenario: expected the scenario's settings (an object)")
+    declared = scenario.get("claims", [])
     if not isinstance(declared, list):
         raise ResultsError(f"{path}: scenario.claims: expected a list")
     out = []

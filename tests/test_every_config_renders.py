@@ -1,8 +1,8 @@
 """Every config folder under configs/ runs and its report renders (`make sweeps`' report step
 crashed on the `scale:` axes all three sweep files use). Each folder is shrunk to stay quick: 2
-runs (2 training runs), the first two cells of each sweep axis, one naive start and three
-filters on the recorded data, two drives; the scenarios' own structure (axes, schedules,
-filters of the simulated ones, protocols) is kept."""
+runs (2 training runs; KalmanNet one epoch), the first two cells of each sweep axis, one naive
+start and three filters (and KalmanNet) on the recorded data, two drives; the scenarios' own
+structure (axes, schedules, filters of the simulated ones, protocols) is kept."""
 
 from __future__ import annotations
 
@@ -36,10 +36,17 @@ def shrink(doc: dict) -> dict:
                 axis["factors"] = {**axis["factors"], "num": 2}
             if axis.get("values"):
                 axis["values"] = axis["values"][:2]
-    if "starts" in doc:  # recorded data: one naive start, three filters
-        doc["starts"] = doc["starts"][1:2]
-        doc["filters"] = doc["filters"][:3]
+    filters = doc.get("filters") or []
+    doc["filters"] = [
+        {**f, "validation_runs": 1, "epochs": 1} if f.get("kind") == "kalmannet" else f
+        for f in filters
+    ]  # a network trained on the 2 training runs, 1 held out, for one epoch
+    if "starts" in doc:  # recorded data: one naive start (the x1 where there is one), three filters
+        doc["starts"] = doc["starts"][1:2] or doc["starts"][:1]
+        kept = doc["filters"][:3]
+        doc["filters"] = kept + [f for f in doc["filters"][3:] if f.get("kind") == "kalmannet"]
         doc.pop("pairs", None)
+        doc.pop("compare", None)  # it may name a filter left out
     drives = (doc.get("data") or {}).get("drives")
     if drives:  # two drives of two datasets, each tuned on the other's
         doc["data"] = {**doc["data"], "drives": ["d6-r1", "d7-r1"]}

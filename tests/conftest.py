@@ -41,6 +41,20 @@ def small_scenario(**overrides) -> dict:
     return doc
 
 
+def tiny_scenario(**overrides) -> dict:
+    """One run on a two-landmark map, the EKF alone: a batch takes a fraction of a second."""
+    doc = {
+        "seed": 3,
+        "runs": 1,
+        "jobs": 1,
+        "record_every": 8,
+        "world": {"landmarks": [[5, 3], [10, -2]], "waypoints": [[8, 0]]},
+        "filters": [{"name": "ekf", "kind": "ekf"}],
+    }
+    doc.update(overrides)
+    return doc
+
+
 def write_scenario(path: Path, doc: dict) -> Path:
     path.write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
     return path

@@ -50,7 +50,7 @@ from anfekf_bench.storage import (
     write_parquet,
 )
 
-from .conftest import cluster_with_one_worker, small_scenario, write_scenario
+from .conftest import cluster_with_one_worker, small_scenario, tiny_scenario, write_scenario
 
 EXIT_USAGE = 2
 PWNED_NAME = "PWNED"  # a planted file's code would create this file in the sandbox
@@ -997,14 +997,7 @@ def test_a_singular_covariance_gives_a_nees_not_a_traceback(tmp_path) -> None:
 
 # --- Property: nothing outside the scenario folder ever changes -------------------------------
 
-TINY = {
-    "seed": 3,
-    "runs": 1,
-    "jobs": 1,
-    "record_every": 8,
-    "world": {"landmarks": [[5, 3], [10, -2]], "waypoints": [[8, 0]]},
-    "filters": [{"name": "ekf", "kind": "ekf"}],
-}
+TINY = tiny_scenario()
 NAMES = st.one_of(
     st.sampled_from(
         [

@@ -22,18 +22,12 @@ from anfekf_bench.cli import app
 from anfekf_bench.config import ScenarioError, parse_scenario
 from anfekf_bench.storage import MANIFEST_FILE, RUNS_DIR, STEPS_FILE, SUMMARY_PARQUET
 
+from .conftest import tiny_scenario
+
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "api" / "run_scenario.py"
 
-# A scenario of one run on a two-landmark map: a batch takes a fraction of a second.
-TINY = {
-    "seed": 3,
-    "runs": 1,
-    "jobs": 1,
-    "record_every": 8,
-    "world": {"landmarks": [[5, 3], [10, -2]], "waypoints": [[8, 0]]},
-    "filters": [{"name": "ekf", "kind": "ekf"}],
-}
+TINY = tiny_scenario()
 
 
 def scenario_file(folder: Path, name: str, **overrides) -> Path:

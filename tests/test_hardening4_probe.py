@@ -11,16 +11,9 @@ import pytest
 
 from anfekf_bench import api
 
-# One run on a two-landmark map: a batch takes a fraction of a second.
-TINY = {
-    "name": "tiny",
-    "seed": 3,
-    "runs": 1,
-    "jobs": 1,
-    "record_every": 8,
-    "world": {"landmarks": [[5, 3], [10, -2]], "waypoints": [[8, 0]]},
-    "filters": [{"name": "ekf", "kind": "ekf"}],
-}
+from .conftest import tiny_scenario
+
+TINY = tiny_scenario(name="tiny")
 
 
 def test_the_api_names_every_state_run_can_end_in(tmp_path: Path) -> None:

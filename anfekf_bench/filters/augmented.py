@@ -80,8 +80,9 @@ class AugmentedSpec(FilterSpec):
         description="start standard deviations of the four parameters (those estimated)",
     )
     drift: FourPositive = Field(
-        (1e-3, 1e-3, 1e-3, 1e-3),
-        description="random-walk standard deviation of each parameter per square-root second",
+        (1e-4, 1e-4, 1e-4, 1e-4),
+        description="random-walk standard deviation of each parameter per square-root second"
+        " (slow: constants of the wheels and the sensor)",
     )
 
     @field_validator("estimate")

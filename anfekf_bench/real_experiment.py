@@ -47,7 +47,7 @@ from .runner import Prepared, engine_of, run_spec
 from .sources import mrclam
 from .sources.recorded import (
     DriveSet,
-    RealScenario,
+    RecordedScenario,
     Recording,
     Segment,
     naive_covariances,
@@ -165,7 +165,7 @@ def _criterion(scores: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(rmse), rmse, np.inf)
 
 
-def tune(scenario: RealScenario, rec: Recording, jobs: int = 1) -> dict:
+def tune(scenario: RecordedScenario, rec: Recording, jobs: int = 1) -> dict:
     """The grid search of `ekf-tuned` on the training segments (see the module doc).
 
     Returns the chosen standard deviations (sigma_v, sigma_w_rad, sigma_range,
@@ -283,7 +283,7 @@ def _bnb_best(scores: np.ndarray) -> int:
 
 
 def tune_on_drives(
-    scenario: RealScenario, inputs: list[SegmentInputs], jobs: int = 1, seeds=()
+    scenario: RecordedScenario, inputs: list[SegmentInputs], jobs: int = 1, seeds=()
 ) -> dict:
     """`tune`'s grid search (coarse grid, then 3^4 around the best with steps 2^(1/2) and
     2^(1/4)) on whole drives. The criterion, the pooled position RMSE over every scored time of
@@ -347,7 +347,7 @@ def tune_on_drives(
     }
 
 
-def drive_rmse(scenario: RealScenario, inputs: SegmentInputs, tuned: dict) -> float:
+def drive_rmse(scenario: RecordedScenario, inputs: SegmentInputs, tuned: dict) -> float:
     """The position RMSE of the plain EKF with `tuned` noise on one drive (engines.tuning)."""
     sig = [tuned[k] for k in ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")]
     sq, *_ = score_setting(
@@ -359,7 +359,7 @@ def drive_rmse(scenario: RealScenario, inputs: SegmentInputs, tuned: dict) -> fl
     return float(math.sqrt(sq / n)) if n else math.nan
 
 
-def tune_drives(scenario: RealScenario, inputs: dict[str, SegmentInputs], world: DriveSet,
+def tune_drives(scenario: RecordedScenario, inputs: dict[str, SegmentInputs], world: DriveSet,
                 jobs: int = 1) -> tuple[dict[str, dict], dict]:  # fmt: skip
     """ekf-tuned's noise for every drive (tuned on the drives of `scenario.tuning_sources` of
     its dataset, never its own), and the manifest's account: each tuning, and per drive the
@@ -429,7 +429,7 @@ def own_fit_problem(fitted: dict) -> str | None:
     return sigmas_problem(fitted, NOISE_KEYS, "")
 
 
-def own_innovations(scenario: RealScenario, inputs: SegmentInputs) -> OwnInnovations:
+def own_innovations(scenario: RecordedScenario, inputs: SegmentInputs) -> OwnInnovations:
     """The objective of `ekf-ml` on one run: its timeline from its cold start (the start pose,
     as every filter's), with the scenario's P0, gate and T0; `inputs.truth` is not passed on."""
     problem = TimelineLikelihood.of(
@@ -460,7 +460,7 @@ def _fit_own(spec, own: OwnInnovations) -> dict:
 
 
 def fit_on_own_innovations(
-    scenario: RealScenario, inputs: list[SegmentInputs], labels: list[str],
+    scenario: RecordedScenario, inputs: list[SegmentInputs], labels: list[str],
     cache_dir: Path | None, jobs: int = 1,
 ) -> tuple[dict[int, dict[str, dict]], dict]:  # fmt: skip
     """Every `ekf-ml` filter of the scenario fitted on each run's own innovations (`inputs`, in
@@ -526,7 +526,7 @@ def _pad(a: np.ndarray, n: int) -> np.ndarray:
 
 
 def run_segment(
-    scenario: RealScenario,
+    scenario: RecordedScenario,
     inputs: SegmentInputs,
     tuned: dict | None,
     n_steps: int,
@@ -569,7 +569,9 @@ def run_segment(
 # 3. Tables
 
 
-def real_summary(records: list[dict], ordered: list[dict], scenario: RealScenario) -> list[dict]:
+def real_summary(
+    records: list[dict], ordered: list[dict], scenario: RecordedScenario
+) -> list[dict]:
     """The summary records plus what matters on real data, per filter instance: its base filter
     and start, the pooled RMSE over all scored times, the largest error, the runs that lost lock
     (an error above LOST_LOCK_M at a scored time)."""
@@ -613,7 +615,7 @@ DRIVES_ALIGNMENT = (
 
 @dataclass(frozen=True, eq=False)
 class RecordedSource:
-    """Runs read from a recorded log (experiment.Plan's source for a `RealScenario`): its
+    """Runs read from a recorded log (experiment.Plan's source for a `RecordedScenario`): its
     held-out segments (protocol segments, a `Recording`) or its drives (protocol drives, a
     `DriveSet`), each cold-started from ground truth. The plan's seed only seeds the bootstrap
     intervals; ekf-tuned is tuned, kalmannet trained and ekf-ml fitted in `prepare`."""
@@ -624,7 +626,7 @@ class RecordedSource:
     def runs(self) -> int:
         return len(self.world.test_segments)
 
-    def filter_names(self, scenario: RealScenario) -> list[str]:
+    def filter_names(self, scenario: RecordedScenario) -> list[str]:
         """Every filter instance (each filter from each naive start, and the fixed ones)."""
         return scenario.instance_names()
 
@@ -670,7 +672,7 @@ class RecordedSource:
             for name, spec, _ in plan.scenario.instances()
         }
 
-    def comparison_pairs(self, scenario: RealScenario) -> list[tuple[str, str]]:
+    def comparison_pairs(self, scenario: RecordedScenario) -> list[tuple[str, str]]:
         """Every instance against the ekf-tuned reference, then the scenario's `compare`."""
         ref = scenario.reference()
         pairs = [(n, ref) for n in scenario.instance_names() if ref is not None and n != ref]
@@ -773,7 +775,7 @@ def _prepare_drives(plan, world: DriveSet, store: Path, progress) -> Prepared:
     return Prepared(items, action + _fits_action(fits), manifest, n_steps)
 
 
-def _recorded_manifest(scenario: RealScenario, data: dict, tuning, alignment: str) -> dict:
+def _recorded_manifest(scenario: RecordedScenario, data: dict, tuning, alignment: str) -> dict:
     """The manifest keys only a recorded result has (report.real reads them)."""
     return {
         "kind": "recorded",

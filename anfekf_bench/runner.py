@@ -30,7 +30,7 @@ import numpy as np
 from joblib import Parallel, delayed
 
 from .analysis.metrics import add_trace_metrics, recorded_steps
-from .config import Engine, Scenario, World
+from .config import Engine, SimulatedScenario, World
 from .engines.filterpy_engine import run_filter
 from .filters import FilterContext, FilterSpec
 from .filters.context import filter_context
@@ -41,7 +41,10 @@ from .workers import local_workers
 
 
 def simulate(
-    scenario: Scenario, world: World, seed: np.random.SeedSequence, path: WorldPath | None = None
+    scenario: SimulatedScenario,
+    world: World,
+    seed: np.random.SeedSequence,
+    path: WorldPath | None = None,
 ) -> RunData:
     """One run's data, every draw from its own seed (SPEC 6); `path` (the truth and the scans'
     geometry, the same in every run) may be passed in so that it is computed once per world."""
@@ -113,7 +116,7 @@ def fast_compiled(engine: Engine) -> bool | None:
 
 
 def run_one(
-    scenario: Scenario,
+    scenario: SimulatedScenario,
     world: World,
     run: int,
     seed: np.random.SeedSequence,
@@ -159,14 +162,14 @@ def run_chunk(items: list[Callable[[], dict]]) -> list[dict]:
     return [item() for item in items]
 
 
-def run_tasks(scenario: Scenario, world: World, runs: int, seed: int) -> Iterator[dict]:
+def run_tasks(scenario: SimulatedScenario, world: World, runs: int, seed: int) -> Iterator[dict]:
     """Plain keyword dicts, one per run: run i gets the i-th child of the root seed (SPEC 6)."""
     for i, child in enumerate(np.random.SeedSequence(seed).spawn(runs)):
         yield {"scenario": scenario, "world": world, "run": i, "seed": child}
 
 
 def simulated_items(
-    scenario: Scenario, world: World, runs: int, seed: int, engine: Engine = "filterpy",
+    scenario: SimulatedScenario, world: World, runs: int, seed: int, engine: Engine = "filterpy",
     path: WorldPath | None = None,
 ) -> dict[int, Callable[[], dict]]:  # fmt: skip
     """The work of a simulated batch: run index -> its call (`run_one` with its own seed; the
@@ -223,7 +226,7 @@ def dispatch_runs(
 
 
 def run_batch(
-    scenario: Scenario,
+    scenario: SimulatedScenario,
     world: World,
     *,
     runs: int,

@@ -5,10 +5,12 @@
    and the plain EKF is run for every noise setting (`engines.tuning.score_setting`, the compiled
    tuning kernel, the settings split over `jobs` processes); the criterion is the pooled position
    RMSE over the scorable evaluation times of all training segments.
-2. **Run** (`run_segment`): each held-out segment is one Monte Carlo "run": every filter instance
-   (each filter from each naive start, and ekf-tuned) is cold-started from ground truth at the
-   segment's start and stepped over its timeline (`timeline.Timeline`) on the plan's engine
-   (`runner.run_spec`: the fast engine for the kinds it runs, filterpy for the rest).
+2. **Run** (`recorded_run`): each held-out segment is one Monte Carlo "run" of the one per-run
+   function, `runner.run_one`: every filter instance (each filter from each naive start, and
+   ekf-tuned) is cold-started from ground truth at the segment's start
+   (`filters.context.recorded_context`) and stepped over its timeline (`timeline.Timeline`) on
+   the plan's engine (`runner.run_spec`: the fast engine for the kinds it runs, filterpy for the
+   rest).
 3. **Align**: a run's per-step arrays are indexed by the evaluation time's rank in its segment
    (step k = the segment's k-th odometry stamp; t = seconds since the segment's cold start).
    Segments differ by a few stamps, so shorter ones are padded with NaN up to the longest.
@@ -35,23 +37,21 @@ from pathlib import Path
 import numpy as np
 from joblib import Parallel, delayed
 
-from .analysis.metrics import add_trace_metrics
 from .engines.tuning import TimelineLikelihood, fit_noise, score_setting, unicycle_terms
+from .filters.context import recorded_context, recorded_p0
 from .filters.ekf import gate_threshold
 from .filters.fitted import EKFMLSpec, sigmas_problem
 from .filters.spec import FilterContext
 from .models import Unicycle
 from .outputs import FIT_FILE, PlanError, code_version, read_cached_fit, write_fit
 from .real_training import fit_on_drives, fit_on_segments, trained_filters
-from .runner import Prepared, engine_of, run_spec
+from .runner import Prepared, RunInputs, engine_of, pad_to, run_one
 from .sources import mrclam
 from .sources.recorded import (
     DriveSet,
     RecordedScenario,
     Recording,
     Segment,
-    naive_covariances,
-    p0,
 )
 from .timeline import Timeline, timeline
 from .workers import local_workers
@@ -176,7 +176,7 @@ def tune(scenario: RecordedScenario, rec: Recording, jobs: int = 1) -> dict:
     started = time.perf_counter()
     segs = [segment_inputs(rec, s) for s in rec.train_segments]
     naive = scenario.naive.sigmas()
-    P0 = p0(scenario)
+    P0 = recorded_p0(scenario)
     gate = gate_threshold(scenario.gate_probability)
     T0 = scenario.odometry_period_s
     axes = scenario.tuning.axes()
@@ -223,12 +223,6 @@ def tune(scenario: RecordedScenario, rec: Recording, jobs: int = 1) -> dict:
         "stages": stages,
         "seconds": round(time.perf_counter() - started, 3),
     }
-
-
-def tuned_covariances(tuned: dict) -> tuple[np.ndarray, np.ndarray]:
-    sv, sw = tuned["sigma_v"], tuned["sigma_w_rad"]
-    sr, sb = tuned["sigma_range"], tuned["sigma_bearing_rad"]
-    return np.diag([sv * sv, sw * sw]), np.diag([sr * sr, sb * sb])
 
 
 # --------------------------------------------------------------------------------------------
@@ -293,7 +287,7 @@ def tune_on_drives(
     first, to start with a tight bound; the coarse grid then runs nearest the seeds first."""
     started = time.perf_counter()
     naive = scenario.naive.sigmas()
-    P0 = p0(scenario)
+    P0 = recorded_p0(scenario)
     gate = gate_threshold(scenario.gate_probability)
     T0 = scenario.odometry_period_s
     count = int(sum(int(s.scored.sum()) for s in inputs))
@@ -351,7 +345,7 @@ def drive_rmse(scenario: RecordedScenario, inputs: SegmentInputs, tuned: dict) -
     """The position RMSE of the plain EKF with `tuned` noise on one drive (engines.tuning)."""
     sig = [tuned[k] for k in ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")]
     sq, *_ = score_setting(
-        inputs.timeline, inputs.segment.pose, p0(scenario), sig,
+        inputs.timeline, inputs.segment.pose, recorded_p0(scenario), sig,
         gate_threshold(scenario.gate_probability), scenario.odometry_period_s,
         inputs.truth, inputs.scored,
     )  # fmt: skip
@@ -433,7 +427,7 @@ def own_innovations(scenario: RecordedScenario, inputs: SegmentInputs) -> OwnInn
     """The objective of `ekf-ml` on one run: its timeline from its cold start (the start pose,
     as every filter's), with the scenario's P0, gate and T0; `inputs.truth` is not passed on."""
     problem = TimelineLikelihood.of(
-        inputs.timeline, inputs.segment.pose, p0(scenario),
+        inputs.timeline, inputs.segment.pose, recorded_p0(scenario),
         gate_threshold(scenario.gate_probability), scenario.odometry_period_s,
     )  # fmt: skip
     return OwnInnovations(problem, scenario.naive.sigmas())
@@ -467,7 +461,7 @@ def fit_on_own_innovations(
     run order; `labels` name them: drive ids or segment numbers), the fits spread over `jobs`
     processes, each cached in `cache_dir` by its fingerprint (a resumed batch does not refit).
     Returns, per run index, the noise of each ekf-ml instance (instance name -> the sigma keys
-    of `tuned_covariances`), and the manifest's account of every fit and its cost."""
+    of `noise_sigmas`), and the manifest's account of every fit and its cost."""
     specs = [spec for spec in scenario.filters if isinstance(spec, EKFMLSpec)]
     if not specs:
         return {}, {}
@@ -517,15 +511,12 @@ def fit_on_own_innovations(
 # 2. The held-out segments
 
 
-def _pad(a: np.ndarray, n: int) -> np.ndarray:
-    if len(a) == n:
-        return a
-    out = np.full((n, *a.shape[1:]), np.nan, dtype=float)
-    out[: len(a)] = a
-    return out
+def noise_sigmas(noise: dict) -> tuple[float, float, float, float]:
+    """(sv, sw, sr, sb) of a tuned or fitted noise record (`tune`, `fit_on_own_innovations`)."""
+    return noise["sigma_v"], noise["sigma_w_rad"], noise["sigma_range"], noise["sigma_bearing_rad"]
 
 
-def run_segment(
+def recorded_run(
     scenario: RecordedScenario,
     inputs: SegmentInputs,
     tuned: dict | None,
@@ -533,36 +524,23 @@ def run_segment(
     fitted: dict[str, dict] | None = None,
     engine: str = "filterpy",
 ) -> dict:
-    """One held-out segment as a Monte Carlo run: every filter instance from ground truth, on
-    `engine` (`runner.run_spec`: the fast engine runs what it implements, the rest filterpy).
+    """One held-out segment or drive as a Monte Carlo run (`runner.run_one`): every filter
+    instance from ground truth (`recorded_context`), padded to `n_steps` evaluation times.
     `tuned`: ekf-tuned's noise; `fitted`: each ekf-ml instance's, fitted on this run."""
     seg = inputs.segment
-    model = Unicycle(scenario.odometry_period_s)
-    gate = gate_threshold(scenario.gate_probability)
-    n = len(inputs.t)
-    truth = _pad(inputs.truth, n_steps)
-    filters = {}
-    for name, spec, m in scenario.instances():
+    run = RunInputs(
+        seg.index, inputs.timeline, np.arange(1, n_steps + 1),
+        pad_to(inputs.t - seg.t0, n_steps), pad_to(inputs.truth, n_steps), len(inputs.t),
+    )  # fmt: skip
+
+    def context(name: str, spec, m: float | None) -> FilterContext:
         if m is None and spec.role == "fitted":
-            Qu, R = tuned_covariances((fitted or {}).get(name, tuned))
-        else:  # a trained filter (kalmannet, one instance) has no noise: the naive x1 is passed
-            Qu, R = naive_covariances(scenario, 1.0 if m is None else m)
-        ctx = FilterContext(
-            x0=np.array(seg.pose, dtype=float), P0=p0(scenario), Qu=Qu, R=R, model=model,
-            dt=scenario.odometry_period_s, gate=gate,
-        )  # fmt: skip
-        trace = run_spec(engine, spec, ctx, inputs.timeline, name=name)
-        for key in ("x", "P", "R_diag", "Q_diag", "P_infl"):
-            trace[key] = _pad(trace[key], n_steps)
-        filters[name] = add_trace_metrics(trace, truth)
-    return {
-        "run": seg.index,
-        "control_steps": n,
-        "step": np.arange(1, n_steps + 1),
-        "t": _pad(inputs.t - seg.t0, n_steps),
-        "x_true": truth,
-        "filters": filters,
-    }
+            noise = noise_sigmas((fitted or {}).get(name, tuned))
+            return recorded_context(scenario, seg.pose, None, noise)
+        return recorded_context(scenario, seg.pose, m)
+
+    instances = ((name, spec, context(name, spec, m)) for name, spec, m in scenario.instances())
+    return run_one(run, instances, engine)
 
 
 # --------------------------------------------------------------------------------------------
@@ -688,7 +666,7 @@ class RecordedSource:
     def prepare(self, plan, store: Path, progress=None) -> Prepared:
         """Train (kalmannet, on training segments or per fold), tune ekf-tuned, fit ekf-ml on
         each run's own innovations (all cached in `store` where they can be), and hand out one
-        `run_segment` call per held-out segment or drive."""
+        `recorded_run` call per held-out segment or drive."""
         if isinstance(self.world, DriveSet):
             return _prepare_drives(plan, self.world, store, progress)
         return _prepare_segments(plan, self.world, store, progress)
@@ -722,7 +700,7 @@ def _prepare_segments(plan, rec: Recording, store: Path, progress) -> Prepared:
     )
     items = {
         i.segment.index: partial(
-            run_segment, run_scenario, i, tuned, n_steps, fitted.get(i.segment.index), plan.engine
+            recorded_run, run_scenario, i, tuned, n_steps, fitted.get(i.segment.index), plan.engine
         )
         for i in inputs
     }
@@ -755,7 +733,7 @@ def _prepare_drives(plan, world: DriveSet, store: Path, progress) -> Prepared:
     )  # fmt: skip
     items = {
         d.segment.index: partial(
-            run_segment,
+            recorded_run,
             run_scenario[d.id],
             inputs[d.id],
             tuned_for.get(d.id),

@@ -550,13 +550,3 @@ def resolve_drives(scenario: RecordedScenario) -> DriveSet:
         drives.append(Drive(drive, mrclam.drive_dataset(drive), log, ex, seg))
         digest.update(f"{drive}:{log_digest(log)};".encode())
     return DriveSet(drives=drives, misfit=misfit, digest=digest.hexdigest()[:16])
-
-
-def naive_covariances(scenario: RecordedScenario, m: float) -> tuple[np.ndarray, np.ndarray]:
-    """(Qu, R) of the naive guess with every standard deviation times m."""
-    sv, sw, sr, sb = scenario.naive.sigmas() * m
-    return np.diag([sv * sv, sw * sw]), np.diag([sr * sr, sb * sb])
-
-
-def p0(scenario: RecordedScenario) -> np.ndarray:
-    return np.diag([scenario.p0_std_xy**2, scenario.p0_std_xy**2, scenario.p0_std_phi_rad**2])

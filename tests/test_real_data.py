@@ -26,6 +26,7 @@ from anfekf_bench.models import Unicycle, measurement_covariance, wrap_angle
 from anfekf_bench.real_experiment import _score, recorded_run, segment_inputs, tune
 from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources import mrclam as m
+from anfekf_bench.sources import user_log
 from anfekf_bench.sources.mrclam import RobotLog
 from anfekf_bench.storage import read_json, read_parquet, read_steps
 
@@ -367,7 +368,7 @@ def synthetic_log(duration: float = 80.0, seed: int = 1) -> RobotLog:
 
 
 def user_scenario(tmp_path: Path, fmt: str = "csv") -> Path:
-    m.write_user_log(synthetic_log(), tmp_path / "my-log", fmt=fmt)
+    user_log.write_user_log(synthetic_log(), tmp_path / "my-log", fmt=fmt)
     doc = {
         "name": "my-robot",
         "jobs": 1,

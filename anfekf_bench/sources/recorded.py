@@ -39,7 +39,7 @@ from ..filters.fitted import EKFMLSpec
 from ..filters.registry import SPECS
 from ..filters.spec import FilterContext, FilterSpec, Role
 from ..schema import PositiveFloat, StrictModel
-from . import mrclam
+from . import mrclam, user_log
 
 BUILTIN = "builtin"
 
@@ -395,7 +395,7 @@ def read_log(cfg: DataConfig, scenario_path: Path) -> tuple[mrclam.RobotLog, str
         folder = scenario_path.parent / folder
     if cfg.kind == "mrclam":
         return mrclam.read_mrclam(folder, robot=cfg.robot), f"MRCLAM folder {cfg.path}"
-    return mrclam.read_user_log(folder), f"log folder {cfg.path}"
+    return user_log.read_user_log(folder), f"log folder {cfg.path}"
 
 
 def cut_segments(

@@ -1,6 +1,8 @@
 """Real-data scenarios (SPEC 9): a scenario file that names a recorded log instead of a world.
 
-A document with a `data:` key is a `RecordedScenario` (`scenarios.load_scenario` hands it here):
+A document with a `data:` key is a `RecordedScenario`, the recorded member of the scenario's
+source union (`config.Scenario` declares the keys every scenario has; `scenarios.load_scenario`
+validates and resolves it):
 
     name: mrclam-d9
     data: {kind: mrclam, path: builtin}       # or {kind: log, path: my-log/} (docs/REAL_DATA.md)

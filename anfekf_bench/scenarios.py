@@ -8,7 +8,7 @@ neither imports the other.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Union
+from typing import TYPE_CHECKING, Union
 
 from .config import (
     SimulatedScenario,
@@ -19,20 +19,28 @@ from .config import (
     source_of,
     validate_as,
 )
-from .sources.recorded import DriveSet, RecordedScenario, Recording, resolve_scenario_log
+
+if TYPE_CHECKING:
+    from .sources.recorded import DriveSet, RecordedScenario, Recording
 
 # The source union: every scenario is exactly one of these (`Scenario.source` says which).
-AnyScenario = Union[SimulatedScenario, RecordedScenario]  # noqa: UP007
-MEMBERS: dict[str, type[SimulatedScenario] | type[RecordedScenario]] = {
-    SimulatedScenario.source: SimulatedScenario,
-    RecordedScenario.source: RecordedScenario,
-}
+AnyScenario = Union[SimulatedScenario, "RecordedScenario"]  # noqa: UP007
+
+
+def member(source: str) -> type[SimulatedScenario] | type[RecordedScenario]:
+    """The member of the source union named `source` (a recorded log's schema, and the log
+    readers with it, load only when used)."""
+    if source == SimulatedScenario.source:
+        return SimulatedScenario
+    from .sources.recorded import RecordedScenario
+
+    return RecordedScenario
 
 
 def parse_any_scenario(data: object, path: str | Path = "<scenario>") -> AnyScenario:
     """A scenario document validated as its source's member; ScenarioError (one line) if not."""
     data = check_document(data, path)
-    return validate_as(MEMBERS[source_of(data)], data, path)
+    return validate_as(member(source_of(data)), data, path)
 
 
 def scenario_from_data(
@@ -42,7 +50,9 @@ def scenario_from_data(
     resolved; relative paths in it are taken relative to `path`'s folder."""
     path = Path(path)
     scenario = parse_any_scenario(data, path)
-    if isinstance(scenario, RecordedScenario):
+    if scenario.source == "recorded":
+        from .sources.recorded import resolve_scenario_log
+
         return scenario, resolve_scenario_log(scenario, path)
     return scenario, resolve_world(scenario.world, path)
 

@@ -311,6 +311,19 @@ def nis(HPHt, R, nu0, nu1):
 
 
 @maybe_njit
+def feeds_adaptation(HPHt, R, nu, from_all, gate, has_gate):
+    """AdaptiveEKF.feeds_adaptation: (ok, whether this landmark feeds adaptation), every
+    landmark with adapt_from all or no gate, else one the gate would accept (its NIS with R);
+    ok is False for a matrix LAPACK finds singular (the filter diverged)."""
+    if from_all or not has_gate:
+        return True, True
+    ok, v = nis(HPHt, R, nu[0], nu[1])
+    if not ok:
+        return False, False
+    return True, v <= gate
+
+
+@maybe_njit
 def gain(P, H, R):
     """filterpy's gain K = P H^T S^-1, S = H P H^T + R, S^-1 as scipy.linalg.inv computes it.
     Returns (ok, K) with K (3 x 2) row-major; ok is False for an exactly singular S."""
@@ -603,188 +616,6 @@ if _NJIT is not None:
 proportional_step = _cm_scale.proportional_step
 mean_mismatch = _cm_scale.mean_mismatch
 
-# run_kernel's supervisor rules: the ANFEKF's ANFIS, or cm-scale's proportional rule
-RULE_ANFIS = 0
-RULE_PROPORTIONAL = 1
-
-
-# ---------------------------------------------------------------------------------------------
-# One run
-
-
-@maybe_njit
-def run_kernel(
-    u_odo, dt, scan_start, scan_lm, scan_z,
-    motion, B, T0, x0, P0, Qu0, R0, gate, has_gate,
-    adapt_R, adapt_Q, adaptation, learning, from_all, lo, hi, window, clip,
-    eta_m, eta_d, eta_w, anf, rule, kappa,
-    record_at, out_x, out_P, out_R, out_Q,
-):  # fmt: skip
-    """One filter over one run (filterpy_engine.run_filter with RobotEKF, ANFEKF or CMScaleEKF).
-
-    The run is a `timeline.Timeline` (the arguments every kernel starts with): stamp k
-    (0 .. K - 1) predicts with controls u_odo[k] (K, 2) over dt[k] (K,) on the model `motion`
-    (MOTION_BICYCLE with wheelbase B, MOTION_UNICYCLE with reference step T0), then runs its
-    landmarks scan_start[k] .. scan_start[k + 1] - 1 (scan_start (K + 1,)) of scan_lm (M, 2,
-    map positions) and scan_z (M, 2) as one scan, then records if record_at[k] (K,) bool.
-    x0 (3,), P0 (9,), Qu0 (4,), R0 (4,) row-major; gate is used when has_gate.
-    adapt_R / adapt_Q select the ANFEKF supervisors (both False: the EKF); `anf` (3, 27) holds
-    the ANFIS parameters (rows 0, 1: R of range and bearing; row 2: Qu) and is updated in place.
-    rule RULE_PROPORTIONAL replaces the ANFIS by cm-scale's proportional rule of gain kappa.
-    A recorded stamp is written to row j of out_x (n, 3), out_P (n, 3, 3), out_R (n, 2),
-    out_Q (n, 2); rows from the divergence on are left as they are (NaN).
-
-    Returns (diverged, rows written, nis_sum, n_updates, n_rejected).
-    """
-    K = u_odo.shape[0]
-    x = (x0[0], x0[1], x0[2])
-    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
-    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
-    R = (R0[0], R0[1], R0[2], R0[3])
-    R_lo0, R_hi0 = lo * R0[0], hi * R0[0]
-    R_lo1, R_hi1 = lo * R0[3], hi * R0[3]
-    Q_lo0, Q_hi0 = lo * Qu0[0], hi * Qu0[0]
-    Q_lo1, Q_hi1 = lo * Qu0[3], hi * Qu0[3]
-    adaptive = adapt_R or adapt_Q
-    n_rows = out_x.shape[0]
-    # the supervisor's state
-    win = np.zeros((max(window, 1), 2))
-    n_win = 0
-    pos = 0
-    have_d_prev = False
-    d_prev0 = 0.0
-    d_prev1 = 0.0
-    Qi = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # process noise since the last update
-    updated_since_predict = False
-    grad = np.empty(N_ANFIS)
-    ws = np.empty(40)
-    nis_sum = 0.0
-    n_updates = 0
-    n_rejected = 0
-    j = 0
-    bad_record = False
-    for k in range(K):
-        x, P, Q = predict(x, P, u_odo[k, 0], u_odo[k, 1], dt[k], motion, B, T0, Qu)
-        if adapt_Q:
-            if updated_since_predict:
-                Qi = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-                updated_since_predict = False
-            Qi = (
-                Qi[0] + Q[0], Qi[1] + Q[1], Qi[2] + Q[2],
-                Qi[3] + Q[3], Qi[4] + Q[4], Qi[5] + Q[5],
-                Qi[6] + Q[6], Qi[7] + Q[7], Qi[8] + Q[8],
-            )  # fmt: skip
-        first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
-        last = scan_start[k + 1]
-        if last > first:
-            first_of_scan = True
-            for m in range(first, last):
-                z0 = scan_z[m, 0]
-                z1 = scan_z[m, 1]
-                H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
-                if adaptive:
-                    feeds = True
-                    if not from_all and has_gate:
-                        ok, nis_a = nis(HPHt, R, nu[0], nu[1])
-                        if not ok:
-                            return True, j, nis_sum, n_updates, n_rejected
-                        feeds = nis_a <= gate
-                    if feeds:
-                        # ANFEKF.supervise: window of squared innovations, then adapt
-                        updated_since_predict = True
-                        win[pos, 0] = nu[0] * nu[0]
-                        win[pos, 1] = nu[1] * nu[1]
-                        pos = (pos + 1) % window
-                        if n_win < window:
-                            n_win += 1
-                        if n_win == window and adaptation:
-                            c0 = 0.0
-                            c1 = 0.0
-                            for i in range(window):  # oldest first, as np.mean sums
-                                c0 += win[(pos + i) % window, 0]
-                                c1 += win[(pos + i) % window, 1]
-                            c0 = c0 / window
-                            c1 = c1 / window
-                            HPH0 = HPHt[0]
-                            HPH1 = HPHt[3]
-                            S0 = HPH0 + R[0]
-                            S1 = HPH1 + R[3]
-                            d0 = (S0 - c0) / (S0 + c0)
-                            d1 = (S1 - c1) / (S1 + c1)
-                            dd0 = 0.0
-                            dd1 = 0.0
-                            if have_d_prev:
-                                dd0 = d0 - d_prev0
-                                dd1 = d1 - d_prev1
-                            d_prev0 = d0
-                            d_prev1 = d1
-                            have_d_prev = True
-                            if adapt_R:
-                                if rule == RULE_PROPORTIONAL:
-                                    r0 = R[0] * math.exp(proportional_step(d0, kappa, clip))
-                                    r1 = R[3] * math.exp(proportional_step(d1, kappa, clip))
-                                else:
-                                    r0 = r_step(
-                                        anf[0], d0, dd0, R[0], HPH0, c0, clip, learning,
-                                        eta_m, eta_d, eta_w, grad, ws,
-                                    )  # fmt: skip
-                                    r1 = r_step(
-                                        anf[1], d1, dd1, R[3], HPH1, c1, clip, learning,
-                                        eta_m, eta_d, eta_w, grad, ws,
-                                    )  # fmt: skip
-                                R = (
-                                    clip_nan(r0, R_lo0, R_hi0), 0.0,
-                                    0.0, clip_nan(r1, R_lo1, R_hi1),
-                                )  # fmt: skip
-                                S0 = HPH0 + R[0]
-                                S1 = HPH1 + R[3]
-                            if adapt_Q and first_of_scan and rule == RULE_PROPORTIONAL:
-                                scale = math.exp(
-                                    proportional_step(mean_mismatch(d0, d1), kappa, clip)
-                                )
-                                Qu = (
-                                    clip_nan(Qu[0] * scale, Q_lo0, Q_hi0), 0.0,
-                                    0.0, clip_nan(Qu[3] * scale, Q_lo1, Q_hi1),
-                                )  # fmt: skip
-                            elif adapt_Q and first_of_scan:
-                                dS0, dS1 = hqh_diag(H, Qi, HPH0, HPH1)
-                                scale = q_step(
-                                    anf[2], d0, d1, S0, S1, c0, c1, dS0, dS1, clip,
-                                    learning, eta_m, eta_d, eta_w, grad, ws,
-                                )  # fmt: skip
-                                b0 = Qu[0]
-                                Qu = (
-                                    clip_nan(b0 * scale, Q_lo0, Q_hi0), 0.0,
-                                    0.0, clip_nan(Qu[3] * scale, Q_lo1, Q_hi1),
-                                )  # fmt: skip
-                                f = Qu[0] / b0
-                                Qi = (
-                                    Qi[0] * f, Qi[1] * f, Qi[2] * f,
-                                    Qi[3] * f, Qi[4] * f, Qi[5] * f,
-                                    Qi[6] * f, Qi[7] * f, Qi[8] * f,
-                                )  # fmt: skip
-                    first_of_scan = False
-                # RobotEKF.update_landmark: NIS, gate, Joseph update
-                ok, v = nis(HPHt, R, nu[0], nu[1])
-                if not ok or not math.isfinite(v):
-                    return True, j, nis_sum, n_updates, n_rejected
-                if has_gate and not v <= gate:
-                    n_rejected += 1
-                    continue
-                nis_sum += v
-                n_updates += 1
-                ok, x, P = correct(x, P, H, zh, z0, z1, R)
-                if not ok:
-                    return True, j, nis_sum, n_updates, n_rejected
-            if not healthy(x, P, R, Qu):
-                return True, j, nis_sum, n_updates, n_rejected
-        if record_at[k] and j < n_rows:
-            j, bad = record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q)
-            bad_record = bad_record or bad
-    # health is checked at scans; a blow-up after the last one shows in the records
-    return bad_record, j, nis_sum, n_updates, n_rejected
-
-
 # ---------------------------------------------------------------------------------------------
 # Multiple-model banks (filters.bank): M EKFs on the kernels above, the bank's rules as written
 # in filters/bank.py (registered with numba so that compiled code calls them). numba's disk cache
@@ -984,102 +815,6 @@ if _NJIT is not None:
     register_jitable(_fading.fading_factor)
 
 fading_factor = _fading.fading_factor
-
-
-@maybe_njit
-def run_fading_kernel(
-    u_odo, dt, scan_start, scan_lm, scan_z,
-    motion, B, T0, x0, P0, Qu0, R0, gate, has_gate,
-    adaptation, from_all, window, ceiling,
-    record_at, out_x, out_P, out_R, out_Q, out_infl,
-):  # fmt: skip
-    """filterpy_engine.run_filter with filters.fading.FadingEKF: the EKF of `run_kernel` with
-    P- inflated by the fading factor at the first landmark of a scan that feeds adaptation.
-    out_infl (n,) records lambda of the last inflation (1 before the first). Returns as
-    `run_kernel`."""
-    K = u_odo.shape[0]
-    x = (x0[0], x0[1], x0[2])
-    P = (P0[0], P0[1], P0[2], P0[3], P0[4], P0[5], P0[6], P0[7], P0[8])
-    Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
-    R = (R0[0], R0[1], R0[2], R0[3])
-    nu2 = np.zeros(window)
-    n_window = 0
-    pos = 0
-    infl = 1.0
-    nis_sum = 0.0
-    n_updates = 0
-    n_rejected = 0
-    n_rows = out_x.shape[0]
-    j = 0
-    bad_record = False
-    for k in range(K):
-        x, P, Q = predict(x, P, u_odo[k, 0], u_odo[k, 1], dt[k], motion, B, T0, Qu)
-        first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
-        last = scan_start[k + 1]
-        if last > first:
-            first_of_scan = True
-            for m in range(first, last):
-                z0 = scan_z[m, 0]
-                z1 = scan_z[m, 1]
-                H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
-                if adaptation:
-                    feeds = True
-                    if not from_all and has_gate:
-                        ok, nis_a = nis(HPHt, R, nu[0], nu[1])
-                        if not ok:
-                            return True, j, nis_sum, n_updates, n_rejected
-                        feeds = nis_a <= gate
-                    if feeds:
-                        nu2[pos] = nu[0] * nu[0] + nu[1] * nu[1]
-                        pos = (pos + 1) % window
-                        if n_window < window:
-                            n_window += 1
-                        was_first = first_of_scan
-                        first_of_scan = False
-                        if was_first and n_window == window:
-                            trace_C = 0.0
-                            for i in range(window):  # oldest first, as the class sums
-                                trace_C += nu2[(pos + i) % window]
-                            trace_C = trace_C / window
-                            lam = fading_factor(trace_C, R[0] + R[3], HPHt[0] + HPHt[3], ceiling)
-                            if math.isfinite(lam):
-                                infl = lam
-                                P = (
-                                    lam * P[0], lam * P[1], lam * P[2],
-                                    lam * P[3], lam * P[4], lam * P[5],
-                                    lam * P[6], lam * P[7], lam * P[8],
-                                )  # fmt: skip
-                if infl != 1.0:  # RobotEKF.update_landmark: H P- H^T follows the scaled P-
-                    H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
-                ok, v = nis(HPHt, R, nu[0], nu[1])
-                if not ok or not math.isfinite(v):
-                    return True, j, nis_sum, n_updates, n_rejected
-                if has_gate and not v <= gate:
-                    n_rejected += 1
-                    continue
-                nis_sum += v
-                n_updates += 1
-                ok, x, P = correct(x, P, H, zh, z0, z1, R)
-                if not ok:
-                    return True, j, nis_sum, n_updates, n_rejected
-            if not healthy(x, P, R, Qu):
-                return True, j, nis_sum, n_updates, n_rejected
-        if record_at[k] and j < n_rows:
-            for i in range(3):
-                out_x[j, i] = x[i]
-                if not math.isfinite(x[i]):
-                    bad_record = True
-            for i in range(9):
-                out_P[j, i // 3, i % 3] = P[i]
-                if not math.isfinite(P[i]):
-                    bad_record = True
-            out_R[j, 0] = R[0]
-            out_R[j, 1] = R[3]
-            out_Q[j, 0] = Qu[0]
-            out_Q[j, 1] = Qu[3]
-            out_infl[j] = infl
-            j += 1
-    return bad_record, j, nis_sum, n_updates, n_rejected
 
 
 # ---------------------------------------------------------------------------------------------

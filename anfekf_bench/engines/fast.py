@@ -179,15 +179,6 @@ def run_filter_fast(
             record, x, P, R, Qu,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
-    if isinstance(spec, VBRSpec):
-        diverged, j, nis_sum, n_updates, n_rejected = k.run_vbr_kernel(
-            *_common_args(ctx, run),
-            bool(spec.adaptation), spec.adapt_from == "all",
-            float(spec.bounds[0]), float(spec.bounds[1]),
-            float(spec.rho), int(spec.iterations), float(spec.alpha0),
-            record, x, P, R, Qu,
-        )  # fmt: skip
-        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, SageHusaSpec):
         diverged, j, nis_sum, n_updates, n_rejected = k.run_sage_husa_kernel(
             *_common_args(ctx, run),
@@ -298,7 +289,7 @@ def _run_bank(k, spec: MMAESpec, ctx: FilterContext, run: tuple, x, P, R, Qu):
 # The kernels `warm_up` calls directly (their callees compile, and are cached, with them).
 WARM_UP_KERNELS = (
     (_loop, "run_loop"), (_jit_kernels, "run_akhlaghi_kernel"),
-    (_jit_kernels, "run_vbr_kernel"), (_jit_kernels, "run_vbakf_kernel"),
+    (_jit_kernels, "run_vbakf_kernel"),
     (_jit_kernels, "run_swvb_kernel"), (_jit_kernels, "run_sage_husa_kernel"),
     (_jit_kernels, "run_iae_kernel"), (_jit_kernels_als, "run_als_kernel"),
     (_jit_kernels_kalmannet, "run_kalmannet_kernel"),

@@ -15,6 +15,7 @@ from .. import kernels as _kernels
 MODULES = (
     "anfekf_bench.engines.families.anfekf",
     "anfekf_bench.engines.families.fading",
+    "anfekf_bench.engines.families.vb_r",
 )
 
 

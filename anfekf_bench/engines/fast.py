@@ -179,14 +179,6 @@ def run_filter_fast(
             record, x, P, R, Qu,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
-    if isinstance(spec, SageHusaSpec):
-        diverged, j, nis_sum, n_updates, n_rejected = k.run_sage_husa_kernel(
-            *_common_args(ctx, run),
-            bool(spec.adaptation), spec.adapt_from == "all", *(float(b) for b in spec.bounds),
-            "Q" in spec.adapt, float(spec.b), int(spec.warmup), spec.q_sample == "unbiased",
-            record, x, P, R, Qu,
-        )  # fmt: skip
-        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, IAESpec):
         diverged, j, nis_sum, n_updates, n_rejected = k.run_iae_kernel(
             *_common_args(ctx, run),
@@ -290,7 +282,7 @@ def _run_bank(k, spec: MMAESpec, ctx: FilterContext, run: tuple, x, P, R, Qu):
 WARM_UP_KERNELS = (
     (_loop, "run_loop"), (_jit_kernels, "run_akhlaghi_kernel"),
     (_jit_kernels, "run_vbakf_kernel"),
-    (_jit_kernels, "run_swvb_kernel"), (_jit_kernels, "run_sage_husa_kernel"),
+    (_jit_kernels, "run_swvb_kernel"),
     (_jit_kernels, "run_iae_kernel"), (_jit_kernels_als, "run_als_kernel"),
     (_jit_kernels_kalmannet, "run_kalmannet_kernel"),
 )  # fmt: skip

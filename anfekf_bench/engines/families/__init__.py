@@ -16,6 +16,7 @@ MODULES = (
     "anfekf_bench.engines.families.anfekf",
     "anfekf_bench.engines.families.fading",
     "anfekf_bench.engines.families.vb_r",
+    "anfekf_bench.engines.families.sage_husa",
 )
 
 

@@ -179,15 +179,6 @@ def run_filter_fast(
             record, x, P, R, Qu,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
-    if isinstance(spec, IAESpec):
-        diverged, j, nis_sum, n_updates, n_rejected = k.run_iae_kernel(
-            *_common_args(ctx, run),
-            bool(spec.adaptation), spec.adapt_from == "all", *(float(b) for b in spec.bounds),
-            spec.adapt == "Q", int(spec.window), spec.hph == "window",
-            spec.nonpositive == "hold", spec.q_form == "full", int(spec.q_window),
-            record, x, P, R, Qu,
-        )  # fmt: skip
-        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     return _run_family(spec, ctx, run, x, P, R, Qu, n, jit)  # a recorded ekf-tuned: the EKF
 
 
@@ -283,7 +274,7 @@ WARM_UP_KERNELS = (
     (_loop, "run_loop"), (_jit_kernels, "run_akhlaghi_kernel"),
     (_jit_kernels, "run_vbakf_kernel"),
     (_jit_kernels, "run_swvb_kernel"),
-    (_jit_kernels, "run_iae_kernel"), (_jit_kernels_als, "run_als_kernel"),
+    (_jit_kernels_als, "run_als_kernel"),
     (_jit_kernels_kalmannet, "run_kalmannet_kernel"),
 )  # fmt: skip
 COMPILE_ESTIMATE = "about 1-2 min"  # results/bench.json: fast_compile_s 47 s on 2 free cores

@@ -17,6 +17,7 @@ MODULES = (
     "anfekf_bench.engines.families.fading",
     "anfekf_bench.engines.families.vb_r",
     "anfekf_bench.engines.families.sage_husa",
+    "anfekf_bench.engines.families.iae",
 )
 
 

@@ -18,6 +18,7 @@ MODULES = (
     "anfekf_bench.engines.families.vb_r",
     "anfekf_bench.engines.families.sage_husa",
     "anfekf_bench.engines.families.iae",
+    "anfekf_bench.engines.families.akhlaghi",
 )
 
 

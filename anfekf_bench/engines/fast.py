@@ -150,17 +150,6 @@ def run_filter_fast(
     if isinstance(spec, MMAESpec):
         diverged, j, nis_sum, n_updates, n_rejected = _run_bank(k, spec, ctx, run, x, P, R, Qu)
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
-    if isinstance(spec, VBAKFSpec):
-        P_infl = np.full(n, np.nan)
-        diverged, j, nis_sum, n_updates, n_rejected = k.run_vbakf_kernel(
-            *_common_args(ctx, run),
-            bool(spec.adaptation), spec.adapt_from == "all",
-            float(spec.bounds[0]), float(spec.bounds[1]),
-            float(spec.rho), int(spec.iterations), float(spec.tau), float(spec.tau_R),
-            spec.R_structure == "diagonal",
-            record, x, P, R, Qu, P_infl,
-        )  # fmt: skip
-        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl)
     if isinstance(spec, SWVBSpec):
         diverged, j, nis_sum, n_updates, n_rejected = k.run_swvb_kernel(
             *_common_args(ctx, run),
@@ -263,7 +252,7 @@ def _run_bank(k, spec: MMAESpec, ctx: FilterContext, run: tuple, x, P, R, Qu):
 # The kernels `warm_up` calls directly (their callees compile, and are cached, with them).
 WARM_UP_KERNELS = (
     (_loop, "run_loop"),
-    (_jit_kernels, "run_vbakf_kernel"),
+
     (_jit_kernels, "run_swvb_kernel"),
     (_jit_kernels_als, "run_als_kernel"),
     (_jit_kernels_kalmannet, "run_kalmannet_kernel"),

@@ -19,6 +19,7 @@ MODULES = (
     "anfekf_bench.engines.families.sage_husa",
     "anfekf_bench.engines.families.iae",
     "anfekf_bench.engines.families.akhlaghi",
+    "anfekf_bench.engines.families.vbakf",
 )
 
 

@@ -50,7 +50,9 @@ from ..timeline import clear_cache as clear_timeline_cache
 from . import families
 from . import kernels as _jit_kernels
 from . import kernels_als as _jit_kernels_als
+from . import kernels_bank as _jit_kernels_bank
 from . import kernels_kalmannet as _jit_kernels_kalmannet
+from . import kernels_swvb as _jit_kernels_swvb
 from . import loop as _loop
 from .fast_support import SUPPORTED_SPECS, supported_type  # noqa: F401  (SUPPORTED_SPECS: re-exported)
 
@@ -82,10 +84,6 @@ def clear_cache() -> None:
 
 # ---------------------------------------------------------------------------------------------
 # The entry point
-
-
-def _pure_kernels():
-    return _jit_kernels.pure_module()
 
 
 def _matrix(a: np.ndarray, n: int) -> np.ndarray:
@@ -130,9 +128,7 @@ def run_filter_fast(
     P = np.full((n, 3, 3), np.nan)
     R = np.full((n, 2), np.nan)
     Qu = np.full((n, 2), np.nan)
-    # Without numba the module's own kernels are already plain Python.
-    k = _pure_kernels() if (JIT and not jit) else _jit_kernels
-
+    # Without numba the modules' own kernels are already plain Python.
     if families.for_spec(spec) is not None:
         return _run_family(spec, ctx, run, x, P, R, Qu, n, jit)
     if isinstance(spec, KalmanNetSpec):
@@ -148,10 +144,12 @@ def run_filter_fast(
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, MMAESpec):
-        diverged, j, nis_sum, n_updates, n_rejected = _run_bank(k, spec, ctx, run, x, P, R, Qu)
+        kb = _jit_kernels_bank.pure_module() if (JIT and not jit) else _jit_kernels_bank
+        diverged, j, nis_sum, n_updates, n_rejected = _run_bank(kb, spec, ctx, run, x, P, R, Qu)
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, SWVBSpec):
-        diverged, j, nis_sum, n_updates, n_rejected = k.run_swvb_kernel(
+        ks = _jit_kernels_swvb.pure_module() if (JIT and not jit) else _jit_kernels_swvb
+        diverged, j, nis_sum, n_updates, n_rejected = ks.run_swvb_kernel(
             *_common_args(ctx, run),
             bool(spec.adaptation), spec.adapt_from == "all",
             float(spec.bounds[0]), float(spec.bounds[1]),
@@ -253,7 +251,7 @@ def _run_bank(k, spec: MMAESpec, ctx: FilterContext, run: tuple, x, P, R, Qu):
 WARM_UP_KERNELS = (
     (_loop, "run_loop"),
 
-    (_jit_kernels, "run_swvb_kernel"),
+    (_jit_kernels_swvb, "run_swvb_kernel"),
     (_jit_kernels_als, "run_als_kernel"),
     (_jit_kernels_kalmannet, "run_kalmannet_kernel"),
 )  # fmt: skip

@@ -47,11 +47,48 @@ innovation, nis, correct, healthy, record = (
 #   corrected(fam, st, x_prior, P_prior, x, P, R, H, lm, z) -> (st, R)   after its update
 #   end_scan(fam, st, x, P, R, Qu) -> (ok, st, R, Qu)
 #   inflation(fam, st) -> float                           what P_infl records (1: none)
-# ok False: the filter diverged (a singular matrix, a value that is not finite).
-HOOKS = (
-    "start", "predicted", "begin_scan", "before_gain", "rejected", "corrected", "end_scan",
-    "inflation",
-)  # fmt: skip
+# ok False: the filter diverged (a singular matrix, a value that is not finite). A hook the
+# family's module does not define is the default below: no state, nothing changes, no inflation.
+
+
+def _start(fam, x, P, Qu, R, scan_start):
+    return 0
+
+
+def _predicted(fam, st, f02, f12, G, c, Q):
+    return st
+
+
+def _begin_scan(fam, st, x, P, R, Qu):
+    return st, R
+
+
+def _before_gain(fam, st, x, P, R, Qu, H, zh, nu, HPHt, lm, z, gate, has_gate):
+    return True, st, P, R, Qu, HPHt
+
+
+def _rejected(fam, st, x, P, R, H, zh, lm, z):
+    return True, st, P, R
+
+
+def _corrected(fam, st, x_prior, P_prior, x, P, R, H, lm, z):
+    return st, R
+
+
+def _end_scan(fam, st, x, P, R, Qu):
+    return True, st, R, Qu
+
+
+def _inflation(fam, st):
+    return 1.0
+
+
+DEFAULTS = {
+    "start": _start, "predicted": _predicted, "begin_scan": _begin_scan,
+    "before_gain": _before_gain, "rejected": _rejected, "corrected": _corrected,
+    "end_scan": _end_scan, "inflation": _inflation,
+}  # fmt: skip
+HOOKS = tuple(DEFAULTS)
 
 
 def family_of(fam):
@@ -63,23 +100,28 @@ _REGISTERED: set = set()
 
 
 def _hook(module, name: str):
-    """The hook `name` of a family module, every function the module defines registered with
-    numba first (once), so that compiled code calls the hooks and their helpers."""
+    """The hook `name` of a family module (or the default), every function the module defines
+    registered with numba first (once), so that compiled code calls the hooks and their
+    helpers."""
+    import inspect
+
+    from numba.extending import register_jitable
+
+    if not _REGISTERED:
+        for fn in DEFAULTS.values():
+            register_jitable(fn)
+        _REGISTERED.add(__name__)
     if module.__name__ not in _REGISTERED:
-        import inspect
-
-        from numba.extending import register_jitable
-
         for fn in vars(module).values():
             if inspect.isfunction(fn) and fn.__module__ == module.__name__:
                 register_jitable(fn)
         _REGISTERED.add(module.__name__)
-    return getattr(module, name)
+    return getattr(module, name, DEFAULTS[name])
 
 
 def _stub(name: str):
     def stub(fam, *args):
-        return getattr(family_of(fam), name)(fam, *args)
+        return getattr(family_of(fam), name, DEFAULTS[name])(fam, *args)
 
     stub.__name__ = stub.__qualname__ = name
     stub.__doc__ = f"The family's `{name}` hook (resolved by the type of `fam`)."

@@ -69,10 +69,6 @@ def begin_scan(fam, st, x, P, R, Qu):
     return (st[0], st[1], _scan(R)), R
 
 
-def before_gain(fam, st, x, P, R, Qu, H, zh, nu, HPHt, lm, z, gate, has_gate):
-    return True, st, P, R, Qu, HPHt
-
-
 def feed(fam, st, x_prior, xp, Pp, R, H, lm, z):
     """One landmark's samples: the residual at the update (xp, Pp) for R, x+ - x- for dx."""
     start0, interval, scan = st
@@ -128,7 +124,3 @@ def end_scan(fam, st, x, P, R, Qu):
         )  # fmt: skip
         interval = (ZERO9, ZERO9, EYE9)
     return True, (start0, interval, scan), R, Qu
-
-
-def inflation(fam, st):
-    return 1.0

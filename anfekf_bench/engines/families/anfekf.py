@@ -216,19 +216,3 @@ def before_gain(fam, st, x, P, R, Qu, H, zh, nu, HPHt, lm, z, gate, has_gate):
                 )  # fmt: skip
     st = (win, n_win, pos, d_prev, Qi, updated, grad, ws, False, bounds)
     return True, st, P, R, Qu, HPHt
-
-
-def rejected(fam, st, x, P, R, H, zh, lm, z):
-    return True, st, P, R
-
-
-def corrected(fam, st, x_prior, P_prior, x, P, R, H, lm, z):
-    return st, R
-
-
-def end_scan(fam, st, x, P, R, Qu):
-    return True, st, R, Qu
-
-
-def inflation(fam, st):
-    return 1.0

@@ -33,10 +33,6 @@ def start(fam, x, P, Qu, R, scan_start):
     return np.zeros(fam.window), 0, 0, 1.0, True
 
 
-def predicted(fam, st, f02, f12, G, c, Q):
-    return st
-
-
 def begin_scan(fam, st, x, P, R, Qu):
     nu2, n_window, pos, infl, _ = st
     return (nu2, n_window, pos, infl, True), R
@@ -72,18 +68,6 @@ def before_gain(fam, st, x, P, R, Qu, H, zh, nu, HPHt, lm, z, gate, has_gate):
     if infl != 1.0:  # RobotEKF.update_landmark: H P- H^T follows the scaled P-
         HPHt = hph(H, P)
     return True, (nu2, n_window, pos, infl, first_of_scan), P, R, Qu, HPHt
-
-
-def rejected(fam, st, x, P, R, H, zh, lm, z):
-    return True, st, P, R
-
-
-def corrected(fam, st, x_prior, P_prior, x, P, R, H, lm, z):
-    return st, R
-
-
-def end_scan(fam, st, x, P, R, Qu):
-    return True, st, R, Qu
 
 
 def inflation(fam, st):

@@ -147,10 +147,6 @@ def before_gain(fam, st, x, P, R, Qu, H, zh, nu, HPHt, lm, z, gate, has_gate):
     return True, (arrays, (n_win, n_q, n_K), start0, interval), P, R, Qu, HPHt
 
 
-def rejected(fam, st, x, P, R, H, zh, lm, z):
-    return True, st, P, R
-
-
 def corrected(fam, st, x_prior, P_prior, x, P, R, H, lm, z):
     if not fam.adapt_Q:
         return st, R
@@ -184,7 +180,3 @@ def end_scan(fam, st, x, P, R, Qu):  # IAEEKF.end_scan
                 0.0, clip_to_bounds(q1, start0[3], bounds),
             )  # fmt: skip
     return True, (arrays, (n_win, n_q, n_K), start0, (ZERO9, ZERO9, EYE9, P)), R, Qu
-
-
-def inflation(fam, st):
-    return 1.0

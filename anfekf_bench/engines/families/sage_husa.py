@@ -91,10 +91,6 @@ def before_gain(fam, st, x, P, R, Qu, H, zh, nu, HPHt, lm, z, gate, has_gate):
     return True, (start0, events, (R_hat0, R_hat1, hat[2], hat[3]), interval, scan), P, R, Qu, HPHt
 
 
-def rejected(fam, st, x, P, R, H, zh, lm, z):
-    return True, st, P, R
-
-
 def corrected(fam, st, x_prior, P_prior, x, P, R, H, lm, z):
     start0, events, hat, interval, scan = st
     d, R_start0, R_start1, x_scan, rho_sum0, rho_sum1, n_fed, n_accepted = scan
@@ -124,7 +120,3 @@ def end_scan(fam, st, x, P, R, Qu):  # SageHusaEKF.end_scan
     if n_fed > 0:
         events = (next_beta(events[0], fam.b), events[1] + 1)
     return True, (start0, events, hat, interval, scan), R, Qu
-
-
-def inflation(fam, st):
-    return 1.0

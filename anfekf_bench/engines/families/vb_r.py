@@ -36,10 +36,6 @@ def start(fam, x, P, Qu, R, scan_start):
     return a, a, a * R[0], a * R[3], R[0], R[3]
 
 
-def predicted(fam, st, f02, f12, G, c, Q):
-    return st
-
-
 def begin_scan(fam, st, x, P, R, Qu):
     if not fam.adaptation:
         return st, R
@@ -81,19 +77,7 @@ def before_gain(fam, st, x, P, R, Qu, H, zh, nu, HPHt, lm, z, gate, has_gate):
     return True, (a0, a1, b0, b1, R00, R11), P, R, Qu, HPHt
 
 
-def rejected(fam, st, x, P, R, H, zh, lm, z):
-    return True, st, P, R
-
-
-def corrected(fam, st, x_prior, P_prior, x, P, R, H, lm, z):
-    return st, R
-
-
 def end_scan(fam, st, x, P, R, Qu):
     if fam.adaptation:
         R = (st[2] / st[0], 0.0, 0.0, st[3] / st[1])
     return True, st, R, Qu
-
-
-def inflation(fam, st):
-    return 1.0

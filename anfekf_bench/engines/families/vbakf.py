@@ -43,10 +43,6 @@ def start(fam, x, P, Qu, R, scan_start):
     return M2 + 1.0 + tR, U, 1.0, False, P, True, (R[0], R[3])
 
 
-def predicted(fam, st, f02, f12, G, c, Q):
-    return st
-
-
 def begin_scan(fam, st, x, P, R, Qu):
     u, U, infl, adapted_P, P_predicted, _, R0 = st
     if fam.adaptation:
@@ -137,14 +133,6 @@ def rejected(fam, st, x, P, R, H, zh, lm, z):
     if adapted_P:  # VBAKF.update_landmark: back to the prediction
         return True, (u, U, 1.0, False, P_predicted, first, R0), P_predicted, R
     return True, st, P, R
-
-
-def corrected(fam, st, x_prior, P_prior, x, P, R, H, lm, z):
-    return st, R
-
-
-def end_scan(fam, st, x, P, R, Qu):
-    return True, st, R, Qu
 
 
 def inflation(fam, st):

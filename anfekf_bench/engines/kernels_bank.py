@@ -24,7 +24,9 @@ maybe_njit = _k.maybe_njit
 step_terms, jacobians_at, noise_scale, predict_from = (
     _k.step_terms, _k.jacobians_at, _k.noise_scale, _k.predict_from,
 )  # fmt: skip
-innovation, nis, correct, healthy = _k.innovation, _k.nis, _k.correct, _k.healthy
+innovation, nis, correct, healthy, record = (
+    _k.innovation, _k.nis, _k.correct, _k.healthy, _k.record,
+)  # fmt: skip
 MOTION_UNICYCLE = _k.MOTION_UNICYCLE
 
 
@@ -198,17 +200,7 @@ def run_bank_kernel(
             ):  # fmt: skip
                 return True, j, nis_sum, n_updates, n_rejected
         if record_at[k] and j < n_rows:
-            for i in range(3):
-                out_x[j, i] = xm[i]
-                if not math.isfinite(xm[i]):
-                    bad_record = True
-            for i in range(9):
-                out_P[j, i // 3, i % 3] = Pmix[i]
-                if not math.isfinite(Pmix[i]):
-                    bad_record = True
-            out_R[j, 0] = Rw[0]
-            out_R[j, 1] = Rw[1]
-            out_Q[j, 0] = Qw[0]
-            out_Q[j, 1] = Qw[1]
-            j += 1
+            R4 = (Rw[0], 0.0, 0.0, Rw[1])
+            j, bad = record(j, xm, Pmix, R4, (Qw[0], 0.0, 0.0, Qw[1]), out_x, out_P, out_R, out_Q)
+            bad_record = bad_record or bad
     return bad_record, j, nis_sum, n_updates, n_rejected

@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from anfekf_bench.config import parse_scenario, resolve_world
-from anfekf_bench.engines import fast, kernels
+from anfekf_bench.engines import fast, kernels, loop
 from anfekf_bench.engines.filterpy_engine import _healthy, run_filter
 from anfekf_bench.filters import (
     ANFEKFSpec,
@@ -171,10 +171,12 @@ def test_refuses_what_it_does_not_implement(small):
 def test_kernels_are_compiled_when_numba_is_installed():
     numba = pytest.importorskip("numba")
     assert fast.JIT and kernels.JIT
-    assert isinstance(kernels.run_kernel, numba.core.registry.CPUDispatcher)
+    assert isinstance(kernels.correct, numba.core.registry.CPUDispatcher)
+    assert isinstance(loop.run_loop, numba.core.registry.CPUDispatcher)
     pure = KERNELS["pure"]
     assert not pure.JIT
-    assert not isinstance(pure.run_kernel, numba.core.registry.CPUDispatcher)
+    assert not isinstance(pure.correct, numba.core.registry.CPUDispatcher)
+    assert not isinstance(loop.pure_module().run_loop, numba.core.registry.CPUDispatcher)
 
 
 _WITHOUT_NUMBA = """
@@ -183,12 +185,12 @@ sys.modules["numba"] = None  # `import numba` now raises ImportError, as when it
 from pathlib import Path
 import numpy as np
 from anfekf_bench.config import parse_scenario, resolve_world
-from anfekf_bench.engines import fast, kernels
+from anfekf_bench.engines import fast, kernels, loop
 from anfekf_bench.engines.filterpy_engine import run_filter
 from anfekf_bench.filters.context import build_filter
 from anfekf_bench.runner import simulate
 
-assert not fast.JIT and not kernels.JIT and type(kernels.run_kernel).__name__ == "function"
+assert not fast.JIT and not kernels.JIT and type(loop.run_loop).__name__ == "function"
 scenario = parse_scenario(json.loads(sys.argv[1]))
 world = resolve_world(scenario.world, Path("small.yaml"))
 data = simulate(scenario, world, np.random.SeedSequence(3))

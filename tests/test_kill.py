@@ -126,7 +126,8 @@ def test_two_commands_into_one_folder_give_one_result_and_a_clear_message(scenar
 # --- kill -9 of the parent alone ----------------------------------------------------------------
 
 
-def test_workers_end_when_the_parent_is_killed(tmp_path) -> None:
+def test_workers_end_when_the_parent_is_killed(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("ANFEKF_WORKER_START_S", "0")  # workers, whatever the runs cost
     doc = small_scenario(name="many", runs=40, jobs=2, record_every=8)
     path = write_scenario(tmp_path / "many.yaml", doc)
     out = tmp_path / "out"

@@ -855,7 +855,8 @@ def run_bench(
             res = probe_in_subprocess(path, Path(tmp), sizes.scenario_runs, sizes.waypoints)
             scenarios[res.pop("name")] = res
         e2e = fast_end_to_end(configs, sizes, Path(tmp), say)
-        breakdown = paper_breakdown(files, Path(tmp), sizes.scenario_runs, say)
+        trim = partial(trimmed, waypoints=sizes.waypoints)
+        breakdown = paper_breakdown(files, Path(tmp), sizes.scenario_runs, say, trim)
     reference = scenarios[e2e["scenario"]]
     summary_diff = None  # no filterpy reference when the file itself asks for the fast engine
     if reference["engine"] == "filterpy":

@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from .analysis.metrics import add_trace_metrics, recorded_steps
+from .config import World
 from .experiment import execute, make_plan, result_tables
 from .outputs import write_result_tables
 from .report import write_report
@@ -31,11 +33,18 @@ E2E_OVER_FILTER_TARGET = 3.0  # issue 37
 
 
 def scenario_breakdown(
-    path: Path, tmp: Path, runs: int | None = None, jobs: int | None = None, report: bool = True
+    path: Path,
+    tmp: Path,
+    runs: int | None = None,
+    *,
+    trim: Callable[[World], World] | None = None,
+    report: bool = True,
 ) -> dict:
-    """The breakdown of one scenario file on the fast engine (see the module's docstring)."""
+    """The breakdown of one scenario file on the fast engine (see the module's docstring);
+    `trim` shortens the world's route (the bench's quick sizes)."""
     scenario, world = load_scenario(path)
-    plan = make_plan(scenario, world, runs, None, jobs, engine="fast")
+    world = world if trim is None else trim(world)
+    plan = make_plan(scenario, world, runs, None, None, engine="fast")
     t0 = time.perf_counter()
     _, target = execute(plan, tmp / "e2e", force=True)
     e2e_s = time.perf_counter() - t0
@@ -86,14 +95,20 @@ def scenario_breakdown(
     }
 
 
-def paper_breakdown(files: list[Path], tmp: Path, runs: int | None, say) -> dict:
+def paper_breakdown(
+    files: list[Path],
+    tmp: Path,
+    runs: int | None,
+    say: Callable[[str], None],
+    trim: Callable[[World], World] | None = None,
+) -> dict:
     """`scenario_breakdown` of every paper scenario file: name -> breakdown, plus the total
     end-to-end wall of all of them (issue 37: at most 5 s on the fast engine)."""
     out = {}
     for path in files:
         say(f"end-to-end breakdown of {path.name} on the fast engine")
         name = load_scenario(path)[0].name
-        out[name] = scenario_breakdown(path, tmp / name, runs)
+        out[name] = scenario_breakdown(path, tmp / name, runs, trim=trim)
     return {"scenarios": out, "e2e_total_s": sum(b["e2e_s"] for b in out.values())}
 
 

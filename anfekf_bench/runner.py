@@ -237,14 +237,15 @@ def dispatch_runs(
     calls, one run each (simulated: `simulated_items`; recorded: real_experiment's segments or
     drives); `on_result` sees each result as it arrives (execute saves it there at once).
 
-    backend "local" runs the first run in this process and times it, then the rest here or on
-    up to `jobs` local processes, whichever `place_runs` estimates to be faster (a fast-engine
-    batch of a few seconds does not pay for starting workers); `placement`, when given, is
-    filled with that decision. "dask" runs on the existing Dask cluster whose scheduler listens
-    at `scheduler` (all its worker threads; `jobs` is not used there). The cluster is reached
-    here (unless `client`, from `connect_dask`, is given: the caller reached it before touching
-    its output), before the first result is asked for, so a scheduler that cannot be reached
-    raises BackendUnavailable at once. Local workers end when this process dies.
+    backend "local" runs the first two runs in this process, timing the second, then the rest
+    here or on up to `jobs` local processes, whichever `place_runs` estimates to be faster (a
+    fast-engine batch of a few seconds does not pay for starting workers); `placement`, when
+    given, is filled with that decision. "dask" runs on the existing Dask cluster whose
+    scheduler listens at `scheduler` (all its worker threads; `jobs` is not used there). The
+    cluster is reached here (unless `client`, from `connect_dask`, is given: the caller reached
+    it before touching its output), before the first result is asked for, so a scheduler that
+    cannot be reached raises BackendUnavailable at once. Local workers end when this process
+    dies.
     """
     if not items:
         return iter(())
@@ -261,11 +262,15 @@ def dispatch_runs(
 def _run_local(
     items: list[Callable[[], dict]], jobs: int, engine: Engine, placement: dict | None
 ) -> Iterator[list[dict]]:
-    """`dispatch_runs`'s local batches: the probe run here, then the rest where it pays."""
-    t0 = time.perf_counter()
+    """`dispatch_runs`'s local batches: two runs here, the second timed (the first pays this
+    process's one-time costs: loading the compiled kernels, first calls), then the rest where
+    `place_runs` says it pays."""
     yield run_chunk(items[:1])
-    rest = items[1:]
-    decision = place_runs(len(rest), jobs, time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    yield run_chunk(items[1:2])
+    probe_s = time.perf_counter() - t0
+    rest = items[2:]
+    decision = place_runs(len(rest), jobs, probe_s)
     if placement is not None:
         placement.update(decision)
     if not rest:

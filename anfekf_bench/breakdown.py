@@ -108,7 +108,7 @@ def paper_breakdown(
     for path in files:
         say(f"end-to-end breakdown of {path.name} on the fast engine")
         name = load_scenario(path)[0].name
-        out[name] = scenario_breakdown(path, tmp / name, runs, trim=trim)
+        out[name] = scenario_breakdown(path, tmp / "breakdown" / name, runs, trim=trim)
     return {"scenarios": out, "e2e_total_s": sum(b["e2e_s"] for b in out.values())}
 
 

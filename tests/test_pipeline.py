@@ -102,7 +102,7 @@ def test_placement_from_measured_costs():
     assert place_runs(3, 8, run_s=1.0, start_s=0.0)["workers"] == 3  # at most one a run
 
 
-def test_small_fast_batch_runs_in_process(tmp_path, monkeypatch):
+def test_small_batch_runs_in_process(tmp_path, monkeypatch):
     monkeypatch.delenv("ANFEKF_WORKER_START_S", raising=False)
     path = write_scenario(tmp_path / "s.yaml", small_scenario(jobs=2, runs=3))
     scenario, world = load_scenario(path)

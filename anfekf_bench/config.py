@@ -26,6 +26,7 @@ from pydantic import (
     model_validator,
 )
 
+from .error_sources import ErrorSources
 from .filters.ekf import EKFSpec
 from .filters.registry import (
     KINDS,
@@ -344,6 +345,11 @@ class Scenario(_Strict):
         None,
         description="true noise that changes over time: R/Qu steps and ramps, outliers,"
         " blackouts (SPEC 14); absent: constant true noise",
+    )
+    error_sources: ErrorSources | None = Field(
+        None,
+        description="odometry scale factors and steering bias, range bias of the simulated"
+        " robot (SPEC 18); absent: white noise only",
     )
 
     @field_validator("claims", "compare")

@@ -48,7 +48,10 @@ def simulate(
     geometry, the same in every run) may be passed in so that it is computed once per world."""
     path = world_path(world) if path is None else path
     sigmas, rng = scenario.true_noise.radians(), np.random.default_rng(seed)
-    return simulate_run(world, path.truth, sigmas, rng, path.geometry, scenario.noise_schedule)
+    return simulate_run(
+        world, path.truth, sigmas, rng, path.geometry, scenario.noise_schedule,
+        getattr(scenario, "error_sources", None),
+    )  # fmt: skip
 
 
 def run_filter_on(

@@ -188,8 +188,9 @@ def runs_per_task(n_runs: int, workers: int) -> int:
 
 
 # What starting local workers costs before their first run: process start, importing the
-# package and loading the fast engine's compiled kernels from numba's cache, about 2 s a worker
-# on the 2-core reference machine (`anfekf bench`: worker_start_s), paid in parallel. The
+# package and loading the fast engine's compiled kernels from numba's cache: about 2 s, paid in
+# parallel (an estimate from the bench's fresh-process figures: `fast_e2e_cli_s` 3.9 s against
+# `fast_e2e_scenario_s` 0.85 s on warm workers; the bench does not measure it alone yet). The
 # environment variable ANFEKF_WORKER_START_S replaces it (0: workers whenever jobs > 1).
 WORKER_START_S = 2.0
 WORKERS_PAY = 0.8  # workers are used when they are estimated to take at most this share

@@ -13,6 +13,7 @@ $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e ".[dev,dask,fast]"
+	$(PY) -m anfekf_bench.engines.fast --warm-up
 	touch $@
 
 ## The paper's four experiments at 50 runs each, then the report (after the runs, even with -j).

@@ -538,6 +538,7 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result, 
         on_start(action + prepared.action, len(done), plan.runs)
     run_started = time.perf_counter()
     results = dict(done)
+    placement: dict = {}
     batch = dispatch_runs(
         [call for run, call in sorted(prepared.items.items()) if run not in done],
         jobs=plan.jobs,
@@ -547,13 +548,14 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result, 
         connect_timeout_s=plan.backend.connect_timeout_s,
         engine=plan.engine,
         client=client,
+        placement=placement,
     )
     for result in batch:
         results[result["run"]] = result
     run_seconds = time.perf_counter() - run_started
     ordered = [results[i] for i in range(plan.runs)]
     tables = result_tables(plan, ordered)
-    write_result(plan, target, tables, prepared, sorted(done), started, run_seconds)
+    write_result(plan, target, tables, prepared, sorted(done), started, run_seconds, placement)
     return tables.summary, target
 
 
@@ -565,8 +567,10 @@ def write_result(
     resumed: list[int],
     started: float,
     run_seconds: float,
+    placement: dict | None = None,
 ) -> None:
-    """The batch's tables and manifest, staged and then swapped in whole (finish_result)."""
+    """The batch's tables and manifest, staged and then swapped in whole (finish_result).
+    `placement`: where the runs ran and why (`runner.place_runs`; empty when none was run)."""
     fingerprint = plan.fingerprint()
     staging = result_staging(target)
     write_result_tables(
@@ -599,6 +603,7 @@ def write_result(
         "resumed_runs": resumed,
         "versions": package_versions(),
         "machine": machine_info(),
+        "placement": placement or {"where": "none"},
         "run_seconds": round(run_seconds, 3),
         "wall_time_s": round(time.time() - started, 3),
     }

@@ -21,6 +21,7 @@ import contextlib
 import copy
 import logging
 import math
+import os
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -236,6 +237,44 @@ def runs_per_task(n_runs: int, workers: int) -> int:
     return max(1, math.ceil(n_runs / (4 * max(workers, 1))))
 
 
+# What starting local workers costs before their first run: process start, importing the
+# package and loading the fast engine's compiled kernels from numba's cache: about 2 s, paid in
+# parallel (an estimate from the bench's fresh-process figures: `fast_e2e_cli_s` 3.9 s against
+# `fast_e2e_scenario_s` 0.85 s on warm workers; the bench does not measure it alone yet). The
+# environment variable ANFEKF_WORKER_START_S replaces it (0: workers whenever jobs > 1).
+WORKER_START_S = 2.0
+WORKERS_PAY = 0.8  # workers are used when they are estimated to take at most this share
+
+
+def worker_start_s() -> float:
+    """WORKER_START_S, or the environment's ANFEKF_WORKER_START_S when it is a number >= 0."""
+    try:
+        value = float(os.environ.get("ANFEKF_WORKER_START_S", WORKER_START_S))
+    except ValueError:
+        return WORKER_START_S
+    return value if math.isfinite(value) and value >= 0 else WORKER_START_S
+
+
+def place_runs(n_runs: int, jobs: int, run_s: float, start_s: float | None = None) -> dict:
+    """Where a local batch's remaining `n_runs` runs go, from the measured cost of one run
+    (`run_s`, the probe run done in-process): in this process, or on `jobs` workers, whichever
+    is estimated to finish first (workers only when they save a fifth: the estimate is rough).
+    The record goes into the manifest (`placement`)."""
+    start_s = worker_start_s() if start_s is None else start_s
+    workers = max(1, min(jobs, n_runs))
+    in_process_s = n_runs * run_s
+    workers_s = start_s + in_process_s / workers
+    use = workers > 1 and workers_s <= WORKERS_PAY * in_process_s
+    return {
+        "where": "workers" if use else "in-process",
+        "workers": workers if use else 0,
+        "probe_run_s": round(run_s, 4),
+        "estimate_in_process_s": round(in_process_s, 3),
+        "estimate_workers_s": round(workers_s, 3),
+        "worker_start_s": start_s,
+    }
+
+
 def dispatch_runs(
     items: list[Callable[[], dict]],
     *,
@@ -246,33 +285,61 @@ def dispatch_runs(
     connect_timeout_s: float = 10.0,
     engine: Engine = "filterpy",
     client=None,
+    placement: dict | None = None,
 ) -> Iterator[dict]:
     """Run results as they finish (any order), whatever the source: `items` are picklable
     calls, one run each (simulated: `simulated_items`; recorded: real_experiment's segments or
     drives); `on_result` sees each result as it arrives (execute saves it there at once).
 
-    backend "local" uses `jobs` local processes; "dask" runs on the existing Dask cluster whose
+    backend "local" runs the first two runs in this process, timing the second, then the rest
+    here or on up to `jobs` local processes, whichever `place_runs` estimates to be faster (a
+    fast-engine batch of a few seconds does not pay for starting workers); `placement`, when
+    given, is filled with that decision. "dask" runs on the existing Dask cluster whose
     scheduler listens at `scheduler` (all its worker threads; `jobs` is not used there). The
-    cluster is reached here (unless `client`, from `connect_dask`, is given: the caller reached it
-    before touching its output), before the first result is asked for, so a scheduler that cannot
-    be reached raises BackendUnavailable at once. Local workers end when this process dies.
+    cluster is reached here (unless `client`, from `connect_dask`, is given: the caller reached
+    it before touching its output), before the first result is asked for, so a scheduler that
+    cannot be reached raises BackendUnavailable at once. Local workers end when this process
+    dies.
     """
     if not items:
         return iter(())
-    # A filterpy run takes a good part of a second: one task per run (progress and resume move
-    # with every run); a fast-engine run takes milliseconds, so its tasks hold several runs.
-    size = runs_per_task(len(items), jobs) if engine == "fast" and backend == "local" else 1
-    calls = (delayed(run_chunk)(items[i : i + size]) for i in range(0, len(items), size))
     if backend == "dask":
+        calls = (delayed(run_chunk)([item]) for item in items)
         if client is None:
             client = connect_dask(scheduler, connect_timeout_s)
-        results = _run_on_dask(client, calls, scheduler, connect_timeout_s)
-    else:
-        n_calls = math.ceil(len(items) / size)
-        with local_workers():
-            parallel = Parallel(n_jobs=min(jobs, n_calls), return_as="generator_unordered")
-            results = parallel(calls)
-    return _announce(results, on_result)
+        if placement is not None:
+            placement.update(where="dask", workers=None)
+        return _announce(_run_on_dask(client, calls, scheduler, connect_timeout_s), on_result)
+    return _announce(_run_local(items, jobs, engine, placement), on_result)
+
+
+def _run_local(
+    items: list[Callable[[], dict]], jobs: int, engine: Engine, placement: dict | None
+) -> Iterator[list[dict]]:
+    """`dispatch_runs`'s local batches: two runs here, the second timed (the first pays this
+    process's one-time costs: loading the compiled kernels, first calls), then the rest where
+    `place_runs` says it pays."""
+    yield run_chunk(items[:1])
+    t0 = time.perf_counter()
+    yield run_chunk(items[1:2])
+    probe_s = time.perf_counter() - t0
+    rest = items[2:]
+    decision = place_runs(len(rest), jobs, probe_s)
+    if placement is not None:
+        placement.update(decision)
+    if not rest:
+        return
+    if decision["where"] == "in-process":
+        for item in rest:  # one at a time: progress and the run store move with every run
+            yield run_chunk([item])
+        return
+    # A filterpy run takes a good part of a second: one task per run (progress and resume move
+    # with every run); a fast-engine run takes milliseconds, so its tasks hold several runs.
+    workers = decision["workers"]
+    size = runs_per_task(len(rest), workers) if engine == "fast" else 1
+    calls = (delayed(run_chunk)(rest[i : i + size]) for i in range(0, len(rest), size))
+    with local_workers():
+        yield from Parallel(n_jobs=workers, return_as="generator_unordered")(calls)
 
 
 def run_batch(

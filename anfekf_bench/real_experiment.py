@@ -35,7 +35,8 @@ from pathlib import Path
 import numpy as np
 from joblib import Parallel, delayed
 
-from .analysis.metrics import add_trace_metrics
+from .analysis.metrics import add_trace_metrics, nees_single_run
+from .drive_audit import audit_tables
 from .engines.tuning import TimelineLikelihood, fit_noise, score_setting, unicycle_terms
 from .filters.ekf import gate_threshold
 from .filters.fitted import EKFMLSpec, sigmas_problem
@@ -572,7 +573,10 @@ def run_segment(
 def real_summary(records: list[dict], ordered: list[dict], scenario: RealScenario) -> list[dict]:
     """The summary records plus what matters on real data, per filter instance: its base filter
     and start, the pooled RMSE over all scored times, the largest error, the runs that lost lock
-    (an error above LOST_LOCK_M at a scored time)."""
+    (an error above LOST_LOCK_M at a scored time). Consistency is read run by run: the runs of a
+    recorded log are different times (different drives), so a step index pools nothing; nees_lo
+    / nees_hi are the single-run 95 % chi-square(3) bounds and nees_in_bounds the share of every
+    scored step of every run whose own NEES lies inside them (runs.parquet has each run's)."""
     meta = {name: (spec.name, m) for name, spec, m in scenario.instances()}
     out = []
     for rec in records:
@@ -585,8 +589,13 @@ def real_summary(records: list[dict], ordered: list[dict], scenario: RealScenari
             for t in traces
         ]
         base, m = meta[name]
+        nees = np.array([t["nees"] for t in traces]) if traces else np.zeros((0, 0))
+        consistency = nees_single_run(nees)
         rec = dict(rec)
         rec.update(
+            nees_lo=consistency["lo"],
+            nees_hi=consistency["hi"],
+            nees_in_bounds=consistency["pooled"],
             base_filter=base,
             start=m,
             rmse_pos_pooled=float(np.sqrt(np.mean(err**2))) if len(err) else math.nan,
@@ -746,6 +755,8 @@ def _prepare_drives(plan, world: DriveSet, store: Path, progress) -> Prepared:
     if scenario.reference() is not None:
         tuned_for, tuning = tune_drives(scenario, inputs, world, plan.jobs)
         action += f"; ekf-tuned tuned per dataset on the others' drives ({tuning['seconds']:.1f} s)"
+    # The audit against Vicon (SPEC 18): the data's errors and ekf-tuned's lost-lock episodes
+    audit = audit_tables(scenario, world.drives, inputs, tuned_for, plan.seed)
     n_steps = max(len(i.t) for i in inputs.values())
     fitted, fits = fit_on_own_innovations(
         scenario, [inputs[d.id] for d in world.drives], [d.id for d in world.drives], store,
@@ -770,7 +781,7 @@ def _prepare_drives(plan, world: DriveSet, store: Path, progress) -> Prepared:
         **({"fits": fits} if fits else {}),
         **({"training": trained} if trained else {}),
     }
-    return Prepared(items, action + _fits_action(fits), manifest, n_steps)
+    return Prepared(items, action + _fits_action(fits), manifest, n_steps, tables=audit)
 
 
 def _recorded_manifest(scenario: RealScenario, data: dict, tuning, alignment: str) -> dict:

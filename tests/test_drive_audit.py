@@ -81,14 +81,17 @@ def test_without_drops_landmark_rows_and_keeps_the_offsets():
         )
 
 
-def _biased_log(scale_v, bias_v, scale_w, bias_w, seconds=600.0, seed=0) -> mrclam.RobotLog:
-    """A log whose robot moves at scale x commanded + bias (+ white noise), Vicon at 100 Hz."""
+def _biased_log(
+    scale_v, bias_v, scale_w, bias_w, seconds=600.0, seed=0, lag=0.0
+) -> mrclam.RobotLog:
+    """A log whose robot moves at scale x commanded + bias (+ white noise), `lag` s after the
+    command, Vicon at 100 Hz."""
     rng = np.random.default_rng(seed)
     odo_t = np.arange(0.0, seconds, 0.2)
     v = rng.choice([0.0, 0.1, 0.2], size=len(odo_t))
     w = rng.choice([-0.8, 0.0, 0.0, 0.7], size=len(odo_t))
     truth_t = np.arange(0.0, seconds, 0.01)
-    k = np.searchsorted(odo_t, truth_t, side="right") - 1
+    k = np.maximum(np.searchsorted(odo_t, truth_t - lag, side="right") - 1, 0)
     vt = scale_v * v[k] + bias_v + 0.01 * rng.standard_normal(len(k))
     wt = scale_w * w[k] + bias_w + 0.05 * rng.standard_normal(len(k))
     phi = np.r_[0.0, np.cumsum(wt[:-1] * 0.01)]
@@ -114,6 +117,20 @@ def test_odometry_audit_recovers_an_injected_scale_and_bias():
         assert r["bias"] == pytest.approx(bias, abs=0.005), q
         assert r["scale_lo"] < scale < r["scale_hi"], q
         assert r["bias_lo"] < bias < r["bias_hi"], q
+
+
+def test_response_lag_is_found_and_the_scale_read_at_it():
+    log = _biased_log(0.8, 0.01, 0.6, -0.02, lag=0.2)
+    ex = mrclam.exclusions(log, misfit=None)
+    lag = drive_audit.response_lag(log, ex, log.t_start, log.t_end)
+    assert lag == pytest.approx(0.2)
+    win = drive_audit.odometry_windows(log, ex, log.t_start, log.t_end, lag)
+    rows = {r["quantity"]: r for r in drive_audit.odometry_rows("x", win, seed=0)}
+    assert rows["w"]["scale"] == pytest.approx(0.6, abs=0.01)
+    # read at lag 0 the scale looks smaller: the windows straddle the changes of command
+    win0 = drive_audit.odometry_windows(log, ex, log.t_start, log.t_end, 0.0)
+    w0 = {r["quantity"]: r for r in drive_audit.odometry_rows("x", win0, seed=0)}["w"]
+    assert w0["scale"] < 0.6 - 0.05
 
 
 def test_windows_touching_a_vicon_gap_are_left_out():
@@ -219,7 +236,7 @@ def test_report_shows_the_audit_and_the_nees_per_drive(tmp_path):
     tables = [b for b in blocks if isinstance(b, TableBlock)]
     assert len(tables) == 2
     assert tables[0].rows[0][-1].text == "odometry scale/bias"
-    assert tables[0].rows[0][12].text == "25.0 %"  # 25 s of 100 s in gaps over 2 s
+    assert tables[0].rows[0][13].text == "25.0 %"  # 25 s of 100 s in gaps over 2 s
     assert tables[1].rows[0][7].text == "2 (1)"
     runs = pd.DataFrame({"filter": ["a", "a", "b", "b"], "run": [0, 1, 0, 1],
                          "nees_in_bounds": [0.5, 0.25, 1.0, 0.0]})  # fmt: skip

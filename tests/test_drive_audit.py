@@ -232,12 +232,19 @@ def test_report_shows_the_audit_and_the_nees_per_drive(tmp_path):
           "outliers_accepted": 1, "max_err_calibration": 0.4, "max_err_true_odometry": 0.1,
           "max_err_outlier_removal": 1.2, "cause": "odometry scale/bias"}  # fmt: skip
     pd.DataFrame([ep]).to_parquet(tmp_path / AUDIT_FILES["episodes"])
+    stats = {"n": 10, "range_median": 0.05, "range_robust_std": 0.1, "bearing_median": -0.02,
+             "bearing_robust_std": 0.01}  # fmt: skip
+    meas = [{"drive": "d6-r1", "landmark": -1, "range_bin": b, **stats}
+            for b in ("all", "0-1.5 m", ">= 5 m")]  # fmt: skip
+    pd.DataFrame(meas).to_parquet(tmp_path / AUDIT_FILES["measurements"])
     blocks = audit_blocks(tmp_path)
     tables = [b for b in blocks if isinstance(b, TableBlock)]
-    assert len(tables) == 2
+    assert len(tables) == 3
     assert tables[0].rows[0][-1].text == "odometry scale/bias"
     assert tables[0].rows[0][13].text == "25.0 %"  # 25 s of 100 s in gaps over 2 s
-    assert tables[1].rows[0][7].text == "2 (1)"
+    assert list(tables[1].header[1:3]) == ["range 0-1.5 m [m]", "range >= 5 m [m]"]
+    assert tables[1].rows[0][1].text == "0.050 / 0.100 (10)"
+    assert tables[2].rows[0][7].text == "2 (1)"
     runs = pd.DataFrame({"filter": ["a", "a", "b", "b"], "run": [0, 1, 0, 1],
                          "nees_in_bounds": [0.5, 0.25, 1.0, 0.0]})  # fmt: skip
     runs.to_parquet(tmp_path / "runs.parquet")

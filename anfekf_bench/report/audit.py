@@ -96,6 +96,7 @@ def audit_blocks(folder: Path) -> list[Block]:
         Paragraph(AUDIT_TEXT),
         TableBlock(header, rows, (False,) + (True,) * (len(header) - 2) + (False,)),
     ]
+    out += range_blocks(_read(folder, "measurements"))
     if episodes is not None and not episodes.empty:
         header = ("drive", "onset [s]", "peak [m]", "lead-up [s]", "longest gap [s]", "turning",
                   "heading drift [rad]", "outliers (accepted)", "calibrated [m]",
@@ -115,6 +116,38 @@ def audit_blocks(folder: Path) -> list[Block]:
         out += [Paragraph(EPISODES_TEXT),
                 TableBlock(header, rows, (False,) + (True,) * 10 + (False,))]  # fmt: skip
     return out
+
+
+def range_blocks(meas: pd.DataFrame | None) -> list[Block]:
+    """Per drive and true-range bin: the range and bearing residuals' median and robust std."""
+    if meas is None or meas.empty:
+        return []
+    binned = meas[(meas["landmark"] == -1) & (meas["range_bin"] != "all")]
+    bins = list(dict.fromkeys(binned["range_bin"]))
+    rows = []
+    for drive, sub in binned.groupby("drive", sort=False):
+        by = sub.set_index("range_bin")
+        row = [Cell(str(drive))]
+        for b in bins:
+            r = by.loc[b]
+            row.append(Cell(f"{format_number(r['range_median'], 3)} / "
+                            f"{format_number(r['range_robust_std'], 3)} ({int(r['n'])})",
+                            float(r["range_median"])))  # fmt: skip
+        for b in bins:
+            r = by.loc[b]
+            row.append(Cell(f"{format_number(r['bearing_median'], 4)} / "
+                            f"{format_number(r['bearing_robust_std'], 4)}",
+                            float(r["bearing_median"])))  # fmt: skip
+        rows.append(row)
+    header = ("drive", *(f"range {b} [m]" for b in bins), *(f"bearing {b} [rad]" for b in bins))
+    return [
+        TableBlock(
+            header,
+            rows,
+            (False,) + (True,) * (len(header) - 1),
+            caption="Residuals by true range: median / robust std (measurements):",
+        )
+    ]
 
 
 def nees_per_drive_blocks(folder: Path, names: list[str], drives: list[str]) -> list[Block]:

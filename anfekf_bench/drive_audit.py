@@ -74,7 +74,7 @@ def odometry_windows(
     v_cmd = audit.held_means(log.odo_t, log.odo_v, edges)
     w_cmd = audit.held_means(log.odo_t, log.odo_w, edges)
     v, w = audit.truth_velocities(
-        log.truth_t, log.truth_x, log.truth_y, np.unwrap(log.truth_phi), edges + lag_s
+        log.truth_t, log.truth_x, log.truth_y, log.truth_phi_unwrapped, edges + lag_s
     )
     ok = _clear(ex, edges[:-1] + lag_s, edges[1:] + lag_s)
     return {
@@ -170,7 +170,7 @@ def _true_odometry(tl, log: mrclam.RobotLog, ex: mrclam.Exclusions, calibrated) 
     commanded one)."""
     edges = np.r_[tl.t_start, tl.t]
     v, w = audit.truth_velocities(
-        log.truth_t, log.truth_x, log.truth_y, np.unwrap(log.truth_phi), edges
+        log.truth_t, log.truth_x, log.truth_y, log.truth_phi_unwrapped, edges
     )
     ok = ex.scorable(edges[:-1]) & ex.scorable(edges[1:])
     base = (calibrated if calibrated is not None else tl).u

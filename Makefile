@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 ANFEKF := $(VENV)/bin/anfekf
 OUT    ?= results
 
-.PHONY: setup reproduce run report test lint format bench gate clean readme docs zoo sweeps real changing drives learned learned-drives
+.PHONY: setup reproduce run report test test-quick test-all lint format bench gate clean readme docs zoo sweeps real changing drives learned learned-drives
 
 setup: $(VENV)/.installed
 
@@ -25,8 +25,18 @@ run: setup
 report: setup
 	$(ANFEKF) report $(OUT) --out $(OUT)/report
 
+## The tests run on up to 4 processes (pytest-xdist; 2 on the 2-core CI machine). `make test` is
+## what CI runs: every test but the few marked `heavy`; `make test-quick` leaves out the `slow`
+## end-to-end tests too (about a minute); `make test-all` runs everything.
+PYTEST := $(PY) -m pytest -q -n auto --maxprocesses 4 --dist worksteal
 test: setup
-	$(PY) -m pytest -q
+	$(PYTEST) -m "not heavy"
+
+test-quick: setup
+	$(PYTEST) -m "not slow"
+
+test-all: setup
+	$(PYTEST)
 
 lint: setup
 	$(VENV)/bin/ruff check .

@@ -85,11 +85,12 @@ VARIANTS: dict[str, FilterSpec] = {
 
 
 def ctx_of(spec: FilterSpec, scenario, world) -> FilterContext:
-    """The FilterContext `build_filter` gives this spec (read back from the filter it builds)."""
+    """The FilterContext `build_filter` gives this spec (read back from the filter it builds;
+    the pose block of an augmented one)."""
     flt = build_filter(spec, scenario, world)
     return FilterContext(
-        x0=flt.x.copy(), P0=flt.P.copy(), Qu=flt.Qu.copy(), R=flt.R.copy(), model=flt.model,
-        dt=flt.dt, gate=flt.gate,
+        x0=flt.x[:3].copy(), P0=flt.P[:3, :3].copy(), Qu=flt.Qu.copy(), R=flt.R.copy(),
+        model=flt.model, dt=flt.dt, gate=flt.gate,
     )  # fmt: skip
 
 

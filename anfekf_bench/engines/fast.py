@@ -35,6 +35,7 @@ from ..filters import anfis
 from ..filters.akhlaghi import AkhlaghiSpec
 from ..filters.als import ALSSpec
 from ..filters.anfekf import ANFEKFSpec
+from ..filters.augmented import PARAMETERS, AugmentedSpec
 from ..filters.bank import IMMSpec, MMAESpec, hypotheses
 from ..filters.cm_scale import CMScaleSpec
 from ..filters.ekf import EKFSpec
@@ -53,6 +54,7 @@ from ..timeline import Timeline, from_run
 from ..timeline import clear_cache as clear_timeline_cache
 from . import kernels as _jit_kernels
 from . import kernels_als as _jit_kernels_als
+from . import kernels_augmented as _jit_kernels_augmented
 from . import kernels_kalmannet as _jit_kernels_kalmannet
 from .fast_support import SUPPORTED_SPECS, supported_type  # noqa: F401  (SUPPORTED_SPECS: re-exported)
 
@@ -137,6 +139,8 @@ def run_filter_fast(
 
     if isinstance(spec, KalmanNetSpec):
         return _run_kalmannet(spec, ctx, run, x, P, R, Qu, n, jit)
+    if isinstance(spec, AugmentedSpec):
+        return run_augmented(spec, ctx, run, x, P, R, Qu, n, jit)[0]
     if isinstance(spec, ALSSpec):
         ka = _jit_kernels_als.pure_module() if (JIT and not jit) else _jit_kernels_als
         diverged, j, nis_sum, n_updates, n_rejected = ka.run_als_kernel(
@@ -304,6 +308,35 @@ def _run_kalmannet(spec: KalmanNetSpec, ctx: FilterContext, run: tuple, x, P, R,
     return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
 
 
+def run_augmented(spec: AugmentedSpec, ctx: FilterContext, run: tuple, x, P, R, Qu, n, jit):
+    """filters.augmented.AugmentedEKF on `kernels_augmented.run_augmented_kernel`: the run's
+    dict and the four parameters at the recorded stamps, (n, 4)."""
+    ka = _jit_kernels_augmented.pure_module() if (JIT and not jit) else _jit_kernels_augmented
+    theta = np.full((n, 4), np.nan)
+    diverged, j, nis_sum, n_updates, n_rejected = ka.run_augmented_kernel(
+        *_common_args(ctx, run),
+        np.array(spec.estimated(), dtype=np.int64), np.array(spec.start, dtype=float),
+        np.array(spec.sigma0, dtype=float), np.array(spec.drift, dtype=float),
+        run[-1], x, P, R, Qu, theta,
+    )  # fmt: skip
+    if diverged:
+        theta[j:] = np.nan
+    return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected), theta
+
+
+def augmented_run(spec: AugmentedSpec, ctx: FilterContext, tl: Timeline, *, jit: bool = True):
+    """`run_filter_fast` of an `ekf-aug` and its parameter estimates at the recorded stamps
+    (n, 4: speed scale, turn scale, turn bias, range bias)."""
+    motion = _motion(ctx.model)
+    if motion is None:
+        raise ValueError(f"the fast engine does not implement {type(ctx.model)}")
+    run = _run_args(tl, motion)
+    n = int(np.count_nonzero(tl.record))
+    x, P = np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan)
+    R, Qu = np.full((n, 2), np.nan), np.full((n, 2), np.nan)
+    return run_augmented(spec, ctx, run, x, P, R, Qu, n, jit)
+
+
 def _run_bank(k, spec: MMAESpec, ctx: FilterContext, run: tuple, x, P, R, Qu):
     """filters.bank.BankEKF on `kernels.run_bank_kernel`."""
     factors = hypotheses(spec)
@@ -360,6 +393,7 @@ WARM_UP_KERNELS = (
     (_jit_kernels, "run_swvb_kernel"), (_jit_kernels, "run_sage_husa_kernel"),
     (_jit_kernels, "run_iae_kernel"), (_jit_kernels_als, "run_als_kernel"),
     (_jit_kernels_kalmannet, "run_kalmannet_kernel"),
+    (_jit_kernels_augmented, "run_augmented_kernel"),
 )  # fmt: skip
 COMPILE_ESTIMATE = "about 1-2 min"  # results/bench.json: fast_compile_s 47 s on 2 free cores
 
@@ -406,6 +440,7 @@ def warm_up(jit: bool = True) -> float:
         VBAKFSpec(name="vbakf", kind="vbakf"), SWVBSpec(name="swvb", kind="swvb"),
         SageHusaSpec(name="sage-husa", kind="sage-husa", adapt="RQ"),
         IAESpec(name="iae", kind="iae", adapt="Q"), ALSSpec(name="als", kind="als"),
+        AugmentedSpec(name="ekf-aug", kind="ekf-aug", estimate=list(PARAMETERS)),
         KalmanNetSpec.model_construct(name="kalmannet", kind="kalmannet").with_weights(
             KalmanNetWeights.random(hidden_size=4)
         ),

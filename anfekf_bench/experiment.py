@@ -578,6 +578,7 @@ def write_result(
         tables,
         steps_table=plan.scenario.steps_table,
         metadata={"scenario": plan.name, "seed": str(plan.seed), "fingerprint": fingerprint},
+        extra=prepared.tables,
     )
     manifest = {
         "scenario": plan.scenario.model_dump(mode="json"),

@@ -431,7 +431,12 @@ class ResultTables:
 
 
 def write_result_tables(
-    target: Path, tables: ResultTables, *, steps_table: bool, metadata: dict | None = None
+    target: Path,
+    tables: ResultTables,
+    *,
+    steps_table: bool,
+    metadata: dict | None = None,
+    extra: dict[str, pd.DataFrame] | None = None,
 ) -> None:
     """Write every table atomically; steps.parquet only when the scenario asks for it.
 
@@ -453,6 +458,8 @@ def write_result_tables(
     write_json(target / CLAIMS_FILE, tables.claims)
     if tables.phases is not None:
         parquet(PHASES_FILE, tables.phases)
+    for name, df in (extra or {}).items():  # the source's own tables (the drive audit)
+        parquet(name, df)
 
 
 # --------------------------------------------------------------------------------------------

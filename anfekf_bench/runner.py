@@ -24,7 +24,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from typing import Literal
 
@@ -205,6 +205,7 @@ class Prepared:
     action: str
     manifest: dict
     control_steps: int
+    tables: dict = field(default_factory=dict)  # file name -> DataFrame (the drive audit)
 
 
 def run_chunk(items: list[Callable[[], dict]]) -> list[dict]:

@@ -52,8 +52,16 @@ SWEEP_CELLS_DIR = "cells"  # a sweep's cells: <sweep>/cells/<cell>/, each a scen
 SWEEP_FILE = "sweep.parquet"  # a sweep's table: one row per cell and filter
 STAGING_DIR = "result"  # in RUNS_DIR: a finished batch's files before they replace the old ones
 RESULT_FORMAT = "anfekf-bench result v1"  # manifest.json's "format": what marks a folder as ours
+# The drive audit's tables (drive_audit, SPEC 18): a `protocol: drives` result only
+AUDIT_FILES = {
+    "drives": "audit_drives.parquet",
+    "odometry": "audit_odometry.parquet",
+    "measurements": "audit_measurements.parquet",
+    "whiteness": "audit_whiteness.parquet",
+    "episodes": "audit_episodes.parquet",
+}
 RESULT_FILES = (STEPS_FILE, RUNS_FILE, SUMMARY_PARQUET, SUMMARY_JSON, COMPARISONS_FILE, CLAIMS_FILE,
-                PHASES_FILE)  # fmt: skip
+                PHASES_FILE, *AUDIT_FILES.values())  # fmt: skip
 
 # Names a scenario may not take: its folder is a direct child of --out, beside these.
 RESERVED_NAMES = frozenset(

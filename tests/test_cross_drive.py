@@ -9,6 +9,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import yaml
 
@@ -378,3 +379,21 @@ def test_two_drives_end_to_end_with_report(tmp_path):
     assert res.exit_code == 0, res.output
     text = (tmp_path / "rep" / "report.md").read_text()
     assert "cross / in-dataset" in text and "drives_heatmap.png" in text
+    # the audit against Vicon (issue 35): its tables, and the report shows them
+    from anfekf_bench.storage import AUDIT_FILES
+
+    for name in AUDIT_FILES.values():
+        assert (folder / name).is_file(), name
+    audited = pd.read_parquet(folder / AUDIT_FILES["drives"])
+    assert audited["drive"].tolist() == ["d6-r1", "d7-r1"]
+    assert "audited against Vicon" in text and "w scale [95 %]" in text
+    # consistency run by run: the summary's share pools every scored step of both drives
+    steps = pd.read_parquet(folder / "steps.parquet")
+    nees = steps[steps["filter"] == "ekf-tuned"]["nees"].to_numpy()
+    nees = nees[np.isfinite(nees)]
+    summary = {r["filter"]: r for r in json.loads((folder / "summary.json").read_text())}
+    assert summary["ekf-tuned"]["nees_in_bounds"] == pytest.approx(
+        np.mean((nees > 0.2158) & (nees < 9.348)), abs=1e-3
+    )
+    runs = pd.read_parquet(folder / "runs.parquet")
+    assert runs["nees_in_bounds"].between(0, 1).all()

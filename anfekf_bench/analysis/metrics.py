@@ -53,6 +53,33 @@ def nees_bounds(runs: int, dim: int = 3, confidence: float = 0.95) -> tuple[floa
     return float(chi2.ppf(alpha / 2, dof) / runs), float(chi2.ppf(1 - alpha / 2, dof) / runs)
 
 
+def single_run_bounds(dim: int = 3, confidence: float = 0.95) -> tuple[float, float]:
+    """The two-sided bounds of ONE run's NEES: chi-square(dim) quantiles."""
+    a = (1 - confidence) / 2
+    return float(chi2.ppf(a, dim)), float(chi2.ppf(1 - a, dim))
+
+
+def nees_single_run(nees: np.ndarray, dim: int = 3, confidence: float = 0.95) -> dict:
+    """Each run's own NEES against the single-run chi-square(dim) bounds, for (runs, steps)
+    NEES with NaN where a step has no score: the share strictly inside, per run and pooled
+    over every scored step of every run (each step counts once, so a longer run weighs more)."""
+    nees = np.atleast_2d(np.asarray(nees, dtype=float))
+    lo, hi = single_run_bounds(dim, confidence)
+    scored = np.isfinite(nees) | np.isposinf(nees)
+    inside = (nees > lo) & (nees < hi)
+    counts = scored.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_run = np.where(counts > 0, inside.sum(axis=1) / counts, np.nan)
+    total = int(counts.sum())
+    return {
+        "lo": lo,
+        "hi": hi,
+        "per_run": per_run,
+        "scored": counts,
+        "pooled": float(inside.sum() / total) if total else math.nan,
+    }
+
+
 def add_trace_metrics(trace: dict, x_true: np.ndarray) -> dict:
     """Per-step pos_err, heading_err and NEES of a filter's trace, in bulk from its arrays."""
     e = pose_errors(x_true, trace["x"])

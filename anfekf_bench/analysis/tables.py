@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from .metrics import nan_aware_mean, summarize_filter
+from .metrics import nan_aware_mean, nees_single_run, summarize_filter
 
 STEP_COLUMNS = [
     "scenario", "filter", "run", "step", "t",
@@ -127,8 +127,8 @@ def _peak(peak, values: np.ndarray) -> float:
 
 
 RUN_COLUMNS = [
-    "scenario", "filter", "run", "rmse_pos", "rmse_heading", "mean_nees", "max_nees", "diverged",
-    "n_updates", "n_rejected", "anis",
+    "scenario", "filter", "run", "rmse_pos", "rmse_heading", "mean_nees", "max_nees",
+    "nees_in_bounds", "diverged", "n_updates", "n_rejected", "anis",
 ]  # fmt: skip
 
 
@@ -136,7 +136,9 @@ def runs_frame(scenario_name: str, filter_names: list[str], results: list[dict])
     """The per-run table of runs.parquet (SPEC 8): one row per (filter, run).
 
     rmse_pos / rmse_heading: the run's own RMSE over its recorded steps [m] / [rad]; mean_nees and
-    max_nees over its steps; anis: its mean NIS per accepted update. A diverged run keeps its row
+    max_nees over its steps; nees_in_bounds: the share of its scored steps whose own NEES lies
+    inside the single-run 95 % chi-square(3) bounds (metrics.nees_single_run; on recorded drives
+    the fraction per drive); anis: its mean NIS per accepted update. A diverged run keeps its row
     (NaN metrics), so a comparison can see which runs both filters kept.
     """
     results = sorted(results, key=lambda r: r["run"])
@@ -155,6 +157,8 @@ def runs_frame(scenario_name: str, filter_names: list[str], results: list[dict])
                     "rmse_heading": float(np.sqrt(mean(np.square(tr["heading_err"])))),
                     "mean_nees": float(mean(tr["nees"])),
                     "max_nees": _peak(peak, tr["nees"]),
+                    "nees_in_bounds": float("nan") if tr["diverged"]
+                    else float(nees_single_run(tr["nees"])["per_run"][0]),
                     "diverged": bool(tr["diverged"]),
                     "n_updates": int(tr["n_updates"]),
                     "n_rejected": int(tr["n_rejected"]),

@@ -44,6 +44,7 @@ from ..storage import (
     read_steps,
     scenario_name_problem,
 )
+from .audit import audit_blocks, nees_per_drive_blocks
 from .document import Block, Cell, Heading, ListBlock, Paragraph, TableBlock
 from .plots import (
     FigureSaver,
@@ -751,14 +752,17 @@ def _sources(entry: dict | None) -> list[int]:
 
 def drives_table(rd: RealData) -> TableBlock:
     """Per instance (drives protocol): the ratio to ekf-tuned over drives with its interval, the
-    Wilcoxon p, the drives it beat ekf-tuned on, its median RMSE and the drives it lost lock on."""
+    Wilcoxon p, the drives it beat ekf-tuned on, its median RMSE, the drives it lost lock on and
+    its NEES in bounds (each drive's own NEES against single-run bounds, pooled)."""
     header = ("filter", "start", "ratio to ekf-tuned [95 %]", "p", "better on", "median RMSE [m]",
-              "lost lock")  # fmt: skip
+              "lost lock", "NEES in bounds")  # fmt: skip
     rows = [
         [
             Cell(r["base"]), Cell(_start_text(r)), _ratio_cell(r),
             _number(r["p_value"], 3), _count_cell(r["better"], r["used"]),
             _number(r["rmse_median"], 3), _count_cell(r["lost_lock"], r["drives"]),
+            Cell(format_share(_value(rd.record(r["filter"]).get("nees_in_bounds"))),
+                 _value(rd.record(r["filter"]).get("nees_in_bounds"))),
         ]
         for r in drive_ratio_rows(rd)
     ]  # fmt: skip
@@ -781,7 +785,10 @@ def drives_section(rd: RealData, save: FigureSaver, level: int = 3) -> list[Bloc
         " over drives of each drive's position RMSE over ekf-tuned's on that drive, with a"
         " paired 95 % BCa bootstrap interval over drives (the independent repeats) and the"
         f" Wilcoxon p. Lost lock: drives with a position error above {LOST_LOCK_M:g} m at a"
-        " scored time (or diverged)."
+        " scored time (or diverged). NEES in bounds: the share of every scored step of every"
+        " drive whose own NEES lies inside the single-run 95 % chi-square(3) bounds [0.216,"
+        " 9.35] (a step index is a different time on each drive: nothing is averaged across"
+        " drives)."
     ))  # fmt: skip
     out.append(drives_table(rd))
     if tuning.get("per_drive"):
@@ -809,6 +816,11 @@ def drives_section(rd: RealData, save: FigureSaver, level: int = 3) -> list[Bloc
     rows = [[Cell(str(name)), *(_number(v, 3) for v in row)] for name, row in rm.iterrows()]
     out.append(TableBlock(("filter", *rm.columns), rows, (False,) + (True,) * rm.shape[1],
                           caption="Per drive position RMSE [m]:"))  # fmt: skip
+    out += nees_per_drive_blocks(rd.folder, [f["name"] for f in rd.instances()], drive_ids(rd))
+    audit = audit_blocks(rd.folder)
+    if audit:
+        out += [Heading(f"{rd.name}: the drives audited against Vicon", level + 1,
+                        anchor=f"real-{rd.slug}-audit"), *audit]  # fmt: skip
     return out + _figures(rd, save, DRIVES_FIGURES)
 
 

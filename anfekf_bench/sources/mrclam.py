@@ -191,6 +191,11 @@ class RobotLog:
         return self._cache["meas_xy"]
 
     @property
+    def truth_phi_unwrapped(self) -> np.ndarray:
+        """The ground-truth heading unwrapped over the whole log (continuous through +-pi)."""
+        return self._cache["phi_unwrapped"]
+
+    @property
     def landmarks(self) -> dict[int, tuple[float, float]]:
         """The map as {landmark id: (x, y)}."""
         return {

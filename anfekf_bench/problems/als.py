@@ -26,7 +26,7 @@ from scipy.linalg import solve_discrete_lyapunov
 
 from .base import Problem
 from .filters import PSD_FLOOR, GenericKF, Matrix, ProblemFilterSpec
-from .kalman import nearest_psd
+from .kalman import linear_recursion, nearest_psd
 
 
 def symmetric_basis(m: int) -> list[np.ndarray]:
@@ -74,13 +74,10 @@ def sample_autocovariances(y: np.ndarray, lags: int) -> np.ndarray:
 
 def fixed_gain_innovations(problem: Problem, z: np.ndarray, K: np.ndarray) -> np.ndarray:
     """y(k) = z(k) - H x^(k) of the predictor x^(k+1) = F x^(k) + K y(k) from the start."""
+    # x^(k+1) = (F - K H) x^(k) + K z(k): a linear recursion driven by z
     F, H = problem.Fm, problem.Hm
-    x = problem.x0.copy()
-    y = np.empty_like(z)
-    for k in range(len(z)):
-        y[k] = z[k] - H @ x
-        x = F @ x + K @ y[k]
-    return y
+    x = linear_recursion(F - K @ H, K, np.ascontiguousarray(z, dtype=float), problem.x0)
+    return z - x @ H.T
 
 
 class ALSIdentifier:

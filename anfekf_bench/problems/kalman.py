@@ -29,6 +29,23 @@ except ImportError:  # pragma: no cover - numba is installed wherever CI runs th
         return fn
 
 
+@compiled
+def linear_recursion(A, B, u, x0):  # pragma: no cover - compiled; tests call it
+    """x(0) = x0, x(k+1) = A x(k) + B u(k): the states (len(u), n) of a linear recursion."""
+    n, steps = x0.shape[0], u.shape[0]
+    x = np.empty((steps, n))
+    x[0] = x0
+    for k in range(steps - 1):
+        for i in range(n):
+            acc = 0.0
+            for j in range(n):
+                acc += A[i, j] * x[k, j]
+            for j in range(u.shape[1]):
+                acc += B[i, j] * u[k, j]
+            x[k + 1, i] = acc
+    return x
+
+
 def symmetric(M: np.ndarray) -> np.ndarray:
     return 0.5 * (M + M.T)
 

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Problem
+from .base import Problem, Trajectory
+from .kalman import linear_recursion
 
 SURVEY_F = ((0.9, 0.0), (-0.3, 0.8))
 SURVEY_H = ((1.0, 0.0), (0.0, 1.0))
@@ -39,6 +40,15 @@ class LinearProblem(Problem):
         self.P0 = np.eye(self.n) if P0 is None else np.array(P0, dtype=float)
         self.steps = int(steps)
         self.position = tuple(range(self.n)) if position is None else tuple(position)
+
+    def simulate(self, rng: np.random.Generator) -> Trajectory:
+        """As `Problem.simulate` (the same draws in the same order), the recursion as one tight
+        loop and the measurements in bulk."""
+        x0 = rng.multivariate_normal(self.x0, self.P0)
+        w = rng.multivariate_normal(np.zeros(self.nw), self.Q, size=self.steps)
+        v = rng.multivariate_normal(np.zeros(self.nz), self.R, size=self.steps)
+        x = linear_recursion(self.Fm, self.Gm, w, x0)
+        return Trajectory(x=x, z=x @ self.Hm.T + v)
 
     def f(self, x, k):
         return self.Fm @ x

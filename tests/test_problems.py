@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from anfekf_bench.config import ScenarioError
 from anfekf_bench.filters.registry import KINDS, problems_of, supports_problem, unsupported_reason
@@ -144,7 +145,7 @@ def test_als_refuses_an_unstable_gain_and_a_single_lag():
     p = survey_problem()
     with pytest.raises(ValueError, match="stable"):
         ALSSpec(name="a", kind="als", gain=-0.5).build(p, np.eye(2), np.eye(2))
-    with pytest.raises(Exception):
+    with pytest.raises(ValidationError):
         ALSSpec(name="a", kind="als", lags=1)
 
 

@@ -804,7 +804,10 @@ def report(
         console.print(f"warning: {warning}", markup=False, highlight=False, soft_wrap=True)
     figures = sum(1 for p in done.files if p.suffix not in (".md", ".html"))
     pages = [str(p) for p in done.files if p.name in (REPORT_FILE, HTML_FILE)]
-    parts = [plural(len(done.scenarios), "scenario")] if done.scenarios or not sweep_folders else []
+    shown = done.scenarios or not (sweep_folders or done.problems)
+    parts = [plural(len(done.scenarios), "scenario")] if shown else []
+    if done.problems:
+        parts.append(plural(done.problems, "problem result"))
     if sweep_folders:
         parts.append(plural(len(sweep_folders), "sweep"))
     console.print(

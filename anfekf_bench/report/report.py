@@ -128,6 +128,7 @@ class ReportResult:
     rows: list[SummaryRow]
     files: list[Path] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    problems: int = 0  # problem results (SPEC 17) in the report
 
 
 # --------------------------------------------------------------------------- finding results
@@ -901,7 +902,8 @@ def write_report(
     names += [f["base"] for rd in recorded for f in rd.instances()]
     with plots.palette(names):  # a sweep's filters in the scenarios' colours, by name
         doc = build_document(scenarios, rows, [*recorded, *swept], save, out_dir)
-    doc.add(*problem_blocks(problem_results))
+    doc.add(*problem_blocks(problem_results, save, fmt.value))
+    result.problems = len(problem_results)
     result.files += save.files
     outputs = {REPORT_FILE: to_markdown(doc)}
     if html:

@@ -898,7 +898,13 @@ def kinds(
     """List every filter kind (or the KINDs named): what it adapts, which engines run it, its
     parameters and defaults."""
     from .engines import fast_support
-    from .filters.registry import KINDS, adapts_line, capabilities
+    from .filters.registry import (
+        KINDS,
+        adapts_line,
+        capabilities,
+        problems_of,
+        unsupported_reason,
+    )
 
     fast_support.register()  # the fast engine's kinds, without importing numba and its kernels
     unknown = [n for n in names or () if n not in KINDS]
@@ -911,6 +917,11 @@ def kinds(
             f"  adapts: {adapts_line(info)}; engines: {', '.join(info.engines)}",
             markup=False, highlight=False, soft_wrap=True,
         )  # fmt: skip
+        others = sorted(problems_of(kind) - {"robot"})
+        runs_on = ", ".join(["robot", *others]) if others else (
+            f"robot only ({unsupported_reason(kind, 'linear').split(': ', 1)[1]})"
+        )  # fmt: skip
+        console.print(f"  problems: {runs_on}", markup=False, highlight=False, soft_wrap=True)
         for name, default, description in info.params:
             line = f"  {name} = {default}" + (f": {description}" if description else "")
             console.print(one_line(line), markup=False, highlight=False, soft_wrap=True)

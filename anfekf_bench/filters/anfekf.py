@@ -72,7 +72,7 @@ class ANFEKFSpec(AdaptiveSpec):
 
     kind: Literal["anfekf"]
     robot_only_because: ClassVar[str] = (
-        "its two ANFIS watch the range and bearing channels (the paper's design): robot only"
+        "its two ANFIS watch the range and bearing channels, the paper's design"
     )
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     adapt: Literal["R", "Q", "RQ"] = Field(

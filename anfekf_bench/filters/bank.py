@@ -286,7 +286,7 @@ class MMAESpec(AdaptiveSpec):
 
     kind: Literal["mmae"]
     robot_only_because: ClassVar[str] = (
-        "its grid of hypotheses is over the robot's four noise sigmas: robot only for now"
+        "its grid of hypotheses is over the robot's four noise sigmas"
     )
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     qu_factors: Factors = Field(

@@ -149,7 +149,5 @@ class EKFTunedSpec(FittedNoiseSpec):
     the fair "tuned with truth" reference of a simulated scenario."""
 
     kind: Literal["ekf-tuned"]
-    robot_only_because: ClassVar[str] = (
-        "its grid search is over the robot's four noise sigmas: robot only for now"
-    )
+    robot_only_because: ClassVar[str] = "its grid search is over the robot's four noise sigmas"
     criterion: ClassVar[str] = "rmse"

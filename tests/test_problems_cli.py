@@ -124,3 +124,16 @@ def test_problem_tables_are_parquet_with_the_documented_columns(problem_yaml, tm
         assert col in summary.columns
     runs = pd.read_parquet(out / "lin" / TABLES["runs"])
     assert {"q_0_1", "r_1_1", "rmse_pos", "anees"} <= set(runs.columns)
+
+
+@pytest.mark.slow
+def test_the_same_seed_gives_the_same_bytes_whatever_the_workers(problem_yaml, tmp_path):
+    for jobs in ("1", "2"):
+        result = runner.invoke(app, ["run", str(problem_yaml), "--out", str(tmp_path / jobs),
+                                     "--jobs", jobs])  # fmt: skip
+        assert result.exit_code == 0, result.output
+    for key, file in TABLES.items():
+        if key != "timing":
+            assert (tmp_path / "1" / "lin" / file).read_bytes() == (
+                tmp_path / "2" / "lin" / file
+            ).read_bytes()

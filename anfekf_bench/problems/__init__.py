@@ -9,8 +9,10 @@ the default and keeps its own pipeline. Layout:
 - `linear`: a linear time-invariant system, by default the survey's (Dunik et al. 2017);
 - `schema`: the scenario file of a problem (`problem: linear`), validated strictly;
 - `kalman`: the generic (E)KF step and its likelihood, shared by every filter;
-- `filters`: the dimension-generic filters (kinds of the registry: ekf, ekf-oracle, sage-husa,
-  als, ekf-ml, vb-r) and `als_identify`, the autocovariance least squares;
+- `filters`: the generic loop and the kinds ekf, ekf-oracle, sage-husa, vb-r (kinds of the
+  registry, which says which problems each kind runs on); `als`: the autocovariance least
+  squares (`als_identify`) and its filter; `ml`: the likelihood fit and its filter;
 - `scoring`: per-run and per-filter tables of the state and the noise estimate;
-- `experiment`: a problem scenario end to end (runs, tables, manifest) and `report_section`.
+- `experiment`: a problem scenario end to end (training fits, runs, tables, manifest);
+- `report`: its tables as text, for `anfekf run` and `anfekf report` (report.problems).
 """

@@ -44,7 +44,7 @@ from .analysis.tables import (
     summary_records,
     update_statistics,
 )
-from .config import BackendConfig, Engine, Scenario, World
+from .config import BackendConfig, Engine, Scenario, SimulatedScenario, World
 from .filters.context import build_filter
 from .filters.custom import CustomFilterFailed, CustomSpec
 from .outputs import (
@@ -64,7 +64,6 @@ from .outputs import (
 )
 from .real_experiment import RecordedSource
 from .runner import Prepared, connect_dask, dispatch_runs, engine_of, fast_compiled, simulated_items
-from .sources.recorded import RealScenario
 from .sources.simulator import RouteNotCompleted, simulate_truth, world_path
 from .storage import (
     MANIFEST_FILE,
@@ -116,7 +115,7 @@ class Source(Protocol):
 class Plan:
     """A scenario with the command line's overrides applied, and where its runs come from."""
 
-    scenario: Scenario | RealScenario
+    scenario: Scenario
     source: Source
     seed: int
     jobs: int
@@ -148,7 +147,7 @@ class Plan:
 
 
 def make_plan(
-    scenario: Scenario | RealScenario,
+    scenario: Scenario,
     world,
     runs: int | None,
     seed: int | None,
@@ -169,10 +168,10 @@ def make_plan(
     )
 
 
-def plan_source(scenario: Scenario | RealScenario, world, runs: int | None) -> Source:
-    """The source of a scenario's runs: the one place past `scenarios.load_scenario` (which
-    tells a recorded log's document from a simulated one's) that tells them apart."""
-    if not isinstance(scenario, RealScenario):
+def plan_source(scenario: Scenario, world, runs: int | None) -> Source:
+    """The source of a scenario's runs, by the member of the source union it is
+    (`Scenario.source`): the one place past `scenarios.load_scenario` that tells them apart."""
+    if scenario.source == "simulated":
         return SimulatedSource(world, scenario.runs if runs is None else runs)
     if runs is not None:
         raise PlanError(
@@ -367,7 +366,7 @@ class SimulatedSource:
     world: World
     runs: int
 
-    def filter_names(self, scenario: Scenario) -> list[str]:
+    def filter_names(self, scenario: SimulatedScenario) -> list[str]:
         return scenario.instance_names()
 
     def fingerprint_doc(self, plan: Plan) -> dict:
@@ -452,7 +451,7 @@ class SimulatedSource:
             for name, spec, _ in plan.scenario.instances()
         }
 
-    def comparison_pairs(self, scenario: Scenario) -> list[tuple[str, str]]:
+    def comparison_pairs(self, scenario: SimulatedScenario) -> list[tuple[str, str]]:
         """Every instance against each reference kind's first instance, the one from the
         assumed noise itself (start 1 or none) when there is one."""
         found = [(name, spec.role, m in (None, 1.0)) for name, spec, m in scenario.instances()]

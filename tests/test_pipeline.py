@@ -17,7 +17,7 @@ from anfekf_bench.cli import app
 from anfekf_bench.config import parse_scenario, resolve_world
 from anfekf_bench.experiment import execute, make_plan
 from anfekf_bench.models import f
-from anfekf_bench.runner import run_one
+from anfekf_bench.runner import simulated_run
 from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources.simulator import simulate_run, simulate_truth
 from anfekf_bench.storage import read_parquet, read_steps, write_parquet
@@ -57,9 +57,9 @@ def test_same_seed_same_data_other_seed_other_data():
     scenario = parse_scenario(small_scenario())
     world = resolve_world(scenario.world, Path("x.yaml"))
     seeds = np.random.SeedSequence(5).spawn(2)
-    a = run_one(scenario, world, 0, seeds[0])
-    b = run_one(scenario, world, 0, seeds[0])
-    c = run_one(scenario, world, 1, seeds[1])
+    a = simulated_run(scenario, world, 0, seeds[0])
+    b = simulated_run(scenario, world, 0, seeds[0])
+    c = simulated_run(scenario, world, 1, seeds[1])
     np.testing.assert_array_equal(a["filters"]["ekf"]["x"], b["filters"]["ekf"]["x"])
     assert not np.allclose(a["filters"]["ekf"]["x"], c["filters"]["ekf"]["x"])
 
@@ -234,7 +234,7 @@ def test_truth_follows_the_motion_model():
 def test_tables_do_not_depend_on_the_order_runs_finish():
     scenario = parse_scenario(small_scenario(runs=3))
     world = resolve_world(scenario.world, Path("x.yaml"))
-    results = [run_one(scenario, world, i, s) for i, s in enumerate(run_seeds(scenario))]
+    results = [simulated_run(scenario, world, i, s) for i, s in enumerate(run_seeds(scenario))]
     names = [f.name for f in scenario.filters]
     shuffled = [results[2], results[0], results[1]]
     pd.testing.assert_frame_equal(
@@ -283,7 +283,7 @@ def test_steps_table_rows_are_each_filters_trace_of_each_run():
     runs of different lengths and one diverged trace."""
     scenario = parse_scenario(small_scenario(runs=3))
     world = resolve_world(scenario.world, Path("x.yaml"))
-    results = [run_one(scenario, world, i, s) for i, s in enumerate(run_seeds(scenario))]
+    results = [simulated_run(scenario, world, i, s) for i, s in enumerate(run_seeds(scenario))]
     results[1] = _truncated(results[1], len(results[1]["step"]) // 3)
     names = [f.name for f in scenario.filters]
     results[2]["filters"][names[1]]["diverged"] = True

@@ -11,6 +11,7 @@ import sys
 from ..filters.akhlaghi import AkhlaghiSpec
 from ..filters.als import ALSSpec
 from ..filters.anfekf import ANFEKFSpec
+from ..filters.augmented import AugmentedSpec
 from ..filters.bank import IMMSpec, MMAESpec
 from ..filters.cm_scale import CMScaleSpec
 from ..filters.ekf import EKFSpec, OracleSpec
@@ -30,7 +31,7 @@ from ..filters.vb import VBAKFSpec, VBRSpec
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
     VBRSpec, AkhlaghiSpec, VBAKFSpec, SWVBSpec, CMScaleSpec, SageHusaSpec, IAESpec, ALSSpec,
-    KalmanNetSpec,
+    KalmanNetSpec, AugmentedSpec,
 )  # fmt: skip
 RECORDED_SOURCE = "anfekf_bench.sources.recorded"  # its TunedEKFSpec: the plain EKF too
 

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import World
+from ..error_sources import ErrorSources
 from ..models import wrap_angle, wrap_scalar
 from ..schedule import CHANNELS, NoiseSchedule
 
@@ -138,6 +139,7 @@ def simulate_run(
     rng: np.random.Generator,
     geometry: ScanGeometry | None = None,
     schedule: NoiseSchedule | None = None,
+    errors: ErrorSources | None = None,
 ) -> RunData:
     """Odometry and scans of one run, every draw from `rng` (SPEC 6).
 
@@ -149,6 +151,9 @@ def simulate_run(
     force at each step (t = k dt), then draws the outliers' variables after all of them (one
     uniform per landmark per scan, or one chi-square per component), and empties the scans in
     a blackout; without one, the draws and the data are those of a constant-noise run.
+
+    `errors` (SPEC 18, `error_sources.ErrorSources`) scales and biases the odometry and biases
+    the ranges; it draws nothing, so the draws are the same with it or without.
     """
     sv, sg, sr, sb = true_sigmas
     K = len(truth.u)
@@ -169,6 +174,9 @@ def simulate_run(
     z = np.empty((len(ids), 2))
     z[:, 0] = geometry.range[scan_of, ids] + noise[scan_of, ids, 0]
     z[:, 1] = wrap_angle(geometry.bearing[scan_of, ids] + noise[scan_of, ids, 1])
+    if errors is not None:
+        u_odo = errors.odometry(truth.u, u_odo)
+        z[:, 0] = errors.ranges(z[:, 0])
     bounds = zip(start[:-1].tolist(), start[1:].tolist(), strict=True)
     scans = tuple(
         Scan(step=k, ids=ids[a:b], z=z[a:b])

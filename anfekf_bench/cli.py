@@ -373,7 +373,7 @@ def run(
         scenario_folder,
         survey_output,
     )
-    from .scenarios import load_scenario
+    from .scenarios import load_scenario, split_problem_files
     from .sweeps import SweepError, cell_plans, expand, validate_sweep
 
     warnings.showwarning = _one_line_warning  # a library's warning may quote a name
@@ -387,10 +387,13 @@ def run(
         fail("--force and --skip-existing: choose one (overwrite complete results, or keep them)")
     kind = checked.backend
     with one_line_errors(debug, (ScenarioError, PlanError)):
-        plans = [
-            make_plan(*load_scenario(p), **checked.plan_overrides())
-            for p in scenario_files(scenario)
-        ]
+        # A problem beyond the robot (`problem: linear`, SPEC 17) has a pipeline of its own.
+        files, problems = split_problem_files(scenario_files(scenario))
+        plans = [make_plan(*load_scenario(p), **checked.plan_overrides()) for p in files]
+    if problems:
+        _run_problems(problems, out, runs, seed, jobs, force, skip_existing, debug)
+        if not files:
+            return
     if any(p.engine == "fast" for p in plans):
         warn_fast_without_numba()
     names = [p.name for p in plans]
@@ -399,7 +402,7 @@ def run(
     # A sweep's cells are expanded and validated as scenarios now, before anything runs.
     sweeps: dict[str, tuple] = {}
     with one_line_errors(debug, (ScenarioError, PlanError)):
-        for path, plan in zip(scenario_files(scenario), plans, strict=True):
+        for path, plan in zip(files, plans, strict=True):
             if plan.scenario.sweep is not None:
                 cells = expand(plan.scenario, path)
                 overrides = dict(backend=kind, scheduler=scheduler, engine=plan.engine)
@@ -409,7 +412,7 @@ def run(
     # Everything that can fail is checked for every scenario before the first one runs (and
     # again by execute, under the folder's lock, before --force removes anything).
     skipped: dict[str, str] = {}  # --skip-existing: scenario -> what its folder holds
-    for path, plan in zip(scenario_files(scenario), plans, strict=True):
+    for path, plan in zip(files, plans, strict=True):
         if plan.name in sweeps:  # every cell, and the sweep's folder
             with one_line_errors(debug, (PlanError, OutputExists, SweepError), prefix=f"{path}: "):
                 validate_sweep(plan.name, *sweeps[plan.name], out, force=force)
@@ -448,6 +451,32 @@ def run(
             _run_sweep(plan, *sweeps[plan.name], out, force, debug)
         else:
             _run_plan(plan, out, force, debug)
+
+
+def _run_problems(problems, out, runs, seed, jobs, force, skip_existing, debug) -> None:
+    """Run problem scenarios (SPEC 17: anfekf_bench.problems) and print their tables."""
+    from .problems.experiment import ProblemRunError, execute_problem, is_problem_result
+    from .problems.report import problem_console_table
+    from .storage import FolderBusy
+
+    _check_out_dir(out)
+    for path, scenario in problems:
+        target = Path(out) / scenario.name
+        if skip_existing and not force and is_problem_result(target):
+            console.print(
+                one_line(f"{scenario.name}: {target} holds a complete result; skipped"
+                         " (--skip-existing)"), markup=False, highlight=False, soft_wrap=True,
+            )  # fmt: skip
+            continue
+        console.print(one_line(f"{scenario.name}: problem {scenario.problem}, running"),
+                      markup=False, highlight=False, soft_wrap=True)  # fmt: skip
+        with one_line_errors(debug, (ProblemRunError, FolderBusy), prefix=f"{path}: ",
+                             os_error=f"{scenario.name}: cannot write results"):  # fmt: skip
+            _, target = execute_problem(scenario, out, runs=runs, seed=seed, jobs=jobs,
+                                        force=force)  # fmt: skip
+        table_console().print(problem_console_table(target))
+        console.print(one_line(f"results written to {target}"), markup=False, highlight=False,
+                      soft_wrap=True)  # fmt: skip
 
 
 def warn_fast_without_numba() -> None:
@@ -775,7 +804,10 @@ def report(
         console.print(f"warning: {warning}", markup=False, highlight=False, soft_wrap=True)
     figures = sum(1 for p in done.files if p.suffix not in (".md", ".html"))
     pages = [str(p) for p in done.files if p.name in (REPORT_FILE, HTML_FILE)]
-    parts = [plural(len(done.scenarios), "scenario")] if done.scenarios or not sweep_folders else []
+    shown = done.scenarios or not (sweep_folders or done.problems)
+    parts = [plural(len(done.scenarios), "scenario")] if shown else []
+    if done.problems:
+        parts.append(plural(done.problems, "problem result"))
     if sweep_folders:
         parts.append(plural(len(sweep_folders), "sweep"))
     console.print(
@@ -866,7 +898,13 @@ def kinds(
     """List every filter kind (or the KINDs named): what it adapts, which engines run it, its
     parameters and defaults."""
     from .engines import fast_support
-    from .filters.registry import KINDS, adapts_line, capabilities
+    from .filters.registry import (
+        KINDS,
+        adapts_line,
+        capabilities,
+        problems_of,
+        unsupported_reason,
+    )
 
     fast_support.register()  # the fast engine's kinds, without importing numba and its kernels
     unknown = [n for n in names or () if n not in KINDS]
@@ -879,6 +917,11 @@ def kinds(
             f"  adapts: {adapts_line(info)}; engines: {', '.join(info.engines)}",
             markup=False, highlight=False, soft_wrap=True,
         )  # fmt: skip
+        others = sorted(problems_of(kind) - {"robot"})
+        runs_on = ", ".join(["robot", *others]) if others else (
+            f"robot only ({unsupported_reason(kind, 'linear').split(': ', 1)[1]})"
+        )  # fmt: skip
+        console.print(f"  problems: {runs_on}", markup=False, highlight=False, soft_wrap=True)
         for name, default, description in info.params:
             line = f"  {name} = {default}" + (f": {description}" if description else "")
             console.print(one_line(line), markup=False, highlight=False, soft_wrap=True)

@@ -10,8 +10,9 @@ comments (`TARGETS` says which file holds which):
   command tree of the typer app (docs/reference/cli.md);
 - `bench-timing` and `bench-figures`: the latest `make bench` figures and the machine they were
   measured on, read from results/bench.json (README.md, docs/results/).
-It also writes the JSON Schemas of a scenario file (`SCHEMAS`: docs/scenario.schema.json and
-docs/recorded-scenario.schema.json) that editors use for completion and checking.
+It also writes the JSON Schemas of a scenario file (`SCHEMAS`: docs/scenario.schema.json,
+docs/recorded-scenario.schema.json and docs/problem-scenario.schema.json) that editors use
+for completion and checking.
 
 `python -m anfekf_bench.docgen` (`make readme`) rewrites them all; `--check` only says whether
 they are current (tests/test_readme.py runs it, and so does `make docs`). A field without a
@@ -36,8 +37,9 @@ from pydantic_core import PydanticUndefined
 
 from . import cli
 from .config import SimulatedScenario
-from .filters.registry import SPEC_BY_KIND, adapts_line, capabilities
+from .filters.registry import SPEC_BY_KIND, adapts_line, capabilities, problems_of
 from .filters.spec import AdaptiveParams
+from .problems.schema import PROBLEM_FILTER_SPECS, ProblemScenario
 from .sources.recorded import RecordedScenario
 from .storage import write_atomic
 
@@ -251,7 +253,27 @@ def filter_kinds_markdown() -> str:
         adapts = (
             f" Adapts {adapts_line(info)}." if info.adapts or info.default_adapts is None else ""
         )
-        out += ["", f"**`{kind}`**: {info.doc}{adapts}", ""]
+        others = sorted(problems_of(kind) - {"robot"})
+        runs_on = (
+            f" Problems: robot, {', '.join(others)}." if others
+            else f" Robot only: {spec.robot_only_because}."
+        )  # fmt: skip
+        out += ["", f"**`{kind}`**: {info.doc}{adapts}{runs_on}", ""]
+        if own:
+            rows = [(f"`{k}`", t, _code(d), m) for k, t, d, m, *_ in own]
+            out += _table(("parameter", "type", "default", "meaning"), rows)
+        else:
+            out.append("No parameters.")
+    out += [
+        "",
+        "On a problem beyond the robot (`problem: linear`, docs/PROBLEMS.md) these kinds have a"
+        " dimension-generic implementation with full Q and R, and these parameters:",
+    ]
+    for spec in PROBLEM_FILTER_SPECS:
+        kind = spec.model_fields["kind"].annotation.__args__[0]
+        doc = " ".join((spec.__doc__ or "").strip().split("\n\n")[0].split())
+        own = field_rows(spec, skip=("name", "kind"))
+        out += ["", f"**`{kind}`** (problems): {doc}", ""]
         if own:
             rows = [(f"`{k}`", t, _code(d), m) for k, t, d, m, *_ in own]
             out += _table(("parameter", "type", "default", "meaning"), rows)
@@ -387,6 +409,7 @@ def _filter_count(path: Path) -> int:
 SCHEMAS: dict[str, type[BaseModel]] = {
     "docs/scenario.schema.json": SimulatedScenario,
     "docs/recorded-scenario.schema.json": RecordedScenario,
+    "docs/problem-scenario.schema.json": ProblemScenario,
 }
 SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 

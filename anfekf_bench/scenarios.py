@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Union
 
 from .config import (
+    ScenarioError,
     SimulatedScenario,
     World,
     check_document,
@@ -19,6 +20,7 @@ from .config import (
     source_of,
     validate_as,
 )
+from .problems.schema import ProblemScenario, is_problem_document, parse_problem_scenario
 
 if TYPE_CHECKING:
     from .sources.recorded import DriveSet, RecordedScenario, Recording
@@ -40,6 +42,15 @@ def member(source: str) -> type[SimulatedScenario] | type[RecordedScenario]:
 def parse_any_scenario(data: object, path: str | Path = "<scenario>") -> AnyScenario:
     """A scenario document validated as its source's member; ScenarioError (one line) if not."""
     data = check_document(data, path)
+    if data.get("problem") == "robot":  # the default, said aloud
+        data = {k: v for k, v in data.items() if k != "problem"}
+    if is_problem_document(data):  # a problem beyond the robot (SPEC 17): its own pipeline
+        raise ScenarioError(
+            path,
+            "problem",
+            f"{data['problem']!r}: a problem scenario runs with `anfekf run`"
+            " only (its tables: `anfekf report`)",
+        )
     return validate_as(member(source_of(data)), data, path)
 
 
@@ -60,3 +71,16 @@ def scenario_from_data(
 def load_scenario(path: str | Path) -> tuple[AnyScenario, World | Recording | DriveSet]:
     """Read, validate and resolve a scenario file; raises ScenarioError with a one-line message."""
     return scenario_from_data(read_scenario_document(path), Path(path))
+
+
+def split_problem_files(files: list[Path]) -> tuple[list[Path], list[tuple[Path, ProblemScenario]]]:
+    """(the robot's scenario files, [(file, problem scenario)]) of `files`: the problem
+    scenarios (SPEC 17) validated here, the others left to `load_scenario`."""
+    robot, problems = [], []
+    for path in files:
+        data = read_scenario_document(path)
+        if is_problem_document(data):
+            problems.append((path, parse_problem_scenario(data, path)))
+        else:
+            robot.append(path)
+    return robot, problems

@@ -128,13 +128,15 @@ def test_the_json_schemas_accept_every_shipped_scenario():
     schemas = {
         kind: json.loads(_text(ROOT / rel))
         for kind, rel in (("simulated", "docs/scenario.schema.json"),
-                          ("recorded", "docs/recorded-scenario.schema.json"))
+                          ("recorded", "docs/recorded-scenario.schema.json"),
+                          ("problem", "docs/problem-scenario.schema.json"))
     }  # fmt: skip
     for schema in schemas.values():
         jsonschema.Draft202012Validator.check_schema(schema)
     for path in _scenario_files():
         data = yaml.safe_load(_text(path))
-        schema = schemas["recorded" if "data" in data else "simulated"]
+        kind = "recorded" if "data" in data else "simulated"
+        schema = schemas["problem" if data.get("problem", "robot") != "robot" else kind]
         errors = list(jsonschema.Draft202012Validator(schema).iter_errors(data))
         assert errors == [], (path, [e.message for e in errors])
 

@@ -71,6 +71,9 @@ class ANFEKFSpec(AdaptiveSpec):
     """The adaptive neuro-fuzzy EKF (SPEC section 4). Defaults are shared by every scenario."""
 
     kind: Literal["anfekf"]
+    robot_only_because: ClassVar[str] = (
+        "its two ANFIS watch the range and bearing channels, the paper's design"
+    )
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     adapt: Literal["R", "Q", "RQ"] = Field(
         "R", description="R: two ANFIS on R (paper 5.1); Q: one on Qu (5.2); RQ: both at once"

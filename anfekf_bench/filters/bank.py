@@ -285,6 +285,9 @@ class MMAESpec(AdaptiveSpec):
     Maybeck 1982): one EKF per hypothesis, likelihood weights, the moment-matched mixture."""
 
     kind: Literal["mmae"]
+    robot_only_because: ClassVar[str] = (
+        "its grid of hypotheses is over the robot's four noise sigmas"
+    )
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     qu_factors: Factors = Field(
         HALF_DECADE,

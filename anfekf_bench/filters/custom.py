@@ -95,6 +95,7 @@ class CustomSpec(FilterSpec):
     """A user's filter class, named by its import path, with its own parameters."""
 
     kind: Literal["custom"]
+    robot_only_because: ClassVar[str] = "a user's class is written against the robot's EKF"
     user_defined: ClassVar[bool] = True
     class_path: str = Field(alias="class", description="module:Class, e.g. mypkg.filters:MyFilter")
     params: dict[str, Any] = Field(default_factory=dict, description="the class's Params")

@@ -40,6 +40,7 @@ class KalmanNetSpec(FittedSpec):
     experiment caches by fingerprint and records in the manifest's `training` key."""
 
     kind: Literal["kalmannet"]
+    robot_only_because: ClassVar[str] = "its features, network sizes and training are the robot's"
     role: ClassVar[Role] = "trained"
     epochs: int = Field(30, ge=1, le=10_000, description="passes over the training runs")
     learning_rate: float = Field(

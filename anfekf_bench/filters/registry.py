@@ -232,3 +232,28 @@ def check_starts(starts: list[float]) -> list[float]:
     if len(set(labels)) != len(labels):
         raise ValueError("starts must differ (as printed with 3 significant digits)")
     return starts
+
+
+# ---------------------------------------------------------------------------------------------
+# Problems (SPEC 17): which problems each kind runs on, declared on its spec class (`problems`,
+# `robot_only_because`); the implementations beyond the robot are in anfekf_bench.problems.
+
+
+def problems_of(kind: str) -> frozenset[str]:
+    """The problems `kind` runs on (empty for a kind this registry does not know)."""
+    cls = SPEC_BY_KIND.get(str(kind))
+    return frozenset() if cls is None else cls.problems
+
+
+def supports_problem(kind: str, problem: str) -> bool:
+    return problem in problems_of(kind)
+
+
+def unsupported_reason(kind: str, problem: str) -> str | None:
+    """Why `kind` does not run on `problem` (one line), or None where it does."""
+    cls = SPEC_BY_KIND.get(str(kind))
+    if cls is None:
+        return f"unknown kind {kind!r}"
+    if problem in cls.problems:
+        return None
+    return f"kind {kind!r} does not run on problem {problem!r}: {cls.robot_only_because}"

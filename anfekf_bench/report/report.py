@@ -40,6 +40,7 @@ from ..analysis.tables import filter_arrays
 from ..config import NoiseSigmas
 from ..filters.registry import adapted_noise, role_of
 from ..models import control_covariance, measurement_covariance
+from ..problems.experiment import problem_result_folders, read_problem_result
 from ..storage import (
     CLAIMS_FILE,
     COMPARISONS_FILE,
@@ -94,6 +95,7 @@ from .document import (
     to_html,
     to_markdown,
 )
+from .problems import problem_blocks
 from .tables import (  # noqa: F401  (re-exported: the table API lived here)
     LEADERBOARD_CAPTION,
     TABLE_HEADER,
@@ -126,6 +128,7 @@ class ReportResult:
     rows: list[SummaryRow]
     files: list[Path] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    problems: int = 0  # problem results (SPEC 17) in the report
 
 
 # --------------------------------------------------------------------------- finding results
@@ -873,11 +876,17 @@ def write_report(
     out_dir = Path(out_dir)
     fmt = ImageFormat(fmt)
     swept = [sweep_report.read_sweep(Path(f)) for f in sweeps]  # read before anything is written
-    found = (
-        find_scenarios(results_dirs, out_dir)
-        if not sweeps or sweep_report.has_scenario_results(list(results_dirs))
-        else []
-    )
+    problem_results = [read_problem_result(f) for f in problem_result_folders(results_dirs)]
+    try:
+        found = (
+            find_scenarios(results_dirs, out_dir)
+            if not sweeps or sweep_report.has_scenario_results(list(results_dirs))
+            else []
+        )
+    except ResultsError:
+        if not problem_results:  # a folder of problem results alone (SPEC 17) is a report too
+            raise
+        found = []
     folders, recorded_folders = real.split_folders(found)
     recorded = [real.load_real(f) for f in recorded_folders]
     scenarios = load_scenarios(folders)
@@ -893,6 +902,8 @@ def write_report(
     names += [f["base"] for rd in recorded for f in rd.instances()]
     with plots.palette(names):  # a sweep's filters in the scenarios' colours, by name
         doc = build_document(scenarios, rows, [*recorded, *swept], save, out_dir)
+    doc.add(*problem_blocks(problem_results, save, fmt.value))
+    result.problems = len(problem_results)
     result.files += save.files
     outputs = {REPORT_FILE: to_markdown(doc)}
     if html:

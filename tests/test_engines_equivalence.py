@@ -53,12 +53,17 @@ EXTRA = {
     "sage-husa": [{"adapt": "RQ"}],
     "iae": [{"adapt": "Q"}],
     "akhlaghi": [{"adapt_from": "accepted"}],
+    "vb-imm": [
+        {"r_rule": "sage-husa"},
+        {"r_rule": "grid", "range_factors": (0.1, 1.0), "bearing_factors": (1.0, 3.0)},
+        {"p_stay": 1.0, "adapt_from": "accepted"},
+    ],
 }
 
 
 # A small grid for the banks (their default grid of 125 members costs seconds on filterpy)
 BANK = {"qu_factors": (0.1, 1.0, 10.0), "range_factors": (0.1, 1.0), "bearing_factors": (1.0, 3.0)}
-BASE = {"mmae": BANK, "imm": BANK}
+BASE = {"mmae": BANK, "imm": BANK, "vb-imm": {"qu_factors": (0.1, 1.0, 10.0)}}
 
 
 def _cases():

@@ -209,12 +209,8 @@ def run_vb_imm_kernel(
                                 ap0, ap1, bn0, bn1, R0[0], R0[3], floor, ceiling
                             )
                         elif feeds:  # SageHusaEKF.before_gain
-                            rho_sum[i, 0] = rho_sum[i, 0] + r_sample(
-                                nu[0], HPHt[0], R_min0, R_max0
-                            )
-                            rho_sum[i, 1] = rho_sum[i, 1] + r_sample(
-                                nu[1], HPHt[3], R_min1, R_max1
-                            )
+                            rho_sum[i, 0] = rho_sum[i, 0] + r_sample(nu[0], HPHt[0], R_min0, R_max0)
+                            rho_sum[i, 1] = rho_sum[i, 1] + r_sample(nu[1], HPHt[3], R_min1, R_max1)
                             n_fed[i] += 1
                             rh0 = fading_mean(sh_d[i], R_start[i, 0], rho_sum[i, 0], n_fed[i])
                             rh1 = fading_mean(sh_d[i], R_start[i, 1], rho_sum[i, 1], n_fed[i])

@@ -1,5 +1,5 @@
 """The default filter (SPEC 19): an interacting bank over Qu hypotheses whose members adapt R
-online (VB-IMM; docs/research/default-filter.md), for a user who does not know whether R, Qu or
+online (VB-IMM; docs/default-filter.md), for a user who does not know whether R, Qu or
 both are wrong, or whether they change.
 
 Why this composition (the zoo's own findings, docs/results/zoo.md): the R adapters (vb-r,

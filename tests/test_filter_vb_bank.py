@@ -87,7 +87,8 @@ def test_weight_goes_to_the_true_qu(small):
     9 deg (true 3: 0.11x), sigma_range 0.5 m (true 0.1: R 25x too large). The most probable member
     at the end is the 0.01x one (the grid's nearest to both), and its adapted range variance is
     within a factor 2 of the true 0.01 m^2. (The recorded Qu is the weights' arithmetic mean: with
-    p_stay 0.98 the largest factors' small predicted weights pull it far above the best member's.)"""
+    p_stay 0.98 the largest factors' small predicted weights pull it far above the best
+    member's.)"""
     scenario, world, data = small
     spec = VBIMMSpec(name="b", kind="vb-imm")
     flt = spec.build(ctx_of(spec, scenario, world))

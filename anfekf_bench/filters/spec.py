@@ -78,6 +78,7 @@ class FilterSpec(StrictModel):
     adapts_noise: ClassVar[frozenset[str]] = frozenset()  # any of "R", "Q", "P" (see above)
     role: ClassVar[Role] = "adaptive"
     user_defined: ClassVar[bool] = False
+    default_filter: ClassVar[bool] = False  # the one to use when nothing is known (SPEC 19)
 
     def build(self, ctx: FilterContext):
         """A fresh filter for one run."""

@@ -66,6 +66,7 @@ class VBIMMSpec(AdaptiveSpec):
 
     kind: Literal["vb-imm"]
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
+    default_filter: ClassVar[bool] = True
     qu_factors: Factors = Field(
         WIDE_HALF_DECADE,
         description="factors on the assumed Qu variances, one member each (default half-decade"

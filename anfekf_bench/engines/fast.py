@@ -342,8 +342,8 @@ def _run_vb_imm(kd, spec: VBIMMSpec, ctx: FilterContext, run: tuple, x, P, R, Qu
         Qu_m, R_m, _matrix(ctx.R, 2), float(ctx.gate) if has_gate else math.inf, has_gate,
         rule, spec.adapt_from == "all", float(spec.bounds[0]), float(spec.bounds[1]),
         float(spec.rho), int(spec.iterations), float(spec.alpha0), float(spec.b),
-        float(censor_at), math.log(spec.weight_floor), float(spec.mixture_threshold),
-        float(spec.p_stay) if spec.adaptation else 1.0,
+        float(censor_at), float(spec.likelihood_dof), math.log(spec.weight_floor),
+        float(spec.mixture_threshold), float(spec.p_stay) if spec.adaptation else 1.0,
         run[8], x, P, R, Qu,
     )  # fmt: skip
 

@@ -16,6 +16,7 @@ import math
 
 import numpy as np
 
+from ..filters import vb_bank as _vb_bank
 from . import kernels as _kernels
 
 _PURE_COPY: bool = globals().get("_PURE", False)
@@ -38,6 +39,12 @@ most_probable, mixture_weights, active_members = (
 mix_moments_at, weighted_noise, imm_mix = _k.mix_moments_at, _k.weighted_noise, _k.imm_mix
 MOTION_UNICYCLE = _k.MOTION_UNICYCLE
 
+if JIT and not _PURE_COPY:
+    from numba.extending import register_jitable
+
+    register_jitable(_vb_bank.predictive_loglik)
+predictive_loglik = _vb_bank.predictive_loglik
+
 RULE_VB = 0  # filters.vb_bank.R_RULE_CODE
 RULE_SAGE_HUSA = 1
 RULE_GRID = 2
@@ -53,7 +60,7 @@ def run_vb_imm_kernel(
     u_odo, dt, scan_start, scan_lm, scan_z,
     motion, B, T0, x0, P0, Qu_m, R_m, R0, gate, has_gate,
     rule, from_all, floor, ceiling, rho, iterations, alpha0, b_fade,
-    censor_at, log_floor, threshold, p_stay,
+    censor_at, dof, log_floor, threshold, p_stay,
     record_at, out_x, out_P, out_R, out_Q,
 ):  # fmt: skip
     """One run of VBIMMEKF. Qu_m (M, 2): the members' Qu diagonals; R_m (M, 2): their starting
@@ -238,9 +245,9 @@ def run_vb_imm_kernel(
                     ok, vp = nis(HPHt, R_prior, nu[0], nu[1])
                     if not ok or not math.isfinite(vp):
                         return True, j, nis_sum, n_updates, n_rejected
-                    logw[i] += innovation_loglik(
+                    logw[i] += predictive_loglik(
                         vp, HPHt[0] + R_prior[0], HPHt[1] + R_prior[1], HPHt[2] + R_prior[2],
-                        HPHt[3] + R_prior[3], censor_at,
+                        HPHt[3] + R_prior[3], censor_at, dof,
                     )  # fmt: skip
             for i in range(M):  # the members' end_scan
                 if rule == RULE_VB:

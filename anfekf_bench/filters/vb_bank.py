@@ -58,6 +58,27 @@ from .vb import RHO, VBREKF, VBRSpec
 WIDE_HALF_DECADE = tuple(10.0 ** (k / 2.0) for k in range(-4, 5))
 R_RULES = ("vb", "sage-husa", "grid")
 R_RULE_CODE = {rule: i for i, rule in enumerate(R_RULES)}  # the kernel's int argument
+LOG_2PI = math.log(2.0 * math.pi)
+
+
+def predictive_loglik(nis, S00, S01, S10, S11, censor_at, dof):
+    """The log predictive density of a 2-vector innovation from its NIS nu^T S^-1 nu (D.1):
+    Gaussian, log N(nu; 0, S) (bank.innovation_loglik), for dof = inf; else the Student-t with
+    `dof` degrees of freedom and scale S, which for two dimensions is
+
+        log t = -log(2 pi) - 1/2 log det S - (dof + 2) / 2 log(1 + nis / dof)
+
+    (Gamma((dof + 2) / 2) / Gamma(dof / 2) = dof / 2): an outlier costs every member about the log
+    of its NIS instead of the NIS itself, so one outlier cannot hand the weight to the widest
+    hypotheses. NIS above `censor_at` counts as `censor_at`; det S <= 0 gives -inf."""
+    if dof == math.inf:
+        return innovation_loglik(nis, S00, S01, S10, S11, censor_at)
+    det = S00 * S11 - S01 * S10
+    if not det > 0.0:
+        return -math.inf
+    if nis > censor_at:
+        nis = censor_at
+    return -0.5 * math.log(det) - 0.5 * (dof + 2.0) * math.log1p(nis / dof) - LOG_2PI
 
 
 class VBIMMSpec(AdaptiveSpec):
@@ -100,6 +121,11 @@ class VBIMMSpec(AdaptiveSpec):
     )
     b: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = Field(
         0.97, description="r_rule sage-husa: fading factor b (memory about 1 / (1 - b) scans)"
+    )
+    likelihood_dof: Annotated[float, Field(gt=0)] = Field(
+        math.inf,
+        description="degrees of freedom of the members' predictive likelihood: inf (Gaussian) or"
+        " a Student-t (robust: an outlier does not move the weights to the widest hypotheses)",
     )
     weight_floor: Annotated[float, Field(gt=0, lt=1e-2, allow_inf_nan=False)] = Field(
         1e-30, description="floor of every member's weight, once per scan"
@@ -245,9 +271,10 @@ class VBIMMEKF(AdaptiveEKF):
                 m.update_landmark(z, landmark)
                 S = m.inn.HPHt + m.R_prior
                 nis = float(m.inn.nu @ np.linalg.solve(S, m.inn.nu))
-                self.logw[i] += innovation_loglik(
-                    nis, S[0, 0], S[0, 1], S[1, 0], S[1, 1], self.censor_at
-                )
+                self.logw[i] += predictive_loglik(
+                    nis, S[0, 0], S[0, 1], S[1, 0], S[1, 1], self.censor_at,
+                    self.params.likelihood_dof,
+                )  # fmt: skip
         for m in self.members:
             m.end_scan()
         self.nis_sum += best.nis_sum - before[0]

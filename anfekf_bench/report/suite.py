@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..analysis.suite import LOST_LOCK_M, FilterRuns, SuiteScenario, suite_table
+from ..analysis.suite import LOST_LOCK_FACTOR, LOST_LOCK_M, FilterRuns, SuiteScenario, suite_table
 from ..filters.registry import role_of
 from ..storage import read_parquet, write_atomic
 from . import real
@@ -137,8 +137,9 @@ def blocks(df: pd.DataFrame, total: int) -> list[Block]:
         " (runs resampled in every scenario at once, paired with the oracle); sorted by the worst"
         " case, filters run in fewer scenarios after (n/m). NEES in bounds: the lowest share of"
         " steps in the 95 % bounds over the constant-noise scenarios and over all. Lost lock:"
-        f" runs that diverged or whose position error exceeded {LOST_LOCK_M:g} m where the"
-        " oracle's did not; inconsistent: runs whose time-mean NEES exceeds 1e4 (summed over"
+        f" runs that diverged or whose largest position error exceeds {LOST_LOCK_M:g} m and"
+        f" {LOST_LOCK_FACTOR:g}x the oracle's on the same run; inconsistent: runs whose time-mean NEES"
+        " exceeds 1e4 (summed over"
         f" the scenarios). Also in {TABLE_FILE}.parquet and {TABLE_FILE}.csv."
     )
     numeric = [True, False, True, False, True, True, True, True, True] + ([True] if drives else [])

@@ -41,7 +41,7 @@ def _same(a: dict, b: dict, keys=("x", "P", "R_diag")) -> None:
 
 def test_one_vb_member_is_vb_r(small):
     bank = VBIMMSpec(name="b", kind="vb-imm", qu_factors=(1.0,))
-    single = VBRSpec(name="v", kind="vb-r")
+    single = VBRSpec(name="v", kind="vb-r", rho=bank.rho)
     _same(_run(bank, small), _run(single, small))
 
 

@@ -105,13 +105,14 @@ class VBIMMSpec(AdaptiveSpec):
         (1.0,), description="r_rule grid: factors on the assumed bearing variance (crossed)"
     )
     p_stay: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = Field(
-        0.98,
+        0.9999,
         description="probability that the noise stays in its Qu hypothesis from one scan to the"
         " next (1: a static bank, MMAE)",
     )
     rho: float = Field(
-        RHO, gt=0, le=1, allow_inf_nan=False,
-        description="r_rule vb: forgetting factor of each member's (alpha, beta), once per scan",
+        0.9, gt=0, le=1, allow_inf_nan=False,
+        description="r_rule vb: forgetting factor of each member's (alpha, beta), once per scan"
+        f" (memory about 10 scans; vb-r's default is {RHO:.4g})",
     )  # fmt: skip
     iterations: int = Field(
         3, ge=1, le=100, description="r_rule vb: VB fixed-point iterations per landmark"
@@ -123,7 +124,7 @@ class VBIMMSpec(AdaptiveSpec):
         0.97, description="r_rule sage-husa: fading factor b (memory about 1 / (1 - b) scans)"
     )
     likelihood_dof: Annotated[float, Field(gt=0)] = Field(
-        math.inf,
+        4.0,
         description="degrees of freedom of the members' predictive likelihood: inf (Gaussian) or"
         " a Student-t (robust: an outlier does not move the weights to the widest hypotheses)",
     )

@@ -57,7 +57,7 @@ EXTRA = {
         {"r_rule": "sage-husa"},
         {"r_rule": "grid", "range_factors": (0.1, 1.0), "bearing_factors": (1.0, 3.0)},
         {"p_stay": 1.0, "adapt_from": "accepted"},
-        {"likelihood_dof": 4.0, "rho": 0.9},
+        {"likelihood_dof": math.inf, "p_stay": 0.98},
     ],
 }
 

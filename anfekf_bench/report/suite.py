@@ -138,8 +138,8 @@ def blocks(df: pd.DataFrame, total: int) -> list[Block]:
         " case, filters run in fewer scenarios after (n/m). NEES in bounds: the lowest share of"
         " steps in the 95 % bounds over the constant-noise scenarios and over all. Lost lock:"
         f" runs that diverged or whose largest position error exceeds {LOST_LOCK_M:g} m and"
-        f" {LOST_LOCK_FACTOR:g}x the oracle's on the same run; inconsistent: runs whose time-mean NEES"
-        " exceeds 1e4 (summed over"
+        f" {LOST_LOCK_FACTOR:g}x the oracle's on the same run; inconsistent: runs whose"
+        " time-mean NEES exceeds 1e4 (summed over"
         f" the scenarios). Also in {TABLE_FILE}.parquet and {TABLE_FILE}.csv."
     )
     numeric = [True, False, True, False, True, True, True, True, True] + ([True] if drives else [])

@@ -13,7 +13,7 @@ import typing
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, Literal, Union
+from typing import Annotated, ClassVar, Literal, TypeVar, Union
 
 import numpy as np
 import yaml
@@ -26,6 +26,7 @@ from pydantic import (
     model_validator,
 )
 
+from .error_sources import ErrorSources
 from .filters.ekf import EKFSpec
 from .filters.registry import (
     KINDS,
@@ -282,45 +283,52 @@ def check_named_filters(items: list, names: set[str]) -> list:
     return items
 
 
-# A key every scenario has, simulated or recorded (sources.recorded.RealScenario).
 ENGINE_DESCRIPTION = (
     "filterpy (the reference) or fast (numeric kernels, numba when installed); filters the fast"
     " engine does not implement run on filterpy (`--engine` overrides)"
 )
-
-
-class TrainingConfig(_Strict):
-    """Training runs for the filters fitted before the batch (`ekf-ml`, `ekf-tuned`,
-    `kalmannet`: see anfekf_bench.training). Their seeds come from a branch of the root seed
-    that no evaluation run draws from; unused when no filter of the scenario is fitted."""
-
-    runs: int = Field(20, ge=1, le=10_000, description="training runs simulated for fitting")
+Start = Annotated[PositiveFloat, Field(le=1e3)]
 
 
 class Scenario(_Strict):
-    """One scenario file."""
+    """One scenario file, whatever its source (SPEC 12): the keys every scenario has, declared
+    once here. Its `source` is one member of a union that adds what describes the runs:
+    `SimulatedScenario` (below: a simulated world, one run per seed) or
+    `sources.recorded.RecordedScenario` (a recorded log: held-out segments, or whole drives).
+    A document with a `data:` key is recorded, any other simulated (`source_of`);
+    `scenarios.parse_any_scenario` validates either with the same one-line errors."""
+
+    source: ClassVar[Literal["simulated", "recorded"]]
+    # The filter kinds this source accepts (kind -> spec): the error messages' allowed keys.
+    spec_by_kind: ClassVar[dict[str, type[FilterSpec]]] = SPEC_BY_KIND
 
     name: str = Field(min_length=1, description="the result folder's name: OUT/<name>/")
-    description: str = Field("", max_length=10_000)
-    seed: int = Field(0, ge=0, le=MAX_SEED)
-    runs: int = Field(50, ge=1, le=MAX_RUNS)
-    jobs: int = Field(2, ge=1, le=MAX_JOBS)
-    record_every: int = Field(1, ge=1, le=10**7, description="record every n-th control step")
+    description: str = Field("", max_length=10_000, description="free text, shown in the report")
+    seed: int = Field(
+        0,
+        ge=0,
+        le=MAX_SEED,
+        description="root seed; run i draws from SeedSequence(seed).spawn(runs)[i] (recorded:"
+        " the seed of the bootstrap intervals)",
+    )
+    jobs: int = Field(
+        2, ge=1, le=MAX_JOBS, description="local worker processes (`--jobs` overrides)"
+    )
     steps_table: bool = Field(
         True, description="write steps.parquet (false: summaries and per-run tables only)"
     )
     engine: Engine = Field("filterpy", description=ENGINE_DESCRIPTION)
-    world: WorldConfig = WorldConfig()
-    true_noise: NoiseSigmas = NoiseSigmas()
-    filter_noise: NoiseSigmas = NoiseSigmas()
-    p0: NonNegativeFloat = Field(1e-9, le=1e6, description="P0 = p0 * I")
     gate_probability: Annotated[float, Field(gt=0, lt=1)] | None = Field(
         0.999, description="chi-square validation gate (eq. 26); null switches it off"
     )
+    # The kinds differ by source (a recorded log has no truth to fit on or oracle noise): each
+    # member narrows `filters` to its kinds, and sets its default and its `starts`' default.
     filters: list[AnyFilterSpec] = Field(
-        default_factory=lambda: [EKFSpec(name="ekf")], min_length=1
+        default_factory=lambda: [EKFSpec(name="ekf")],
+        min_length=1,
+        description="the filters to run on the same data (kinds: `anfekf kinds`, Filter kinds)",
     )
-    starts: list[Annotated[PositiveFloat, Field(le=1e3)]] | None = Field(
+    starts: list[Start] | None = Field(
         None,
         min_length=1,
         max_length=20,
@@ -328,50 +336,19 @@ class Scenario(_Strict):
         " deviation of filter_noise (variances times m^2), named '<filter> x<m>'; the oracle and"
         " the fitted and trained filters run once; absent: every filter once, as named",
     )
-    backend: BackendConfig = BackendConfig()
+    backend: BackendConfig = Field(
+        BackendConfig(),
+        description="where the runs execute (`--backend`, `--scheduler` override; recorded:"
+        " tuning and fits stay in this process)",
+    )
     claims: list[ClaimSpec] = Field(
         default_factory=list, description="claims checked on every run and by `anfekf check`"
     )
-    sweep: SweepSpec | None = Field(None, description="a grid of cells (anfekf run writes a sweep)")
     compare: list[tuple[str, str]] = Field(
         default_factory=list,
-        description="extra (filter, vs) pairs to compare, besides each filter vs ekf and oracle",
+        description="extra (filter, vs) pairs to compare, besides each filter vs the reference"
+        " (simulated: ekf and oracle; recorded: ekf-tuned)",
     )
-    training: TrainingConfig = Field(
-        TrainingConfig(), description="training runs of the filters fitted before the batch"
-    )
-    noise_schedule: NoiseSchedule | None = Field(
-        None,
-        description="true noise that changes over time: R/Qu steps and ramps, outliers,"
-        " blackouts (SPEC 14); absent: constant true noise",
-    )
-
-    @field_validator("claims", "compare")
-    @classmethod
-    def _name_filters_of_the_scenario(cls, items: list, info: ValidationInfo) -> list:
-        names = instance_names(info.data.get("filters", []), info.data.get("starts"))
-        return check_named_filters(items, set(names))
-
-    @field_validator("starts")
-    @classmethod
-    def _distinct_starts(cls, starts: list[float] | None) -> list[float] | None:
-        return None if starts is None else check_starts(starts)
-
-    @model_validator(mode="after")
-    def _starts_not_in_sweeps(self) -> Scenario:
-        if self.starts is not None and self.sweep is not None:
-            raise ValueError(
-                "starts: not with sweep (a sweep's cells compare filters by name; run the"
-                " starts as separate scenarios)"
-            )
-        return self
-
-    def instances(self) -> list[tuple[str, FilterSpec, float | None]]:
-        """(instance name, spec, start multiplier or None), in scenario order."""
-        return instances(self.filters, self.starts)
-
-    def instance_names(self) -> list[str]:
-        return [name for name, _, _ in self.instances()]
 
     @field_validator("name")
     @classmethod
@@ -384,13 +361,93 @@ class Scenario(_Strict):
 
     @field_validator("filters")
     @classmethod
-    def _plain_filter_names(cls, filters: list) -> list:
-        return check_plain_names(filters)
+    def _plain_unique_filter_names(cls, filters: list) -> list:
+        return check_unique_names(check_plain_names(filters))
 
-    @field_validator("filters")
+    @field_validator("starts")
     @classmethod
-    def _unique_names(cls, filters: list) -> list:
-        return check_unique_names(filters)
+    def _distinct_starts(cls, starts: list[float] | None) -> list[float] | None:
+        return None if starts is None else check_starts(starts)
+
+    @field_validator("claims", "compare")
+    @classmethod
+    def _name_filters_of_the_scenario(cls, items: list, info: ValidationInfo) -> list:
+        if "filters" not in info.data or "starts" not in info.data:
+            return items  # their own error says what is wrong
+        names = instance_names(info.data["filters"], info.data["starts"])
+        return check_named_filters(items, set(names))
+
+    def instances(self) -> list[tuple[str, FilterSpec, float | None]]:
+        """(instance name, spec, start multiplier or None), in scenario order: each filter once
+        per naive start (`filters.registry.instances`), the fitted, trained and oracle ones
+        once."""
+        return instances(self.filters, self.starts)
+
+    def instance_names(self) -> list[str]:
+        return [name for name, _, _ in self.instances()]
+
+
+def source_of(document: dict) -> Literal["simulated", "recorded"]:
+    """Which member of the source union a scenario document is: a recorded log names its
+    `data:` (SPEC 9), a simulated world needs nothing (every world key has a default)."""
+    return "recorded" if "data" in document else "simulated"
+
+
+class TrainingConfig(_Strict):
+    """Training runs for the filters fitted before the batch (`ekf-ml`, `ekf-tuned`,
+    `kalmannet`: see anfekf_bench.training). Their seeds come from a branch of the root seed
+    that no evaluation run draws from; unused when no filter of the scenario is fitted."""
+
+    runs: int = Field(20, ge=1, le=10_000, description="training runs simulated for fitting")
+
+
+ScenarioT = TypeVar("ScenarioT", bound=Scenario)
+
+
+class SimulatedScenario(Scenario):
+    """A scenario whose runs the simulator draws from its world, one per seed (SPEC 1, 6)."""
+
+    source: ClassVar[Literal["simulated"]] = "simulated"
+
+    runs: int = Field(50, ge=1, le=MAX_RUNS, description="Monte Carlo runs (`--runs` overrides)")
+    record_every: int = Field(1, ge=1, le=10**7, description="record every n-th control step")
+    world: WorldConfig = Field(
+        WorldConfig(), description="the simulated world (defaults: the paper's, SPEC section 1)"
+    )
+    true_noise: NoiseSigmas = Field(
+        NoiseSigmas(), description="the noise the simulation draws (standard deviations)"
+    )
+    filter_noise: NoiseSigmas = Field(
+        NoiseSigmas(),
+        description="the noise the filters assume (the oracle EKF gets `true_noise`)",
+    )
+    p0: NonNegativeFloat = Field(1e-9, le=1e6, description="P0 = p0 * I")
+    sweep: SweepSpec | None = Field(
+        None,
+        description="a grid of cells (anfekf run writes a sweep)",
+    )
+    training: TrainingConfig = Field(
+        TrainingConfig(), description="training runs of the filters fitted before the batch"
+    )
+    noise_schedule: NoiseSchedule | None = Field(
+        None,
+        description="true noise that changes over time: R/Qu steps and ramps, outliers,"
+        " blackouts (SPEC 14); absent: constant true noise",
+    )
+    error_sources: ErrorSources | None = Field(
+        None,
+        description="odometry scale factors and steering bias, range bias of the simulated"
+        " robot (SPEC 18); absent: white noise only",
+    )
+
+    @model_validator(mode="after")
+    def _starts_not_in_sweeps(self) -> SimulatedScenario:
+        if self.starts is not None and self.sweep is not None:
+            raise ValueError(
+                "starts: not with sweep (a sweep's cells compare filters by name; run the"
+                " starts as separate scenarios)"
+            )
+        return self
 
 
 @dataclass(frozen=True)
@@ -523,15 +580,15 @@ def _shown_loc(err: dict) -> list[str]:
 SHOWN_ERRORS = 4  # errors of a scenario shown after the first one; the rest are counted
 
 
-def _format_validation_error(exc: ValidationError) -> tuple[str, str]:
+def _format_validation_error(exc: ValidationError, model: type[Scenario]) -> tuple[str, str]:
     """The first error's field and message, followed by the other fields' errors (one each, at
     most SHOWN_ERRORS, then how many more) on the same line: `[+2 more errors: seed: ...;
     jobs: ...]`."""
     errors = exc.errors()
-    field, msg = _error_field_message(errors[0])
+    field, msg = _error_field_message(errors[0], model)
     others: dict[str, str] = {}
     for err in errors[1:]:
-        other, text = _error_field_message(err)
+        other, text = _error_field_message(err, model)
         if other != field:
             others.setdefault(other, text)
     if others:
@@ -543,7 +600,7 @@ def _format_validation_error(exc: ValidationError) -> tuple[str, str]:
     return field, msg
 
 
-def _error_field_message(err: dict) -> tuple[str, str]:
+def _error_field_message(err: dict, model: type[Scenario]) -> tuple[str, str]:
     """One pydantic error as (the field a user wrote, what is allowed there)."""
     loc = _shown_loc(err)
     field = ".".join(loc) or "(top level)"
@@ -555,7 +612,7 @@ def _error_field_message(err: dict) -> tuple[str, str]:
     elif err["type"] == "extra_forbidden":
         msg = "unknown key"
         parent = err["loc"][:-1]
-        allowed = _allowed_keys(parent)
+        allowed = _allowed_keys(model, parent)
         if allowed:
             msg += f" (allowed: {', '.join(allowed)})"
         msg += _did_you_mean(str(err["loc"][-1]), allowed)
@@ -575,13 +632,13 @@ def _did_you_mean(word: str, choices) -> str:
     return f" (did you mean {close[0]!r}?)" if close else ""
 
 
-def _allowed_keys(parent_loc: tuple) -> list[str]:
-    model: type[BaseModel] | None = Scenario
+def _allowed_keys(scenario: type[Scenario], parent_loc: tuple) -> list[str]:
+    model: type[BaseModel] | None = scenario
     for part in parent_loc:
         if isinstance(part, int):  # a list index: same model as the list's items
             continue
-        if part in KINDS:  # the filter spec a `kind` selected
-            model = SPEC_BY_KIND[part]
+        if part in scenario.spec_by_kind:  # the filter spec a `kind` selected
+            model = scenario.spec_by_kind[part]
             continue
         if model is None:
             return []
@@ -600,21 +657,33 @@ def _model_of(ann) -> type[BaseModel] | None:
     return models[0] if len(models) == 1 else None
 
 
-def parse_scenario(data: object, path: str | Path = "<scenario>") -> Scenario:
-    """Validate an already-parsed YAML document."""
+def check_document(data: object, path: str | Path) -> dict:
+    """A scenario document is a mapping; ScenarioError (one line) otherwise."""
     if data is None:
         raise ScenarioError(path, "", "empty file: expected a mapping of scenario keys")
     if not isinstance(data, dict):
         raise ScenarioError(
             path, "", f"expected a mapping of scenario keys, found a {type(data).__name__}"
         )
+    return data
+
+
+def validate_as(model: type[ScenarioT], data: dict, path: str | Path) -> ScenarioT:
+    """`data` validated as one member of the source union (filters' entry points expanded);
+    ScenarioError (one line: the file, the field, what is allowed) if it is not valid."""
     if isinstance(data.get("filters"), list):
         data = {**data, "filters": [expand_entry_points(item) for item in data["filters"]]}
     try:
-        return Scenario.model_validate(data)
+        return model.model_validate(data)
     except ValidationError as exc:
-        field, msg = _format_validation_error(exc)
+        field, msg = _format_validation_error(exc, model)
         raise ScenarioError(path, field, msg) from None
+
+
+def parse_scenario(data: object, path: str | Path = "<scenario>") -> SimulatedScenario:
+    """Validate an already-parsed YAML document of a simulated scenario (a recorded one:
+    `scenarios.parse_any_scenario`)."""
+    return validate_as(SimulatedScenario, check_document(data, path), path)
 
 
 class _StrictLoader(yaml.SafeLoader):

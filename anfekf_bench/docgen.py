@@ -3,7 +3,7 @@
 Blocks of the README and of the docs pages (docs/) are written by this module, between marker
 comments (`TARGETS` says which file holds which):
 - `scenario-keys`: every key of a scenario file (nested keys dotted) with its type, default and
-  meaning, from `config.Scenario` (docs/reference/scenario.md);
+  meaning, from `config.SimulatedScenario` (docs/reference/scenario.md);
 - `filter-kinds`: every filter kind of the registry with its parameters and defaults
   (docs/reference/filters.md);
 - `cli-reference`: every `anfekf` command with its usage, arguments and options, read from the
@@ -35,24 +35,14 @@ from pydantic import BaseModel
 from pydantic_core import PydanticUndefined
 
 from . import cli
-from .config import Scenario
+from .config import SimulatedScenario
 from .filters.registry import SPEC_BY_KIND, adapts_line, capabilities
 from .filters.spec import AdaptiveParams
-from .sources.recorded import RealScenario
+from .sources.recorded import RecordedScenario
 from .storage import write_atomic
 
 # Meanings of fields whose model gives no description ("Model.field").
 MEANINGS: dict[str, str] = {
-    "Scenario.description": "free text, shown in the report",
-    "Scenario.seed": "root seed; run i draws from SeedSequence(seed).spawn(runs)[i]",
-    "Scenario.runs": "Monte Carlo runs (`--runs` overrides)",
-    "Scenario.jobs": "local worker processes (`--jobs` overrides)",
-    "Scenario.world": "the simulated world (defaults: the paper's, SPEC section 1)",
-    "Scenario.true_noise": "the noise the simulation draws (standard deviations)",
-    "Scenario.filter_noise": "the noise the filters assume (the oracle EKF gets `true_noise`)",
-    "Scenario.backend": "where the runs execute (`--backend`, `--scheduler` override)",
-    "Scenario.filters": "the filters to run on the same data (kinds: `anfekf kinds`, Filter kinds)",
-    "Scenario.sweep": "a grid of cells over noise or scenario fields (`anfekf run` writes a sweep)",
     "BackendConfig.kind": "local: joblib processes on this machine; dask: an existing cluster",
     "SweepAxis.values": "the values the axis takes (or `factors`)",
     "SweepAxis.factors": "log-spaced factors of the scenario's value (or `values`)",
@@ -233,7 +223,7 @@ def _code(value: str) -> str:
 def scenario_keys_markdown() -> str:
     rows = [
         (f"`{key}`", typ, _code(default), text)
-        for key, typ, default, text, *_ in field_rows(Scenario)
+        for key, typ, default, text, *_ in field_rows(SimulatedScenario)
     ]
     return "\n".join(_table(("key", "type", "default", "meaning"), rows))
 
@@ -395,8 +385,8 @@ def _filter_count(path: Path) -> int:
 # --------------------------------------------------------------------------- JSON Schemas
 
 SCHEMAS: dict[str, type[BaseModel]] = {
-    "docs/scenario.schema.json": Scenario,
-    "docs/recorded-scenario.schema.json": RealScenario,
+    "docs/scenario.schema.json": SimulatedScenario,
+    "docs/recorded-scenario.schema.json": RecordedScenario,
 }
 SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 
@@ -442,7 +432,7 @@ TARGETS: dict[str, tuple[str, ...]] = {
 
 def undocumented() -> list[str]:
     """Fields without a meaning anywhere (neither description nor MEANINGS)."""
-    rows = field_rows(Scenario)
+    rows = field_rows(SimulatedScenario)
     for spec in SPEC_BY_KIND.values():
         rows += field_rows(spec, skip=("name", "kind"))
     return sorted({f"{m.__name__}.{n}" for _, _, _, text, m, n in rows if not text})

@@ -44,7 +44,7 @@ from .analysis.tables import (
     summary_records,
     update_statistics,
 )
-from .config import BackendConfig, Engine, Scenario, World
+from .config import BackendConfig, Engine, Scenario, SimulatedScenario, World
 from .filters.context import build_filter
 from .filters.custom import CustomFilterFailed, CustomSpec
 from .outputs import (
@@ -64,7 +64,6 @@ from .outputs import (
 )
 from .real_experiment import RecordedSource
 from .runner import Prepared, connect_dask, dispatch_runs, engine_of, fast_compiled, simulated_items
-from .sources.recorded import RealScenario
 from .sources.simulator import RouteNotCompleted, simulate_truth, world_path
 from .storage import (
     MANIFEST_FILE,
@@ -116,7 +115,7 @@ class Source(Protocol):
 class Plan:
     """A scenario with the command line's overrides applied, and where its runs come from."""
 
-    scenario: Scenario | RealScenario
+    scenario: Scenario
     source: Source
     seed: int
     jobs: int
@@ -148,7 +147,7 @@ class Plan:
 
 
 def make_plan(
-    scenario: Scenario | RealScenario,
+    scenario: Scenario,
     world,
     runs: int | None,
     seed: int | None,
@@ -169,10 +168,10 @@ def make_plan(
     )
 
 
-def plan_source(scenario: Scenario | RealScenario, world, runs: int | None) -> Source:
-    """The source of a scenario's runs: the one place past `scenarios.load_scenario` (which
-    tells a recorded log's document from a simulated one's) that tells them apart."""
-    if not isinstance(scenario, RealScenario):
+def plan_source(scenario: Scenario, world, runs: int | None) -> Source:
+    """The source of a scenario's runs, by the member of the source union it is
+    (`Scenario.source`): the one place past `scenarios.load_scenario` that tells them apart."""
+    if scenario.source == "simulated":
         return SimulatedSource(world, scenario.runs if runs is None else runs)
     if runs is not None:
         raise PlanError(
@@ -367,7 +366,7 @@ class SimulatedSource:
     world: World
     runs: int
 
-    def filter_names(self, scenario: Scenario) -> list[str]:
+    def filter_names(self, scenario: SimulatedScenario) -> list[str]:
         return scenario.instance_names()
 
     def fingerprint_doc(self, plan: Plan) -> dict:
@@ -452,7 +451,7 @@ class SimulatedSource:
             for name, spec, _ in plan.scenario.instances()
         }
 
-    def comparison_pairs(self, scenario: Scenario) -> list[tuple[str, str]]:
+    def comparison_pairs(self, scenario: SimulatedScenario) -> list[tuple[str, str]]:
         """Every instance against each reference kind's first instance, the one from the
         assumed noise itself (start 1 or none) when there is one."""
         found = [(name, spec.role, m in (None, 1.0)) for name, spec, m in scenario.instances()]
@@ -539,6 +538,7 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result, 
         on_start(action + prepared.action, len(done), plan.runs)
     run_started = time.perf_counter()
     results = dict(done)
+    placement: dict = {}
     batch = dispatch_runs(
         [call for run, call in sorted(prepared.items.items()) if run not in done],
         jobs=plan.jobs,
@@ -548,13 +548,14 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result, 
         connect_timeout_s=plan.backend.connect_timeout_s,
         engine=plan.engine,
         client=client,
+        placement=placement,
     )
     for result in batch:
         results[result["run"]] = result
     run_seconds = time.perf_counter() - run_started
     ordered = [results[i] for i in range(plan.runs)]
     tables = result_tables(plan, ordered)
-    write_result(plan, target, tables, prepared, sorted(done), started, run_seconds)
+    write_result(plan, target, tables, prepared, sorted(done), started, run_seconds, placement)
     return tables.summary, target
 
 
@@ -566,8 +567,10 @@ def write_result(
     resumed: list[int],
     started: float,
     run_seconds: float,
+    placement: dict | None = None,
 ) -> None:
-    """The batch's tables and manifest, staged and then swapped in whole (finish_result)."""
+    """The batch's tables and manifest, staged and then swapped in whole (finish_result).
+    `placement`: where the runs ran and why (`runner.place_runs`; empty when none was run)."""
     fingerprint = plan.fingerprint()
     staging = result_staging(target)
     write_result_tables(
@@ -600,6 +603,7 @@ def write_result(
         "resumed_runs": resumed,
         "versions": package_versions(),
         "machine": machine_info(),
+        "placement": placement or {"where": "none"},
         "run_seconds": round(run_seconds, 3),
         "wall_time_s": round(time.time() - started, 3),
     }

@@ -5,10 +5,12 @@
    and the plain EKF is run for every noise setting (`engines.tuning.score_setting`, the compiled
    tuning kernel, the settings split over `jobs` processes); the criterion is the pooled position
    RMSE over the scorable evaluation times of all training segments.
-2. **Run** (`run_segment`): each held-out segment is one Monte Carlo "run": every filter instance
-   (each filter from each naive start, and ekf-tuned) is cold-started from ground truth at the
-   segment's start and stepped over its timeline (`timeline.Timeline`) on the plan's engine
-   (`runner.run_spec`: the fast engine for the kinds it runs, filterpy for the rest).
+2. **Run** (`recorded_run`): each held-out segment is one Monte Carlo "run" of the one per-run
+   function, `runner.run_one`: every filter instance (each filter from each naive start, and
+   ekf-tuned) is cold-started from ground truth at the segment's start
+   (`filters.context.recorded_context`) and stepped over its timeline (`timeline.Timeline`) on
+   the plan's engine (`runner.run_spec`: the fast engine for the kinds it runs, filterpy for the
+   rest).
 3. **Align**: a run's per-step arrays are indexed by the evaluation time's rank in its segment
    (step k = the segment's k-th odometry stamp; t = seconds since the segment's cold start).
    Segments differ by a few stamps, so shorter ones are padded with NaN up to the longest.
@@ -35,23 +37,21 @@ from pathlib import Path
 import numpy as np
 from joblib import Parallel, delayed
 
-from .analysis.metrics import add_trace_metrics
 from .engines.tuning import TimelineLikelihood, fit_noise, score_setting, unicycle_terms
+from .filters.context import recorded_context, recorded_p0
 from .filters.ekf import gate_threshold
 from .filters.fitted import EKFMLSpec, sigmas_problem
 from .filters.spec import FilterContext
 from .models import Unicycle
 from .outputs import FIT_FILE, PlanError, code_version, read_cached_fit, write_fit
 from .real_training import fit_on_drives, fit_on_segments, trained_filters
-from .runner import Prepared, engine_of, run_spec
+from .runner import Prepared, RunInputs, engine_of, pad_to, run_one
 from .sources import mrclam
 from .sources.recorded import (
     DriveSet,
-    RealScenario,
+    RecordedScenario,
     Recording,
     Segment,
-    naive_covariances,
-    p0,
 )
 from .timeline import Timeline, timeline
 from .workers import local_workers
@@ -165,7 +165,7 @@ def _criterion(scores: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(rmse), rmse, np.inf)
 
 
-def tune(scenario: RealScenario, rec: Recording, jobs: int = 1) -> dict:
+def tune(scenario: RecordedScenario, rec: Recording, jobs: int = 1) -> dict:
     """The grid search of `ekf-tuned` on the training segments (see the module doc).
 
     Returns the chosen standard deviations (sigma_v, sigma_w_rad, sigma_range,
@@ -176,7 +176,7 @@ def tune(scenario: RealScenario, rec: Recording, jobs: int = 1) -> dict:
     started = time.perf_counter()
     segs = [segment_inputs(rec, s) for s in rec.train_segments]
     naive = scenario.naive.sigmas()
-    P0 = p0(scenario)
+    P0 = recorded_p0(scenario)
     gate = gate_threshold(scenario.gate_probability)
     T0 = scenario.odometry_period_s
     axes = scenario.tuning.axes()
@@ -223,12 +223,6 @@ def tune(scenario: RealScenario, rec: Recording, jobs: int = 1) -> dict:
         "stages": stages,
         "seconds": round(time.perf_counter() - started, 3),
     }
-
-
-def tuned_covariances(tuned: dict) -> tuple[np.ndarray, np.ndarray]:
-    sv, sw = tuned["sigma_v"], tuned["sigma_w_rad"]
-    sr, sb = tuned["sigma_range"], tuned["sigma_bearing_rad"]
-    return np.diag([sv * sv, sw * sw]), np.diag([sr * sr, sb * sb])
 
 
 # --------------------------------------------------------------------------------------------
@@ -283,7 +277,7 @@ def _bnb_best(scores: np.ndarray) -> int:
 
 
 def tune_on_drives(
-    scenario: RealScenario, inputs: list[SegmentInputs], jobs: int = 1, seeds=()
+    scenario: RecordedScenario, inputs: list[SegmentInputs], jobs: int = 1, seeds=()
 ) -> dict:
     """`tune`'s grid search (coarse grid, then 3^4 around the best with steps 2^(1/2) and
     2^(1/4)) on whole drives. The criterion, the pooled position RMSE over every scored time of
@@ -293,7 +287,7 @@ def tune_on_drives(
     first, to start with a tight bound; the coarse grid then runs nearest the seeds first."""
     started = time.perf_counter()
     naive = scenario.naive.sigmas()
-    P0 = p0(scenario)
+    P0 = recorded_p0(scenario)
     gate = gate_threshold(scenario.gate_probability)
     T0 = scenario.odometry_period_s
     count = int(sum(int(s.scored.sum()) for s in inputs))
@@ -347,11 +341,11 @@ def tune_on_drives(
     }
 
 
-def drive_rmse(scenario: RealScenario, inputs: SegmentInputs, tuned: dict) -> float:
+def drive_rmse(scenario: RecordedScenario, inputs: SegmentInputs, tuned: dict) -> float:
     """The position RMSE of the plain EKF with `tuned` noise on one drive (engines.tuning)."""
     sig = [tuned[k] for k in ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")]
     sq, *_ = score_setting(
-        inputs.timeline, inputs.segment.pose, p0(scenario), sig,
+        inputs.timeline, inputs.segment.pose, recorded_p0(scenario), sig,
         gate_threshold(scenario.gate_probability), scenario.odometry_period_s,
         inputs.truth, inputs.scored,
     )  # fmt: skip
@@ -359,7 +353,7 @@ def drive_rmse(scenario: RealScenario, inputs: SegmentInputs, tuned: dict) -> fl
     return float(math.sqrt(sq / n)) if n else math.nan
 
 
-def tune_drives(scenario: RealScenario, inputs: dict[str, SegmentInputs], world: DriveSet,
+def tune_drives(scenario: RecordedScenario, inputs: dict[str, SegmentInputs], world: DriveSet,
                 jobs: int = 1) -> tuple[dict[str, dict], dict]:  # fmt: skip
     """ekf-tuned's noise for every drive (tuned on the drives of `scenario.tuning_sources` of
     its dataset, never its own), and the manifest's account: each tuning, and per drive the
@@ -429,11 +423,11 @@ def own_fit_problem(fitted: dict) -> str | None:
     return sigmas_problem(fitted, NOISE_KEYS, "")
 
 
-def own_innovations(scenario: RealScenario, inputs: SegmentInputs) -> OwnInnovations:
+def own_innovations(scenario: RecordedScenario, inputs: SegmentInputs) -> OwnInnovations:
     """The objective of `ekf-ml` on one run: its timeline from its cold start (the start pose,
     as every filter's), with the scenario's P0, gate and T0; `inputs.truth` is not passed on."""
     problem = TimelineLikelihood.of(
-        inputs.timeline, inputs.segment.pose, p0(scenario),
+        inputs.timeline, inputs.segment.pose, recorded_p0(scenario),
         gate_threshold(scenario.gate_probability), scenario.odometry_period_s,
     )  # fmt: skip
     return OwnInnovations(problem, scenario.naive.sigmas())
@@ -460,14 +454,14 @@ def _fit_own(spec, own: OwnInnovations) -> dict:
 
 
 def fit_on_own_innovations(
-    scenario: RealScenario, inputs: list[SegmentInputs], labels: list[str],
+    scenario: RecordedScenario, inputs: list[SegmentInputs], labels: list[str],
     cache_dir: Path | None, jobs: int = 1,
 ) -> tuple[dict[int, dict[str, dict]], dict]:  # fmt: skip
     """Every `ekf-ml` filter of the scenario fitted on each run's own innovations (`inputs`, in
     run order; `labels` name them: drive ids or segment numbers), the fits spread over `jobs`
     processes, each cached in `cache_dir` by its fingerprint (a resumed batch does not refit).
     Returns, per run index, the noise of each ekf-ml instance (instance name -> the sigma keys
-    of `tuned_covariances`), and the manifest's account of every fit and its cost."""
+    of `noise_sigmas`), and the manifest's account of every fit and its cost."""
     specs = [spec for spec in scenario.filters if isinstance(spec, EKFMLSpec)]
     if not specs:
         return {}, {}
@@ -517,59 +511,45 @@ def fit_on_own_innovations(
 # 2. The held-out segments
 
 
-def _pad(a: np.ndarray, n: int) -> np.ndarray:
-    if len(a) == n:
-        return a
-    out = np.full((n, *a.shape[1:]), np.nan, dtype=float)
-    out[: len(a)] = a
-    return out
+def noise_sigmas(noise: dict) -> tuple[float, float, float, float]:
+    """(sv, sw, sr, sb) of a tuned or fitted noise record (`tune`, `fit_on_own_innovations`)."""
+    return noise["sigma_v"], noise["sigma_w_rad"], noise["sigma_range"], noise["sigma_bearing_rad"]
 
 
-def run_segment(
-    scenario: RealScenario,
+def recorded_run(
+    scenario: RecordedScenario,
     inputs: SegmentInputs,
     tuned: dict | None,
     n_steps: int,
     fitted: dict[str, dict] | None = None,
     engine: str = "filterpy",
 ) -> dict:
-    """One held-out segment as a Monte Carlo run: every filter instance from ground truth, on
-    `engine` (`runner.run_spec`: the fast engine runs what it implements, the rest filterpy).
+    """One held-out segment or drive as a Monte Carlo run (`runner.run_one`): every filter
+    instance from ground truth (`recorded_context`), padded to `n_steps` evaluation times.
     `tuned`: ekf-tuned's noise; `fitted`: each ekf-ml instance's, fitted on this run."""
     seg = inputs.segment
-    model = Unicycle(scenario.odometry_period_s)
-    gate = gate_threshold(scenario.gate_probability)
-    n = len(inputs.t)
-    truth = _pad(inputs.truth, n_steps)
-    filters = {}
-    for name, spec, m in scenario.instances():
+    run = RunInputs(
+        seg.index, inputs.timeline, np.arange(1, n_steps + 1),
+        pad_to(inputs.t - seg.t0, n_steps), pad_to(inputs.truth, n_steps), len(inputs.t),
+    )  # fmt: skip
+
+    def context(name: str, spec, m: float | None) -> FilterContext:
         if m is None and spec.role == "fitted":
-            Qu, R = tuned_covariances((fitted or {}).get(name, tuned))
-        else:  # a trained filter (kalmannet, one instance) has no noise: the naive x1 is passed
-            Qu, R = naive_covariances(scenario, 1.0 if m is None else m)
-        ctx = FilterContext(
-            x0=np.array(seg.pose, dtype=float), P0=p0(scenario), Qu=Qu, R=R, model=model,
-            dt=scenario.odometry_period_s, gate=gate,
-        )  # fmt: skip
-        trace = run_spec(engine, spec, ctx, inputs.timeline, name=name)
-        for key in ("x", "P", "R_diag", "Q_diag", "P_infl"):
-            trace[key] = _pad(trace[key], n_steps)
-        filters[name] = add_trace_metrics(trace, truth)
-    return {
-        "run": seg.index,
-        "control_steps": n,
-        "step": np.arange(1, n_steps + 1),
-        "t": _pad(inputs.t - seg.t0, n_steps),
-        "x_true": truth,
-        "filters": filters,
-    }
+            noise = noise_sigmas((fitted or {}).get(name, tuned))
+            return recorded_context(scenario, seg.pose, None, noise)
+        return recorded_context(scenario, seg.pose, m)
+
+    instances = ((name, spec, context(name, spec, m)) for name, spec, m in scenario.instances())
+    return run_one(run, instances, engine)
 
 
 # --------------------------------------------------------------------------------------------
 # 3. Tables
 
 
-def real_summary(records: list[dict], ordered: list[dict], scenario: RealScenario) -> list[dict]:
+def real_summary(
+    records: list[dict], ordered: list[dict], scenario: RecordedScenario
+) -> list[dict]:
     """The summary records plus what matters on real data, per filter instance: its base filter
     and start, the pooled RMSE over all scored times, the largest error, the runs that lost lock
     (an error above LOST_LOCK_M at a scored time)."""
@@ -613,7 +593,7 @@ DRIVES_ALIGNMENT = (
 
 @dataclass(frozen=True, eq=False)
 class RecordedSource:
-    """Runs read from a recorded log (experiment.Plan's source for a `RealScenario`): its
+    """Runs read from a recorded log (experiment.Plan's source for a `RecordedScenario`): its
     held-out segments (protocol segments, a `Recording`) or its drives (protocol drives, a
     `DriveSet`), each cold-started from ground truth. The plan's seed only seeds the bootstrap
     intervals; ekf-tuned is tuned, kalmannet trained and ekf-ml fitted in `prepare`."""
@@ -624,7 +604,7 @@ class RecordedSource:
     def runs(self) -> int:
         return len(self.world.test_segments)
 
-    def filter_names(self, scenario: RealScenario) -> list[str]:
+    def filter_names(self, scenario: RecordedScenario) -> list[str]:
         """Every filter instance (each filter from each naive start, and the fixed ones)."""
         return scenario.instance_names()
 
@@ -670,7 +650,7 @@ class RecordedSource:
             for name, spec, _ in plan.scenario.instances()
         }
 
-    def comparison_pairs(self, scenario: RealScenario) -> list[tuple[str, str]]:
+    def comparison_pairs(self, scenario: RecordedScenario) -> list[tuple[str, str]]:
         """Every instance against the ekf-tuned reference, then the scenario's `compare`."""
         ref = scenario.reference()
         pairs = [(n, ref) for n in scenario.instance_names() if ref is not None and n != ref]
@@ -686,7 +666,7 @@ class RecordedSource:
     def prepare(self, plan, store: Path, progress=None) -> Prepared:
         """Train (kalmannet, on training segments or per fold), tune ekf-tuned, fit ekf-ml on
         each run's own innovations (all cached in `store` where they can be), and hand out one
-        `run_segment` call per held-out segment or drive."""
+        `recorded_run` call per held-out segment or drive."""
         if isinstance(self.world, DriveSet):
             return _prepare_drives(plan, self.world, store, progress)
         return _prepare_segments(plan, self.world, store, progress)
@@ -720,7 +700,7 @@ def _prepare_segments(plan, rec: Recording, store: Path, progress) -> Prepared:
     )
     items = {
         i.segment.index: partial(
-            run_segment, run_scenario, i, tuned, n_steps, fitted.get(i.segment.index), plan.engine
+            recorded_run, run_scenario, i, tuned, n_steps, fitted.get(i.segment.index), plan.engine
         )
         for i in inputs
     }
@@ -753,7 +733,7 @@ def _prepare_drives(plan, world: DriveSet, store: Path, progress) -> Prepared:
     )  # fmt: skip
     items = {
         d.segment.index: partial(
-            run_segment,
+            recorded_run,
             run_scenario[d.id],
             inputs[d.id],
             tuned_for.get(d.id),
@@ -773,7 +753,7 @@ def _prepare_drives(plan, world: DriveSet, store: Path, progress) -> Prepared:
     return Prepared(items, action + _fits_action(fits), manifest, n_steps)
 
 
-def _recorded_manifest(scenario: RealScenario, data: dict, tuning, alignment: str) -> dict:
+def _recorded_manifest(scenario: RecordedScenario, data: dict, tuning, alignment: str) -> dict:
     """The manifest keys only a recorded result has (report.real reads them)."""
     return {
         "kind": "recorded",

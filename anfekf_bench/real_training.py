@@ -3,7 +3,7 @@ the cross-drive protocol (`fit_on_drives`), or on the training segments of one l
 segments, `fit_on_segments`: one fit, on the segments that tune `ekf-tuned`).
 
 The recorded counterpart of anfekf_bench.training: a drive is scored by weights trained on the
-drives of the datasets that tune its `ekf-tuned` (`RealScenario.tuning_sources`: tune on Dataset
+drives of the datasets that tune its `ekf-tuned` (`RecordedScenario.tuning_sources`: tune on Dataset
 6, test on 7, and the reverse; Dataset 9 on both), never on its own dataset's drives. Per fold
 (one set of training drives) and fitted filter:
 
@@ -28,19 +28,19 @@ from pathlib import Path
 from typing import Any
 
 from .outputs import FIT_FILE, PlanError, code_version, read_cached_fit, write_fit
-from .sources.recorded import DriveSet, RealScenario, log_digest
+from .sources.recorded import DriveSet, RecordedScenario, log_digest
 
 # The scenario fields a drive's timeline and scored truth depend on (real_experiment.segment_inputs)
 _INPUT_FIELDS = {"eval_period_s", "odometry_period_s", "max_gap_s", "misfit_detection"}
 
 
-def trained_filters(scenario: RealScenario) -> list:
+def trained_filters(scenario: RecordedScenario) -> list:
     """The filters trained on training drives or segments (kalmannet); ekf-ml is fitted on each
     run's own innovations instead (real_experiment.fit_on_own_innovations)."""
     return [f for f in scenario.filters if f.role == "trained"]
 
 
-def fold_fingerprint(scenario: RealScenario, spec, drives: list) -> str:
+def fold_fingerprint(scenario: RecordedScenario, spec, drives: list) -> str:
     """Hash of what a fold's fit depends on (see the module doc); not the test drives."""
     doc = {
         "filter": spec.model_dump(mode="json", exclude={"name"}),
@@ -68,12 +68,12 @@ def _fit_or_read(spec, fingerprint: str, cache_dir: Path | None, fit) -> tuple[d
 
 
 def fit_on_drives(
-    scenario: RealScenario,
+    scenario: RecordedScenario,
     world: DriveSet,
     inputs: dict,
     cache_dir: Path | None,
     progress: Any = None,
-) -> tuple[dict[str, RealScenario], dict]:
+) -> tuple[dict[str, RecordedScenario], dict]:
     """Fit every trained filter of `scenario` once per fold (see the module doc). `inputs`: drive
     id -> real_experiment.SegmentInputs. Returns the scenario each drive runs with (its fold's
     weights; every drive when there is no trained filter) and the manifest's account. PlanError
@@ -125,8 +125,8 @@ _SEGMENT_FIELDS = _INPUT_FIELDS | {"split_fraction", "split_at_s", "segment_s", 
 
 
 def fit_on_segments(
-    scenario: RealScenario, rec, segments: list, cache_dir: Path | None, progress: Any = None
-) -> tuple[RealScenario, dict]:
+    scenario: RecordedScenario, rec, segments: list, cache_dir: Path | None, progress: Any = None
+) -> tuple[RecordedScenario, dict]:
     """Protocol segments: every trained filter fitted once on the log's training segments
     (`segments`: their real_experiment.SegmentInputs, each cold-started from ground truth, as
     `ekf-tuned`'s tuning sees them; never a held-out one), or read from the cache. Returns the

@@ -1,8 +1,9 @@
 """Monte Carlo batches: worker calls of a few runs each, fanned out with joblib (benchopt style).
 
 `dispatch_runs` is the one way runs are dispatched, for every source: a batch is a list of
-picklable calls, one run each (a simulated run: `run_one`; a recorded segment or drive:
-real_experiment's), grouped into worker tasks (`run_chunk`) on local processes or a Dask
+picklable calls, one run each (a simulated run: `simulated_run`; a recorded segment or drive:
+real_experiment's `recorded_run`; both end in the one per-run function, `run_one`), grouped
+into worker tasks (`run_chunk`) on local processes or a Dask
 cluster. The calls are top-level functions taking plain data and returning plain data; they
 mutate nothing shared. The truth path and the scans' landmark geometry are computed once per
 batch and shipped with the tasks.
@@ -20,6 +21,7 @@ import contextlib
 import copy
 import logging
 import math
+import os
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -30,7 +32,7 @@ import numpy as np
 from joblib import Parallel, delayed
 
 from .analysis.metrics import add_trace_metrics, recorded_steps
-from .config import Engine, Scenario, World
+from .config import Engine, SimulatedScenario, World
 from .engines.filterpy_engine import run_filter
 from .filters import FilterContext, FilterSpec
 from .filters.context import filter_context
@@ -41,36 +43,41 @@ from .workers import local_workers
 
 
 def simulate(
-    scenario: Scenario, world: World, seed: np.random.SeedSequence, path: WorldPath | None = None
+    scenario: SimulatedScenario,
+    world: World,
+    seed: np.random.SeedSequence,
+    path: WorldPath | None = None,
 ) -> RunData:
     """One run's data, every draw from its own seed (SPEC 6); `path` (the truth and the scans'
     geometry, the same in every run) may be passed in so that it is computed once per world."""
     path = world_path(world) if path is None else path
     sigmas, rng = scenario.true_noise.radians(), np.random.default_rng(seed)
-    return simulate_run(world, path.truth, sigmas, rng, path.geometry, scenario.noise_schedule)
+    return simulate_run(
+        world, path.truth, sigmas, rng, path.geometry, scenario.noise_schedule,
+        getattr(scenario, "error_sources", None),
+    )  # fmt: skip
 
 
 def run_filter_on(
     engine: Engine, spec: FilterSpec, scenario, world: World, data: RunData,
     start: float | None = None, name: str | None = None,
 ) -> dict:  # fmt: skip
-    """One filter (the instance `name` from naive start `start`, when given) over one run's data
-    on `engine` (`run_spec` on the run's timeline)."""
+    """One filter (the instance `name` from naive start `start`, when given) over one simulated
+    run's data on `engine` (`run_spec` on the run's timeline)."""
     tl = from_run(data, world, scenario.record_every)
-    ctx = filter_context(spec, scenario, world, start)
-    fast_ok = not follows_schedule(spec, scenario)
-    return run_spec(engine, spec, ctx, tl, fast_ok=fast_ok, name=name)
+    return run_spec(engine, spec, filter_context(spec, scenario, world, start), tl, name=name)
 
 
 def run_spec(
-    engine: Engine, spec: FilterSpec, ctx: FilterContext, tl: Timeline, *, fast_ok: bool = True,
-    name: str | None = None,
-) -> dict:  # fmt: skip
+    engine: Engine, spec: FilterSpec, ctx: FilterContext, tl: Timeline, *, name: str | None = None
+) -> dict:
     """One filter over one timeline (a simulated run or a recorded span) on `engine`: the fast
-    engine runs the filters and motion models it implements (unless `fast_ok` is False), every
-    other filter (a user's own, a zoo baseline) runs on filterpy (`engine_of` says which).
-    `name`: the instance name a custom filter's errors are reported under."""
-    if engine == "fast" and fast_ok:
+    engine runs the filters and motion models it implements, every other filter (a user's own,
+    a zoo baseline) runs on filterpy (`engine_of` says which), and so does a context that
+    carries the true noise of every step (the oracle under a noise schedule, SPEC 14: the
+    kernels take constant noise). `name`: the instance name a custom filter's errors are
+    reported under."""
+    if engine == "fast" and ctx.true_noise is None:
         from .engines import fast  # numba (when installed) is imported only for this engine
 
         if fast.supports(spec, ctx.model):
@@ -112,32 +119,79 @@ def fast_compiled(engine: Engine) -> bool | None:
     return bool(fast.JIT)
 
 
+@dataclass(frozen=True, eq=False)
+class RunInputs:
+    """One run as every filter of it sees it and as it is scored, whatever the source (SPEC 12):
+    the timeline the filters step, the evaluation steps and times (a recorded span shorter than
+    the longest is padded: NaN times), the truth there (NaN where it is not scored) and the
+    run's length (a simulated run's control steps; a recorded span's evaluation times)."""
+
+    run: int
+    timeline: Timeline
+    step: np.ndarray
+    t: np.ndarray
+    x_true: np.ndarray
+    control_steps: int
+
+
+# A filter's per-step arrays, padded with NaN to the run's evaluation steps.
+TRACE_ARRAYS = ("x", "P", "R_diag", "Q_diag", "P_infl")
+
+
+def pad_to(a: np.ndarray, n: int) -> np.ndarray:
+    """`a` with NaN rows appended up to `n` rows (itself when it has them)."""
+    if len(a) == n:
+        return a
+    out = np.full((n, *a.shape[1:]), np.nan, dtype=float)
+    out[: len(a)] = a
+    return out
+
+
 def run_one(
-    scenario: Scenario,
+    inputs: RunInputs,
+    instances: Iterable[tuple[str, FilterSpec, FilterContext]],
+    engine: Engine = "filterpy",
+) -> dict:
+    """One Monte Carlo run, whatever its source: every filter instance (name, spec, starting
+    context: `filters.context`) over the same timeline (common random numbers) on `engine`
+    (`run_spec`), its trace padded to the run's evaluation steps and scored against the truth.
+    The sources' calls build the inputs: `simulated_run`, real_experiment's `recorded_run`."""
+    n = len(inputs.step)
+    filters = {}
+    for name, spec, ctx in instances:
+        trace = run_spec(engine, spec, ctx, inputs.timeline, name=name)
+        for key in TRACE_ARRAYS:
+            trace[key] = pad_to(trace[key], n)
+        filters[name] = add_trace_metrics(trace, inputs.x_true)
+    return {
+        "run": inputs.run,
+        "control_steps": inputs.control_steps,
+        "step": inputs.step,
+        "t": inputs.t,
+        "x_true": inputs.x_true,
+        "filters": filters,
+    }
+
+
+def simulated_run(
+    scenario: SimulatedScenario,
     world: World,
     run: int,
     seed: np.random.SeedSequence,
     path: WorldPath | None = None,
     engine: Engine = "filterpy",
 ) -> dict:
-    """One Monte Carlo run: simulate once, feed the same data to every filter instance (CRN)."""
+    """One simulated run: simulate once from its own seed, then `run_one` with every instance
+    from the context `filter_context` gives it."""
     data = simulate(scenario, world, seed, path)
     steps = recorded_steps(len(data.u_odo), scenario.record_every)
-    x_true = data.truth.x[steps]
-    filters = {
-        name: add_trace_metrics(
-            run_filter_on(engine, spec, scenario, world, data, start, name), x_true
-        )
+    tl = from_run(data, world, scenario.record_every)
+    inputs = RunInputs(run, tl, steps, steps * world.T, data.truth.x[steps], len(data.u_odo))
+    instances = (
+        (name, spec, filter_context(spec, scenario, world, start))
         for name, spec, start in scenario.instances()
-    }
-    return {
-        "run": run,
-        "control_steps": len(data.u_odo),
-        "step": steps,
-        "t": steps * world.T,
-        "x_true": x_true,
-        "filters": filters,
-    }
+    )
+    return run_one(inputs, instances, engine)
 
 
 @dataclass(frozen=True)
@@ -159,21 +213,21 @@ def run_chunk(items: list[Callable[[], dict]]) -> list[dict]:
     return [item() for item in items]
 
 
-def run_tasks(scenario: Scenario, world: World, runs: int, seed: int) -> Iterator[dict]:
+def run_tasks(scenario: SimulatedScenario, world: World, runs: int, seed: int) -> Iterator[dict]:
     """Plain keyword dicts, one per run: run i gets the i-th child of the root seed (SPEC 6)."""
     for i, child in enumerate(np.random.SeedSequence(seed).spawn(runs)):
         yield {"scenario": scenario, "world": world, "run": i, "seed": child}
 
 
 def simulated_items(
-    scenario: Scenario, world: World, runs: int, seed: int, engine: Engine = "filterpy",
+    scenario: SimulatedScenario, world: World, runs: int, seed: int, engine: Engine = "filterpy",
     path: WorldPath | None = None,
 ) -> dict[int, Callable[[], dict]]:  # fmt: skip
-    """The work of a simulated batch: run index -> its call (`run_one` with its own seed; the
-    truth path and the scans' geometry, the same in every run, computed once and shipped)."""
+    """The work of a simulated batch: run index -> its call (`simulated_run` with its own seed;
+    the truth path and the scans' geometry, the same in every run, computed once and shipped)."""
     path = world_path(world) if path is None else path
     return {
-        t["run"]: partial(run_one, scenario, world, t["run"], t["seed"], path, engine)
+        t["run"]: partial(simulated_run, scenario, world, t["run"], t["seed"], path, engine)
         for t in run_tasks(scenario, world, runs, seed)
     }
 
@@ -181,6 +235,44 @@ def simulated_items(
 def runs_per_task(n_runs: int, workers: int) -> int:
     """About four tasks per worker, so that the load balances and progress moves."""
     return max(1, math.ceil(n_runs / (4 * max(workers, 1))))
+
+
+# What starting local workers costs before their first run: process start, importing the
+# package and loading the fast engine's compiled kernels from numba's cache: about 2 s, paid in
+# parallel (an estimate from the bench's fresh-process figures: `fast_e2e_cli_s` 3.9 s against
+# `fast_e2e_scenario_s` 0.85 s on warm workers; the bench does not measure it alone yet). The
+# environment variable ANFEKF_WORKER_START_S replaces it (0: workers whenever jobs > 1).
+WORKER_START_S = 2.0
+WORKERS_PAY = 0.8  # workers are used when they are estimated to take at most this share
+
+
+def worker_start_s() -> float:
+    """WORKER_START_S, or the environment's ANFEKF_WORKER_START_S when it is a number >= 0."""
+    try:
+        value = float(os.environ.get("ANFEKF_WORKER_START_S", WORKER_START_S))
+    except ValueError:
+        return WORKER_START_S
+    return value if math.isfinite(value) and value >= 0 else WORKER_START_S
+
+
+def place_runs(n_runs: int, jobs: int, run_s: float, start_s: float | None = None) -> dict:
+    """Where a local batch's remaining `n_runs` runs go, from the measured cost of one run
+    (`run_s`, the probe run done in-process): in this process, or on `jobs` workers, whichever
+    is estimated to finish first (workers only when they save a fifth: the estimate is rough).
+    The record goes into the manifest (`placement`)."""
+    start_s = worker_start_s() if start_s is None else start_s
+    workers = max(1, min(jobs, n_runs))
+    in_process_s = n_runs * run_s
+    workers_s = start_s + in_process_s / workers
+    use = workers > 1 and workers_s <= WORKERS_PAY * in_process_s
+    return {
+        "where": "workers" if use else "in-process",
+        "workers": workers if use else 0,
+        "probe_run_s": round(run_s, 4),
+        "estimate_in_process_s": round(in_process_s, 3),
+        "estimate_workers_s": round(workers_s, 3),
+        "worker_start_s": start_s,
+    }
 
 
 def dispatch_runs(
@@ -193,37 +285,65 @@ def dispatch_runs(
     connect_timeout_s: float = 10.0,
     engine: Engine = "filterpy",
     client=None,
+    placement: dict | None = None,
 ) -> Iterator[dict]:
     """Run results as they finish (any order), whatever the source: `items` are picklable
     calls, one run each (simulated: `simulated_items`; recorded: real_experiment's segments or
     drives); `on_result` sees each result as it arrives (execute saves it there at once).
 
-    backend "local" uses `jobs` local processes; "dask" runs on the existing Dask cluster whose
+    backend "local" runs the first two runs in this process, timing the second, then the rest
+    here or on up to `jobs` local processes, whichever `place_runs` estimates to be faster (a
+    fast-engine batch of a few seconds does not pay for starting workers); `placement`, when
+    given, is filled with that decision. "dask" runs on the existing Dask cluster whose
     scheduler listens at `scheduler` (all its worker threads; `jobs` is not used there). The
-    cluster is reached here (unless `client`, from `connect_dask`, is given: the caller reached it
-    before touching its output), before the first result is asked for, so a scheduler that cannot
-    be reached raises BackendUnavailable at once. Local workers end when this process dies.
+    cluster is reached here (unless `client`, from `connect_dask`, is given: the caller reached
+    it before touching its output), before the first result is asked for, so a scheduler that
+    cannot be reached raises BackendUnavailable at once. Local workers end when this process
+    dies.
     """
     if not items:
         return iter(())
-    # A filterpy run takes a good part of a second: one task per run (progress and resume move
-    # with every run); a fast-engine run takes milliseconds, so its tasks hold several runs.
-    size = runs_per_task(len(items), jobs) if engine == "fast" and backend == "local" else 1
-    calls = (delayed(run_chunk)(items[i : i + size]) for i in range(0, len(items), size))
     if backend == "dask":
+        calls = (delayed(run_chunk)([item]) for item in items)
         if client is None:
             client = connect_dask(scheduler, connect_timeout_s)
-        results = _run_on_dask(client, calls, scheduler, connect_timeout_s)
-    else:
-        n_calls = math.ceil(len(items) / size)
-        with local_workers():
-            parallel = Parallel(n_jobs=min(jobs, n_calls), return_as="generator_unordered")
-            results = parallel(calls)
-    return _announce(results, on_result)
+        if placement is not None:
+            placement.update(where="dask", workers=None)
+        return _announce(_run_on_dask(client, calls, scheduler, connect_timeout_s), on_result)
+    return _announce(_run_local(items, jobs, engine, placement), on_result)
+
+
+def _run_local(
+    items: list[Callable[[], dict]], jobs: int, engine: Engine, placement: dict | None
+) -> Iterator[list[dict]]:
+    """`dispatch_runs`'s local batches: two runs here, the second timed (the first pays this
+    process's one-time costs: loading the compiled kernels, first calls), then the rest where
+    `place_runs` says it pays."""
+    yield run_chunk(items[:1])
+    t0 = time.perf_counter()
+    yield run_chunk(items[1:2])
+    probe_s = time.perf_counter() - t0
+    rest = items[2:]
+    decision = place_runs(len(rest), jobs, probe_s)
+    if placement is not None:
+        placement.update(decision)
+    if not rest:
+        return
+    if decision["where"] == "in-process":
+        for item in rest:  # one at a time: progress and the run store move with every run
+            yield run_chunk([item])
+        return
+    # A filterpy run takes a good part of a second: one task per run (progress and resume move
+    # with every run); a fast-engine run takes milliseconds, so its tasks hold several runs.
+    workers = decision["workers"]
+    size = runs_per_task(len(rest), workers) if engine == "fast" else 1
+    calls = (delayed(run_chunk)(rest[i : i + size]) for i in range(0, len(rest), size))
+    with local_workers():
+        yield from Parallel(n_jobs=workers, return_as="generator_unordered")(calls)
 
 
 def run_batch(
-    scenario: Scenario,
+    scenario: SimulatedScenario,
     world: World,
     *,
     runs: int,

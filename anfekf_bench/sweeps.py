@@ -25,7 +25,14 @@ from pathlib import Path
 
 import pandas as pd
 
-from .config import Scenario, ScenarioError, SweepAxis, World, parse_scenario, resolve_world
+from .config import (
+    ScenarioError,
+    SimulatedScenario,
+    SweepAxis,
+    World,
+    parse_scenario,
+    resolve_world,
+)
 from .experiment import (
     OutputExists,
     Plan,
@@ -86,7 +93,7 @@ class Cell:
     index: int
     name: str
     coords: dict[str, float]
-    scenario: Scenario
+    scenario: SimulatedScenario
     world: World
 
 
@@ -129,7 +136,7 @@ def _scale(doc: dict, axis: SweepAxis, factor: float) -> None:
         doc["filter_noise"][key] = doc["filter_noise"][key] * math.sqrt(factor)
 
 
-def expand(scenario: Scenario, source: Path) -> list[Cell]:
+def expand(scenario: SimulatedScenario, source: Path) -> list[Cell]:
     """Every cell of the scenario's sweep, each validated as a scenario (ScenarioError names the
     axis or the cell and the field)."""
     sweep = scenario.sweep

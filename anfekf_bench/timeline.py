@@ -111,13 +111,21 @@ def from_run(data, world, record_every: int) -> Timeline:
     n_scans = K // every
     if len(data.scans) < n_scans:
         raise ValueError(f"{K} control steps need {n_scans} scans; the run has {len(data.scans)}")
-    scans = data.scans[:n_scans]
-    counts = np.fromiter((len(s.ids) for s in scans), dtype=np.int64, count=n_scans)
+    flat = getattr(data.scans, "start", None)  # simulator.Scans: the scans already flat
+    if flat is not None:
+        counts = np.diff(flat[: n_scans + 1])
+    else:
+        scans = data.scans[:n_scans]
+        counts = np.fromiter((len(s.ids) for s in scans), dtype=np.int64, count=n_scans)
     per_stamp = np.zeros(K, dtype=np.int64)
     per_stamp[np.arange(1, n_scans + 1) * every - 1] = counts
     lm = np.zeros(K + 1, dtype=np.int64)
     np.cumsum(per_stamp, out=lm[1:])
-    if lm[-1]:
+    if lm[-1] and flat is not None:
+        ids = data.scans.ids[: flat[n_scans]]
+        z = np.array(data.scans.z[: flat[n_scans]], dtype=float).reshape(-1, 2)  # a copy, as below
+        xy = np.ascontiguousarray(world.landmarks[ids], dtype=float).reshape(-1, 2)
+    elif lm[-1]:
         ids = np.concatenate([s.ids for s in scans])
         z = np.ascontiguousarray(np.concatenate([s.z for s in scans]), dtype=float).reshape(-1, 2)
         xy = np.ascontiguousarray(world.landmarks[ids], dtype=float).reshape(-1, 2)

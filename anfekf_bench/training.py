@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from .config import Scenario, World
+from .config import SimulatedScenario, World
 from .filters.ekf import gate_threshold
 from .filters.spec import FilterSpec
 from .outputs import FIT_FILE, read_cached_fit, write_fit
@@ -47,7 +47,7 @@ class TrainingSet:
     """What a fitted filter's `fit` gets: the scenario, its world, the simulated training runs,
     their seeds, the filters' start covariance and gate, and the worker processes it may use."""
 
-    scenario: Scenario
+    scenario: SimulatedScenario
     world: World
     runs: list[RunData]
     seeds: list[np.random.SeedSequence]
@@ -108,7 +108,7 @@ class TrainingSet:
 
 
 def simulate_training(
-    scenario: Scenario, world: World, seed: int, jobs: int = 1, progress: Any = None
+    scenario: SimulatedScenario, world: World, seed: int, jobs: int = 1, progress: Any = None
 ) -> TrainingSet:
     """The scenario's training runs (see the module doc)."""
     seeds = training_seeds(seed, scenario.training.runs)
@@ -119,7 +119,7 @@ def simulate_training(
     )
 
 
-def fitted_filters(scenario: Scenario) -> list[FilterSpec]:
+def fitted_filters(scenario: SimulatedScenario) -> list[FilterSpec]:
     return [f for f in scenario.filters if f.fitted_on_training]
 
 
@@ -127,7 +127,7 @@ def fitted_filters(scenario: Scenario) -> list[FilterSpec]:
 class Fits:
     """The scenario whose fitted filters carry their values, and what the manifest records."""
 
-    scenario: Scenario
+    scenario: SimulatedScenario
     records: dict  # filter name -> {kind, fingerprint, cached, training_runs, fitted}
     fitted_now: int  # fits computed by this call (not read from the cache)
 

@@ -84,50 +84,95 @@ def live_group_members(pgid: int) -> list[int]:
 # slow here, by module and test function (every parameter), besides those marked in their own
 # files. `make test` runs everything. Measured with `pytest --durations` (docs/getting-started.md).
 SLOW_TESTS: dict[str, set[str]] = {
-    "test_pipeline": {
-        "test_ekf_consistency_acceptance",
-        "test_results_do_not_depend_on_worker_count",
+    "test_api": {"test_a_run_from_python_reads_back"},
+    "test_bench": {
+        "test_quick_bench_writes_every_figure",
+        "test_the_command_line_probe_runs_anfekf_run_in_a_fresh_process",
+        "test_warmed_workers_are_the_ones_a_batch_uses",
     },
-    "test_interrupt": {"test_killed_run_leaves_nothing_complete_and_resumes"},
+    "test_cli_init": {"test_fast_without_numba_says_so_once_and_the_manifest_records_it"},
+    "test_cli_ux": {
+        "test_check_piped_into_head_keeps_its_verdict",
+        "test_other_commands_piped_into_head_stop_quietly",
+        "test_shell_completion_completes_commands_and_options",
+    },
     "test_confinement": {
         "test_nothing_outside_the_scenario_folder_ever_changes",
         "test_planted_run_files_are_refused_never_executed",
     },
-    "test_report": {
-        "test_other_formats_are_valid_files",
-        "test_the_html_report_is_written_again_byte_for_byte",
-        "test_dpi_sets_the_figure_resolution",
-    },
-    "test_cli_ux": {
-        "test_shell_completion_completes_commands_and_options",
-        "test_other_commands_piped_into_head_stop_quietly",
-    },
-    "test_sweeps": {
-        "test_the_sweep_report_draws_lines_or_heatmaps",
-        "test_an_interrupted_sweep_resumes_to_the_same_table",
-    },
-    "test_statistics": {"test_coverage_with_a_known_truth"},
-    "test_hardening": {"test_diverged_run_is_counted_and_kept_out_of_the_means"},
-    "test_real_data": {"test_a_users_log_runs_end_to_end"},
-    "test_fast_engine": {"test_paper_scenario", "test_runs_without_numba"},
+    "test_custom_filter": {"test_the_worked_example_runs_through_the_extension_point"},
     "test_dask": {
-        "test_dask_run_equals_local_run",
         "test_cluster_lost_mid_batch_is_reported",
-        "test_unreachable_scheduler_is_one_line_within_timeout",
         "test_dask_batch_reports_each_run_and_skips_done_ones",
+        "test_dask_run_equals_local_run",
         "test_scheduler_without_workers_is_reported",
+        "test_unreachable_scheduler_is_one_line_within_timeout",
+    },
+    "test_drives": {"test_regenerate_refuses_a_changed_original"},
+    "test_ekf_ml_real": {
+        "test_ekf_ml_recovers_the_true_sigmas_of_a_synthetic_drive",
+        "test_the_objective_does_not_depend_on_units_and_the_accepted_only_sum_does",
+    },
+    "test_fast_adaptive": {"test_paper_scenarios"},
+    "test_fast_engine": {
+        "test_paper_scenario",
+        "test_runs_without_numba",
+    },
+    "test_fast_primitives": {
+        "test_inv_is_numpys_with_pivoting",
+        "test_products_are_numpys",
+    },
+    "test_filter_bank": {"test_bicycle_bank_is_used_by_the_registry"},
+    "test_fitted": {
+        "test_manifest_records_the_fit_and_resume_reuses_it",
+        "test_two_noise_fits_run_their_starts_in_one_batch_with_the_same_fits",
+    },
+    "test_hardening": {
+        "test_any_document_loads_or_fails_cleanly",
+        "test_diverged_run_is_counted_and_kept_out_of_the_means",
+        "test_real_process_prints_one_line",
     },
     "test_hardening3": {
+        "test_a_description_with_a_script_link_is_plain_text_in_report_html",
+        "test_a_sweep_without_the_oracle_is_reported",
         "test_ctrl_c_in_the_first_second_is_one_line",
         "test_kill_9_during_a_forced_rerun_keeps_the_previous_result",
     },
-    "test_fast_adaptive": {"test_paper_scenarios"},
+    "test_hardening4_check": {
+        "test_a_full_stdout_is_one_line_and_a_nonzero_exit",
+        "test_an_empty_numba_cache_is_seen_as_cold",
+        "test_kinds_imports_no_compiler_nor_plots",
+    },
+    "test_interrupt": {
+        "test_complete_folder_refuses_then_force_overwrites",
+        "test_ctrl_c_in_process_then_resume",
+        "test_folder_killed_while_swapping_in_the_result_is_recomputed",
+        "test_killed_run_leaves_nothing_complete_and_resumes",
+    },
     "test_mrclam": {"test_conversion_reproduces_the_shipped_tables"},
-    "test_custom_filter": {"test_the_worked_example_runs_through_the_extension_point"},
-    "test_bench": {
-        "test_the_command_line_probe_runs_anfekf_run_in_a_fresh_process",
-        "test_quick_bench_writes_every_figure",
-        "test_warmed_workers_are_the_ones_a_batch_uses",
+    "test_registry_capabilities": {
+        "test_the_noise_figure_has_a_line_for_every_adaptive_filter_and_none_for_fixed_ones",
+    },
+    "test_pipeline": {
+        "test_ekf_consistency_acceptance",
+        "test_results_do_not_depend_on_worker_count",
+        "test_worker_processes_import_no_table_libraries",
+    },
+    "test_real_data": {
+        "test_a_users_log_runs_end_to_end",
+        "test_an_interrupted_real_batch_resumes_from_its_saved_segments",
+    },
+    "test_report": {
+        "test_dpi_sets_the_figure_resolution",
+        "test_other_formats_are_valid_files",
+        "test_the_html_report_is_written_again_byte_for_byte",
+    },
+    "test_starts": {"test_a_scenario_with_starts_runs_reports_and_compares_with_the_start_at_one"},
+    "test_statistics": {"test_coverage_with_a_known_truth"},
+    "test_sweeps": {
+        "test_an_interrupted_sweep_resumes_to_the_same_table",
+        "test_cells_are_ordered_naturally_and_equal_the_scenario_written_by_hand",
+        "test_the_sweep_report_draws_lines_or_heatmaps",
     },
 }
 
@@ -135,7 +180,11 @@ SLOW_TESTS: dict[str, set[str]] = {
 # Whole modules left to the full suite: each family's engine equivalence in every mode, pure
 # Python and forced divergence. The quick tier keeps tests/test_engines_equivalence.py, which
 # checks every registered kind on both engines and both motion models.
-SLOW_MODULES = {"test_fast_adaptive", "test_fast_adaptive_cm", "test_fast_bank", "test_fast_als"}
+SLOW_MODULES = {
+    "test_fast_adaptive", "test_fast_adaptive_cm", "test_fast_bank", "test_fast_als",
+    # one module-scoped report of real scenarios that most of their tests read
+    "test_report", "test_report_mixed", "test_check_sweeps",
+}  # fmt: skip
 
 
 def pytest_collection_modifyitems(config, items) -> None:

@@ -114,6 +114,18 @@ def test_quick_bench_writes_every_figure(tmp_path):
     assert doc["fast_e2e_cli_s"] is None and doc["fast_e2e"]["cli_wall_s"] == []  # full only
     assert doc["fast_e2e"]["runs"] == 2 and doc["fast_e2e"]["sweep"]["filter_runs"] == 20
     assert "step_us anfekf_RQ: fast" in result.output and "fast_sweep_batch_s" in result.output
+    # issue 37: the end-to-end breakdown of every paper scenario on the fast engine
+    breakdown = doc["fast_e2e_breakdown"]
+    assert set(breakdown["scenarios"]) == {"correct", "wrong_r"}
+    for name, b in breakdown["scenarios"].items():
+        assert b["runs"] == 2 and b["placement"] == "in-process", name
+        assert set(b["phases_s"]) == {"simulate", "filter", "metrics", "tables", "report"}
+        assert all(_finite_positive(v) for v in b["phases_s"].values()), name
+        assert b["e2e_over_filter"] == pytest.approx(b["e2e_s"] / b["phases_s"]["filter"])
+    assert breakdown["e2e_total_s"] == pytest.approx(
+        sum(b["e2e_s"] for b in breakdown["scenarios"].values())
+    )
+    assert "e2e / filter correct" in result.output
 
 
 def test_the_command_line_probe_runs_anfekf_run_in_a_fresh_process(tmp_path):

@@ -61,6 +61,7 @@ def _build(root: Path) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.slow
+@pytest.mark.heavy  # CI builds the site itself (`make docs`)
 def test_the_site_builds_strict_and_a_broken_link_or_anchor_fails_it(tmp_path):
     pytest.importorskip("mkdocs")
     pytest.importorskip("material")

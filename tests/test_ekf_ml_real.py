@@ -20,7 +20,7 @@ from anfekf_bench.real_experiment import (
     SegmentInputs,
     fit_on_own_innovations,
     own_innovations,
-    run_segment,
+    recorded_run,
 )
 from anfekf_bench.sources import mrclam as m
 from anfekf_bench.sources.recorded import Segment, parse_real_scenario
@@ -200,7 +200,7 @@ def test_ekf_ml_runs_once_with_its_fitted_noise():
     inp = drive_span("d6-r2", 100.0, 160.0)
     noise, _ = fit_on_own_innovations(sc, [inp], ["d6-r2"], None)
     fitted = noise[0]
-    run = run_segment(sc, inp, None, len(inp.t), fitted)
+    run = recorded_run(sc, inp, None, len(inp.t), fitted)
     sig = [fitted["ekf-ml"][k] for k in ("sigma_v", "sigma_w_rad", "sigma_range",
                                         "sigma_bearing_rad")]  # fmt: skip
     ref = reference(inp.timeline, inp.segment.pose, sig)

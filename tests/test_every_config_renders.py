@@ -18,7 +18,7 @@ from anfekf_bench.cli import app
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 FOLDERS = [CONFIGS, *sorted(p for p in CONFIGS.iterdir() if p.is_dir())]
 runner = CliRunner()
-pytestmark = pytest.mark.slow  # every shipped scenario, end to end
+pytestmark = [pytest.mark.slow, pytest.mark.heavy]  # every shipped scenario, end to end
 
 
 def shrink(doc: dict) -> dict:

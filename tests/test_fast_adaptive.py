@@ -169,7 +169,7 @@ def test_each_rule_is_written_once():
     covariance predict (`kernels.propagate`, the EKF core that both engines have on purpose),
     on tuples because it runs at every control step; the equivalence tests hold it to the rule.
     """
-    from anfekf_bench.engines import kernels
+    from anfekf_bench.engines import kernels, kernels_swvb
     from anfekf_bench.filters import adaptive, akhlaghi, iae, sage_husa, swvb, vb
 
     rules = {
@@ -178,7 +178,7 @@ def test_each_rule_is_written_once():
         "forget": akhlaghi, "residual_variance": akhlaghi, "state_noise_estimate": akhlaghi,
         "vb_r_predict": vb, "vb_r_beta": vb,
         "vb_r_bounded_beta": vb, "vbakf_predict": vb, "vbakf_prior": vb, "inflation_cap": vb,
-        "clip_covariance_2": vb, "interval_prior": swvb, "process_noise_moment": swvb,
+        "clip_covariance_2": vb,
         "next_beta": sage_husa, "fading_mean": sage_husa, "r_sample": sage_husa,
         "q_sample": sage_husa, "window_covariance": iae, "window_mean": iae, "r_estimate": iae,
         "hold_nonpositive": iae, "q_estimate": iae,
@@ -186,3 +186,6 @@ def test_each_rule_is_written_once():
     for mod in (kernels, kernels.pure_module()):
         for name, home in rules.items():
             assert getattr(mod, name) is getattr(home, name), name
+    for mod in (kernels_swvb, kernels_swvb.pure_module()):  # swvb's kernel, beside kernels.py
+        for name in ("interval_prior", "process_noise_moment"):
+            assert getattr(mod, name) is getattr(swvb, name), name

@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from anfekf_bench.config import parse_scenario, resolve_world
-from anfekf_bench.engines import fast, kernels
+from anfekf_bench.engines import fast, kernels, loop
 from anfekf_bench.engines.filterpy_engine import _healthy, run_filter
 from anfekf_bench.filters import (
     ANFEKFSpec,
@@ -85,11 +85,12 @@ VARIANTS: dict[str, FilterSpec] = {
 
 
 def ctx_of(spec: FilterSpec, scenario, world) -> FilterContext:
-    """The FilterContext `build_filter` gives this spec (read back from the filter it builds)."""
+    """The FilterContext `build_filter` gives this spec (read back from the filter it builds;
+    the pose block of an augmented one)."""
     flt = build_filter(spec, scenario, world)
     return FilterContext(
-        x0=flt.x.copy(), P0=flt.P.copy(), Qu=flt.Qu.copy(), R=flt.R.copy(), model=flt.model,
-        dt=flt.dt, gate=flt.gate,
+        x0=flt.x[:3].copy(), P0=flt.P[:3, :3].copy(), Qu=flt.Qu.copy(), R=flt.R.copy(),
+        model=flt.model, dt=flt.dt, gate=flt.gate,
     )  # fmt: skip
 
 
@@ -170,10 +171,12 @@ def test_refuses_what_it_does_not_implement(small):
 def test_kernels_are_compiled_when_numba_is_installed():
     numba = pytest.importorskip("numba")
     assert fast.JIT and kernels.JIT
-    assert isinstance(kernels.run_kernel, numba.core.registry.CPUDispatcher)
+    assert isinstance(kernels.correct, numba.core.registry.CPUDispatcher)
+    assert isinstance(loop.run_loop, numba.core.registry.CPUDispatcher)
     pure = KERNELS["pure"]
     assert not pure.JIT
-    assert not isinstance(pure.run_kernel, numba.core.registry.CPUDispatcher)
+    assert not isinstance(pure.correct, numba.core.registry.CPUDispatcher)
+    assert not isinstance(loop.pure_module().run_loop, numba.core.registry.CPUDispatcher)
 
 
 _WITHOUT_NUMBA = """
@@ -182,12 +185,12 @@ sys.modules["numba"] = None  # `import numba` now raises ImportError, as when it
 from pathlib import Path
 import numpy as np
 from anfekf_bench.config import parse_scenario, resolve_world
-from anfekf_bench.engines import fast, kernels
+from anfekf_bench.engines import fast, kernels, loop
 from anfekf_bench.engines.filterpy_engine import run_filter
 from anfekf_bench.filters.context import build_filter
 from anfekf_bench.runner import simulate
 
-assert not fast.JIT and not kernels.JIT and type(kernels.run_kernel).__name__ == "function"
+assert not fast.JIT and not kernels.JIT and type(loop.run_loop).__name__ == "function"
 scenario = parse_scenario(json.loads(sys.argv[1]))
 world = resolve_world(scenario.world, Path("small.yaml"))
 data = simulate(scenario, world, np.random.SeedSequence(3))

@@ -396,6 +396,7 @@ def test_an_empty_numba_cache_is_seen_as_cold(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_the_first_fast_run_says_it_compiles_and_the_second_does_not(tmp_path):
     """End to end on an empty numba cache: the line, the compilation (a minute or two), then a
     second run that loads the cache and says nothing."""

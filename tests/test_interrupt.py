@@ -97,7 +97,10 @@ def kill_scenario(tmp_path_factory) -> tuple[Path, pd.DataFrame]:
     [(signal.SIGKILL, 2), (signal.SIGINT, 1)],
     ids=["kill-9-two-workers", "ctrl-c-one-worker"],
 )
-def test_killed_run_leaves_nothing_complete_and_resumes(kill_scenario, tmp_path, sig, jobs):
+def test_killed_run_leaves_nothing_complete_and_resumes(
+    kill_scenario, tmp_path, monkeypatch, sig, jobs
+):
+    monkeypatch.setenv("ANFEKF_WORKER_START_S", "0")  # two jobs: workers, whatever runs cost
     path, reference = kill_scenario
     out = tmp_path / "out"
     target = out / "killed"

@@ -126,7 +126,8 @@ def test_two_commands_into_one_folder_give_one_result_and_a_clear_message(scenar
 # --- kill -9 of the parent alone ----------------------------------------------------------------
 
 
-def test_workers_end_when_the_parent_is_killed(tmp_path) -> None:
+def test_workers_end_when_the_parent_is_killed(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("ANFEKF_WORKER_START_S", "0")  # workers, whatever the runs cost
     doc = small_scenario(name="many", runs=40, jobs=2, record_every=8)
     path = write_scenario(tmp_path / "many.yaml", doc)
     out = tmp_path / "out"
@@ -134,8 +135,11 @@ def test_workers_end_when_the_parent_is_killed(tmp_path) -> None:
     proc = start(path, out)
     try:
         wait_for_saved_run(proc, target)
-        members = live_group_members(proc.pid)
-        assert len(members) >= 3, "the command and its two workers"
+        deadline = time.monotonic() + 120  # the first two runs run in the command itself
+        while len(live_group_members(proc.pid)) < 3:
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "the command and its two workers"
+            time.sleep(0.05)
         drained = threading.Event()
 
         def drain() -> None:  # like `| tee`: reads until every holder of the pipe closed it

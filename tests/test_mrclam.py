@@ -14,6 +14,7 @@ import pytest
 
 from anfekf_bench.models import wrap_angle
 from anfekf_bench.sources import mrclam as m
+from anfekf_bench.sources import user_log
 from anfekf_bench.sources.mrclam import LogError, RobotLog
 
 SHARED = Path(
@@ -323,7 +324,7 @@ def _write_user_csv(folder: Path, *, extra_column: bool = False) -> dict[str, pd
 
 def test_user_log_loads_and_round_trips(tmp_path):
     src = _write_user_csv(tmp_path / "mine", extra_column=True)
-    log = m.read_user_log(tmp_path / "mine")
+    log = user_log.read_user_log(tmp_path / "mine")
     assert log.name == "mine" and log.t_origin == 0.0
     np.testing.assert_array_equal(log.odo_t, src["odometry"]["t"])
     np.testing.assert_array_equal(log.landmark_id, [2, 4, 9])
@@ -334,7 +335,7 @@ def test_user_log_loads_and_round_trips(tmp_path):
     assert np.all(np.abs(log.truth_phi) <= math.pi)
 
     for fmt in ("csv", "parquet"):
-        back = m.read_user_log(m.write_user_log(log, tmp_path / f"again-{fmt}", fmt))
+        back = user_log.read_user_log(user_log.write_user_log(log, tmp_path / f"again-{fmt}", fmt))
         for name in RobotLog.__dataclass_fields__:
             a, b = getattr(log, name), getattr(back, name)
             if isinstance(a, np.ndarray):
@@ -343,7 +344,7 @@ def test_user_log_loads_and_round_trips(tmp_path):
 
 @pytest.mark.slow
 def test_builtin_round_trips_through_the_user_schema(tmp_path, log):
-    back = m.read_user_log(m.write_user_log(log, tmp_path / "d9", "csv"))
+    back = user_log.read_user_log(user_log.write_user_log(log, tmp_path / "d9", "csv"))
     np.testing.assert_array_equal(back.truth_phi, log.truth_phi)
     np.testing.assert_array_equal(back.meas_bearing, log.meas_bearing)
     np.testing.assert_allclose(m.exclusions(back).misfits, m.exclusions(log).misfits)
@@ -491,7 +492,7 @@ def test_malformed_user_log_gives_one_line(tmp_path, case):
     mutate, file, message = MALFORMED[case]
     mutate(folder)
     with pytest.raises(LogError) as info:
-        m.read_user_log(folder)
+        user_log.read_user_log(folder)
     text = str(info.value)
     assert "\n" not in text
     assert text.startswith(str(folder / file)), text
@@ -501,4 +502,4 @@ def test_malformed_user_log_gives_one_line(tmp_path, case):
 
 def test_missing_folder(tmp_path):
     with pytest.raises(LogError, match="no such folder"):
-        m.read_user_log(tmp_path / "nope")
+        user_log.read_user_log(tmp_path / "nope")

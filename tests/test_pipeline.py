@@ -17,10 +17,16 @@ from anfekf_bench.cli import app
 from anfekf_bench.config import parse_scenario, resolve_world
 from anfekf_bench.experiment import execute, make_plan
 from anfekf_bench.models import f
-from anfekf_bench.runner import run_one
+from anfekf_bench.runner import place_runs, simulated_run
 from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources.simulator import simulate_run, simulate_truth
-from anfekf_bench.storage import read_parquet, read_steps, write_parquet
+from anfekf_bench.storage import (
+    MANIFEST_FILE,
+    read_json,
+    read_parquet,
+    read_steps,
+    write_parquet,
+)
 
 from .conftest import small_scenario, write_scenario
 
@@ -57,9 +63,9 @@ def test_same_seed_same_data_other_seed_other_data():
     scenario = parse_scenario(small_scenario())
     world = resolve_world(scenario.world, Path("x.yaml"))
     seeds = np.random.SeedSequence(5).spawn(2)
-    a = run_one(scenario, world, 0, seeds[0])
-    b = run_one(scenario, world, 0, seeds[0])
-    c = run_one(scenario, world, 1, seeds[1])
+    a = simulated_run(scenario, world, 0, seeds[0])
+    b = simulated_run(scenario, world, 0, seeds[0])
+    c = simulated_run(scenario, world, 1, seeds[1])
     np.testing.assert_array_equal(a["filters"]["ekf"]["x"], b["filters"]["ekf"]["x"])
     assert not np.allclose(a["filters"]["ekf"]["x"], c["filters"]["ekf"]["x"])
 
@@ -71,13 +77,39 @@ def _execute(tmp_path: Path, out: str, **overrides):
     return execute(plan, tmp_path / out)
 
 
-def test_results_do_not_depend_on_worker_count(tmp_path):
+def test_results_do_not_depend_on_worker_count(tmp_path, monkeypatch):
+    monkeypatch.setenv("ANFEKF_WORKER_START_S", "0")  # workers even for a batch this small
     _, one = _execute(tmp_path, "one", jobs=1, runs=4)
     _, two = _execute(tmp_path, "two", jobs=2, runs=4)
     pd.testing.assert_frame_equal(read_steps(one), read_steps(two), check_exact=True)
     assert (one / "steps.parquet").read_bytes() == (two / "steps.parquet").read_bytes()
     _, other = _execute(tmp_path, "other", jobs=2, runs=4, seed=8)
     assert not np.allclose(read_steps(one)["x_est"], read_steps(other)["x_est"])
+    assert read_json(one / MANIFEST_FILE)["placement"]["where"] == "in-process"
+    assert read_json(two / MANIFEST_FILE)["placement"]["where"] == "workers"
+
+
+def test_placement_from_measured_costs():
+    """Workers when the runs' estimated cost pays for starting them, in-process otherwise."""
+    small = place_runs(49, 2, run_s=0.01, start_s=2.0)  # 0.5 s here against 2.25 s on workers
+    assert small["where"] == "in-process" and small["workers"] == 0
+    assert small["estimate_in_process_s"] == pytest.approx(0.49)
+    assert small["estimate_workers_s"] == pytest.approx(2.245)
+    large = place_runs(49, 2, run_s=1.0, start_s=2.0)  # 49 s here against 26.5 s
+    assert large["where"] == "workers" and large["workers"] == 2
+    assert place_runs(49, 1, run_s=1.0)["where"] == "in-process"  # one job: never workers
+    assert place_runs(1, 8, run_s=100.0, start_s=0.0)["where"] == "in-process"  # one run left
+    assert place_runs(3, 8, run_s=1.0, start_s=0.0)["workers"] == 3  # at most one a run
+
+
+def test_small_batch_runs_in_process(tmp_path, monkeypatch):
+    monkeypatch.delenv("ANFEKF_WORKER_START_S", raising=False)
+    path = write_scenario(tmp_path / "s.yaml", small_scenario(jobs=2, runs=3))
+    scenario, world = load_scenario(path)
+    _, target = execute(make_plan(scenario, world, None, None, None), tmp_path / "out")
+    placement = read_json(target / MANIFEST_FILE)["placement"]
+    assert placement["where"] == "in-process", placement
+    assert placement["probe_run_s"] > 0
 
 
 def test_output_files_and_columns(tmp_path):
@@ -234,7 +266,7 @@ def test_truth_follows_the_motion_model():
 def test_tables_do_not_depend_on_the_order_runs_finish():
     scenario = parse_scenario(small_scenario(runs=3))
     world = resolve_world(scenario.world, Path("x.yaml"))
-    results = [run_one(scenario, world, i, s) for i, s in enumerate(run_seeds(scenario))]
+    results = [simulated_run(scenario, world, i, s) for i, s in enumerate(run_seeds(scenario))]
     names = [f.name for f in scenario.filters]
     shuffled = [results[2], results[0], results[1]]
     pd.testing.assert_frame_equal(
@@ -283,7 +315,7 @@ def test_steps_table_rows_are_each_filters_trace_of_each_run():
     runs of different lengths and one diverged trace."""
     scenario = parse_scenario(small_scenario(runs=3))
     world = resolve_world(scenario.world, Path("x.yaml"))
-    results = [run_one(scenario, world, i, s) for i, s in enumerate(run_seeds(scenario))]
+    results = [simulated_run(scenario, world, i, s) for i, s in enumerate(run_seeds(scenario))]
     results[1] = _truncated(results[1], len(results[1]["step"]) // 3)
     names = [f.name for f in scenario.filters]
     results[2]["filters"][names[1]]["diverged"] = True

@@ -257,6 +257,9 @@ COVERED = {
     "make reproduce": "test_make_reproduce_is_the_gated_scenarios",
     # Python's venv writes activate; `make setup` (run by CI) makes the venv.
     "source .venv/bin/activate": "make setup",
+    # CI runs `make test`; the other tiers are the same command with another marker expression.
+    "make test-quick": "test_the_test_tiers_differ_from_make_test_only_by_markers",
+    "make test-all": "test_the_test_tiers_differ_from_make_test_only_by_markers",
 }
 CHEAP_ANFEKF = (["--version"], ["-h"], ["kinds"], ["run", "-h"], ["report", "-h"])
 
@@ -329,6 +332,29 @@ def test_every_readme_command_runs_in_ci():
             pytest.fail(f"README command {command!r}: neither run by CI nor covered")
 
 
+def test_the_test_tiers_differ_from_make_test_only_by_markers():
+    """`make test` (CI) leaves out `heavy`, `make test-quick` `slow` (every heavy test is slow
+    too), `make test-all` nothing; the same pytest command otherwise."""
+    if shutil.which("make") is None:
+        pytest.skip("no make")
+
+    def pytest_line(target: str) -> list[str]:
+        dry = subprocess.run(["make", "-n", target, "VENV=/nonexistent-venv"], cwd=ROOT,
+                             capture_output=True, text=True, timeout=60)  # fmt: skip
+        assert dry.returncode == 0, dry.stderr
+        (line,) = [ln for ln in dry.stdout.splitlines() if " -m pytest " in ln]
+        return shlex.split(line)
+
+    base = pytest_line("test-all")
+    assert base[:3] == ["/nonexistent-venv/bin/python", "-m", "pytest"] and "-m" not in base[3:]
+    assert pytest_line("test") == [*base, "-m", "not heavy"]
+    assert pytest_line("test-quick") == [*base, "-m", "not slow"]
+    for path in (ROOT / "tests").glob("test_*.py"):
+        text = _text(path)
+        if "mark.heavy" in text:
+            assert "mark.slow" in text, f"{path.name}: a heavy test must be slow too"
+
+
 def test_make_reproduce_is_the_gated_scenarios():
     """`make reproduce` = `anfekf run configs/` + `anfekf report`; CI's `make gate` runs the same
     four scenario files (configs/ci: the same names, seeds and filters, 20 runs)."""
@@ -349,6 +375,7 @@ def test_make_reproduce_is_the_gated_scenarios():
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_make_reproduce_runs_end_to_end(tmp_path):
     """`make reproduce`'s two commands as they are, at 2 runs per scenario."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "Agg"}

@@ -23,9 +23,10 @@ from anfekf_bench.config import ScenarioError
 from anfekf_bench.engines.events import run_filter_events, timeline
 from anfekf_bench.filters.ekf import RobotEKF, gate_threshold
 from anfekf_bench.models import Unicycle, measurement_covariance, wrap_angle
-from anfekf_bench.real_experiment import _score, run_segment, segment_inputs, tune
+from anfekf_bench.real_experiment import _score, recorded_run, segment_inputs, tune
 from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources import mrclam as m
+from anfekf_bench.sources import user_log
 from anfekf_bench.sources.mrclam import RobotLog
 from anfekf_bench.storage import read_json, read_parquet, read_steps
 
@@ -263,7 +264,7 @@ def test_no_scored_time_inside_a_vicon_gap_or_misfit(tmp_path, builtin):
     assert 4300 < scored_total <= 4507
     # A run scores nothing there: errors and NEES are NaN at every unscored step.
     inputs = next(segment_inputs(rec, s) for s in rec.test_segments if s.t0 > s.start)
-    res = run_segment(scenario, inputs, None, len(inputs.t) + 3)
+    res = recorded_run(scenario, inputs, None, len(inputs.t) + 3)
     tr = res["filters"]["ekf x1"]
     assert np.array_equal(np.isnan(tr["pos_err"]), np.r_[~inputs.scored, [True] * 3])
     assert np.array_equal(np.isnan(tr["nees"]), np.isnan(tr["pos_err"]))
@@ -367,7 +368,7 @@ def synthetic_log(duration: float = 80.0, seed: int = 1) -> RobotLog:
 
 
 def user_scenario(tmp_path: Path, fmt: str = "csv") -> Path:
-    m.write_user_log(synthetic_log(), tmp_path / "my-log", fmt=fmt)
+    user_log.write_user_log(synthetic_log(), tmp_path / "my-log", fmt=fmt)
     doc = {
         "name": "my-robot",
         "jobs": 1,

@@ -13,9 +13,10 @@ from typer.testing import CliRunner
 
 from anfekf_bench.cli import app
 from anfekf_bench.config import ScenarioError, parse_scenario, resolve_world
+from anfekf_bench.filters.context import recorded_context
 from anfekf_bench.filters.registry import instance_names
-from anfekf_bench.runner import run_one
-from anfekf_bench.sources.recorded import naive_covariances, parse_real_scenario
+from anfekf_bench.runner import simulated_run
+from anfekf_bench.sources.recorded import parse_real_scenario
 
 from .conftest import small_scenario, write_scenario
 
@@ -34,7 +35,7 @@ def _run(doc: dict, engine: str = "filterpy", run: int = 0) -> dict:
     scenario = parse_scenario(doc)
     world = resolve_world(scenario.world, Path("small.yaml"))
     seed = np.random.SeedSequence(scenario.seed).spawn(run + 1)[run]
-    return run_one(scenario, world, run, seed, engine=engine)["filters"]
+    return simulated_run(scenario, world, run, seed, engine=engine)["filters"]
 
 
 def _same(a: dict, b: dict) -> None:
@@ -76,8 +77,9 @@ def test_an_instance_is_its_filter_with_every_sigma_scaled_by_hand(engine):
     assert not np.array_equal(started["ekf x4"]["x"], started["ekf x1"]["x"])
     # The same meaning as a recorded log's starts: every standard deviation times m.
     real = parse_real_scenario({"name": "r", "data": {"kind": "log", "path": "x"}})
-    Qu, R = naive_covariances(real, m)
-    Qu1, R1 = naive_covariances(real, 1.0)
+    pose = np.zeros(3)
+    Qu, R = recorded_context(real, pose, m).Qu, recorded_context(real, pose, m).R
+    Qu1, R1 = recorded_context(real, pose, 1.0).Qu, recorded_context(real, pose, 1.0).R
     np.testing.assert_allclose(np.diag(Qu) / np.diag(Qu1), m * m)
     np.testing.assert_allclose(np.diag(R) / np.diag(R1), m * m)
 

@@ -25,20 +25,18 @@ stamps (predict with u[k] over dt[k]; the stamp's landmarks as one scan; record 
 
 from __future__ import annotations
 
-import functools
+import dataclasses
 import math
 
 import numpy as np
 
 from ..config import World
-from ..filters import anfis
 from ..filters.akhlaghi import AkhlaghiSpec
 from ..filters.als import ALSSpec
 from ..filters.anfekf import ANFEKFSpec
+from ..filters.augmented import PARAMETERS, AugmentedSpec
 from ..filters.bank import IMMSpec, MMAESpec, hypotheses
-from ..filters.cm_scale import CMScaleSpec
 from ..filters.ekf import EKFSpec
-from ..filters.fading import FadingSpec
 from ..filters.iae import IAESpec
 from ..filters.kalmannet import KalmanNetSpec
 from ..filters.kalmannet_net import KalmanNetWeights
@@ -52,10 +50,15 @@ from ..models import Bicycle, Unicycle
 from ..sources.simulator import RunData
 from ..timeline import Timeline, from_run
 from ..timeline import clear_cache as clear_timeline_cache
+from . import families
 from . import kernels as _jit_kernels
 from . import kernels_als as _jit_kernels_als
+from . import kernels_augmented as _jit_kernels_augmented
+from . import kernels_bank as _jit_kernels_bank
 from . import kernels_default as _jit_kernels_default
 from . import kernels_kalmannet as _jit_kernels_kalmannet
+from . import kernels_swvb as _jit_kernels_swvb
+from . import loop as _loop
 from .fast_support import SUPPORTED_SPECS, supported_type  # noqa: F401  (SUPPORTED_SPECS: re-exported)
 
 JIT: bool = _jit_kernels.JIT  # True when the kernels are numba-compiled
@@ -86,10 +89,6 @@ def clear_cache() -> None:
 
 # ---------------------------------------------------------------------------------------------
 # The entry point
-
-
-def _pure_kernels():
-    return _jit_kernels.pure_module()
 
 
 def _matrix(a: np.ndarray, n: int) -> np.ndarray:
@@ -134,11 +133,13 @@ def run_filter_fast(
     P = np.full((n, 3, 3), np.nan)
     R = np.full((n, 2), np.nan)
     Qu = np.full((n, 2), np.nan)
-    # Without numba the module's own kernels are already plain Python.
-    k = _pure_kernels() if (JIT and not jit) else _jit_kernels
-
+    # Without numba the modules' own kernels are already plain Python.
+    if families.for_spec(spec) is not None:
+        return _run_family(spec, ctx, run, x, P, R, Qu, n, jit)
     if isinstance(spec, KalmanNetSpec):
         return _run_kalmannet(spec, ctx, run, x, P, R, Qu, n, jit)
+    if isinstance(spec, AugmentedSpec):
+        return run_augmented(spec, ctx, run, x, P, R, Qu, n, jit)[0]
     if isinstance(spec, ALSSpec):
         ka = _jit_kernels_als.pure_module() if (JIT and not jit) else _jit_kernels_als
         diverged, j, nis_sum, n_updates, n_rejected = ka.run_als_kernel(
@@ -154,30 +155,12 @@ def run_filter_fast(
         diverged, j, nis_sum, n_updates, n_rejected = _run_vb_imm(kd, spec, ctx, run, x, P, R, Qu)
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, MMAESpec):
-        diverged, j, nis_sum, n_updates, n_rejected = _run_bank(k, spec, ctx, run, x, P, R, Qu)
+        kb = _jit_kernels_bank.pure_module() if (JIT and not jit) else _jit_kernels_bank
+        diverged, j, nis_sum, n_updates, n_rejected = _run_bank(kb, spec, ctx, run, x, P, R, Qu)
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
-    if isinstance(spec, AkhlaghiSpec):
-        diverged, j, nis_sum, n_updates, n_rejected = k.run_akhlaghi_kernel(
-            *_common_args(ctx, run),
-            "R" in spec.adapt, "Q" in spec.adapt, bool(spec.adaptation),
-            spec.adapt_from == "all", float(spec.bounds[0]), float(spec.bounds[1]),
-            float(spec.alpha),
-            record, x, P, R, Qu,
-        )  # fmt: skip
-        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
-    if isinstance(spec, VBAKFSpec):
-        P_infl = np.full(n, np.nan)
-        diverged, j, nis_sum, n_updates, n_rejected = k.run_vbakf_kernel(
-            *_common_args(ctx, run),
-            bool(spec.adaptation), spec.adapt_from == "all",
-            float(spec.bounds[0]), float(spec.bounds[1]),
-            float(spec.rho), int(spec.iterations), float(spec.tau), float(spec.tau_R),
-            spec.R_structure == "diagonal",
-            record, x, P, R, Qu, P_infl,
-        )  # fmt: skip
-        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl)
     if isinstance(spec, SWVBSpec):
-        diverged, j, nis_sum, n_updates, n_rejected = k.run_swvb_kernel(
+        ks = _jit_kernels_swvb.pure_module() if (JIT and not jit) else _jit_kernels_swvb
+        diverged, j, nis_sum, n_updates, n_rejected = ks.run_swvb_kernel(
             *_common_args(ctx, run),
             bool(spec.adaptation), spec.adapt_from == "all",
             float(spec.bounds[0]), float(spec.bounds[1]),
@@ -185,72 +168,19 @@ def run_filter_fast(
             record, x, P, R, Qu,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
-    if isinstance(spec, VBRSpec):
-        diverged, j, nis_sum, n_updates, n_rejected = k.run_vbr_kernel(
-            *_common_args(ctx, run),
-            bool(spec.adaptation), spec.adapt_from == "all",
-            float(spec.bounds[0]), float(spec.bounds[1]),
-            float(spec.rho), int(spec.iterations), float(spec.alpha0),
-            record, x, P, R, Qu,
-        )  # fmt: skip
-        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
-    if isinstance(spec, FadingSpec):
-        P_infl = np.full(n, np.nan)
-        diverged, j, nis_sum, n_updates, n_rejected = k.run_fading_kernel(
-            *_common_args(ctx, run),
-            bool(spec.adaptation), spec.adapt_from == "all", int(spec.window),
-            float(spec.bounds[1]),
-            record, x, P, R, Qu, P_infl,
-        )  # fmt: skip
-        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl)
-    if isinstance(spec, SageHusaSpec):
-        diverged, j, nis_sum, n_updates, n_rejected = k.run_sage_husa_kernel(
-            *_common_args(ctx, run),
-            bool(spec.adaptation), spec.adapt_from == "all", *(float(b) for b in spec.bounds),
-            "Q" in spec.adapt, float(spec.b), int(spec.warmup), spec.q_sample == "unbiased",
-            record, x, P, R, Qu,
-        )  # fmt: skip
-        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
-    if isinstance(spec, IAESpec):
-        diverged, j, nis_sum, n_updates, n_rejected = k.run_iae_kernel(
-            *_common_args(ctx, run),
-            bool(spec.adaptation), spec.adapt_from == "all", *(float(b) for b in spec.bounds),
-            spec.adapt == "Q", int(spec.window), spec.hph == "window",
-            spec.nonpositive == "hold", spec.q_form == "full", int(spec.q_window),
-            record, x, P, R, Qu,
-        )  # fmt: skip
-        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
-    if isinstance(spec, ANFEKFSpec):
-        adapt_R, adapt_Q = "R" in spec.adapt, "Q" in spec.adapt
-        anf = _anfis_rows(spec)
-        eta_m, eta_d, eta_w = (float(e) for e in spec.learning_rate)
-        lo, hi = (float(b) for b in spec.bounds)
-        adaptation, learning = bool(spec.adaptation), bool(spec.learning)
-        from_all, window, clip = spec.adapt_from == "all", int(spec.window), float(spec.output_clip)
-    elif isinstance(spec, CMScaleSpec):  # the ANFEKF's supervisor with the proportional rule
-        adapt_R, adapt_Q = "R" in spec.adapt, "Q" in spec.adapt
-        adaptation, learning = bool(spec.adaptation), False
-        anf = np.zeros((3, _jit_kernels.N_ANFIS))
-        eta_m = eta_d = eta_w = 0.0
-        lo, hi = (float(b) for b in spec.bounds)
-        from_all, window, clip = spec.adapt_from == "all", int(spec.window), float(spec.output_clip)
-    else:
-        adapt_R = adapt_Q = adaptation = learning = False
-        anf = np.zeros((3, _jit_kernels.N_ANFIS))
-        eta_m = eta_d = eta_w = 0.0
-        lo, hi = 1.0, 1.0
-        from_all, window, clip = True, 1, 1.0
-    if isinstance(spec, CMScaleSpec):
-        rule, kappa = _jit_kernels.RULE_PROPORTIONAL, float(spec.kappa)
-    else:
-        rule, kappa = _jit_kernels.RULE_ANFIS, 1.0
-    diverged, j, nis_sum, n_updates, n_rejected = k.run_kernel(
-        *_common_args(ctx, run),
-        adapt_R, adapt_Q, adaptation, learning, from_all, lo, hi, window, clip,
-        eta_m, eta_d, eta_w, anf, rule, kappa,
-        record, x, P, R, Qu,
-    )  # fmt: skip
-    return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+    return _run_family(spec, ctx, run, x, P, R, Qu, n, jit)  # a recorded ekf-tuned: the EKF
+
+
+def _run_family(spec: FilterSpec, ctx: FilterContext, run: tuple, x, P, R, Qu, n, jit) -> dict:
+    """A family of the loop (`engines/families`, `loop.run_loop`)."""
+    pure = JIT and not jit
+    family = families.for_spec(spec, pure) or families.modules(pure)[0]
+    lp = _loop.pure_module() if pure else _loop
+    P_infl = np.full(n, np.nan)
+    diverged, j, nis_sum, n_updates, n_rejected = lp.run_loop(
+        family.params(spec, ctx), *_common_args(ctx, run), run[-1], x, P, R, Qu, P_infl
+    )
+    return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl)
 
 
 def _run_args(tl: Timeline, motion: tuple[int, float, float]) -> tuple:
@@ -310,6 +240,35 @@ def _run_kalmannet(spec: KalmanNetSpec, ctx: FilterContext, run: tuple, x, P, R,
     return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
 
 
+def run_augmented(spec: AugmentedSpec, ctx: FilterContext, run: tuple, x, P, R, Qu, n, jit):
+    """filters.augmented.AugmentedEKF on `kernels_augmented.run_augmented_kernel`: the run's
+    dict and the four parameters at the recorded stamps, (n, 4)."""
+    ka = _jit_kernels_augmented.pure_module() if (JIT and not jit) else _jit_kernels_augmented
+    theta = np.full((n, 4), np.nan)
+    diverged, j, nis_sum, n_updates, n_rejected = ka.run_augmented_kernel(
+        *_common_args(ctx, run),
+        np.array(spec.estimated(), dtype=np.int64), np.array(spec.start, dtype=float),
+        np.array(spec.sigma0, dtype=float), np.array(spec.drift, dtype=float),
+        run[-1], x, P, R, Qu, theta,
+    )  # fmt: skip
+    if diverged:
+        theta[j:] = np.nan
+    return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected), theta
+
+
+def augmented_run(spec: AugmentedSpec, ctx: FilterContext, tl: Timeline, *, jit: bool = True):
+    """`run_filter_fast` of an `ekf-aug` and its parameter estimates at the recorded stamps
+    (n, 4: speed scale, turn scale, turn bias, range bias)."""
+    motion = _motion(ctx.model)
+    if motion is None:
+        raise ValueError(f"the fast engine does not implement {type(ctx.model)}")
+    run = _run_args(tl, motion)
+    n = int(np.count_nonzero(tl.record))
+    x, P = np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan)
+    R, Qu = np.full((n, 2), np.nan), np.full((n, 2), np.nan)
+    return run_augmented(spec, ctx, run, x, P, R, Qu, n, jit)
+
+
 def _run_bank(k, spec: MMAESpec, ctx: FilterContext, run: tuple, x, P, R, Qu):
     """filters.bank.BankEKF on `kernels.run_bank_kernel`."""
     factors = hypotheses(spec)
@@ -348,44 +307,13 @@ def _run_vb_imm(kd, spec: VBIMMSpec, ctx: FilterContext, run: tuple, x, P, R, Qu
     )  # fmt: skip
 
 
-def _anfis_rows(spec: ANFEKFSpec) -> np.ndarray:
-    """The starting ANFIS parameters as ANFEKF.__init__ makes them, one kernel row each: the
-    R-ANFIS of range and of bearing (rows 0, 1) and the Q-ANFIS (row 2); a fresh copy (the
-    kernel trains them in place)."""
-    key = (
-        tuple(spec.centres_d), float(spec.width_d), tuple(spec.centres_dd),
-        float(spec.width_dd), float(spec.singleton_scale),
-    )  # fmt: skip
-    return _anfis_start(*key).copy()
-
-
-@functools.lru_cache(maxsize=64)
-def _anfis_start(
-    centres_d: tuple, width_d: float, centres_dd: tuple, width_dd: float, singleton_scale: float
-) -> np.ndarray:
-    r_init = anfis.init_params(
-        centres0=centres_d, width0=width_d, centres1=centres_dd, width1=width_dd,
-        singleton_scale=singleton_scale,
-    )  # fmt: skip
-    # The Q-ANFIS's inputs d_11 and d_22 are two mismatches of the same scale.
-    q_init = anfis.init_params(
-        centres0=centres_d, width0=width_d, centres1=centres_d, width1=width_d,
-        singleton_scale=singleton_scale,
-    )  # fmt: skip
-    rows = np.empty((3, _jit_kernels.N_ANFIS))
-    for i, p in enumerate((r_init, r_init, q_init)):
-        rows[i] = np.concatenate([p.m.ravel(), p.delta.ravel(), p.w])
-    rows.setflags(write=False)
-    return rows
-
-
 # The kernels `warm_up` calls directly (their callees compile, and are cached, with them).
 WARM_UP_KERNELS = (
-    (_jit_kernels, "run_kernel"), (_jit_kernels, "run_akhlaghi_kernel"),
-    (_jit_kernels, "run_vbr_kernel"), (_jit_kernels, "run_vbakf_kernel"),
-    (_jit_kernels, "run_swvb_kernel"), (_jit_kernels, "run_sage_husa_kernel"),
-    (_jit_kernels, "run_iae_kernel"), (_jit_kernels_als, "run_als_kernel"),
+    (_loop, "run_loop"),
+    (_jit_kernels_swvb, "run_swvb_kernel"),
+    (_jit_kernels_als, "run_als_kernel"),
     (_jit_kernels_kalmannet, "run_kalmannet_kernel"),
+    (_jit_kernels_augmented, "run_augmented_kernel"),
 )  # fmt: skip
 COMPILE_ESTIMATE = "about 1-2 min"  # results/bench.json: fast_compile_s 47 s on 2 free cores
 
@@ -412,7 +340,7 @@ def warm_up(jit: bool = True) -> float:
     IAE, ALS and KalmanNet (a small random network); returns the seconds it took."""
     import time
 
-    from ..sources.simulator import Scan, Truth
+    from ..sources.simulator import Scan, Truth, simulate_truth
 
     t0 = time.perf_counter()
     world = _tiny_world()
@@ -432,6 +360,7 @@ def warm_up(jit: bool = True) -> float:
         VBAKFSpec(name="vbakf", kind="vbakf"), SWVBSpec(name="swvb", kind="swvb"),
         SageHusaSpec(name="sage-husa", kind="sage-husa", adapt="RQ"),
         IAESpec(name="iae", kind="iae", adapt="Q"), ALSSpec(name="als", kind="als"),
+        AugmentedSpec(name="ekf-aug", kind="ekf-aug", estimate=list(PARAMETERS)),
         KalmanNetSpec.model_construct(name="kalmannet", kind="kalmannet").with_weights(
             KalmanNetWeights.random(hidden_size=4)
         ),
@@ -439,6 +368,7 @@ def warm_up(jit: bool = True) -> float:
     for spec in specs:
         run_filter_fast(spec, ctx, data, world, 1, jit=jit)
     clear_cache()
+    simulate_truth(dataclasses.replace(world, max_steps=10_000))  # the simulator's truth loop
     return time.perf_counter() - t0
 
 
@@ -449,3 +379,14 @@ def _tiny_world() -> World:
         sensor_every=8, max_range=20.0, half_fov=math.pi / 2, waypoint_tolerance=1.0,
         max_steps=100,
     )  # fmt: skip
+
+
+if __name__ == "__main__":  # `make setup`: compile every kernel into numba's cache, once
+    import sys
+
+    if sys.argv[1:] != ["--warm-up"]:
+        sys.exit("usage: python -m anfekf_bench.engines.fast --warm-up")
+    if not JIT:
+        print("numba is not installed (or ANFEKF_FAST_JIT=0): nothing to compile")
+        sys.exit(0)
+    print(f"fast engine: numba kernels compiled into the cache in {warm_up():.0f} s")

@@ -11,6 +11,7 @@ import sys
 from ..filters.akhlaghi import AkhlaghiSpec
 from ..filters.als import ALSSpec
 from ..filters.anfekf import ANFEKFSpec
+from ..filters.augmented import AugmentedSpec
 from ..filters.bank import IMMSpec, MMAESpec
 from ..filters.cm_scale import CMScaleSpec
 from ..filters.ekf import EKFSpec, OracleSpec
@@ -31,7 +32,7 @@ from ..filters.vb_bank import VBIMMSpec
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
     VBRSpec, AkhlaghiSpec, VBAKFSpec, SWVBSpec, CMScaleSpec, SageHusaSpec, IAESpec, ALSSpec,
-    KalmanNetSpec, VBIMMSpec,
+    KalmanNetSpec, AugmentedSpec, VBIMMSpec,
 )  # fmt: skip
 RECORDED_SOURCE = "anfekf_bench.sources.recorded"  # its TunedEKFSpec: the plain EKF too
 

@@ -46,8 +46,9 @@ class StepRecorder:
 
     def record(self, flt: RobotEKF) -> None:
         j = self.j
-        self.x[j] = flt.x
-        self.P[j] = flt.P
+        # the pose block (an augmented filter's state carries more after it)
+        self.x[j] = flt.x[:3]
+        self.P[j] = flt.P[:3, :3]
         self.R[j] = flt.R[0, 0], flt.R[1, 1]
         self.Qu[j] = flt.Qu[0, 0], flt.Qu[1, 1]
         self.P_infl[j] = flt.P_inflation

@@ -18,9 +18,11 @@ import numpy as np
 
 from ..filters import vb_bank as _vb_bank
 from . import kernels as _kernels
+from . import kernels_bank as _kernels_bank
 
 _PURE_COPY: bool = globals().get("_PURE", False)
 _k = _kernels.pure_module() if _PURE_COPY else _kernels
+_b = _kernels_bank.pure_module() if _PURE_COPY else _kernels_bank  # the bank's rules, registered
 JIT: bool = _k.JIT  # True: the kernel below is numba-compiled
 maybe_njit = _k.maybe_njit
 step_terms, jacobians_at, noise_scale, predict_from = (
@@ -32,11 +34,11 @@ innovation, nis, correct, healthy, hph_diag = (
 clip_to_bounds = _k.clip_to_bounds
 vb_r_predict, vb_r_beta, vb_r_bounded_beta = _k.vb_r_predict, _k.vb_r_beta, _k.vb_r_bounded_beta
 next_beta, fading_mean, r_sample = _k.next_beta, _k.fading_mean, _k.r_sample
-innovation_loglik, normalise_log_weights = _k.innovation_loglik, _k.normalise_log_weights
+innovation_loglik, normalise_log_weights = _b.innovation_loglik, _b.normalise_log_weights
 most_probable, mixture_weights, active_members = (
-    _k.most_probable, _k.mixture_weights, _k.active_members,
+    _b.most_probable, _b.mixture_weights, _b.active_members,
 )  # fmt: skip
-mix_moments_at, weighted_noise, imm_mix = _k.mix_moments_at, _k.weighted_noise, _k.imm_mix
+mix_moments_at, weighted_noise, imm_mix = _b.mix_moments_at, _b.weighted_noise, _b.imm_mix
 MOTION_UNICYCLE = _k.MOTION_UNICYCLE
 
 if JIT and not _PURE_COPY:

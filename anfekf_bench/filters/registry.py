@@ -15,6 +15,7 @@ from pydantic import Field
 from .akhlaghi import AkhlaghiSpec
 from .als import ALSSpec
 from .anfekf import ANFEKFSpec
+from .augmented import AugmentedSpec
 from .bank import IMMSpec, MMAESpec
 from .cm_scale import CMScaleSpec
 from .custom import CustomSpec, entry_point_kinds
@@ -47,6 +48,7 @@ SPECS: tuple[type[FilterSpec], ...] = (
     ALSSpec,
     EKFMLSpec,
     EKFTunedSpec,
+    AugmentedSpec,
     KalmanNetSpec,
     CustomSpec,
 )

@@ -1,6 +1,8 @@
 """Real-data scenarios (SPEC 9): a scenario file that names a recorded log instead of a world.
 
-A document with a `data:` key is a `RealScenario` (`scenarios.load_scenario` hands it here):
+A document with a `data:` key is a `RecordedScenario`, the recorded member of the scenario's
+source union (`config.Scenario` declares the keys every scenario has; `scenarios.load_scenario`
+validates and resolves it):
 
     name: mrclam-d9
     data: {kind: mrclam, path: builtin}       # or {kind: log, path: my-log/} (docs/REAL_DATA.md)
@@ -31,31 +33,15 @@ from pathlib import Path
 from typing import Annotated, ClassVar, Literal, Union
 
 import numpy as np
-from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
-from ..config import (
-    ENGINE_DESCRIPTION,
-    BackendConfig,
-    ClaimSpec,
-    Engine,
-    ScenarioError,
-    _format_validation_error,
-    check_named_filters,
-    check_plain_names,
-    check_unique_names,
-)
+from ..config import Scenario, ScenarioError, Start, validate_as
 from ..filters.ekf import RobotEKF
 from ..filters.fitted import EKFMLSpec
-from ..filters.registry import (
-    SPECS,
-    check_starts,
-    expand_entry_points,
-    instance_names,
-    instances,
-)
+from ..filters.registry import SPECS
 from ..filters.spec import FilterContext, FilterSpec, Role
 from ..schema import PositiveFloat, StrictModel
-from . import mrclam
+from . import mrclam, user_log
 
 BUILTIN = "builtin"
 
@@ -189,23 +175,24 @@ class TuningConfig(StrictModel):
 MAX_GRID = 20_000
 
 
-class RealScenario(StrictModel):
-    """One real-data scenario file (see the module doc)."""
+class RecordedScenario(Scenario):
+    """A scenario whose runs come from a recorded log (see the module doc): the held-out
+    segments of one log (protocol segments) or whole drives (protocol drives)."""
 
-    kind: ClassVar[str] = "recorded"
-    sweep: ClassVar[None] = None  # a real-data scenario is not a sweep (config.SweepSpec)
-
-    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
-    description: str = ""
-    seed: int = Field(0, ge=0, le=2**63 - 1, description="seed of the bootstrap intervals")
-    jobs: int = Field(2, ge=1, le=1024, description="local worker processes")
-    steps_table: bool = True
-    engine: Engine = Field("filterpy", description=ENGINE_DESCRIPTION)
-    backend: BackendConfig = Field(
-        BackendConfig(),
-        description="where the segments or drives run (`--backend`, `--scheduler` override);"
-        " tuning and fits stay in this process",
+    source: ClassVar[Literal["recorded"]] = "recorded"
+    spec_by_kind: ClassVar[dict[str, type[FilterSpec]]] = dict(
+        zip(REAL_KINDS, REAL_SPECS, strict=True)
     )
+    sweep: ClassVar[None] = None  # a recorded scenario is not a sweep (config.SweepSpec)
+
+    # Narrowed: the kinds a recorded log can run, and other defaults (`config.Scenario`).
+    filters: list[RealFilterSpec] = Field(
+        default_factory=lambda: [TunedEKFSpec(name="ekf-tuned", kind="ekf-tuned")], min_length=1
+    )
+    starts: list[Start] = Field(
+        [0.25, 1.0, 4.0], min_length=1, max_length=20,
+        description="multipliers of the naive standard deviations each filter starts from",
+    )  # fmt: skip
     data: DataConfig
     split_fraction: Annotated[float, Field(gt=0, lt=1)] = Field(
         0.5, description="training part: this share of the ground-truth span, from its start"
@@ -231,25 +218,11 @@ class RealScenario(StrictModel):
         0.12, description="T0 of the Unicycle: the step the naive sigma_v, sigma_w refer to"
     )
     naive: NaiveNoise = NaiveNoise()
-    starts: list[Annotated[PositiveFloat, Field(le=1e3)]] = Field(
-        [0.25, 1.0, 4.0], min_length=1, max_length=20,
-        description="multipliers of the naive standard deviations each filter starts from",
-    )  # fmt: skip
     tuning: TuningConfig = TuningConfig()
     # Bounded so that the variances (squares, then times the starts) stay finite.
     p0_std_xy: PositiveFloat = Field(0.05, le=1e4, description="initial std of x and y [m]")
     p0_std_phi_rad: PositiveFloat = Field(
         0.05, le=1e3, description="initial std of the heading [rad]"
-    )
-    gate_probability: Annotated[float, Field(gt=0, lt=1)] | None = Field(
-        0.999, description="chi-square validation gate (eq. 26); null switches it off"
-    )
-    filters: list[RealFilterSpec] = Field(
-        default_factory=lambda: [TunedEKFSpec(name="ekf-tuned", kind="ekf-tuned")], min_length=1
-    )
-    claims: list[ClaimSpec] = Field(default_factory=list)
-    compare: list[tuple[str, str]] = Field(
-        default_factory=list, description="extra (filter, vs) pairs, besides each vs ekf-tuned"
     )
     protocol: Literal["segments", "drives"] = Field(
         "segments", description="segments: one log split into training and held-out segments;"
@@ -266,7 +239,7 @@ class RealScenario(StrictModel):
     )  # fmt: skip
 
     @model_validator(mode="after")
-    def _drives_protocol(self) -> RealScenario:
+    def _drives_protocol(self) -> RecordedScenario:
         drives = self.data.drives
         if self.protocol == "segments":
             if drives is not None or self.tune_on is not None:
@@ -294,11 +267,6 @@ class RealScenario(StrictModel):
         datasets = {mrclam.drive_dataset(d) for d in self.data.drives or []}
         return sorted(datasets - {dataset})
 
-    @field_validator("starts")
-    @classmethod
-    def _unique_starts(cls, starts: list[float]) -> list[float]:
-        return check_starts(starts)
-
     @field_validator("tuning")
     @classmethod
     def _grid_size(cls, tuning: TuningConfig) -> TuningConfig:
@@ -309,30 +277,11 @@ class RealScenario(StrictModel):
     @field_validator("filters")
     @classmethod
     def _filters(cls, filters: list) -> list:
-        check_plain_names(filters)
-        check_unique_names(filters)
         if any(f.role == "oracle" for f in filters):
             raise ValueError("ekf-oracle needs the true noise, which a recorded log does not have")
         if sum(isinstance(f, TunedEKFSpec) for f in filters) > 1:
             raise ValueError("at most one ekf-tuned filter (the reference)")
         return filters
-
-    @field_validator("claims", "compare")
-    @classmethod
-    def _name_instances(cls, items: list, info: ValidationInfo) -> list:
-        filters = info.data.get("filters")
-        starts = info.data.get("starts")
-        if filters is None or starts is None:
-            return items
-        return check_named_filters(items, set(instance_names(filters, starts)))
-
-    def instances(self) -> list[tuple[str, FilterSpec, float | None]]:
-        """(instance name, spec, start multiplier or None for ekf-tuned and ekf-ml), in
-        scenario order."""
-        return instances(self.filters, self.starts)
-
-    def instance_names(self) -> list[str]:
-        return [name for name, _, _ in self.instances()]
 
     def reference(self) -> str | None:
         """The instance every other is compared with: the ekf-tuned filter, if any."""
@@ -343,41 +292,9 @@ class RealScenario(StrictModel):
 # Validation with one-line errors
 
 
-def _allowed_keys(loc: tuple) -> list[str]:
-    from pydantic import BaseModel
-
-    model: type[BaseModel] | None = RealScenario
-    spec_by_kind = {k: s for k, s in zip(REAL_KINDS, REAL_SPECS, strict=True)}
-    for part in loc:
-        if isinstance(part, int):
-            continue
-        if part in spec_by_kind:
-            model = spec_by_kind[part]
-            continue
-        field = model.model_fields.get(part) if model is not None else None
-        if field is None:
-            return []
-        ann = field.annotation
-        model = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
-    return sorted(model.model_fields) if model is not None else []
-
-
-def parse_real_scenario(data: dict, path: str | Path = "<scenario>") -> RealScenario:
-    """Validate a real-data scenario document; ScenarioError (one line) if it is not valid."""
-    if isinstance(data.get("filters"), list):
-        data = {**data, "filters": [expand_entry_points(item) for item in data["filters"]]}
-    try:
-        return RealScenario.model_validate(data)
-    except ValidationError as exc:
-        field, msg = _format_validation_error(exc)
-        err = exc.errors()[0]
-        loc = [str(p) for p in err["loc"]]
-        if len(loc) >= 3 and loc[0] == "filters" and loc[2] == "ekf-tuned":
-            field = ".".join(loc[:2] + loc[3:])
-        if err["type"] == "extra_forbidden":
-            allowed = _allowed_keys(tuple(err["loc"][:-1]))
-            msg = "unknown key" + (f" (allowed: {', '.join(allowed)})" if allowed else "")
-        raise ScenarioError(path, field, msg) from None
+def parse_real_scenario(data: dict, path: str | Path = "<scenario>") -> RecordedScenario:
+    """Validate a recorded scenario's document; ScenarioError (one line) if it is not valid."""
+    return validate_as(RecordedScenario, data, path)
 
 
 # --------------------------------------------------------------------------------------------
@@ -480,7 +397,7 @@ def read_log(cfg: DataConfig, scenario_path: Path) -> tuple[mrclam.RobotLog, str
         folder = scenario_path.parent / folder
     if cfg.kind == "mrclam":
         return mrclam.read_mrclam(folder, robot=cfg.robot), f"MRCLAM folder {cfg.path}"
-    return mrclam.read_user_log(folder), f"log folder {cfg.path}"
+    return user_log.read_user_log(folder), f"log folder {cfg.path}"
 
 
 def cut_segments(
@@ -508,7 +425,7 @@ def cut_segments(
     return out
 
 
-def resolve_recording(scenario: RealScenario, scenario_path: Path) -> Recording:
+def resolve_recording(scenario: RecordedScenario, scenario_path: Path) -> Recording:
     """Read the log and cut it; ScenarioError (one line) if it cannot be used."""
     try:
         log, source = read_log(scenario.data, scenario_path)
@@ -551,13 +468,12 @@ def resolve_recording(scenario: RealScenario, scenario_path: Path) -> Recording:
     )
 
 
-def load_recorded(data: dict, path: str | Path) -> tuple[RealScenario, Recording | DriveSet]:
-    """`scenarios.load_scenario` for a document with a `data:` key."""
-    path = Path(path)
-    scenario = parse_real_scenario(data, path)
+def resolve_scenario_log(scenario: RecordedScenario, path: str | Path) -> Recording | DriveSet:
+    """The log a recorded scenario names, read and cut: its segments (protocol segments) or its
+    drives (protocol drives); ScenarioError (one line) if it cannot be used."""
     if scenario.protocol == "drives":
-        return scenario, resolve_drives(scenario)
-    return scenario, resolve_recording(scenario, path)
+        return resolve_drives(scenario)
+    return resolve_recording(scenario, Path(path))
 
 
 # --------------------------------------------------------------------------------------------
@@ -623,7 +539,7 @@ class DriveSet:
         return out
 
 
-def resolve_drives(scenario: RealScenario) -> DriveSet:
+def resolve_drives(scenario: RecordedScenario) -> DriveSet:
     """Load every drive of `data.drives` and make it one run, whole, from its ground truth."""
     misfit = mrclam.MisfitRule() if scenario.misfit_detection else None
     drives = []
@@ -636,13 +552,3 @@ def resolve_drives(scenario: RealScenario) -> DriveSet:
         drives.append(Drive(drive, mrclam.drive_dataset(drive), log, ex, seg))
         digest.update(f"{drive}:{log_digest(log)};".encode())
     return DriveSet(drives=drives, misfit=misfit, digest=digest.hexdigest()[:16])
-
-
-def naive_covariances(scenario: RealScenario, m: float) -> tuple[np.ndarray, np.ndarray]:
-    """(Qu, R) of the naive guess with every standard deviation times m."""
-    sv, sw, sr, sb = scenario.naive.sigmas() * m
-    return np.diag([sv * sv, sw * sw]), np.diag([sr * sr, sb * sb])
-
-
-def p0(scenario: RealScenario) -> np.ndarray:
-    return np.diag([scenario.p0_std_xy**2, scenario.p0_std_xy**2, scenario.p0_std_phi_rad**2])

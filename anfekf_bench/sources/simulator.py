@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import functools
 import math
+import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..config import World
-from ..models import wrap_angle, wrap_scalar
+from ..error_sources import ErrorSources
+from ..models import wrap_angle
 from ..schedule import CHANNELS, NoiseSchedule
 
 
@@ -34,47 +37,162 @@ class Scan:
     z: np.ndarray  # (n, 2) range [m], bearing [rad]
 
 
+class Scans(Sequence):
+    """A run's scans, held flat: scan i (control step `steps[i]`) saw landmarks
+    `ids[start[i]:start[i + 1]]` with measurements `z[start[i]:start[i + 1]]`.
+
+    A tuple of `Scan` in every use (indexing, slicing, iteration, ==), but the `Scan` objects
+    are built on first use only: the fast engine's timeline reads the flat arrays (`timeline.
+    from_run`), and building some 1,100 objects per run cost more than its filters."""
+
+    def __init__(self, steps: np.ndarray, ids: np.ndarray, z: np.ndarray, start: np.ndarray):
+        self.steps, self.ids, self.z, self.start = steps, ids, z, start
+        self._scans: tuple[Scan, ...] | None = None
+
+    @property
+    def scans(self) -> tuple[Scan, ...]:
+        if self._scans is None:
+            bounds = zip(self.start[:-1].tolist(), self.start[1:].tolist(), strict=True)
+            self._scans = tuple(
+                Scan(step=k, ids=self.ids[a:b], z=self.z[a:b])
+                for k, (a, b) in zip(self.steps.tolist(), bounds, strict=True)
+            )
+        return self._scans
+
+    def __len__(self) -> int:
+        return len(self.steps)
+
+    def __getitem__(self, i):
+        return self.scans[i]
+
+    def __iter__(self):
+        return iter(self.scans)
+
+    def __eq__(self, other) -> bool:
+        return tuple(self) == tuple(other) if isinstance(other, Sequence) else NotImplemented
+
+    __hash__ = None
+
+    def __getstate__(self) -> dict:  # the flat arrays only: the Scan objects are rebuilt
+        return {"steps": self.steps, "ids": self.ids, "z": self.z, "start": self.start}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(**state)
+
+    def __repr__(self) -> str:
+        return f"Scans({len(self)} scans, {len(self.ids)} measurements)"
+
+
 @dataclass(frozen=True)
 class RunData:
     """Everything one Monte Carlo run feeds to every filter (common random numbers)."""
 
     truth: Truth
     u_odo: np.ndarray  # (K, 2) odometry the filters receive
-    scans: tuple[Scan, ...]
+    scans: tuple[Scan, ...] | Scans
 
 
-def simulate_truth(world: World) -> Truth:
-    """Drive the waypoints with Bailey's steering controller on the TRUE pose (SPEC 1)."""
-    wp = world.waypoints
-    tol2 = world.waypoint_tolerance**2
-    max_delta = world.max_steer_rate * world.T
-    T, V, B = world.T, world.V, world.B
-    x, y, phi = (float(v) for v in world.x0)
-    gamma = 0.0
-    iwp, loops_left = 0, world.loops
-    xs = [(x, y, phi)]
-    us = []
-    while True:
+def _maybe_njit(fn):
+    """`numba.njit(cache=True)` when numba is installed and not switched off (ANFEKF_FAST_JIT=0,
+    as for the fast engine's kernels), else the function itself: the same scalar arithmetic
+    either way (libm's sin, cos, atan2 and Python's float %), so the same bytes."""
+    if os.environ.get("ANFEKF_FAST_JIT", "1") == "0":
+        return fn
+    try:
+        import numba
+    except ImportError:
+        return fn
+    return numba.njit(cache=True, nogil=True)(fn)
+
+
+_TWO_PI = 2.0 * math.pi
+_STEPS_PER_CALL = 1 << 16  # the truth loop's buffer: routes longer than this resume
+
+
+@_maybe_njit
+def _drive(wp, state, params, xs, us):
+    """Bailey's steering controller from `state` = (x, y, phi, gamma, iwp, loops_left) until the
+    route is done or the buffers xs (n + 1, 3) / us (n, 2) are full (xs[0] is the start pose);
+    returns (steps written, done) and leaves the state for a next call in `state`."""
+    T, V, B, tol2, max_delta, max_steer = params
+    x, y, phi, gamma = state[0], state[1], state[2], state[3]
+    iwp, loops_left = int(state[4]), int(state[5])
+    xs[0, 0], xs[0, 1], xs[0, 2] = x, y, phi
+    n, done = 0, False
+    while n < len(us):
         if (wp[iwp, 0] - x) ** 2 + (wp[iwp, 1] - y) ** 2 < tol2:
             iwp += 1
             if iwp == len(wp):
                 loops_left -= 1
                 if loops_left == 0:
+                    done = True
                     break
                 iwp = 0
-        delta = wrap_scalar(math.atan2(wp[iwp, 1] - y, wp[iwp, 0] - x) - phi - gamma)
+        a = math.atan2(wp[iwp, 1] - y, wp[iwp, 0] - x) - phi - gamma
+        delta = -((-a + math.pi) % _TWO_PI - math.pi)  # models.wrap_scalar
         delta = min(max(delta, -max_delta), max_delta)
-        gamma = min(max(gamma + delta, -world.max_steer), world.max_steer)
+        gamma = min(max(gamma + delta, -max_steer), max_steer)
         x += T * V * math.cos(phi + gamma)
         y += T * V * math.sin(phi + gamma)
-        phi = wrap_scalar(phi + T * V * math.sin(gamma) / B)
-        xs.append((x, y, phi))
-        us.append((V, gamma))
-        if len(us) >= world.max_steps:
+        a = phi + T * V * math.sin(gamma) / B
+        phi = -((-a + math.pi) % _TWO_PI - math.pi)
+        n += 1
+        xs[n, 0], xs[n, 1], xs[n, 2] = x, y, phi
+        us[n - 1, 0], us[n - 1, 1] = V, gamma
+    state[0], state[1], state[2], state[3] = x, y, phi, gamma
+    state[4], state[5] = iwp, loops_left
+    return n, done
+
+
+JIT_TRUTH: bool = hasattr(_drive, "py_func")  # whether the truth loop is numba-compiled
+
+
+def simulate_truth(world: World) -> Truth:
+    """Drive the waypoints with Bailey's steering controller on the TRUE pose (SPEC 1).
+
+    Computed once per world (kept for the next call: the plan's checks, the batch and the
+    fits all drive the same route), the loop compiled when numba is installed (`_drive`)."""
+    key = _truth_key(world)
+    if key not in _TRUTHS:
+        _TRUTHS[key] = _drive_route(world)
+        while len(_TRUTHS) > 8:
+            _TRUTHS.pop(next(iter(_TRUTHS)))
+    x, u = _TRUTHS[key]
+    return Truth(x=x.copy(), u=u.copy())
+
+
+_TRUTHS: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _truth_key(world: World) -> tuple:
+    wp = np.ascontiguousarray(world.waypoints, dtype=float)
+    x0 = np.ascontiguousarray(world.x0, dtype=float)
+    scalars = (world.loops, world.V, world.B, world.max_steer, world.max_steer_rate, world.T)
+    return (wp.shape, wp.tobytes(), x0.tobytes(), scalars, world.waypoint_tolerance,
+            world.max_steps)  # fmt: skip
+
+
+def _drive_route(world: World) -> tuple[np.ndarray, np.ndarray]:
+    wp = np.ascontiguousarray(world.waypoints, dtype=float).reshape(-1, 2)
+    x0 = [float(v) for v in world.x0]
+    state = np.array([*x0, 0.0, 0.0, float(world.loops)])
+    params = (float(world.T), float(world.V), float(world.B), world.waypoint_tolerance**2,
+              world.max_steer_rate * world.T, float(world.max_steer))  # fmt: skip
+    xs_parts, us_parts, total = [np.array([x0])], [], 0
+    while True:
+        room = min(_STEPS_PER_CALL, world.max_steps - total)
+        xs, us = np.empty((room + 1, 3)), np.empty((room, 2))
+        n, done = _drive(wp, state, params, xs, us)
+        xs_parts.append(xs[1 : n + 1])
+        us_parts.append(us[:n])
+        total += n
+        if done:
+            break
+        if total >= world.max_steps:
             raise RouteNotCompleted(
                 f"route not completed within world.max_steps = {world.max_steps} control steps"
             )
-    return Truth(x=np.array(xs), u=np.array(us).reshape(-1, 2))
+    return np.concatenate(xs_parts), np.concatenate(us_parts).reshape(-1, 2)
 
 
 @dataclass(frozen=True)
@@ -112,15 +230,20 @@ def _sight(world: World, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def scan_geometry(world: World, truth: Truth) -> ScanGeometry:
-    """Every scan's true landmark geometry along the truth path, once per world."""
+    """Every scan's true landmark geometry along the truth path, once per world: `_sight` of
+    every scan's pose at once (the same elementwise operations, so the same bytes)."""
     steps = np.arange(world.sensor_every, len(truth.u) + 1, world.sensor_every)
-    sights = [_sight(world, truth.x[k]) for k in steps]
+    poses = truth.x[steps]
+    d = world.landmarks[None, :, :] - poses[:, None, :2]
+    rng_ = np.hypot(d[..., 0], d[..., 1])
+    bearing = wrap_angle(np.arctan2(d[..., 1], d[..., 0]) - poses[:, 2:3])
+    seen = (rng_ < world.max_range) & (np.abs(bearing) < world.half_fov)
     n, L = len(steps), len(world.landmarks)
     return ScanGeometry(
         steps=steps,
-        range=np.array([s[0] for s in sights]).reshape(n, L),
-        bearing=np.array([s[1] for s in sights]).reshape(n, L),
-        ids=tuple(s[2] for s in sights),
+        range=rng_.reshape(n, L),
+        bearing=bearing.reshape(n, L),
+        ids=tuple(np.flatnonzero(row) for row in seen),
     )
 
 
@@ -138,6 +261,7 @@ def simulate_run(
     rng: np.random.Generator,
     geometry: ScanGeometry | None = None,
     schedule: NoiseSchedule | None = None,
+    errors: ErrorSources | None = None,
 ) -> RunData:
     """Odometry and scans of one run, every draw from `rng` (SPEC 6).
 
@@ -149,6 +273,9 @@ def simulate_run(
     force at each step (t = k dt), then draws the outliers' variables after all of them (one
     uniform per landmark per scan, or one chi-square per component), and empties the scans in
     a blackout; without one, the draws and the data are those of a constant-noise run.
+
+    `errors` (SPEC 18, `error_sources.ErrorSources`) scales and biases the odometry and biases
+    the ranges; it draws nothing, so the draws are the same with it or without.
     """
     sv, sg, sr, sb = true_sigmas
     K = len(truth.u)
@@ -169,16 +296,15 @@ def simulate_run(
     z = np.empty((len(ids), 2))
     z[:, 0] = geometry.range[scan_of, ids] + noise[scan_of, ids, 0]
     z[:, 1] = wrap_angle(geometry.bearing[scan_of, ids] + noise[scan_of, ids, 1])
-    bounds = zip(start[:-1].tolist(), start[1:].tolist(), strict=True)
-    scans = tuple(
-        Scan(step=k, ids=ids[a:b], z=z[a:b])
-        for k, (a, b) in zip(geometry.steps.tolist(), bounds, strict=True)
-    )
-    if blackout is not None and blackout.any():
-        scans = tuple(
-            Scan(step=s.step, ids=s.ids[:0], z=s.z[:0]) if dark else s
-            for s, dark in zip(scans, blackout.tolist(), strict=True)
-        )
+    if errors is not None:
+        u_odo = errors.odometry(truth.u, u_odo)
+        z[:, 0] = errors.ranges(z[:, 0])
+    if blackout is not None and blackout.any():  # a dark scan sees nothing
+        lit = ~blackout[scan_of]
+        ids, z = ids[lit], z[lit]
+        start = np.zeros_like(start)
+        np.cumsum(np.bincount(scan_of[lit], minlength=len(geometry.steps)), out=start[1:])
+    scans = Scans(geometry.steps, ids, z, start)
     return RunData(truth=truth, u_odo=u_odo, scans=scans)
 
 

@@ -1,0 +1,125 @@
+"""`anfekf bench`'s end-to-end breakdown (SPEC 20): where a scenario's time goes on the fast engine.
+
+Per scenario file, in this process with warm caches: the whole `experiment.execute` (the run as
+`anfekf run` does it, process start excluded, work placed by `runner.place_runs`), then the same
+runs once more phase by phase, each timed on its own: simulate (the truth path and every run's
+odometry and scans), filter (every filter instance on every run, its timeline included),
+metrics (per-step errors and NEES), tables (every table computed and written), and report (the
+report of the result `execute` wrote, figures included). `e2e_over_filter` is the end-to-end
+wall over the filters' own time: issue 37 asks for at most 3x on a 50-run paper scenario.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from .analysis.metrics import add_trace_metrics, recorded_steps
+from .config import World
+from .experiment import execute, make_plan, result_tables
+from .outputs import write_result_tables
+from .report import write_report
+from .runner import run_filter_on, simulate
+from .scenarios import load_scenario
+from .sources.simulator import world_path
+from .storage import MANIFEST_FILE, read_json
+
+PHASES = ("simulate", "filter", "metrics", "tables", "report")
+E2E_OVER_FILTER_TARGET = 3.0  # issue 37
+
+
+def scenario_breakdown(
+    path: Path,
+    tmp: Path,
+    runs: int | None = None,
+    *,
+    trim: Callable[[World], World] | None = None,
+    report: bool = True,
+) -> dict:
+    """The breakdown of one scenario file on the fast engine (see the module's docstring);
+    `trim` shortens the world's route (the bench's quick sizes)."""
+    scenario, world = load_scenario(path)
+    world = world if trim is None else trim(world)
+    plan = make_plan(scenario, world, runs, None, None, engine="fast")
+    t0 = time.perf_counter()
+    _, target = execute(plan, tmp / "e2e", force=True)
+    e2e_s = time.perf_counter() - t0
+    seconds = dict.fromkeys(PHASES, 0.0)
+    clock = [time.perf_counter()]
+
+    def lap(phase: str) -> None:  # the time since the last lap goes to `phase`
+        now = time.perf_counter()
+        seconds[phase] += now - clock[0]
+        clock[0] = now
+
+    sc, world_ = plan.scenario, plan.world
+    wp = world_path(world_)
+    lap("simulate")
+    ordered = []
+    for run, seed in enumerate(np.random.SeedSequence(plan.seed).spawn(plan.runs)):
+        data = simulate(sc, world_, seed, wp)
+        steps = recorded_steps(len(data.u_odo), sc.record_every)
+        x_true = data.truth.x[steps]
+        lap("simulate")
+        filters = {}
+        for name, spec, start in sc.instances():
+            trace = run_filter_on("fast", spec, sc, world_, data, start, name)
+            lap("filter")
+            filters[name] = add_trace_metrics(trace, x_true)
+            lap("metrics")
+        ordered.append({
+            "run": run, "control_steps": len(data.u_odo), "step": steps,
+            "t": steps * world_.T, "x_true": x_true, "filters": filters,
+        })  # fmt: skip
+    tables = result_tables(plan, ordered)
+    with tempfile.TemporaryDirectory(dir=tmp) as staging:
+        write_result_tables(Path(staging), tables, steps_table=True)
+    lap("tables")
+    if report:
+        write_report([target], tmp / "report", html=True)
+        lap("report")
+    placement = read_json(target / MANIFEST_FILE).get("placement", {})
+    filter_s = seconds["filter"]
+    return {
+        "runs": plan.runs,
+        "filters": len(plan.filter_names()),
+        "e2e_s": e2e_s,
+        "placement": placement.get("where"),
+        "phases_s": seconds,
+        "harness_s": sum(seconds.values()) - filter_s,
+        "e2e_over_filter": e2e_s / filter_s if filter_s > 0 else None,
+    }
+
+
+def paper_breakdown(
+    files: list[Path],
+    tmp: Path,
+    runs: int | None,
+    say: Callable[[str], None],
+    trim: Callable[[World], World] | None = None,
+) -> dict:
+    """`scenario_breakdown` of every paper scenario file: name -> breakdown, plus the total
+    end-to-end wall of all of them (issue 37: at most 5 s on the fast engine)."""
+    out = {}
+    for path in files:
+        say(f"end-to-end breakdown of {path.name} on the fast engine")
+        name = load_scenario(path)[0].name
+        out[name] = scenario_breakdown(path, tmp / "breakdown" / name, runs, trim=trim)
+    return {"scenarios": out, "e2e_total_s": sum(b["e2e_s"] for b in out.values())}
+
+
+def breakdown_rows(breakdown: dict) -> list[tuple[str, str]]:
+    """(figure, value) rows for the bench's terminal table."""
+    rows = []
+    for name, b in breakdown["scenarios"].items():
+        phases = ", ".join(f"{p} {s:.2f}" for p, s in b["phases_s"].items())
+        rows.append((f"e2e {name} ({b['runs']} runs, {b['placement']})", f"{b['e2e_s']:.2f} s"))
+        rows.append((f"  phases {name} [s]", phases))
+        ratio = b["e2e_over_filter"]
+        rows.append((f"  e2e / filter {name}", "-" if ratio is None else f"{ratio:.2f} x"))
+    rows.append(("e2e paper scenarios, fast engine", f"{breakdown['e2e_total_s']:.2f} s"))
+    return rows

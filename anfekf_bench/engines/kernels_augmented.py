@@ -1,0 +1,261 @@
+"""The fast engine's kernel of `ekf-aug` (filters/augmented.py): the EKF on the pose plus the
+odometry's scale factors, turn bias and range bias (those estimated).
+
+The state has 3 + m entries (m estimated parameters), so the kernel works on small numpy arrays
+with loops rather than kernels.py's fixed 3-state tuples; the motion models are kernels.py's
+(`jacobians`, `noise_scale`: both models, the motion an argument). The arithmetic is
+`AugmentedEKF`'s: the corrected controls (`filters.augmented.true_controls`, its scale floor),
+F and Q of the augmented step, filterpy's Joseph-form update, the heading wrapped and P
+symmetrised; it agrees with the filterpy engine to round-off (the products are summed in
+another order), which tests/test_augmented.py and the equivalence test check to 1e-9.
+
+`pure_module()` gives a never-compiled copy. numba's disk cache is keyed on THIS file.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..filters import augmented as _aug
+from . import kernels as _kernels
+
+_PURE_COPY: bool = globals().get("_PURE", False)
+_k = _kernels.pure_module() if _PURE_COPY else _kernels
+JIT: bool = _k.JIT
+maybe_njit = _k.maybe_njit
+jacobians = _k.jacobians
+noise_scale = _k.noise_scale
+wrap = _k.wrap
+MOTION_BICYCLE, MOTION_UNICYCLE = _k.MOTION_BICYCLE, _k.MOTION_UNICYCLE
+
+if JIT and not _PURE_COPY:
+    from numba.extending import register_jitable
+
+    for _rule in (_aug.true_controls, _aug.control_derivative):
+        register_jitable(_rule)
+
+true_controls = _aug.true_controls
+control_derivative = _aug.control_derivative
+
+
+def pure_module():
+    """A fresh copy of this module whose kernel is plain Python, whatever is installed."""
+    return _kernels.pure_copy(__name__, __file__)
+
+
+@maybe_njit
+def _positive_definite(P):
+    """numpy's Cholesky succeeds (the lower triangle read), every entry finite."""
+    n = P.shape[0]
+    L = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            s = P[i, j]
+            for c in range(j):
+                s -= L[i, c] * L[j, c]
+            if i == j:
+                if not s > 0.0:
+                    return False
+                L[i, i] = math.sqrt(s)
+            else:
+                L[i, j] = s / L[j, j]
+    return True
+
+
+@maybe_njit
+def _healthy(x, P, R, Qu):
+    for v in x:
+        if not math.isfinite(v):
+            return False
+    for v in P.ravel():
+        if not math.isfinite(v):
+            return False
+    if not _positive_definite(P):
+        return False
+    return R[0] > 0.0 and R[3] > 0.0 and Qu[0] > 0.0 and Qu[3] > 0.0
+
+
+@maybe_njit
+def _parameters(x, theta0, est):
+    theta = theta0.copy()
+    for i in range(est.shape[0]):
+        theta[est[i]] = x[3 + i]
+    return theta
+
+
+@maybe_njit
+def run_augmented_kernel(
+    u_odo, dt, scan_start, scan_lm, scan_z,
+    motion, B, T0, x0, P0, Qu, R, gate, has_gate,
+    est, theta0, sigma0, drift,
+    record_at, out_x, out_P, out_R, out_Q, out_theta,
+):  # fmt: skip
+    """One `ekf-aug` over one run (filterpy_engine.run_filter with `AugmentedEKF`).
+
+    The common head as every kernel (kernels.run_kernel); est (m,) int64: the indices of the
+    estimated parameters (filters.augmented.PARAMETERS), theta0, sigma0, drift (4,): their
+    start values, start standard deviations and random-walk rates. Records the pose block in
+    out_x (n, 3), out_P (n, 3, 3), R and Qu's diagonals, and the four parameters in
+    out_theta (n, 4). Returns (diverged, rows written, nis_sum, n_updates, n_rejected).
+    """
+    K = u_odo.shape[0]
+    m = est.shape[0]
+    n = 3 + m
+    x = np.zeros(n)
+    P = np.zeros((n, n))
+    for i in range(3):
+        x[i] = x0[i]
+        for c in range(3):
+            P[i, c] = P0[3 * i + c]
+    for i in range(m):
+        x[3 + i] = theta0[est[i]]
+        P[3 + i, 3 + i] = sigma0[est[i]] * sigma0[est[i]]
+    q00, q01, q10, q11 = Qu[0], Qu[1], Qu[2], Qu[3]
+    F = np.zeros((n, n))
+    Q = np.zeros((n, n))
+    H = np.zeros((2, n))
+    PHt = np.zeros((n, 2))
+    Kg = np.zeros((n, 2))
+    A = np.zeros((n, n))
+    n_rows = out_x.shape[0]
+    nis_sum = 0.0
+    n_updates = 0
+    n_rejected = 0
+    j = 0
+    bad_record = False
+    range_col = -1
+    for i in range(m):
+        if est[i] == 3:
+            range_col = 3 + i
+    for k in range(K):
+        # -- predict: the model on the corrected controls, F and Q of the augmented step
+        theta = _parameters(x, theta0, est)
+        ut0, ut1, kv, kw = true_controls(u_odo[k, 0], u_odo[k, 1], theta)
+        h_dt = dt[k]
+        f02, f12, G = jacobians(x[2], ut0, ut1, h_dt, motion, B)
+        g00, g01, g10, g11, g20, g21 = G
+        if motion == MOTION_UNICYCLE:
+            dh = ut1 * h_dt
+        else:
+            dh = h_dt * ut0 * math.sin(ut1) / B
+        c = noise_scale(h_dt, motion, T0)
+        # G diag(1 / k) and Q_pose = c (G Qu G^T)
+        e00, e01 = g00 / kv, g01 / kw
+        e10, e11 = g10 / kv, g11 / kw
+        e20, e21 = g20 / kv, g21 / kw
+        a00 = e00 * q00 + e01 * q10
+        a01 = e00 * q01 + e01 * q11
+        a10 = e10 * q00 + e11 * q10
+        a11 = e10 * q01 + e11 * q11
+        a20 = e20 * q00 + e21 * q10
+        a21 = e20 * q01 + e21 * q11
+        Q[:, :] = 0.0
+        Q[0, 0] = c * (a00 * e00 + a01 * e01)
+        Q[0, 1] = c * (a00 * e10 + a01 * e11)
+        Q[0, 2] = c * (a00 * e20 + a01 * e21)
+        Q[1, 0] = c * (a10 * e00 + a11 * e01)
+        Q[1, 1] = c * (a10 * e10 + a11 * e11)
+        Q[1, 2] = c * (a10 * e20 + a11 * e21)
+        Q[2, 0] = c * (a20 * e00 + a21 * e01)
+        Q[2, 1] = c * (a20 * e10 + a21 * e11)
+        Q[2, 2] = c * (a20 * e20 + a21 * e21)
+        F[:, :] = 0.0
+        for i in range(n):
+            F[i, i] = 1.0
+        F[0, 2] = f02
+        F[1, 2] = f12
+        for i in range(m):
+            d0, d1 = control_derivative(est[i], ut0, ut1, kv, kw)
+            F[0, 3 + i] = g00 * d0 + g01 * d1
+            F[1, 3 + i] = g10 * d0 + g11 * d1
+            F[2, 3 + i] = g20 * d0 + g21 * d1
+            Q[3 + i, 3 + i] = drift[est[i]] * drift[est[i]] * h_dt
+        x[0] = x[0] + f12
+        x[1] = x[1] - f02
+        x[2] = wrap(x[2] + dh)
+        P = F @ P @ F.T + Q
+        # -- the stamp's landmarks, one scan
+        first = scan_start[k]
+        last = scan_start[k + 1]
+        if last > first:
+            for mm in range(first, last):
+                z0 = scan_z[mm, 0]
+                z1 = scan_z[mm, 1]
+                dx = scan_lm[mm, 0] - x[0]
+                dy = scan_lm[mm, 1] - x[1]
+                q = dx * dx + dy * dy
+                r = math.sqrt(q)
+                H[:, :] = 0.0
+                H[0, 0] = -dx / r
+                H[0, 1] = -dy / r
+                H[1, 0] = dy / q
+                H[1, 1] = -dx / q
+                H[1, 2] = -1.0
+                zh0 = math.hypot(dx, dy)
+                if range_col >= 0:
+                    H[0, range_col] = 1.0
+                    zh0 += x[range_col]
+                else:
+                    zh0 += theta0[3]
+                zh1 = wrap(math.atan2(dy, dx) - x[2])
+                nu0 = z0 - zh0
+                nu1 = wrap(z1 - zh1)
+                PHt[:, :] = P @ H.T
+                S = H @ PHt
+                s00 = S[0, 0] + R[0]
+                s01 = S[0, 1] + R[1]
+                s10 = S[1, 0] + R[2]
+                s11 = S[1, 1] + R[3]
+                det = s00 * s11 - s01 * s10
+                if det == 0.0 or not math.isfinite(det):
+                    return True, j, nis_sum, n_updates, n_rejected
+                i00 = s11 / det
+                i01 = -s01 / det
+                i10 = -s10 / det
+                i11 = s00 / det
+                v = nu0 * (i00 * nu0 + i01 * nu1) + nu1 * (i10 * nu0 + i11 * nu1)
+                if not math.isfinite(v):
+                    return True, j, nis_sum, n_updates, n_rejected
+                if has_gate and not v <= gate:
+                    n_rejected += 1
+                    continue
+                nis_sum += v
+                n_updates += 1
+                for i in range(n):
+                    Kg[i, 0] = PHt[i, 0] * i00 + PHt[i, 1] * i10
+                    Kg[i, 1] = PHt[i, 0] * i01 + PHt[i, 1] * i11
+                for i in range(n):
+                    x[i] = x[i] + (Kg[i, 0] * nu0 + Kg[i, 1] * nu1)
+                A[:, :] = 0.0
+                for i in range(n):
+                    A[i, i] = 1.0
+                A -= Kg @ H
+                KR = np.empty((n, 2))
+                for i in range(n):
+                    KR[i, 0] = Kg[i, 0] * R[0] + Kg[i, 1] * R[2]
+                    KR[i, 1] = Kg[i, 0] * R[1] + Kg[i, 1] * R[3]
+                P = A @ P @ A.T + KR @ Kg.T
+                P = 0.5 * (P + P.T)
+                x[2] = wrap(x[2])
+            if not _healthy(x, P, R, Qu):
+                return True, j, nis_sum, n_updates, n_rejected
+        if record_at[k] and j < n_rows:
+            theta = _parameters(x, theta0, est)
+            bad = False
+            for i in range(3):
+                out_x[j, i] = x[i]
+                bad = bad or not math.isfinite(x[i])
+                for c2 in range(3):
+                    out_P[j, i, c2] = P[i, c2]
+                    bad = bad or not math.isfinite(P[i, c2])
+            for i in range(4):
+                out_theta[j, i] = theta[i]
+            out_R[j, 0] = R[0]
+            out_R[j, 1] = R[3]
+            out_Q[j, 0] = Qu[0]
+            out_Q[j, 1] = Qu[3]
+            bad_record = bad_record or bad
+            j += 1
+    return bad_record, j, nis_sum, n_updates, n_rejected

@@ -1,0 +1,203 @@
+"""The augmented EKF (SPEC 18, kind `ekf-aug`): the robot's pose plus the odometry's scale
+factors and turn bias (and optionally the range bias) as states.
+
+Error model (the same form as the simulator's `error_sources.ErrorSources`):
+
+    odometry   u_odo = (k_v * u0, k_w * u1 + b_w) + n,   n ~ N(0, Qu)
+    range      z_r   = r + b_r + white noise
+
+where (u0, u1) is the true control: (V, gamma) on the bicycle, (v, w) on the unicycle, so b_w is
+a steering bias [rad] on the bicycle and a turn-rate bias [rad/s] on the unicycle. The filter
+inverts it: the control it drives its motion model with is
+
+    u_true = (u0_odo / k_v, (u1_odo - b_w) / k_w)
+
+and the odometry's white noise, in true units, is n / k: Q = model.Q(G diag(1 / k_v, 1 / k_w),
+Qu). Each estimated parameter is a state; those not estimated (`estimate`) are held at their
+start values, so `estimate: []` with the injected values is the oracle that knows the errors
+(an EKF on the corrected odometry). The parameters drift as random walks of `drift` per
+square-root second (Q_theta = drift^2 dt). The state is (x, y, phi, then the estimated
+parameters in the order speed_scale, turn_scale, turn_bias, range_bias); the scored pose and
+the NEES are the pose block's.
+
+Jacobians of one step: F = [[F_pose, G dU], [0, I]], dU = d u_true / d theta: -u0_true / k_v
+for k_v, -u1_true / k_w for k_w, -1 / k_w for b_w; H = [H_pose, (1, 0) for b_r].
+
+Combining with the adaptive families: not yet. Their rules read a 3-state P and the pose's G
+(the Q-adapting ones project their estimates through G; the VB ones iterate on a 3x3 update),
+so each would need its own augmented variant: the R-adapting rules (`sage-husa`, `iae`,
+`vb-r`) are the natural first, since they touch only R and S.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, ClassVar, Literal
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from ..models import h
+from ..models.range_bearing import H_jacobian, residual_z
+from .ekf import Innovation, RobotEKF
+from .spec import FilterContext, FilterSpec, Role
+
+PARAMETERS: tuple[str, ...] = ("speed_scale", "turn_scale", "turn_bias", "range_bias")
+Parameter = Literal["speed_scale", "turn_scale", "turn_bias", "range_bias"]
+# A scale estimate below this is used as this (the controls divide by it)
+SCALE_FLOOR = 0.05
+FourPositive = tuple[
+    Annotated[float, Field(ge=0, le=1e3, allow_inf_nan=False)],
+    Annotated[float, Field(ge=0, le=1e3, allow_inf_nan=False)],
+    Annotated[float, Field(ge=0, le=1e3, allow_inf_nan=False)],
+    Annotated[float, Field(ge=0, le=1e3, allow_inf_nan=False)],
+]
+
+
+class AugmentedSpec(FilterSpec):
+    """The EKF with the odometry's scale factors and turn bias (optionally the range bias) as
+    states: errors that are not white noise (SPEC 18)."""
+
+    kind: Literal["ekf-aug"]
+    role: ClassVar[Role] = "adaptive"
+    estimate: list[Parameter] = Field(
+        ["speed_scale", "turn_scale", "turn_bias"],
+        max_length=4,
+        description="the parameters estimated as states (speed_scale, turn_scale, turn_bias,"
+        " range_bias); the others are held at their start",
+    )
+    start: tuple[
+        Annotated[float, Field(ge=0.1, le=10, allow_inf_nan=False)],
+        Annotated[float, Field(ge=0.1, le=10, allow_inf_nan=False)],
+        Annotated[float, Field(ge=-10, le=10, allow_inf_nan=False)],
+        Annotated[float, Field(ge=-100, le=100, allow_inf_nan=False)],
+    ] = Field(
+        (1.0, 1.0, 0.0, 0.0),
+        description="start values: speed scale, turn scale, turn bias [rad on the bicycle,"
+        " rad/s on the unicycle], range bias [m]",
+    )
+    sigma0: FourPositive = Field(
+        (0.1, 0.3, 0.05, 0.2),
+        description="start standard deviations of the four parameters (those estimated)",
+    )
+    drift: FourPositive = Field(
+        (1e-4, 1e-4, 1e-4, 1e-4),
+        description="random-walk standard deviation of each parameter per square-root second"
+        " (slow: constants of the wheels and the sensor)",
+    )
+
+    @field_validator("estimate")
+    @classmethod
+    def _distinct(cls, estimate: list[str]) -> list[str]:
+        if len(set(estimate)) != len(estimate):
+            raise ValueError("estimate: each parameter at most once")
+        return estimate
+
+    def estimated(self) -> tuple[int, ...]:
+        """Indices into PARAMETERS of the estimated ones, in state order."""
+        return tuple(i for i, p in enumerate(PARAMETERS) if p in self.estimate)
+
+    def build(self, ctx: FilterContext) -> AugmentedEKF:
+        return AugmentedEKF(**ctx.kwargs(), params=self)
+
+
+def true_controls(u0: float, u1: float, theta) -> tuple[float, float, float, float]:
+    """(u0_true, u1_true, k_v, k_w) from the odometry and the parameters (scales floored)."""
+    kv = max(theta[0], SCALE_FLOOR)
+    kw = max(theta[1], SCALE_FLOOR)
+    return u0 / kv, (u1 - theta[2]) / kw, kv, kw
+
+
+def control_derivative(p: int, ut0: float, ut1: float, kv: float, kw: float) -> tuple[float, float]:
+    """d u_true / d theta_p (a 2-vector)."""
+    if p == 0:
+        return -ut0 / kv, 0.0
+    if p == 1:
+        return 0.0, -ut1 / kw
+    if p == 2:
+        return 0.0, -1.0 / kw
+    return 0.0, 0.0
+
+
+class AugmentedEKF(RobotEKF):
+    """`RobotEKF` on the augmented state (module docstring); filterpy's update as it is."""
+
+    def __init__(self, x0, P0, Qu, R, model, dt, gate, params: AugmentedSpec):
+        super().__init__(x0, P0, Qu, R, model, dt, gate, params)
+        self.est = params.estimated()
+        n = 3 + len(self.est)
+        self.dim_x = n
+        self.theta0 = np.array(params.start, dtype=float)
+        self.drift2 = np.array(params.drift, dtype=float) ** 2
+        x = np.zeros(n)
+        x[:3] = x0
+        P = np.zeros((n, n))
+        P[:3, :3] = P0
+        for i, p in enumerate(self.est):
+            x[3 + i] = self.theta0[p]
+            P[3 + i, 3 + i] = params.sigma0[p] ** 2
+        self.x, self.P = x, P
+        self._I = np.eye(n)
+        self.F = np.eye(n)
+        self.Q = np.zeros((n, n))
+        self._ut = (0.0, 0.0)
+
+    @property
+    def parameters(self) -> np.ndarray:
+        """The four parameters now: the estimated ones from the state, the others as started."""
+        theta = self.theta0.copy()
+        for i, p in enumerate(self.est):
+            theta[p] = self.x[3 + i]
+        return theta
+
+    def predict_x(self, u=0):
+        self.x = self.x.copy()
+        self.x[:3] = self.model.f(self.x[:3], np.array(self._ut), self.dt)
+
+    def predict(self, u=0, dt: float | None = None):
+        if dt is not None:
+            self.dt = dt
+        ut0, ut1, kv, kw = true_controls(float(u[0]), float(u[1]), self.parameters)
+        self._ut = (ut0, ut1)
+        Fp, Gp = self.model.jacobians(self.x[:3], np.array(self._ut), self.dt)
+        G = Gp * np.array([1.0 / kv, 1.0 / kw])
+        n = self.dim_x
+        F = np.eye(n)
+        F[:3, :3] = Fp
+        Q = np.zeros((n, n))
+        Q[:3, :3] = self.model.Q(G, self.Qu, self.dt)
+        for i, p in enumerate(self.est):
+            F[:3, 3 + i] = Gp @ np.array(control_derivative(p, ut0, ut1, kv, kw))
+            Q[3 + i, 3 + i] = self.drift2[p] * self.dt
+        self.F, self.G, self.Q = F, G, Q
+        super(RobotEKF, self).predict(u)  # filterpy: predict_x, then P = F P F^T + Q
+
+    def innovation(self, z: np.ndarray, landmark: np.ndarray) -> Innovation:
+        pose = self.x[:3]
+        H = np.zeros((2, self.dim_x))
+        H[:, :3] = H_jacobian(pose, landmark)
+        z_hat = h(pose, landmark)
+        z_hat[0] += self.parameters[3]
+        if 3 in self.est:
+            H[0, 3 + self.est.index(3)] = 1.0
+        nu = residual_z(np.asarray(z, dtype=float), z_hat)
+        return Innovation(z=z, landmark=landmark, z_hat=z_hat, nu=nu, H=H, HPHt=H @ self.P @ H.T)
+
+
+def augmented_f(model, x: np.ndarray, u: np.ndarray, dt: float, spec: AugmentedSpec) -> np.ndarray:
+    """The augmented state's noise-free step (for the Jacobian checks): the pose by the model
+    on the corrected controls, the parameters unchanged."""
+    theta = np.array(spec.start, dtype=float)
+    for i, p in enumerate(spec.estimated()):
+        theta[p] = x[3 + i]
+    ut0, ut1, _, _ = true_controls(float(u[0]), float(u[1]), theta)
+    out = np.array(x, dtype=float)
+    out[:3] = model.f(x[:3], np.array([ut0, ut1]), dt)
+    return out
+
+
+def augmented_h(x: np.ndarray, landmark: np.ndarray, spec: AugmentedSpec) -> np.ndarray:
+    """The augmented state's measurement (for the Jacobian checks)."""
+    z = h(x[:3], landmark)
+    est = spec.estimated()
+    z[0] += x[3 + est.index(3)] if 3 in est else spec.start[3]
+    return z

@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 ANFEKF := $(VENV)/bin/anfekf
 OUT    ?= results
 
-.PHONY: setup reproduce run report test test-quick test-all lint format bench gate clean readme docs zoo sweeps real changing drives bias learned learned-drives
+.PHONY: setup reproduce run report test test-quick test-all lint format bench gate clean readme docs zoo sweeps real changing drives bias learned learned-drives default
 
 setup: $(VENV)/.installed
 
@@ -87,6 +87,13 @@ sweeps: setup
 changing: setup
 	$(ANFEKF) run configs/changing --out $(OUT)/changing --force
 	$(ANFEKF) report $(OUT)/changing --out $(OUT)/changing/report
+
+## The worst case over zoo + changing (SPEC 19, docs/results/default-filter.md): one report over
+## both suites, its worst-case table (worst_case.csv) ranking every filter by its worst ratio.
+default: setup
+	$(ANFEKF) run configs/zoo --out $(OUT)/zoo --skip-existing
+	$(ANFEKF) run configs/changing --out $(OUT)/changing --skip-existing
+	$(ANFEKF) report $(OUT)/zoo $(OUT)/changing --out $(OUT)/default/report
 
 real: setup
 	$(ANFEKF) run configs/real --out $(OUT)/real --force

@@ -53,12 +53,19 @@ EXTRA = {
     "sage-husa": [{"adapt": "RQ"}],
     "iae": [{"adapt": "Q"}],
     "akhlaghi": [{"adapt_from": "accepted"}],
+    "vb-imm": [
+        {"r_rule": "sage-husa"},
+        {"r_rule": "grid", "range_factors": (0.1, 1.0), "bearing_factors": (1.0, 3.0)},
+        {"p_stay": 1.0, "adapt_from": "accepted"},
+        {"likelihood_dof": math.inf, "p_stay": 0.98},
+    ],
 }
 
 
 # A small grid for the banks (their default grid of 125 members costs seconds on filterpy)
 BANK = {"qu_factors": (0.1, 1.0, 10.0), "range_factors": (0.1, 1.0), "bearing_factors": (1.0, 3.0)}
-BASE = {"mmae": BANK, "imm": BANK}
+SLOW_VARIANTS = {"vb-imm"}
+BASE = {"mmae": BANK, "imm": BANK, "vb-imm": {"qu_factors": (0.1, 1.0, 10.0)}}
 
 
 def _cases():
@@ -66,7 +73,9 @@ def _cases():
         for extra in [{}, *EXTRA.get(kind, [])]:
             params = {**BASE.get(kind, {}), **extra}
             label = kind + "".join(f"-{k}={v}" for k, v in extra.items())
-            yield pytest.param(kind, params, id=label)
+            # vb-imm's other designs: the full suite (each runs a bank on filterpy)
+            marks = (pytest.mark.slow,) if extra and kind in SLOW_VARIANTS else ()
+            yield pytest.param(kind, params, id=label, marks=marks)
 
 
 def _spec(kind: str, params: dict):

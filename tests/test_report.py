@@ -807,3 +807,27 @@ def test_sections_drawn_in_workers_are_the_same_files(results, tmp_path, monkeyp
     for a, b in zip(one.files, many.files, strict=True):
         assert a.name == b.name
         assert a.read_bytes() == b.read_bytes(), a.name
+
+
+def test_the_worst_case_table_ranks_by_the_worst_ratio_over_the_scenarios(report_dir, results):
+    """worst_case.csv (report/suite.py): each filter's worst and geometric-mean ratio to the
+    oracle equal the ratios of the scenarios' own summaries (summary.parquet), the worst first;
+    the report has the section."""
+    out, _ = report_dir
+    table = pd.read_csv(out / "worst_case.csv").set_index("filter")
+    ratios: dict[str, list[float]] = {}
+    for name in SCENARIOS:
+        summary = pd.read_parquet(results / name / "summary.parquet").set_index("filter")
+        oracle = summary.loc["ekf-oracle", "rmse_pos"]
+        for f in summary.index.drop("ekf-oracle"):
+            ratios.setdefault(f, []).append(summary.loc[f, "rmse_pos"] / oracle)
+    assert set(table.index) == set(ratios)
+    for f, values in ratios.items():
+        # the CSV holds six significant digits
+        assert table.loc[f, "worst"] == pytest.approx(max(values), rel=1e-5)
+        geomean = math.prod(values) ** (1 / len(values))
+        assert table.loc[f, "geomean"] == pytest.approx(geomean, rel=1e-5)
+        assert table.loc[f, "worst_lo"] <= table.loc[f, "worst_hi"]
+    assert list(table["worst"]) == sorted(table["worst"])
+    assert (out / "worst_case.parquet").is_file()
+    assert "Worst case across scenarios" in (out / "report.md").read_text(encoding="utf-8")

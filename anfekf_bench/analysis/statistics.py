@@ -195,6 +195,15 @@ def _resampled(statistic: Statistic, x: np.ndarray) -> Callable[[np.ndarray], np
     return of
 
 
+def resampled_statistic(statistic: Statistic, x: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """statistic(x[idx_b]) for each row idx_b of run indices idx (resamples, k): a bootstrap's
+    draws, for a caller that combines several scenarios' draws (analysis.suite)."""
+    fast = _resampled(statistic, x)
+    if fast is not None:
+        return fast(idx)
+    return np.array([statistic(x[i]) for i in idx], dtype=float)
+
+
 def _resampled_by_weights(form: tuple, x: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """`_resampled`'s computation: the run means of every resample as one matrix product."""
     h, g = form

@@ -45,6 +45,7 @@ from ..filters.sage_husa import SageHusaSpec
 from ..filters.spec import FilterContext, FilterSpec
 from ..filters.swvb import SWVBSpec
 from ..filters.vb import VBAKFSpec, VBRSpec
+from ..filters.vb_bank import R_RULE_CODE, VBIMMSpec, member_factors
 from ..models import Bicycle, Unicycle
 from ..sources.simulator import RunData
 from ..timeline import Timeline, from_run
@@ -54,6 +55,7 @@ from . import kernels as _jit_kernels
 from . import kernels_als as _jit_kernels_als
 from . import kernels_augmented as _jit_kernels_augmented
 from . import kernels_bank as _jit_kernels_bank
+from . import kernels_default as _jit_kernels_default
 from . import kernels_kalmannet as _jit_kernels_kalmannet
 from . import kernels_swvb as _jit_kernels_swvb
 from . import loop as _loop
@@ -147,6 +149,10 @@ def run_filter_fast(
             int(spec.lags), int(spec.window), int(spec.every), int(spec.warmup),
             record, x, P, R, Qu,
         )  # fmt: skip
+        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+    if isinstance(spec, VBIMMSpec):
+        kd = _jit_kernels_default.pure_module() if (JIT and not jit) else _jit_kernels_default
+        diverged, j, nis_sum, n_updates, n_rejected = _run_vb_imm(kd, spec, ctx, run, x, P, R, Qu)
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, MMAESpec):
         kb = _jit_kernels_bank.pure_module() if (JIT and not jit) else _jit_kernels_bank
@@ -277,6 +283,26 @@ def _run_bank(k, spec: MMAESpec, ctx: FilterContext, run: tuple, x, P, R, Qu):
         Qu_m, R_m, float(ctx.gate) if has_gate else math.inf, has_gate,
         float(censor_at), math.log(spec.weight_floor), float(spec.mixture_threshold), imm,
         float(spec.p_stay) if imm else 1.0,
+        run[8], x, P, R, Qu,
+    )  # fmt: skip
+
+
+def _run_vb_imm(kd, spec: VBIMMSpec, ctx: FilterContext, run: tuple, x, P, R, Qu):
+    """filters.vb_bank.VBIMMEKF on `kernels_default.run_vb_imm_kernel`."""
+    factors = member_factors(spec)
+    Qu_m = np.ascontiguousarray(np.outer(factors[:, 0], np.diag(ctx.Qu)))
+    R_m = np.ascontiguousarray(factors[:, 1:] * np.diag(ctx.R))
+    has_gate = ctx.gate is not None
+    censor_at = ctx.gate if (spec.adapt_from == "accepted" and has_gate) else math.inf
+    rule = R_RULE_CODE[spec.r_rule] if spec.adaptation else R_RULE_CODE["grid"]
+    return kd.run_vb_imm_kernel(
+        *run[:8],
+        np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
+        Qu_m, R_m, _matrix(ctx.R, 2), float(ctx.gate) if has_gate else math.inf, has_gate,
+        rule, spec.adapt_from == "all", float(spec.bounds[0]), float(spec.bounds[1]),
+        float(spec.rho), int(spec.iterations), float(spec.alpha0), float(spec.b),
+        float(censor_at), float(spec.likelihood_dof), math.log(spec.weight_floor),
+        float(spec.mixture_threshold), float(spec.p_stay) if spec.adaptation else 1.0,
         run[8], x, P, R, Qu,
     )  # fmt: skip
 

@@ -24,6 +24,7 @@ from ..filters.sage_husa import SageHusaSpec
 from ..filters.spec import FilterSpec
 from ..filters.swvb import SWVBSpec
 from ..filters.vb import VBAKFSpec, VBRSpec
+from ..filters.vb_bank import VBIMMSpec
 
 # Exactly these spec classes (a subclass may build a different filter).
 # ekf-ml and ekf-tuned are the plain EKF with fitted noise (filters.fitted; a recorded
@@ -31,7 +32,7 @@ from ..filters.vb import VBAKFSpec, VBRSpec
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
     VBRSpec, AkhlaghiSpec, VBAKFSpec, SWVBSpec, CMScaleSpec, SageHusaSpec, IAESpec, ALSSpec,
-    KalmanNetSpec, AugmentedSpec,
+    KalmanNetSpec, AugmentedSpec, VBIMMSpec,
 )  # fmt: skip
 RECORDED_SOURCE = "anfekf_bench.sources.recorded"  # its TunedEKFSpec: the plain EKF too
 

@@ -28,6 +28,7 @@ from .sage_husa import SageHusaSpec
 from .spec import ROLES, FilterSpec
 from .swvb import SWVBSpec
 from .vb import VBAKFSpec, VBRSpec
+from .vb_bank import VBIMMSpec
 
 SPECS: tuple[type[FilterSpec], ...] = (
     EKFSpec,
@@ -41,6 +42,7 @@ SPECS: tuple[type[FilterSpec], ...] = (
     VBAKFSpec,
     MMAESpec,
     IMMSpec,
+    VBIMMSpec,
     FadingSpec,
     SWVBSpec,
     ALSSpec,

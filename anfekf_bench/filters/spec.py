@@ -86,6 +86,7 @@ class FilterSpec(StrictModel):
     robot_only_because: ClassVar[str] = (
         "not yet written for the problem interface (anfekf_bench.problems)"
     )
+    default_filter: ClassVar[bool] = False  # the one to use when nothing is known (SPEC 19)
 
     def build(self, ctx: FilterContext):
         """A fresh filter for one run."""

@@ -60,6 +60,7 @@ from ..storage import (
 )
 from ..workers import local_workers
 from . import changing, plots, real, summary_figures
+from . import suite as suite_report
 from . import sweep as sweep_report
 from .consistency import check_saved_result
 from .data import (
@@ -793,6 +794,7 @@ def build_document(
     others: Sequence[ResultData],
     save: plots.FigureSaver,
     out_dir: Path,
+    worst_case: Sequence[Block] = (),
 ) -> Document:
     """The report's content, once, for report.md and report.html: the simulated scenarios'
     summary, then one loop over the result folders (simulated, then recorded, then sweeps),
@@ -801,6 +803,7 @@ def build_document(
     doc.add(Paragraph(INTRO), Contents())
     if scenarios:
         doc.add(*summary_blocks(scenarios, rows, save))
+    doc.add(*worst_case)  # the worst case over the scenarios (report/suite.py)
     drawn = _scenario_sections_in_workers(scenarios, save, out_dir)
     started = set()
     for i, result in enumerate([*scenarios, *others]):
@@ -900,11 +903,15 @@ def write_report(
     # (a recorded result's instances by the filter they were made from).
     names = [f.name for sc in scenarios for f in sc.filters]
     names += [f["base"] for rd in recorded for f in rd.instances()]
+    worst = suite_report.worst_case(scenarios, recorded)
+    worst_blocks = () if worst is None else suite_report.blocks(worst, len(scenarios))
     with plots.palette(names):  # a sweep's filters in the scenarios' colours, by name
-        doc = build_document(scenarios, rows, [*recorded, *swept], save, out_dir)
+        doc = build_document(scenarios, rows, [*recorded, *swept], save, out_dir, worst_blocks)
     doc.add(*problem_blocks(problem_results, save, fmt.value))
     result.problems = len(problem_results)
     result.files += save.files
+    if worst is not None:
+        result.files += suite_report.write_tables(worst, out_dir)
     outputs = {REPORT_FILE: to_markdown(doc)}
     if html:
         outputs[HTML_FILE] = to_html(doc)

@@ -242,7 +242,7 @@ def test_the_readme_is_short_and_opens_with_its_two_commands():
 def test_the_readme_links_resolve():
     text = _text(README)
     targets = re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text)
-    assert len(targets) > 30
+    assert len(targets) > 15  # the regex finds the links (the README has about twenty)
     for target in targets:
         if not re.match(r"[a-z]+:", target):
             assert (ROOT / target).exists(), target

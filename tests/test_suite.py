@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from anfekf_bench.analysis.metrics import nees_bounds
@@ -98,3 +99,46 @@ def test_a_filter_with_no_common_run_ranks_worst_and_fewer_scenarios_last():
     assert df.set_index("filter").loc["partial", "scenarios"] == 1
     assert df.set_index("filter").loc["ok", "drives_vs_tuned"] == 0.9
     assert list(df["rank"]) == [1, 2, 3]
+
+
+class _DriveResult:
+    """The parts of a recorded drives result (report.real.RealData) the drives column reads."""
+
+    def __init__(self, errors: dict[str, list[float]], bases: dict[str, str]):
+        drives = ["d6-r1", "d7-r1"]
+        self.manifest = {"protocol": "drives", "data": {"drives": [{"drive": d} for d in drives]}}
+        self.reference = "ekf-tuned"
+        rows = [
+            (name, run, err)
+            for name, per_drive in errors.items()
+            for run, err in enumerate(per_drive)
+            for _ in range(4)  # four scored steps of the same error on each drive
+        ]
+        self.steps = pd.DataFrame(rows, columns=["filter", "run", "pos_err"])
+        self._instances = [{"name": n, "base": bases.get(n, n)} for n in errors]
+
+    def instances(self) -> list[dict]:
+        return self._instances
+
+
+def test_the_drives_column_is_the_worst_start_of_each_filter_over_ekf_tuned():
+    from anfekf_bench.report import suite as suite_report
+
+    drives = _DriveResult(
+        {
+            "ekf-tuned": [1.0, 2.0],
+            "vb-imm-x1": [2.0, 2.0],  # ratios 2, 1: geometric mean sqrt(2)
+            "vb-imm-x4": [3.0, 2.0],  # ratios 3, 1: sqrt(3), the worse start
+            "imm-x1": [1.0, math.nan],  # lost on a drive: no ratio, ranked as n/a
+        },
+        {"vb-imm-x1": "vb-imm", "vb-imm-x4": "vb-imm", "imm-x1": "imm"},
+    )
+    ratios = suite_report.drive_ratios([drives])
+    assert ratios == {"vb-imm": pytest.approx(math.sqrt(3.0)), "imm": math.inf}
+    suite = [_scenario("a", {"vb-imm": 1.0, "imm": 2.0}), _scenario("b", {"vb-imm": 1.1})]
+    df = suite_table(suite, drives=ratios, resamples=50)
+    assert df.set_index("filter").loc["vb-imm", "drives_vs_tuned"] == pytest.approx(3**0.5)
+    table = suite_report.blocks(df, total=2)[-1]
+    assert table.header[-1] == "drives / ekf-tuned"
+    cells = {row[1].text: row[-1].text for row in table.rows}
+    assert cells["vb-imm"] == "1.73x" and cells["imm (1/2)"] == "n/a"

@@ -802,7 +802,8 @@ def report(
         table_console().print(rich_table(done.rows))
     for warning in done.warnings:
         console.print(f"warning: {warning}", markup=False, highlight=False, soft_wrap=True)
-    figures = sum(1 for p in done.files if p.suffix not in (".md", ".html"))
+    # the report's tables (worst_case.parquet and .csv) are files too, not figures
+    figures = sum(1 for p in done.files if p.suffix[1:] in ("png", "svg", "pdf"))
     pages = [str(p) for p in done.files if p.name in (REPORT_FILE, HTML_FILE)]
     shown = done.scenarios or not (sweep_folders or done.problems)
     parts = [plural(len(done.scenarios), "scenario")] if shown else []

@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from anfekf_bench.config import Scenario, ScenarioError, SimulatedScenario, source_of
+from anfekf_bench.problems.schema import is_problem_document, parse_problem_scenario
 from anfekf_bench.scenarios import member, parse_any_scenario
 from anfekf_bench.sources.recorded import RecordedScenario
 
@@ -37,6 +38,9 @@ def test_every_config_is_the_member_its_document_says(path):
     import yaml
 
     doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    if is_problem_document(doc):  # a problem beyond the robot (SPEC 17): its own schema
+        assert parse_problem_scenario(doc, path).problem == doc["problem"]
+        return
     try:
         scenario = parse_any_scenario(doc, path)
     except ScenarioError as exc:  # an optional extra (PyTorch) missing here

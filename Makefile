@@ -31,7 +31,7 @@ report: setup
 ## end-to-end tests too (about a minute); `make test-all` runs everything.
 PYTEST := $(PY) -m pytest -q -n auto --maxprocesses 4 --dist worksteal
 test: setup
-	$(PYTEST) -m "not heavy"
+	$(PYTEST) -m "not heavy" --durations=25
 
 test-quick: setup
 	$(PYTEST) -m "not slow"

@@ -349,7 +349,7 @@ def test_the_test_tiers_differ_from_make_test_only_by_markers():
 
     base = pytest_line("test-all")
     assert base[:3] == ["/nonexistent-venv/bin/python", "-m", "pytest"] and "-m" not in base[3:]
-    assert pytest_line("test") == [*base, "-m", "not heavy"]
+    assert pytest_line("test") == [*base, "-m", "not heavy", "--durations=25"]  # CI prints them
     assert pytest_line("test-quick") == [*base, "-m", "not slow"]
     for path in (ROOT / "tests").glob("test_*.py"):
         text = _text(path)

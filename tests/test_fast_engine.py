@@ -573,3 +573,22 @@ def test_paper_scenario_pure_python(name):
         ctx = ctx_of(spec, scenario, world)
         ref, out = both(spec, ctx, data, world, scenario.record_every, jit=False)
         assert_same_run(ref, out, what=f"{name} run {i} {spec.name}")
+
+
+def test_make_setup_compiles_a_kernel_of_every_fast_kind():
+    """`make setup`'s warm-up runs one filter of every kernel (and of every family on the one
+    loop, each a loop of its own): a kind it leaves out shares the kernel of one it runs, so the
+    first run after an install compiles nothing."""
+    from anfekf_bench.engines.fast_support import SUPPORTED_SPECS
+    from anfekf_bench.filters.cm_scale import CMScaleSpec
+    from anfekf_bench.filters.ekf import OracleSpec
+    from anfekf_bench.filters.fitted import EKFMLSpec, EKFTunedSpec
+
+    shares = {  # kind -> the warmed kind whose kernel it runs
+        OracleSpec: "EKFSpec", EKFMLSpec: "EKFSpec", EKFTunedSpec: "EKFSpec",
+        CMScaleSpec: "ANFEKFSpec",
+    }  # fmt: skip
+    warmed = {type(spec).__name__ for spec in fast.warm_up_specs()}
+    for kind in SUPPORTED_SPECS:
+        assert kind.__name__ in warmed or shares.get(kind) in warmed, kind.__name__
+    assert len(warmed) == len(fast.warm_up_specs())  # one of each

@@ -51,6 +51,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 from rich.table import Table
 
 from .analysis.metrics import add_trace_metrics, recorded_steps
+from .bench_figures import DEFINITIONS, TARGETS
 from .breakdown import breakdown_rows, paper_breakdown
 from .config import Scenario, World, parse_scenario, scenario_files
 from .engines.filterpy_engine import run_filter
@@ -142,80 +143,6 @@ SWEEP_FILTERS = [
     {"name": "anfekf-rq", "kind": "anfekf", "adapt": "RQ"},
     {"name": "ekf-oracle", "kind": "ekf-oracle"},
 ]
-
-# figure: (comparison, limit, unit) on the 2-core machine (issue 6)
-TARGETS: dict[str, tuple[str, float, str]] = {
-    "overhead_ratio": ("<=", 1.15, "x"),
-    "speedup_2_workers": (">=", 1.8, "x"),
-    "anfekf_over_ekf_step_cost": ("<=", 1.5, "x"),
-    "steps_parquet_mb": ("<=", 50.0, "MiB"),
-    "peak_rss_mb": ("<=", 2048.0, "MiB"),
-    # issue 14
-    "fast_step_ratio_ekf": ("<=", 0.01, "x"),
-    "fast_step_ratio_anfekf": ("<=", 0.01, "x"),
-    "fast_step_ratio_max": ("<=", 0.01, "x"),  # issue 22: every built-in kind
-    "fast_e2e_scenario_s": ("<=", 2.0, "s"),
-    "fast_sweep_batch_s": ("<=", 30.0, "s"),
-    "fast_summary_max_rel_diff": ("<=", 1e-9, ""),
-    # issue 37: the paper scenarios end to end (breakdown.py)
-    "fast_e2e_paper_total_s": ("<=", 5.0, "s"),
-    "fast_e2e_over_filter": ("<=", 3.0, "x"),
-    "default_over_ekf_fast_step_cost": ("<=", 30.0, "x"),  # issue 36
-}
-
-
-# What each figure of the JSON is, written into it so the file explains itself.
-DEFINITIONS = {
-    "ekf_bare_step_us": "median time per control step of a plain filterpy ExtendedKalmanFilter"
-    " loop (predict every step, one update per landmark seen; no gate, checks or recording)",
-    "ekf_harness_step_us": "the same EKF (RobotEKF) through runner.run_filter plus the per-run"
-    " metrics of runner.run_one (pose errors, NEES); simulation excluded from both",
-    "overhead_ratio": "median over repeats of harness / bare time, timed back to back",
-    "anfekf_step_us": "ANFEKF (adapt R) through the harness on the same data",
-    "anfekf_over_ekf_step_cost": "median over repeats of ANFEKF / EKF harness time",
-    "speedup_2_workers": "median over repeats of the 1-worker / 2-worker batch wall time"
-    " (joblib loky pool warmed first)",
-    "peak_rss_mb": "largest over the scenarios of: peak RSS (VmHWM) of the main process plus"
-    " that of each child (workers, resource trackers); an upper bound on memory held at once",
-    "steps_parquet_mb": "largest steps.parquet over the scenarios (MiB)",
-    "wall_time_paper_scenarios_s": "experiment.execute wall time of each scenario file in a"
-    " fresh process (worker start-up included), and their sum",
-    "engine_step_us": "per filter kind: median time per control step of filterpy_engine.run_filter"
-    " and of fast.run_filter_fast (engine calls only: filters and contexts built outside, no"
-    " metrics; the run's scans flattened beforehand, as a run's filters share that) and the"
-    " median over repeats of their paired ratio fast / filterpy; ratio_with_prep charges the"
-    " run's whole flattening (fast_prep_step_us) to this one filter",
-    "fast_step_ratio_ekf": "engine_step_us ratio fast / filterpy of the EKF",
-    "fast_step_ratio_anfekf": "the largest engine_step_us ratio fast / filterpy of the ANFEKF"
-    " adapting R, Q and RQ",
-    "fast_step_ratio_max": "the largest engine_step_us ratio fast / filterpy over every kind"
-    " timed (engine_step_us names them)",
-    "fast_prep_step_us": "the fast engine's flattening of a run's scans into arrays (once per"
-    " run, shared by its filters), per control step",
-    "fast_jit": "whether the fast engine's kernels are numba-compiled (false: plain Python)",
-    "fast_warm_up_s": "this process's first fast-engine calls: numba compiling the kernels, or"
-    " loading them from its on-disk cache",
-    "fast_compile_s": "numba compiling every kernel from an empty cache, in a fresh interpreter"
-    " (import excluded); null at quick sizes or without numba",
-    "fast_cache_load_s": "the same kernels loaded from numba's on-disk cache in a fresh"
-    " interpreter (import excluded)",
-    "fast_engine_max_abs_diff": "largest |fast - filterpy| of x, P, R_diag, Q_diag over the timed"
-    " run and filter kinds (the same update, rejection and divergence counts are required)",
-    "fast_e2e_scenario_s": "experiment.execute wall time of the step scenario file's runs on the"
-    " fast engine, 2 workers, kernels warmed in this process and the workers (compile"
-    " excluded); simulation, filters, metrics and Parquet included",
-    "fast_e2e_cli_s": "median wall time of the whole command `anfekf run <step scenario> --engine"
-    " fast --jobs 2` in a fresh process: interpreter start, imports, worker start, kernels loaded"
-    " from numba's on-disk cache (compile excluded), tables printed; null at quick sizes",
-    "fast_summary_max_rel_diff": "largest relative difference of a summary figure of that run from"
-    " the filterpy run of the same file (the scenario probe)",
-    "default_over_ekf_fast_step_cost": "per-step time of the default filter (a kind whose spec"
-    " says `default_filter`, with its defaults: vb-imm, 9 members) over the EKF's, both on the"
-    " fast engine (engine_step_us)",
-    "fast_sweep_batch_s": "wall time of a sweep-sized batch on the fast engine: cells x runs x 5"
-    " filters (1500 filter-runs at full size), each cell an experiment.execute with summaries"
-    " only (steps_table false), 2 workers kept warm across cells",
-}
 
 
 class BenchError(Exception):

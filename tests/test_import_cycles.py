@@ -69,3 +69,16 @@ def test_the_cycle_finder_finds_a_circle_through_a_function_level_import():
 def test_the_package_has_no_import_circle():
     graph = grimp.build_graph("anfekf_bench")
     assert import_circles(graph) == []
+
+
+def test_no_module_is_over_a_thousand_lines():
+    """Issue 33: a module that long holds more than one concept; split it (a move commit)."""
+    from pathlib import Path
+
+    package = Path(__file__).resolve().parents[1] / "anfekf_bench"
+    lengths = {
+        str(path.relative_to(package)): len(path.read_text(encoding="utf-8").splitlines())
+        for path in package.rglob("*.py")
+    }
+    assert {name: n for name, n in lengths.items() if n > 1000} == {}
+    assert len(lengths) > 50  # the package's modules were found

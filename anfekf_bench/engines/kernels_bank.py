@@ -57,6 +57,25 @@ imm_mix = _bank.imm_mix
 
 
 @maybe_njit
+def predict_members(X, Pm, Qu_m, terms, q_scale):
+    """`predict` of every member i in place (its state X[i], covariance Pm[i] row-major, its
+    control noise Qu_m[i]); `terms` (step_terms) hold what does not depend on the heading."""
+    dh = terms[8]
+    for i in range(X.shape[0]):
+        f02, f12, G = jacobians_at(X[i, 2], terms)
+        x, P, _ = predict_from(
+            (X[i, 0], X[i, 1], X[i, 2]),
+            (Pm[i, 0], Pm[i, 1], Pm[i, 2], Pm[i, 3], Pm[i, 4], Pm[i, 5], Pm[i, 6], Pm[i, 7],
+             Pm[i, 8]),
+            f02, f12, G, dh, q_scale, (Qu_m[i, 0], 0.0, 0.0, Qu_m[i, 1]),
+        )  # fmt: skip
+        for c in range(3):
+            X[i, c] = x[c]
+        for c in range(9):
+            Pm[i, c] = P[c]
+
+
+@maybe_njit
 def run_bank_kernel(
     u_odo, dt, scan_start, scan_lm, scan_z,
     motion, B, T0, x0, P0, Qu_m, R_m, gate, has_gate,
@@ -114,20 +133,8 @@ def run_bank_kernel(
         dt_k = dt[k]
         # `predict` of every member, what does not depend on its heading computed once
         terms = step_terms(u0, u1, dt_k, motion, B)
-        dh = terms[8]
         q_scale = noise_scale(dt_k, motion, T0) if motion == MOTION_UNICYCLE else 1.0
-        for i in range(M):
-            f02, f12, G = jacobians_at(X[i, 2], terms)
-            x, P, _ = predict_from(
-                (X[i, 0], X[i, 1], X[i, 2]),
-                (Pm[i, 0], Pm[i, 1], Pm[i, 2], Pm[i, 3], Pm[i, 4], Pm[i, 5], Pm[i, 6], Pm[i, 7],
-                 Pm[i, 8]),
-                f02, f12, G, dh, q_scale, (Qu_m[i, 0], 0.0, 0.0, Qu_m[i, 1]),
-            )  # fmt: skip
-            for c in range(3):
-                X[i, c] = x[c]
-            for c in range(9):
-                Pm[i, c] = P[c]
+        predict_members(X, Pm, Qu_m, terms, q_scale)
         first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
         last = scan_start[k + 1]
         if last == first and record_at[k] and j < n_rows:

@@ -39,6 +39,7 @@ most_probable, mixture_weights, active_members = (
     _b.most_probable, _b.mixture_weights, _b.active_members,
 )  # fmt: skip
 mix_moments_at, weighted_noise, imm_mix = _b.mix_moments_at, _b.weighted_noise, _b.imm_mix
+predict_members = _b.predict_members
 MOTION_UNICYCLE = _k.MOTION_UNICYCLE
 
 if JIT and not _PURE_COPY:
@@ -133,20 +134,8 @@ def run_vb_imm_kernel(
         u1 = u_odo[k, 1]
         dt_k = dt[k]
         terms = step_terms(u0, u1, dt_k, motion, B)
-        dh = terms[8]
         q_scale = noise_scale(dt_k, motion, T0) if motion == MOTION_UNICYCLE else 1.0
-        for i in range(M):
-            f02, f12, G = jacobians_at(X[i, 2], terms)
-            x, P, _ = predict_from(
-                (X[i, 0], X[i, 1], X[i, 2]),
-                (Pm[i, 0], Pm[i, 1], Pm[i, 2], Pm[i, 3], Pm[i, 4], Pm[i, 5], Pm[i, 6], Pm[i, 7],
-                 Pm[i, 8]),
-                f02, f12, G, dh, q_scale, (Qu_m[i, 0], 0.0, 0.0, Qu_m[i, 1]),
-            )  # fmt: skip
-            for c in range(3):
-                X[i, c] = x[c]
-            for c in range(9):
-                Pm[i, c] = P[c]
+        predict_members(X, Pm, Qu_m, terms, q_scale)  # the bank's, member by member
         first = scan_start[k]
         last = scan_start[k + 1]
         if last == first and record_at[k] and j < n_rows:

@@ -576,19 +576,18 @@ def test_paper_scenario_pure_python(name):
 
 
 def test_make_setup_compiles_a_kernel_of_every_fast_kind():
-    """`make setup`'s warm-up runs one filter of every kernel (and of every family on the one
-    loop, each a loop of its own): a kind it leaves out shares the kernel of one it runs, so the
-    first run after an install compiles nothing."""
+    """`make setup`'s warm-up runs one filter of every kernel (and of every family module on the
+    one loop, each a loop of its own): a kind it leaves out runs its family's loop or shares
+    the kernel of one it runs, so the first run after an install compiles nothing."""
     from anfekf_bench.engines.fast_support import SUPPORTED_SPECS
-    from anfekf_bench.filters.cm_scale import CMScaleSpec
-    from anfekf_bench.filters.ekf import OracleSpec
-    from anfekf_bench.filters.fitted import EKFMLSpec, EKFTunedSpec
+    from anfekf_bench.filters.spec import fast_family_of
 
-    shares = {  # kind -> the warmed kind whose kernel it runs
-        OracleSpec: "EKFSpec", EKFMLSpec: "EKFSpec", EKFTunedSpec: "EKFSpec",
-        CMScaleSpec: "ANFEKFSpec",
-    }  # fmt: skip
-    warmed = {type(spec).__name__ for spec in fast.warm_up_specs()}
-    for kind in SUPPORTED_SPECS:
-        assert kind.__name__ in warmed or shares.get(kind) in warmed, kind.__name__
-    assert len(warmed) == len(fast.warm_up_specs())  # one of each
+    specs = fast.warm_up_specs()
+    warmed = {type(spec) for spec in specs}
+    families = {fast_family_of(spec) for spec in specs} - {None}
+    for cls in SUPPORTED_SPECS:
+        assert cls in warmed or fast_family_of(cls) in families, cls.__name__
+    assert len(warmed) == len(specs)  # one of each
+    # one per family module: every module of engines/families is warmed
+    modules = {p.stem for p in (Path(fast.__file__).parent / "families").glob("[!_]*.py")}
+    assert families == modules

@@ -8,44 +8,31 @@ from __future__ import annotations
 
 import sys
 
-from ..filters.akhlaghi import AkhlaghiSpec
 from ..filters.als import ALSSpec
-from ..filters.anfekf import ANFEKFSpec
 from ..filters.augmented import AugmentedSpec
 from ..filters.bank import IMMSpec, MMAESpec
-from ..filters.cm_scale import CMScaleSpec
-from ..filters.ekf import EKFSpec, OracleSpec
-from ..filters.fading import FadingSpec
-from ..filters.fitted import EKFMLSpec, EKFTunedSpec
-from ..filters.iae import IAESpec
 from ..filters.kalmannet import KalmanNetSpec
-from ..filters.registry import register_engine
-from ..filters.sage_husa import SageHusaSpec
-from ..filters.spec import FilterSpec
+from ..filters.registry import SPECS, register_engine
+from ..filters.spec import FilterSpec, fast_family_of
 from ..filters.swvb import SWVBSpec
-from ..filters.vb import VBAKFSpec, VBRSpec
 from ..filters.vb_bank import VBIMMSpec
 
-# Exactly these spec classes (a subclass may build a different filter).
-# ekf-ml and ekf-tuned are the plain EKF with fitted noise (filters.fitted; a recorded
-# scenario's ekf-tuned, sources.recorded.TunedEKFSpec, with grid-searched noise).
-SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = (
-    EKFSpec, OracleSpec, ANFEKFSpec, EKFMLSpec, EKFTunedSpec, MMAESpec, IMMSpec, FadingSpec,
-    VBRSpec, AkhlaghiSpec, VBAKFSpec, SWVBSpec, CMScaleSpec, SageHusaSpec, IAESpec, ALSSpec,
-    KalmanNetSpec, AugmentedSpec, VBIMMSpec,
+# The kinds with a kernel of their own (exactly these classes: a subclass may build a different
+# filter); a kind on the one loop names its family module on its spec class instead
+# (`FilterSpec.fast_family`: the EKF and its fitted and oracle forms, a recorded scenario's
+# ekf-tuned, the adaptive families of engines/families).
+OWN_KERNEL_SPECS: tuple[type[FilterSpec], ...] = (
+    MMAESpec, IMMSpec, SWVBSpec, ALSSpec, KalmanNetSpec, AugmentedSpec, VBIMMSpec,
 )  # fmt: skip
-RECORDED_SOURCE = "anfekf_bench.sources.recorded"  # its TunedEKFSpec: the plain EKF too
+# Every registered spec class the fast engine runs (for tests and docs; `supported_type` decides).
+SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = tuple(
+    cls for cls in SPECS if cls in OWN_KERNEL_SPECS or fast_family_of(cls) is not None
+)
 
 
 def supported_type(spec: FilterSpec) -> bool:
     """Whether the fast engine implements this spec's filter (on some motion model)."""
-    if type(spec) in SUPPORTED_SPECS:
-        return True
-    # A recorded scenario's ekf-tuned, looked up without importing its module (pandas and
-    # pyarrow: a worker that never loaded a recording must not pay for them): a spec of that
-    # class exists only once the module is loaded.
-    recorded = sys.modules.get(RECORDED_SOURCE)
-    return recorded is not None and type(spec) is recorded.TunedEKFSpec
+    return fast_family_of(spec) is not None or type(spec) in OWN_KERNEL_SPECS
 
 
 def register() -> None:

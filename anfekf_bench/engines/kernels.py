@@ -627,6 +627,7 @@ from ..filters import fading as _fading  # noqa: E402
 
 if _NJIT is not None:
     register_jitable(_fading.fading_factor)
+    register_jitable(_fading.fading_event)
 
 fading_factor = _fading.fading_factor
 

@@ -10,10 +10,11 @@ then the record. The family's per-event steps are plain numeric functions in its
 
 How the loop reaches a family's hooks (docs/DESIGN.md, "One loop, one module per family"): each
 hook name here is a stub that, compiled, numba resolves by the TYPE of `fam` (`overload`: the
-namedtuple's class names its module, whose function of that name is inlined), so `run_loop` is
-compiled once per family, as one kernel per family was, and numba's disk cache keeps every
-specialisation (a loop that took the hooks as function arguments would be compiled again in
-every process: numba does not cache such signatures). Run as plain Python (no numba, or
+namedtuple's class names its module, whose function of that name is inlined into the loop's
+numba IR: numba then prunes the reference counts of the state passing through it), so
+`run_loop` is compiled once per family, as one kernel per family was, and numba's disk cache
+keeps every specialisation (a loop that took the hooks as function arguments would be compiled
+again in every process: numba does not cache such signatures). Run as plain Python (no numba, or
 `pure_module()`), the stubs call the same functions by the same lookup.
 
 numba's disk cache is keyed on THIS file's contents: after editing a family's hooks, delete
@@ -91,12 +92,21 @@ DEFAULTS = {
 HOOKS = tuple(DEFAULTS)
 
 
+# numba IR inlining of the hooks ("never": LLVM's inlining of a call, which leaves the reference
+# counts of a state with arrays; the families on the loop took 1.1-1.3 times their former
+# kernels' time per step that way, docs/DESIGN.md)
+INLINE = "always"
+
+
 def family_of(fam):
     """The module holding the hooks of parameters `fam` (its namedtuple's module)."""
     return sys.modules[type(fam).__module__]
 
 
 _REGISTERED: set = set()
+# A family's own functions compile as the kernels do (kernels.maybe_njit): numpy's error model
+# (a division by zero gives inf or NaN, no check for it), which the hand-written kernels had.
+JIT_OPTIONS = {"error_model": "numpy"}
 
 
 def _hook(module, name: str):
@@ -109,33 +119,40 @@ def _hook(module, name: str):
 
     if not _REGISTERED:
         for fn in DEFAULTS.values():
-            register_jitable(fn)
+            register_jitable(**JIT_OPTIONS)(fn)
         _REGISTERED.add(__name__)
     if module.__name__ not in _REGISTERED:
         for fn in vars(module).values():
             if inspect.isfunction(fn) and fn.__module__ == module.__name__:
-                register_jitable(fn)
+                register_jitable(**JIT_OPTIONS)(fn)
         _REGISTERED.add(module.__name__)
     return getattr(module, name, DEFAULTS[name])
 
 
 def _stub(name: str):
-    def stub(fam, *args):
-        return getattr(family_of(fam), name, DEFAULTS[name])(fam, *args)
+    """The stub of hook `name`: its default's arguments spelt out (numba inlines an overload
+    into the loop's IR only for a function without `*args`), calling the family's hook."""
+    import inspect
 
-    stub.__name__ = stub.__qualname__ = name
+    params = ", ".join(inspect.signature(DEFAULTS[name]).parameters)
+    src = (
+        f"def {name}({params}):\n"
+        f"    return getattr(family_of(fam), {name!r}, DEFAULTS[{name!r}])({params})\n"
+    )
+    scope = {"family_of": family_of, "DEFAULTS": DEFAULTS}
+    exec(src, scope)
+    stub = scope[name]
     stub.__doc__ = f"The family's `{name}` hook (resolved by the type of `fam`)."
     if JIT and not _PURE_COPY:
         from numba.extending import overload
 
-        @overload(stub)
-        def _resolve(fam, *args):
-            hook = _hook(sys.modules[fam.instance_class.__module__], name)
+        def _resolve(*types):
+            hook = _hook(sys.modules[types[0].instance_class.__module__], name)
+            return hook
 
-            def impl(fam, *args):
-                return hook(fam, *args)
-
-            return impl
+        typing: dict = {"_resolve": _resolve}  # the typer: the stub's signature, spelt out
+        exec(f"def typer({params}):\n    return _resolve({params})\n", typing)
+        overload(stub, inline=INLINE)(typing["typer"])
 
     return stub
 

@@ -73,6 +73,7 @@ class AkhlaghiSpec(AdaptiveSpec):
     """Akhlaghi et al. 2017: residual-based R, innovation-based Q, one forgetting factor."""
 
     kind: Literal["akhlaghi"]
+    fast_family: ClassVar[str | None] = "akhlaghi"  # engines/families/akhlaghi.py
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     adapt: Literal["R", "Q", "RQ"] = Field(
         "RQ",

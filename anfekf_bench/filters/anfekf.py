@@ -71,6 +71,7 @@ class ANFEKFSpec(AdaptiveSpec):
     """The adaptive neuro-fuzzy EKF (SPEC section 4). Defaults are shared by every scenario."""
 
     kind: Literal["anfekf"]
+    fast_family: ClassVar[str | None] = "anfekf"  # engines/families/anfekf.py
     robot_only_because: ClassVar[str] = (
         "its two ANFIS watch the range and bearing channels, the paper's design"
     )

@@ -58,6 +58,7 @@ class CMScaleSpec(AdaptiveSpec):
     """Covariance-matching scaling: the ANFEKF's window and mismatch with a proportional rule."""
 
     kind: Literal["cm-scale"]
+    fast_family: ClassVar[str | None] = "anfekf"  # engines/families/anfekf.py
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     adapt: Literal["R", "Q", "RQ"] = Field(
         "R", description="R: scale each R_ii; Q: scale Qu by the mean mismatch; RQ: both at once"

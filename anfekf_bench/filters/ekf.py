@@ -201,6 +201,7 @@ class EKFSpec(FilterSpec):
     kind: Literal["ekf"] = "ekf"
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
     role: ClassVar[Role] = "reference"
+    fast_family: ClassVar[str | None] = "anfekf"
 
     def build(self, ctx: FilterContext) -> RobotEKF:
         return RobotEKF(**ctx.kwargs())
@@ -232,6 +233,7 @@ class OracleSpec(FilterSpec):
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
     uses_true_noise: ClassVar[bool] = True
     role: ClassVar[Role] = "oracle"
+    fast_family: ClassVar[str | None] = "anfekf"
 
     def build(self, ctx: FilterContext) -> RobotEKF:
         if ctx.true_noise is not None:

@@ -39,10 +39,32 @@ def fading_factor(trace_C, trace_R, trace_HPHt, ceiling):
     return lam
 
 
+def fading_event(nu2, n_window, pos, first_of_scan, nu0, nu1, trace_R, trace_HPHt, ceiling):
+    """One landmark that feeds adaptation, the family's one definition (both engines call it:
+    `FadingEKF.before_gain` and engines/families/fading.py): nu^T nu into the window's ring
+    `nu2` (in place, at `pos`); at the scan's first such landmark, once the window is full,
+    lambda (F.2) from the window's mean (oldest first). Returns (n_window, pos, lambda), lambda
+    NaN where P- is not to be scaled (not due, or a NaN innovation: update_landmark reports
+    the divergence)."""
+    N = nu2.shape[0]
+    nu2[pos] = nu0 * nu0 + nu1 * nu1
+    pos = (pos + 1) % N
+    if n_window < N:
+        n_window += 1
+    if not first_of_scan or n_window < N:
+        return n_window, pos, math.nan
+    trace_C = 0.0
+    for i in range(N):  # oldest first
+        trace_C += nu2[(pos + i) % N]
+    trace_C = trace_C / N
+    return n_window, pos, fading_factor(trace_C, trace_R, trace_HPHt, ceiling)
+
+
 class FadingSpec(AdaptiveSpec):
     """Adaptive fading factor (strong tracking): P- inflated by lambda >= 1 once per scan."""
 
     kind: Literal["fading"]
+    fast_family: ClassVar[str | None] = "fading"  # engines/families/fading.py
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"P"})
     window: int = Field(
         20,
@@ -75,18 +97,11 @@ class FadingEKF(AdaptiveEKF):
     def before_gain(self, inn: Innovation) -> None:
         if not self.params.adaptation or not self.feeds_adaptation(inn):
             return
-        N = self.params.window
-        self.nu2[self.pos] = inn.nu[0] * inn.nu[0] + inn.nu[1] * inn.nu[1]
-        self.pos = (self.pos + 1) % N
-        self.n_window = min(self.n_window + 1, N)
-        first, self._first_of_scan = self._first_of_scan, False
-        if not first or self.n_window < N:
-            return
-        trace_C = sum(self.nu2[(self.pos + i) % N] for i in range(N)) / N  # oldest first
-        lam = fading_factor(
-            trace_C, self.R[0, 0] + self.R[1, 1], inn.HPHt[0, 0] + inn.HPHt[1, 1], self.bounds[1]
-        )
-        if not math.isfinite(lam):
-            return  # a NaN innovation: update_landmark reports the divergence
-        self.P_inflation = lam
-        self.P = lam * self.P
+        self.n_window, self.pos, lam = fading_event(
+            self.nu2, self.n_window, self.pos, self._first_of_scan, inn.nu[0], inn.nu[1],
+            self.R[0, 0] + self.R[1, 1], inn.HPHt[0, 0] + inn.HPHt[1, 1], self.bounds[1],
+        )  # fmt: skip
+        self._first_of_scan = False
+        if math.isfinite(lam):
+            self.P_inflation = lam
+            self.P = lam * self.P

@@ -140,6 +140,7 @@ class EKFMLSpec(FittedNoiseSpec):
     scored on (its own innovations, never its ground truth: real_experiment.OwnInnovations)."""
 
     kind: Literal["ekf-ml"]
+    fast_family: ClassVar[str | None] = "anfekf"  # engines/families/anfekf.py
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
     criterion: ClassVar[str] = "likelihood"
 
@@ -149,5 +150,6 @@ class EKFTunedSpec(FittedNoiseSpec):
     the fair "tuned with truth" reference of a simulated scenario."""
 
     kind: Literal["ekf-tuned"]
+    fast_family: ClassVar[str | None] = "anfekf"  # engines/families/anfekf.py
     robot_only_because: ClassVar[str] = "its grid search is over the robot's four noise sigmas"
     criterion: ClassVar[str] = "rmse"

@@ -80,6 +80,7 @@ class IAESpec(AdaptiveSpec):
     """Innovation-based adaptive estimation (Mohamed & Schwarz 1999): R or Q from a window."""
 
     kind: Literal["iae"]
+    fast_family: ClassVar[str | None] = "iae"  # engines/families/iae.py
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     adapt: Literal["R", "Q"] = Field(
         "R", description="R: R_hat = C - H P- H^T (diagonal); Q: Q_hat from K C K^T, mapped to Qu"

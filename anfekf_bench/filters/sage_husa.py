@@ -82,6 +82,7 @@ class SageHusaSpec(AdaptiveSpec):
     """Fading-memory Sage-Husa (Sage & Husa 1969): R per channel before the gain, Qu optional."""
 
     kind: Literal["sage-husa"]
+    fast_family: ClassVar[str | None] = "sage_husa"  # engines/families/sage_husa.py
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     b: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = Field(

@@ -87,6 +87,10 @@ class FilterSpec(StrictModel):
         "not yet written for the problem interface (anfekf_bench.problems)"
     )
     default_filter: ClassVar[bool] = False  # the one to use when nothing is known (SPEC 19)
+    # The module under engines/families/ whose hooks run this kind on the fast engine's one loop
+    # (engines/loop.py), or None. Read on the exact class (`fast_family_of`): a subclass that
+    # does not name one (it may build another filter) runs on filterpy.
+    fast_family: ClassVar[str | None] = None
 
     def build(self, ctx: FilterContext):
         """A fresh filter for one run."""
@@ -96,6 +100,13 @@ class FilterSpec(StrictModel):
         """What this filter adapts ("R", "Q", "P"), or None when the spec cannot tell (a user's
         class: the report then looks at whether its recorded R/Qu vary)."""
         return self.adapts_noise
+
+
+def fast_family_of(spec) -> str | None:
+    """The fast engine's family module of a spec (or spec class), declared on exactly its class
+    (`FilterSpec.fast_family`); None: not on the fast engine's loop."""
+    cls = spec if isinstance(spec, type) else type(spec)
+    return cls.__dict__.get("fast_family")
 
 
 class FilterParams(StrictModel):

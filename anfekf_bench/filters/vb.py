@@ -175,6 +175,7 @@ class VBRSpec(AdaptiveSpec):
     channel."""
 
     kind: Literal["vb-r"]
+    fast_family: ClassVar[str | None] = "vb_r"  # engines/families/vb_r.py
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R"})
     rho: float = Field(
@@ -325,6 +326,7 @@ class VBAKFSpec(AdaptiveSpec):
     covariance P- and on R."""
 
     kind: Literal["vbakf"]
+    fast_family: ClassVar[str | None] = "vbakf"  # engines/families/vbakf.py
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "P"})
     tau: PositiveFloat = Field(
         3.0, description="confidence in the nominal P- (T = tau P-); the paper's range 2..6"

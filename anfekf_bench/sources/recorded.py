@@ -52,6 +52,7 @@ class TunedEKFSpec(FilterSpec):
 
     kind: Literal["ekf-tuned"]
     role: ClassVar[Role] = "fitted"
+    fast_family: ClassVar[str | None] = "anfekf"
 
     def build(self, ctx: FilterContext) -> RobotEKF:
         return RobotEKF(**ctx.kwargs())

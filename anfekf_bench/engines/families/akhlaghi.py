@@ -29,7 +29,6 @@ interval_step, qu_estimate, as_matrix, wrap, correct, innovation, hph_diag = (
 )  # fmt: skip
 ZERO9, EYE9 = _k.ZERO9, _k.EYE9
 
-SPECS = (AkhlaghiSpec,)
 Params = collections.namedtuple("Params", "adapt_R adapt_Q adaptation from_all floor ceiling alpha")
 
 

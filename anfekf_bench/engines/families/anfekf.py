@@ -20,8 +20,6 @@ import numpy as np
 from ...filters import anfis
 from ...filters.anfekf import ANFEKFSpec
 from ...filters.cm_scale import CMScaleSpec
-from ...filters.ekf import EKFSpec, OracleSpec
-from ...filters.fitted import EKFMLSpec, EKFTunedSpec
 from .. import kernels as _kernels
 
 _PURE_COPY: bool = globals().get("_PURE", False)
@@ -36,9 +34,6 @@ feeds_adaptation, clip_nan, r_step, q_step, hqh_diag = (
 proportional_step, mean_mismatch = _k.proportional_step, _k.mean_mismatch
 N_ANFIS = _k.N_ANFIS
 
-# The specs this family runs (exactly these classes; a recorded scenario's ekf-tuned is the
-# plain EKF too: fast_support finds it)
-SPECS = (EKFSpec, OracleSpec, EKFMLSpec, EKFTunedSpec, ANFEKFSpec, CMScaleSpec)
 
 RULE_ANFIS = 0  # the ANFEKF's ANFIS
 RULE_PROPORTIONAL = 1  # cm-scale's proportional rule of gain kappa (filters.cm_scale)
@@ -48,7 +43,7 @@ RULE_PROPORTIONAL = 1  # cm-scale's proportional rule of gain kappa (filters.cm_
 Params = collections.namedtuple(
     "Params",
     "adapt_R adapt_Q adaptation learning from_all lo hi window clip eta_m eta_d eta_w anf rule"
-    " kappa",
+    " kappa win grad ws",
 )
 
 ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -61,19 +56,26 @@ def params(spec, ctx) -> Params:
             "R" in spec.adapt, "Q" in spec.adapt, bool(spec.adaptation), bool(spec.learning),
             spec.adapt_from == "all", *(float(b) for b in spec.bounds), int(spec.window),
             float(spec.output_clip), *(float(e) for e in spec.learning_rate),
-            anfis_rows(spec), RULE_ANFIS, 1.0,
+            anfis_rows(spec), RULE_ANFIS, 1.0, *_work(spec.window),
         )  # fmt: skip
     if isinstance(spec, CMScaleSpec):  # the ANFEKF's supervisor with the proportional rule
         return Params(
             "R" in spec.adapt, "Q" in spec.adapt, bool(spec.adaptation), False,
             spec.adapt_from == "all", *(float(b) for b in spec.bounds), int(spec.window),
             float(spec.output_clip), 0.0, 0.0, 0.0, np.zeros((3, N_ANFIS)), RULE_PROPORTIONAL,
-            float(spec.kappa),
+            float(spec.kappa), *_work(spec.window),
         )  # fmt: skip
     return Params(
         False, False, False, False, True, 1.0, 1.0, 1, 1.0, 0.0, 0.0, 0.0,
-        np.zeros((3, N_ANFIS)), RULE_ANFIS, 1.0,
+        np.zeros((3, N_ANFIS)), RULE_ANFIS, 1.0, *_work(1),
     )  # fmt: skip
+
+
+def _work(window: int) -> tuple:
+    """The supervisor's arrays, updated in place by the hooks (parameters rather than state:
+    the state passes through a hook at every step, and arrays in it cost reference counts):
+    the window of squared innovations, the ANFIS gradient and its workspace."""
+    return np.zeros((max(int(window), 1), 2)), np.empty(N_ANFIS), np.empty(40)
 
 
 def anfis_rows(spec: ANFEKFSpec) -> np.ndarray:
@@ -108,19 +110,18 @@ def _anfis_start(
 
 
 def start(fam, x, P, Qu, R, scan_start):
-    # (window, n_win, pos, d_prev (have, d0, d1), Qi, updated_since_predict, grad, ws,
-    #  first_of_scan, the bounds of R and Qu)
+    # (n_win, pos, d_prev (have, d0, d1), Qi, updated_since_predict, first_of_scan, the
+    #  bounds of R and Qu); the arrays are in `fam` (`_work`)
     bounds = (fam.lo * R[0], fam.hi * R[0], fam.lo * R[3], fam.hi * R[3],
               fam.lo * Qu[0], fam.hi * Qu[0], fam.lo * Qu[3], fam.hi * Qu[3])  # fmt: skip
-    win = np.zeros((max(fam.window, 1), 2))
-    return (win, 0, 0, (False, 0.0, 0.0), ZERO9, False, np.empty(N_ANFIS), np.empty(40), True,
-            bounds)  # fmt: skip
+    fam.win[:] = 0.0
+    return 0, 0, (False, 0.0, 0.0), ZERO9, False, True, bounds
 
 
 def predicted(fam, st, f02, f12, G, c, Q):
     if not fam.adapt_Q:
         return st
-    win, n_win, pos, d_prev, Qi, updated, grad, ws, first_of_scan, bounds = st
+    n_win, pos, d_prev, Qi, updated, first_of_scan, bounds = st
     if updated:  # process noise since the last update
         Qi = ZERO9
         updated = False
@@ -129,20 +130,20 @@ def predicted(fam, st, f02, f12, G, c, Q):
         Qi[3] + Q[3], Qi[4] + Q[4], Qi[5] + Q[5],
         Qi[6] + Q[6], Qi[7] + Q[7], Qi[8] + Q[8],
     )  # fmt: skip
-    return win, n_win, pos, d_prev, Qi, updated, grad, ws, first_of_scan, bounds
+    return n_win, pos, d_prev, Qi, updated, first_of_scan, bounds
 
 
 def begin_scan(fam, st, x, P, R, Qu):
-    win, n_win, pos, d_prev, Qi, updated, grad, ws, _, bounds = st
-    return (win, n_win, pos, d_prev, Qi, updated, grad, ws, True, bounds), R
+    n_win, pos, d_prev, Qi, updated, _, bounds = st
+    return (n_win, pos, d_prev, Qi, updated, True, bounds), R
 
 
 def before_gain(fam, st, x, P, R, Qu, H, zh, nu, HPHt, lm, z, gate, has_gate):
     if not (fam.adapt_R or fam.adapt_Q):
         return True, st, P, R, Qu, HPHt
-    win, n_win, pos, d_prev, Qi, updated, grad, ws, first_of_scan, bounds = st
+    n_win, pos, d_prev, Qi, updated, first_of_scan, bounds = st
     R_lo0, R_hi0, R_lo1, R_hi1, Q_lo0, Q_hi0, Q_lo1, Q_hi1 = bounds
-    window = fam.window
+    window, win, grad, ws = fam.window, fam.win, fam.grad, fam.ws
     ok, feeds = feeds_adaptation(HPHt, R, nu, fam.from_all, gate, has_gate)
     if not ok:
         return False, st, P, R, Qu, HPHt
@@ -214,5 +215,5 @@ def before_gain(fam, st, x, P, R, Qu, H, zh, nu, HPHt, lm, z, gate, has_gate):
                     Qi[3] * f, Qi[4] * f, Qi[5] * f,
                     Qi[6] * f, Qi[7] * f, Qi[8] * f,
                 )  # fmt: skip
-    st = (win, n_win, pos, d_prev, Qi, updated, grad, ws, False, bounds)
+    st = (n_win, pos, d_prev, Qi, updated, False, bounds)
     return True, st, P, R, Qu, HPHt

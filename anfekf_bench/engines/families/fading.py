@@ -11,14 +11,13 @@ import math
 
 import numpy as np
 
-from ...filters.fading import FadingSpec, fading_factor
+from ...filters.fading import FadingSpec, fading_event
 from .. import kernels as _kernels
 
 _PURE_COPY: bool = globals().get("_PURE", False)
 _k = _kernels.pure_module() if _PURE_COPY else _kernels
 feeds_adaptation, hph = _k.feeds_adaptation, _k.hph
 
-SPECS = (FadingSpec,)
 Params = collections.namedtuple("Params", "adaptation from_all window ceiling")
 
 
@@ -40,31 +39,23 @@ def begin_scan(fam, st, x, P, R, Qu):
 
 def before_gain(fam, st, x, P, R, Qu, H, zh, nu, HPHt, lm, z, gate, has_gate):
     nu2, n_window, pos, infl, first_of_scan = st
-    window = fam.window
     if fam.adaptation:
         ok, feeds = feeds_adaptation(HPHt, R, nu, fam.from_all, gate, has_gate)
         if not ok:
             return False, st, P, R, Qu, HPHt
-        if feeds:
-            nu2[pos] = nu[0] * nu[0] + nu[1] * nu[1]
-            pos = (pos + 1) % window
-            if n_window < window:
-                n_window += 1
-            was_first = first_of_scan
+        if feeds:  # FadingEKF.before_gain
+            n_window, pos, lam = fading_event(
+                nu2, n_window, pos, first_of_scan, nu[0], nu[1], R[0] + R[3],
+                HPHt[0] + HPHt[3], fam.ceiling,
+            )  # fmt: skip
             first_of_scan = False
-            if was_first and n_window == window:
-                trace_C = 0.0
-                for i in range(window):  # oldest first, as the class sums
-                    trace_C += nu2[(pos + i) % window]
-                trace_C = trace_C / window
-                lam = fading_factor(trace_C, R[0] + R[3], HPHt[0] + HPHt[3], fam.ceiling)
-                if math.isfinite(lam):
-                    infl = lam
-                    P = (
-                        lam * P[0], lam * P[1], lam * P[2],
-                        lam * P[3], lam * P[4], lam * P[5],
-                        lam * P[6], lam * P[7], lam * P[8],
-                    )  # fmt: skip
+            if math.isfinite(lam):
+                infl = lam
+                P = (
+                    lam * P[0], lam * P[1], lam * P[2],
+                    lam * P[3], lam * P[4], lam * P[5],
+                    lam * P[6], lam * P[7], lam * P[8],
+                )  # fmt: skip
     if infl != 1.0:  # RobotEKF.update_landmark: H P- H^T follows the scaled P-
         HPHt = hph(H, P)
     return True, (nu2, n_window, pos, infl, first_of_scan), P, R, Qu, HPHt

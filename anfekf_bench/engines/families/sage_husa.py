@@ -22,7 +22,6 @@ feeds_adaptation, interval_step, qu_estimate, as_matrix, wrap = (
 )  # fmt: skip
 ZERO9, EYE9 = _k.ZERO9, _k.EYE9
 
-SPECS = (SageHusaSpec,)
 Params = collections.namedtuple("Params", "adaptation from_all lo hi adapt_Q b warmup unbiased")
 
 

@@ -19,7 +19,6 @@ feeds_adaptation, correct, innovation, hph_diag = (
     _k.feeds_adaptation, _k.correct, _k.innovation, _k.hph_diag,
 )  # fmt: skip
 
-SPECS = (VBRSpec,)
 Params = collections.namedtuple("Params", "adaptation from_all floor ceiling rho iterations alpha0")
 
 

@@ -21,7 +21,6 @@ feeds_adaptation, correct, innovation, hph, wrap = (
 
 M2 = 2.0  # the measurement's dimension m
 
-SPECS = (VBAKFSpec,)
 Params = collections.namedtuple(
     "Params", "adaptation from_all floor ceiling rho iterations tau tau_R diagonal_R"
 )

@@ -172,8 +172,11 @@ def _run_family(spec: FilterSpec, ctx: FilterContext, run: tuple, x, P, R, Qu, n
     family = families.for_spec(spec, pure)
     lp = _loop.pure_module() if pure else _loop
     P_infl = np.full(n, np.nan)
+    fam = family.params(spec, ctx)
+    if hasattr(family, "for_run"):  # arrays sized by the run (loop.py: the optional `for_run`)
+        fam = family.for_run(fam, run[2])
     diverged, j, nis_sum, n_updates, n_rejected = lp.run_loop(
-        family.params(spec, ctx), *_common_args(ctx, run), run[-1], x, P, R, Qu, P_infl
+        fam, *_common_args(ctx, run), run[-1], x, P, R, Qu, P_infl
     )
     return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl)
 

@@ -48,6 +48,9 @@ innovation, nis, correct, healthy, record = (
 #   corrected(fam, st, x_prior, P_prior, x, P, R, H, lm, z) -> (st, R)   after its update
 #   end_scan(fam, st, x, P, R, Qu) -> (ok, st, R, Qu)
 #   inflation(fam, st) -> float                           what P_infl records (1: none)
+# Before the loop (in Python, not a hook): a family module's optional for_run(fam, scan_start)
+# -> fam sizes arrays of `fam` by the run (engines/fast.py calls it). Arrays a family updates in
+# place belong in `fam`, not in `st`: the state passes through the hooks (reference counts).
 # ok False: the filter diverged (a singular matrix, a value that is not finite). A hook the
 # family's module does not define is the default below: no state, nothing changes, no inflation.
 

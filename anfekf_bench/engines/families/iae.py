@@ -32,7 +32,7 @@ ZERO9, EYE9 = _k.ZERO9, _k.EYE9
 Params = collections.namedtuple(
     "Params",
     "adaptation from_all lo hi adapt_Q window hph_window hold q_full q_window nus hph_diags"
-    " q_samples",
+    " q_samples Ks",
 )
 
 
@@ -45,8 +45,15 @@ def params(spec: IAESpec, ctx) -> Params:
         # diag(Qu) samples (parameters rather than state: arrays in the state, which passes
         # through the hooks, cost reference counts)
         np.zeros((int(spec.window), 2)), np.zeros((int(spec.window), 2)),
-        np.zeros((int(spec.q_window), 2)),
+        np.zeros((int(spec.q_window), 2)), np.zeros((1, 3, 2)),
     )  # fmt: skip
+
+
+def for_run(fam: Params, scan_start) -> Params:
+    """`fam` for one run (loop.py's optional `for_run`): room in Ks for the gains of the run's
+    largest scan (adapt Q)."""
+    most = int(np.max(np.diff(scan_start), initial=0)) if fam.adapt_Q else 0
+    return fam._replace(Ks=np.zeros((max(most, 1), 3, 2)))
 
 
 def push_row(win, n, a, b):
@@ -105,27 +112,22 @@ def qu_sample(nus, Ks, n_K, P, P_scan_start, F_scan, A_v, A_g, q_full):
 
 
 def start(fam, x, P, Qu, R, scan_start):
-    # the gains of the scan's fused landmarks (sized by the run: the windows are in `fam`); the
-    # counts (n_win, n_q, n_K); the start's noise; the interval (A_v, A_g, F_scan, P at its
-    # start)
-    max_per_scan = 0
-    for s in range(scan_start.shape[0] - 1):
-        max_per_scan = max(max_per_scan, scan_start[s + 1] - scan_start[s])
-    Ks = np.zeros((max(max_per_scan, 1) if fam.adapt_Q else 1, 3, 2))
-    return Ks, (0, 0, 0), (R[0], R[3], Qu[0], Qu[3]), (ZERO9, ZERO9, EYE9, P)
+    # the counts (n_win, n_q, n_K); the start's noise; the interval (A_v, A_g, F_scan, P at
+    # its start). The arrays (the windows, the scan's gains Ks) are in `fam`.
+    return (0, 0, 0), (R[0], R[3], Qu[0], Qu[3]), (ZERO9, ZERO9, EYE9, P)
 
 
 def predicted(fam, st, f02, f12, G, c, Q):
     if not fam.adapt_Q:  # AdaptiveEKF.predict's interval accumulators
         return st
-    Ks, counts, start0, interval = st
+    counts, start0, interval = st
     A_v, A_g, F_scan = interval_step(interval[0], interval[1], interval[2], f02, f12, G, c)
-    return Ks, counts, start0, (A_v, A_g, F_scan, interval[3])
+    return counts, start0, (A_v, A_g, F_scan, interval[3])
 
 
 def begin_scan(fam, st, x, P, R, Qu):  # IAEEKF.begin_scan
-    Ks, counts, start0, interval = st
-    return (Ks, (counts[0], counts[1], 0), start0, interval), R
+    counts, start0, interval = st
+    return ((counts[0], counts[1], 0), start0, interval), R
 
 
 def before_gain(fam, st, x, P, R, Qu, H, zh, nu, HPHt, lm, z, gate, has_gate):
@@ -135,7 +137,7 @@ def before_gain(fam, st, x, P, R, Qu, H, zh, nu, HPHt, lm, z, gate, has_gate):
     if not feeds:
         return True, st, P, R, Qu, HPHt
     # IAEEKF.before_gain
-    Ks, counts, start0, interval = st
+    counts, start0, interval = st
     nus, hph_diags = fam.nus, fam.hph_diags
     n_win, n_q, n_K = counts
     window = fam.window
@@ -147,24 +149,25 @@ def before_gain(fam, st, x, P, R, Qu, H, zh, nu, HPHt, lm, z, gate, has_gate):
         r0, r1 = r_sample(nus, hph_diags, fam.hph_window, HPHt[0], HPHt[3], fam.hold, R)
         bounds = (fam.lo, fam.hi)
         R = (clip_to_bounds(r0, start0[0], bounds), 0.0, 0.0, clip_to_bounds(r1, start0[1], bounds))
-    return True, (Ks, (n_win, n_q, n_K), start0, interval), P, R, Qu, HPHt
+    return True, ((n_win, n_q, n_K), start0, interval), P, R, Qu, HPHt
 
 
 def corrected(fam, st, x_prior, P_prior, x, P, R, H, lm, z):
     if not fam.adapt_Q:
         return st, R
     # IAEEKF.after_update: the gain of each fused landmark
-    Ks, counts, start0, interval = st
+    counts, start0, interval = st
+    Ks = fam.Ks
     n_win, n_q, n_K = counts
     _, Kg = gain(P_prior, H, R)
     for i in range(6):
         Ks[n_K, i // 2, i % 2] = Kg[i]
-    return (Ks, (n_win, n_q, n_K + 1), start0, interval), R
+    return ((n_win, n_q, n_K + 1), start0, interval), R
 
 
 def end_scan(fam, st, x, P, R, Qu):  # IAEEKF.end_scan
-    Ks, counts, start0, interval = st
-    nus, q_samples = fam.nus, fam.q_samples
+    counts, start0, interval = st
+    nus, q_samples, Ks = fam.nus, fam.q_samples, fam.Ks
     n_win, n_q, n_K = counts
     if fam.adapt_Q and fam.adaptation and n_win == fam.window and n_K > 0:
         A_v, A_g, F_scan, P_scan_start = interval
@@ -181,4 +184,4 @@ def end_scan(fam, st, x, P, R, Qu):  # IAEEKF.end_scan
                 clip_to_bounds(q0, start0[2], bounds), 0.0,
                 0.0, clip_to_bounds(q1, start0[3], bounds),
             )  # fmt: skip
-    return True, (Ks, (n_win, n_q, n_K), start0, (ZERO9, ZERO9, EYE9, P)), R, Qu
+    return True, ((n_win, n_q, n_K), start0, (ZERO9, ZERO9, EYE9, P)), R, Qu

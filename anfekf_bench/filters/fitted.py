@@ -1,9 +1,9 @@
 """Filters fitted on training runs before the batch (SPEC 13): `ekf-ml` and, on simulated
 scenarios, `ekf-tuned`.
 
-A `FittedSpec` declares `fitted_on_training`: the experiment (anfekf_bench.training) simulates
-the scenario's training runs, from seeds disjoint from every evaluation run, calls `fit` once,
-caches what it returns, and hands every worker a copy of the spec carrying those values
+A `FittedSpec` declares `fitted_on_training`: the experiment (anfekf_bench.fitting.simulated)
+simulates the scenario's training runs, from seeds disjoint from every evaluation run, calls `fit`
+once, caches what it returns, and hands every worker a copy of the spec carrying those values
 (`with_fit`); `filter_context` then builds the filter from them. The learned filter
 (`kalmannet`, filters.kalmannet) uses the same mechanism: a `FittedSpec` whose `fit` trains the
 network and returns its weights.
@@ -57,7 +57,7 @@ class FittedSpec(FilterSpec):
     _fit: dict | None = PrivateAttr(default=None)
 
     def fit(self, training: Any) -> dict:
-        """Fit on `training` (anfekf_bench.training.TrainingSet); a JSON-able dict that
+        """Fit on `training` (fitting.simulated.TrainingSet); a JSON-able dict that
         `with_fit` accepts and that the manifest records (with the cost)."""
         raise NotImplementedError
 
@@ -100,7 +100,7 @@ class FittedSpec(FilterSpec):
 
 
 class FittedNoiseSpec(FittedSpec):
-    """A fixed EKF whose four sigmas are fitted (`training.TrainingSet.fit_noise`)."""
+    """A fixed EKF whose four sigmas are fitted (`fitting.simulated.TrainingSet.fit_noise`)."""
 
     criterion: ClassVar[str]
     starts: list[Multiplier] = Field(
@@ -115,7 +115,7 @@ class FittedNoiseSpec(FittedSpec):
     )
 
     def fit(self, training: Any) -> dict:
-        # The training layer fits the sigmas on its tuning kernel (training.TrainingSet).
+        # The training layer fits the sigmas on its tuning kernel (fitting.simulated.TrainingSet).
         return training.fit_noise(*self.noise_fit_request())
 
     def noise_fit_request(self) -> tuple[str, list[float], int]:
@@ -137,7 +137,7 @@ class FittedNoiseSpec(FittedSpec):
 class EKFMLSpec(FittedNoiseSpec):
     """The EKF with the sigmas that maximise the innovation log-likelihood of the training runs
     (no truth): the fair "tuned without truth" reference. On a recorded log, of the run it is
-    scored on (its own innovations, never its ground truth: real_experiment.OwnInnovations)."""
+    scored on (its own innovations, never its ground truth: fitting.own.OwnInnovations)."""
 
     kind: Literal["ekf-ml"]
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})

@@ -31,9 +31,9 @@ from .spec import FilterContext, Role
 class KalmanNetSpec(FittedSpec):
     """KalmanNet (Revach et al. 2022, architecture 1): the EKF's structure with each landmark's
     gain from a GRU, trained on the scenario's training runs (`training.runs`, see
-    anfekf_bench.training) or, on recorded data, on the training drives of each cross-drive fold
-    (or the training segments; anfekf_bench.real_training); the extra `.[learned]`; no
-    covariance, no NEES.
+    anfekf_bench.fitting.simulated) or, on recorded data, on the training drives of each
+    cross-drive fold (or the training segments; anfekf_bench.fitting.recorded); the extra
+    `.[learned]`; no covariance, no NEES.
 
     A fitted filter like `ekf-ml`: `fit` trains on the training set and returns the weights
     (base64 of `KalmanNetWeights.to_bytes`, their SHA-256) with the training cost, which the

@@ -27,12 +27,12 @@ from typing import Any
 
 import numpy as np
 
-from .config import SimulatedScenario, World
-from .filters.ekf import gate_threshold
-from .filters.spec import FilterSpec
-from .outputs import FIT_FILE, read_cached_fit, write_fit
-from .runner import simulate
-from .sources.simulator import RunData, world_path
+from ..config import SimulatedScenario, World
+from ..filters.ekf import gate_threshold
+from ..filters.spec import FilterSpec
+from ..outputs import FIT_FILE, read_cached_fit, write_fit
+from ..runner import simulate
+from ..sources.simulator import RunData, world_path
 
 TRAINING_BRANCH = 2**32 - 1  # spawn key of the training branch of the root seed
 
@@ -67,7 +67,7 @@ class TrainingSet:
     def problem(self):
         """The training runs as the tuning kernel reads them (`engines.tuning.TrainingProblem`),
         built once for every fit of this set."""
-        from .engines.tuning import TrainingProblem
+        from ..engines.tuning import TrainingProblem
 
         return TrainingProblem.of(
             self.runs, self.world, self.P0, self.gate, self.scenario.record_every
@@ -77,7 +77,7 @@ class TrainingSet:
         """Run the Nelder-Mead starts of several `fit_noise` calls (criterion, starts,
         max_evaluations) in one batch of workers; each call then finds its starts done, and
         counts an equal share of the batch's wall time in its "seconds"."""
-        from .engines.tuning import start_results
+        from ..engines.tuning import start_results
 
         todo = list(dict.fromkeys((c, tuple(s), n) for c, s, n in requests))
         if self.jobs < 2 or len(todo) < 2:
@@ -95,7 +95,7 @@ class TrainingSet:
         only; "rmse": the truth) over these runs, from `starts` x the assumed sigmas
         (`engines.tuning.fit_noise`); a service of the training layer, so that a filter spec
         asks for it here and never imports an engine."""
-        from .engines.tuning import SIGMA_NAMES, fit_noise
+        from ..engines.tuning import SIGMA_NAMES, fit_noise
 
         done, seconds = self._starts_found.get((criterion, tuple(starts), max_evaluations),
                                                (None, 0.0))  # fmt: skip

@@ -40,7 +40,13 @@ from .drive_audit import audit_tables
 from .filters.context import recorded_context
 from .filters.spec import FilterContext
 from .fitting.own import fit_on_own_innovations
-from .fitting.recorded import fit_on_drives, fit_on_segments, trained_filters, tune, tune_drives
+from .fitting.recorded import (
+    fit_on_drives,
+    fit_on_segments,
+    trained_filters,
+    tune_drives,
+    tune_segments,
+)
 from .models import Unicycle
 from .outputs import PlanError
 from .runner import Prepared, RunInputs, engine_of, pad_to, run_one
@@ -292,16 +298,17 @@ class RecordedSource:
 def _prepare_segments(plan, rec: Recording, store: Path, progress) -> Prepared:
     scenario = plan.scenario
     # Trained filters (kalmannet): fitted on the training segments only (or the cache).
+    tunes = scenario.reference() is not None
     learns = bool(trained_filters(scenario))
-    training = [segment_inputs(rec, s) for s in rec.train_segments] if learns else []
+    training = [segment_inputs(rec, s) for s in rec.train_segments] if learns or tunes else []
     run_scenario, trained = fit_on_segments(scenario, rec, training, store, progress)
     action = ""
     for name in trained:
         how = "read from the cache" if trained[name]["train"]["cached"] else "trained"
         action += f"; {name} {how} on the training segments"
     tuned = None
-    if scenario.reference() is not None:
-        tuned = tune(scenario, [segment_inputs(rec, s) for s in rec.train_segments], plan.jobs)
+    if tunes:
+        tuned = tune_segments(scenario, rec, training, plan.jobs)
         action += (
             f"; ekf-tuned on {tuned['train_segments']} training segments"
             f" ({tuned['settings']} settings, {tuned['seconds']:.1f} s): sigma_v"

@@ -228,7 +228,7 @@ def test_a_fold_is_read_from_the_cache(stretches, monkeypatch, tmp_path):
     def refuse(*a, **k):
         raise AssertionError("a cached fold was trained again")
 
-    monkeypatch.setattr(KalmanNetSpec, "fit_recorded", refuse)
+    monkeypatch.setattr(KalmanNetSpec, "fit", refuse)
     _, second = fit_on_drives(scenario, world, stretches, tmp_path)
     assert all(second["kn"][k]["cached"] for k in ("6", "7"))
     assert [second["kn"][k]["fitted"] for k in ("6", "7")] == [

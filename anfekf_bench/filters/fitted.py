@@ -56,11 +56,6 @@ class FittedSpec(FilterSpec):
     role: ClassVar[Role] = "fitted"
     _fit: dict | None = PrivateAttr(default=None)
 
-    def fit(self, training: Any) -> dict:
-        """Fit on `training` (fitting.simulated.TrainingSet); a JSON-able dict that
-        `with_fit` accepts and that the manifest records (with the cost)."""
-        raise NotImplementedError
-
     def with_fit(self, fitted: dict) -> FittedSpec:
         """A copy of this spec that builds its filter from `fitted`."""
         spec = self.model_copy()
@@ -71,16 +66,6 @@ class FittedSpec(FilterSpec):
         """Why `training_runs` training runs cannot fit this filter ("<field>: <why>"), or None;
         checked before any work."""
         return None
-
-    def fit_record(self, fitted: dict) -> dict:
-        """What the manifest's `training` key records of `fitted` (all of it, unless bulky)."""
-        return fitted
-
-    def fit_problem(self, fitted: Any) -> str | None:
-        """Why `fitted`, read back from the fit cache (outputs.read_cached_fit), cannot be
-        handed to `with_fit` ("<field>: <why>"), or None: what a hand-edited or damaged cache
-        file must never get past."""
-        return None if isinstance(fitted, dict) else "fitted: must be a mapping"
 
     def noise_fit_request(self) -> tuple[str, list[float], int] | None:
         """(criterion, starts, max_evaluations) when `fit` is a `fit_noise` of the training
@@ -115,7 +100,8 @@ class FittedNoiseSpec(FittedSpec):
     )
 
     def fit(self, training: Any) -> dict:
-        # The training layer fits the sigmas on its tuning kernel (fitting.simulated.TrainingSet).
+        # The training runs fit the sigmas on the tuning kernel (fitting.simulated.TrainingSet,
+        # fitting.own.OwnInnovations): a spec never imports an engine.
         return training.fit_noise(*self.noise_fit_request())
 
     def noise_fit_request(self) -> tuple[str, list[float], int]:
@@ -142,6 +128,7 @@ class EKFMLSpec(FittedNoiseSpec):
     kind: Literal["ekf-ml"]
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
     criterion: ClassVar[str] = "likelihood"
+    fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated", "own"})
 
 
 class EKFTunedSpec(FittedNoiseSpec):
@@ -151,3 +138,4 @@ class EKFTunedSpec(FittedNoiseSpec):
     kind: Literal["ekf-tuned"]
     robot_only_because: ClassVar[str] = "its grid search is over the robot's four noise sigmas"
     criterion: ClassVar[str] = "rmse"
+    fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated"})

@@ -42,6 +42,7 @@ class KalmanNetSpec(FittedSpec):
     kind: Literal["kalmannet"]
     robot_only_because: ClassVar[str] = "its features, network sizes and training are the robot's"
     role: ClassVar[Role] = "trained"
+    fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated", "recorded"})
     epochs: int = Field(30, ge=1, le=10_000, description="passes over the training runs")
     learning_rate: float = Field(
         2e-3, gt=0, le=1, allow_inf_nan=False, description="Adam's step size"
@@ -105,20 +106,26 @@ class KalmanNetSpec(FittedSpec):
         return kalmannet_train.train(self, runs, world, ctx, progress=progress)
 
     def fit(self, training) -> dict:
-        """Train on the training set's runs (all `training.runs` of them, the last
-        `validation_runs` held out); the weights and the cost, JSON-able."""
+        """Train on the training runs (fitting.fit): the simulated training set's runs (all
+        `training.runs` of them, the last `validation_runs` held out), or a recorded log's
+        training segments or a fold's training drives (their timelines and truth, NaN where not
+        scored, on the unicycle: kalmannet_train.train_recorded). The weights and the cost,
+        JSON-able."""
+        if training.source == "recorded":
+            from . import kalmannet_train
+
+            return self.fitted_doc(
+                kalmannet_train.train_recorded(
+                    self,
+                    training.pairs(),
+                    training.model,
+                    training.progress,
+                    training.progress_label(self),
+                )
+            )
         ctx = filter_context(self, training.scenario, training.world)
         return self.fitted_doc(
             self.train(training.runs, training.world, ctx, progress=training.progress)
-        )
-
-    def fit_recorded(self, drives, model, progress=False, description: str | None = None) -> dict:
-        """`fit` on recorded training drives: (Timeline, truth at its evaluation times, NaN
-        where not scored) pairs on the unicycle `model` (kalmannet_train.train_recorded)."""
-        from . import kalmannet_train
-
-        return self.fitted_doc(
-            kalmannet_train.train_recorded(self, drives, model, progress, description)
         )
 
     @staticmethod

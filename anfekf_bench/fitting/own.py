@@ -11,27 +11,29 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
-from joblib import Parallel, delayed
 
 from ..engines.tuning import TimelineLikelihood, fit_noise
 from ..filters.context import recorded_p0
 from ..filters.ekf import gate_threshold
-from ..filters.fitted import EKFMLSpec, sigmas_problem
-from ..outputs import FIT_FILE, code_version, read_cached_fit, write_fit
-from ..sources.recorded import RecordedScenario
-from ..workers import local_workers
-
-NOISE_KEYS = ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")
+from ..filters.fitted import sigmas_problem
+from ..outputs import code_version
+from ..sources.recorded import NOISE_KEYS, RecordedScenario
+from .fit import TrainingRuns, fit_specs
 
 
 @dataclass(frozen=True, eq=False)
-class OwnInnovations:
-    """What `EKFMLSpec.fit` gets on recorded data (in place of the simulated training runs): one
-    run's landmark innovations under the unicycle EKF (`engines.tuning.TimelineLikelihood`, which
-    holds no ground truth) and the naive sigmas its Nelder-Mead starts multiply."""
+class OwnInnovations(TrainingRuns):
+    """The "own" training runs (fitting.fit): what `EKFMLSpec.fit` gets on recorded data (in
+    place of the simulated training runs): one run's landmark innovations under the unicycle EKF
+    (`engines.tuning.TimelineLikelihood`, which holds no ground truth) and the naive sigmas its
+    Nelder-Mead starts multiply. Small and independent of the other runs' fits: the fits of
+    several runs share the worker processes (`fits_in_workers`)."""
 
+    source: ClassVar[str] = "own"
+    fits_in_workers: ClassVar[bool] = True
     problem: TimelineLikelihood
     naive: np.ndarray
 
@@ -42,6 +44,24 @@ class OwnInnovations:
         sigmas = found.pop("sigmas")
         found["at_fit"] = found.pop("training")
         return {**dict(zip(NOISE_KEYS, sigmas, strict=True)), **found}
+
+    def fingerprint(self, spec) -> str:
+        """Hash of what one run's fit depends on: the filter's parameters, the run's timeline and
+        start, P0, the gate, T0, the naive sigmas and the code (not the ground truth)."""
+        pr = self.problem
+        h = hashlib.sha256()
+        doc = {
+            "filter": spec.model_dump(mode="json", exclude={"name"}),
+            "P0": pr.P0.tolist(), "gate": pr.gate, "T0": pr.T0, "naive": self.naive.tolist(),
+            "x0": pr.x0.tolist(), "code": code_version(),
+        }  # fmt: skip
+        h.update(json.dumps(doc, sort_keys=True).encode())
+        for a in (pr.dt, pr.u, pr.lm, pr.z, pr.xy):
+            h.update(np.ascontiguousarray(a).tobytes())
+        return h.hexdigest()[:16]
+
+    def fit_problem(self, spec):
+        return own_fit_problem
 
 
 def own_fit_problem(fitted: dict) -> str | None:
@@ -60,67 +80,32 @@ def own_innovations(scenario: RecordedScenario, inputs) -> OwnInnovations:
     return OwnInnovations(problem, scenario.naive.sigmas())
 
 
-def own_fit_fingerprint(spec, own: OwnInnovations) -> str:
-    """Hash of what one run's fit depends on: the filter's parameters, the run's timeline and
-    start, P0, the gate, T0, the naive sigmas and the code (not the ground truth)."""
-    pr = own.problem
-    h = hashlib.sha256()
-    doc = {
-        "filter": spec.model_dump(mode="json", exclude={"name"}),
-        "P0": pr.P0.tolist(), "gate": pr.gate, "T0": pr.T0, "naive": own.naive.tolist(),
-        "x0": pr.x0.tolist(), "code": code_version(),
-    }  # fmt: skip
-    h.update(json.dumps(doc, sort_keys=True).encode())
-    for a in (pr.dt, pr.u, pr.lm, pr.z, pr.xy):
-        h.update(np.ascontiguousarray(a).tobytes())
-    return h.hexdigest()[:16]
-
-
-def _fit_own(spec, own: OwnInnovations) -> dict:
-    return spec.fit(own)
-
-
 def fit_on_own_innovations(
     scenario: RecordedScenario, inputs: list, labels: list[str],
     cache_dir: Path | None, jobs: int = 1,
 ) -> tuple[dict[int, dict[str, dict]], dict]:  # fmt: skip
-    """Every `ekf-ml` filter of the scenario fitted on each run's own innovations (`inputs`, in
-    run order; `labels` name them: drive ids or segment numbers), the fits spread over `jobs`
-    processes, each cached in `cache_dir` by its fingerprint (a resumed batch does not refit).
-    Returns, per run index, the noise of each ekf-ml instance (instance name -> the sigma keys
-    of `noise_sigmas`), and the manifest's account of every fit and its cost."""
-    specs = [spec for spec in scenario.filters if isinstance(spec, EKFMLSpec)]
+    """Every filter of the scenario that declares a fit on its "own" innovations (`ekf-ml`)
+    fitted on each run's (`inputs`, in run order; `labels` name them: drive ids or segment
+    numbers) through `fitting.fit.fit_specs`: the fits spread over `jobs` processes, each cached
+    in `cache_dir` by its fingerprint (a resumed batch does not refit). Returns, per run index,
+    the noise of each such instance (instance name -> the sigma keys of `noise_sigmas`), and the
+    manifest's account of every fit and its cost."""
+    specs = [spec for spec in scenario.filters if "own" in spec.fit_sources]
     if not specs:
         return {}, {}
     started = time.perf_counter()
-    todo, found = [], {}
-    for spec in specs:
-        for inp in inputs:
-            own = own_innovations(scenario, inp)
-            fp = own_fit_fingerprint(spec, own)
-            path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fp)
-            cached = None if path is None else read_cached_fit(path, fp, own_fit_problem)
-            found[spec.name, inp.segment.index] = (fp, cached is not None, cached)
-            if cached is None:
-                todo.append((spec, inp.segment.index, own, fp, path))
-    if todo:
-        with local_workers():
-            fits = Parallel(n_jobs=max(1, min(jobs, len(todo))))(
-                delayed(_fit_own)(spec, own) for spec, _, own, _, _ in todo
-            )
-        for (spec, run, _, fp, path), fitted in zip(todo, fits, strict=True):
-            if path is not None:
-                write_fit(path, fp, fitted)
-            found[spec.name, run] = (fp, False, fitted)
+    owns = [own_innovations(scenario, inp) for inp in inputs]
+    requests = [(spec, own) for spec in specs for own in owns]
+    found = iter(fit_specs(requests, cache_dir, jobs))
     noise: dict[int, dict[str, dict]] = {}
     record = {}
     for spec in specs:
         runs = []
         for inp, label in zip(inputs, labels, strict=True):
-            fp, cached, fitted = found[spec.name, inp.segment.index]
-            noise.setdefault(inp.segment.index, {})[spec.name] = fitted
-            runs.append({"run": inp.segment.index, "label": label, "fingerprint": fp,
-                         "cached": cached, **fitted})  # fmt: skip
+            fit = next(found)
+            noise.setdefault(inp.segment.index, {})[spec.name] = fit.fitted
+            runs.append({"run": inp.segment.index, "label": label, "fingerprint": fit.fingerprint,
+                         "cached": fit.cached, **fit.fitted})  # fmt: skip
         record[spec.name] = {
             "kind": spec.kind,
             "criterion": "innovation negative log-likelihood of the run itself: sum over every"
@@ -131,4 +116,5 @@ def fit_on_own_innovations(
             "runs": runs,
         }
     seconds = round(time.perf_counter() - started, 3)
-    return noise, {"filters": record, "seconds": seconds, "fitted_now": len(todo)}
+    fitted_now = sum(not r["cached"] for f in record.values() for r in f["runs"])
+    return noise, {"filters": record, "seconds": seconds, "fitted_now": fitted_now}

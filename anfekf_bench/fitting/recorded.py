@@ -1,24 +1,30 @@
-"""Fits on recorded training data: `ekf-tuned`'s grid search on the training segments
-(`tune`) or, per cross-drive fold, on the other datasets' drives (`tune_drives`); and the filters
-trained on recorded data (`kalmannet`, filters.kalmannet): on the training drives of
-the cross-drive protocol (`fit_on_drives`), or on the training segments of one log (protocol
-segments, `fit_on_segments`: one fit, on the segments that tune `ekf-tuned`).
+"""The "recorded" training runs (fitting.fit): a recorded log's training segments (protocol
+segments) or, per cross-drive fold, the drives of the datasets that tune a test dataset
+(protocol drives), each cold-started from ground truth (`RecordedTraining`); and the fits on them,
+each through `fitting.fit.fit_specs`:
 
-The recorded counterpart of fitting.simulated: a drive is scored by weights trained on the
-drives of the datasets that tune its `ekf-tuned` (`RecordedScenario.tuning_sources`: tune on Dataset
-6, test on 7, and the reverse; Dataset 9 on both), never on its own dataset's drives. Per fold
-(one set of training drives) and fitted filter:
+- `ekf-tuned` (the recorded schema's `TunedEKFSpec`): the grid search on the training segments
+  (`tune`, via `tune_segments`) or, per fold, branch and bound over whole drives
+  (`tune_on_drives`, via `tune_drives`); not cached (it is the batch's reference, as before);
+- `kalmannet` (filters.kalmannet): trained once on the training segments (`fit_on_segments`) or
+  once per fold (`fit_on_drives`).
+
+A drive is scored by values fitted on the drives of the datasets that tune its `ekf-tuned`
+(`RecordedScenario.tuning_sources`: tune on Dataset 6, test on 7, and the reverse; Dataset 9 on
+both), never on its own dataset's drives. Per fold and fitted filter:
 
 1. **Fit** on the training drives' timelines and their ground truth at the evaluation times,
-   NaN where not scored (`KalmanNetSpec.fit_recorded`): nothing of a test drive is read.
-2. **Cache** what the fit returns as `<out>/<name>/.runs/fit-<fingerprint>.json` (the format of
-   fitting.simulated), keyed by `fold_fingerprint`: the filter's parameters, the training
-   drives and their logs' content, what shapes their timelines and truth, the code version. A
-   resumed batch reads it (no retraining).
+   NaN where not scored (`RecordedTraining.pairs`, `grid_search`): nothing of a test drive is
+   read.
+2. **Cache** what a trained filter's fit returns as `<out>/<name>/.runs/fit-<fingerprint>.json`
+   (as fitting.simulated), keyed by `RecordedTraining.fingerprint`: the filter's parameters, the
+   training drives and their logs' content (or the log and the fields that cut its segments),
+   what shapes their timelines and truth, the code version. A resumed batch reads it.
 3. **Hand out** to each drive a copy of the scenario whose fitted filter carries its fold's
    weights (`with_fit`); the manifest's `training` key records, per filter and fold, the
    training drives, the fingerprint, whether it came from the cache, and the fit's record
-   (weights' SHA-256, training time, losses).
+   (weights' SHA-256, training time, losses). ekf-tuned's noise reaches each run as its
+   `tuned` record (real_experiment.recorded_run); the manifest's `tuning` key records it.
 """
 
 from __future__ import annotations
@@ -27,9 +33,9 @@ import hashlib
 import json
 import math
 import time
-from functools import partial
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from joblib import Parallel, delayed
@@ -38,11 +44,65 @@ from ..analysis.suite import LOST_LOCK_M
 from ..engines.tuning import score_setting, unicycle_terms
 from ..filters.context import recorded_p0
 from ..filters.ekf import gate_threshold
-from ..outputs import FIT_FILE, PlanError, code_version, read_cached_fit, write_fit
+from ..outputs import PlanError, code_version
 from ..sources.recorded import DriveSet, RecordedScenario, log_digest
+from .fit import TrainingRuns, fit_specs
 
 # The scenario fields a drive's timeline and scored truth depend on (real_experiment.segment_inputs)
 _INPUT_FIELDS = {"eval_period_s", "odometry_period_s", "max_gap_s", "misfit_detection"}
+# The scenario fields that decide a log's training segments (sources.recorded.cut_segments)
+_SEGMENT_FIELDS = _INPUT_FIELDS | {"split_fraction", "split_at_s", "segment_s", "min_scorable_s"}
+
+
+@dataclass(eq=False)
+class RecordedTraining(TrainingRuns):
+    """The "recorded" training runs (fitting.fit): a log's training segments (protocol
+    segments), or the drives of one cross-drive fold (protocol drives: the drives of the datasets
+    that tune a test dataset, never one of its own), each cold-started from ground truth. What a
+    spec's `fit` reads: `pairs()` (kalmannet) or `grid_search()` (ekf-tuned)."""
+
+    source: ClassVar[str] = "recorded"
+    scenario: RecordedScenario
+    inputs: list  # real_experiment.SegmentInputs of the training segments or drives
+    what: str  # what they are, for a progress bar ("dataset(s) 6", "3 training segments")
+    account: dict  # the manifest's account of them ({"train_drives": [...]}, ...)
+    data_doc: dict  # what they depend on, for the fingerprint (not the filter, not the code)
+    drives: bool = False  # whole drives (grid search by branch and bound) or segments
+    jobs: int = 1
+    progress: Any = None
+    seeds: list | tuple = ()  # drives: log2 multipliers scored first (tune_on_drives)
+
+    @property
+    def model(self):
+        from ..models import Unicycle
+
+        return Unicycle(self.scenario.odometry_period_s)
+
+    def pairs(self) -> list[tuple]:
+        """(Timeline, truth at its evaluation times, NaN where not scored) of each run."""
+        return [(s.timeline, s.truth) for s in self.inputs]
+
+    def progress_label(self, spec) -> str:
+        return f"training {spec.name} on {self.what}"
+
+    def grid_search(self) -> dict:
+        """ekf-tuned's grid search on these runs: `tune` (segments), `tune_on_drives` (drives)."""
+        if self.drives:
+            return tune_on_drives(self.scenario, self.inputs, self.jobs, self.seeds)
+        return tune(self.scenario, self.inputs, self.jobs)
+
+    def fingerprint(self, spec) -> str:
+        """Hash of what a fit on these runs depends on (see the module doc); not the test
+        drives or segments."""
+        doc = {
+            "filter": spec.model_dump(mode="json", exclude={"name"}),
+            **self.data_doc,
+            "code": code_version(),
+        }
+        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+
+    def describe(self) -> dict:
+        return self.account
 
 
 def trained_filters(scenario: RecordedScenario) -> list:
@@ -51,31 +111,45 @@ def trained_filters(scenario: RecordedScenario) -> list:
     return [f for f in scenario.filters if f.role == "trained"]
 
 
-def fold_fingerprint(scenario: RecordedScenario, spec, drives: list) -> str:
-    """Hash of what a fold's fit depends on (see the module doc); not the test drives."""
-    doc = {
-        "filter": spec.model_dump(mode="json", exclude={"name"}),
-        "scenario": scenario.model_dump(mode="json", include=_INPUT_FIELDS),
-        "drives": [[d.id, log_digest(d.log)] for d in drives],
-        "code": code_version(),
-    }
-    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+def drive_fold(
+    scenario: RecordedScenario, train: list, inputs: dict, jobs: int = 1, progress: Any = None,
+    seeds: list | tuple = (),
+) -> RecordedTraining:  # fmt: skip
+    """The training runs of one cross-drive fold: the drives `train` (whole), their inputs."""
+    label = "+".join(map(str, sorted({d.dataset for d in train})))
+    return RecordedTraining(
+        scenario=scenario,
+        inputs=[inputs[d.id] for d in train],
+        what=f"dataset(s) {label}",
+        account={"train_drives": [d.id for d in train]},
+        data_doc={
+            "scenario": scenario.model_dump(mode="json", include=_INPUT_FIELDS),
+            "drives": [[d.id, log_digest(d.log)] for d in train],
+        },
+        drives=True,
+        jobs=jobs,
+        progress=progress,
+        seeds=seeds,
+    )
 
 
-def _fit_or_read(spec, fingerprint: str, cache_dir: Path | None, fit) -> tuple[dict, bool]:
-    """`fit()` (what `spec.fit_recorded` returns), or the cached fit of `fingerprint`; written
-    to the cache when fitted. Returns (fitted, cached)."""
-    path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fingerprint)
-    fitted = None if path is None else read_cached_fit(path, fingerprint, spec.fit_problem)
-    if fitted is not None:
-        return fitted, True
-    try:
-        fitted = fit()
-    except ValueError as exc:
-        raise PlanError(f"filters: {spec.name}: {exc}") from None
-    if path is not None:
-        write_fit(path, fingerprint, fitted)
-    return fitted, False
+def segment_training(
+    scenario: RecordedScenario, rec, segments: list, jobs: int = 1, progress: Any = None
+) -> RecordedTraining:
+    """The training runs of protocol segments: the log's training segments (`segments`: their
+    real_experiment.SegmentInputs, each cold-started from ground truth; never a held-out one)."""
+    return RecordedTraining(
+        scenario=scenario,
+        inputs=segments,
+        what=f"{len(segments)} training segments",
+        account={"train_segments": [s.index for s in rec.train_segments]},
+        data_doc={
+            "scenario": scenario.model_dump(mode="json", include=_SEGMENT_FIELDS),
+            "log": rec.digest,
+        },
+        jobs=jobs,
+        progress=progress,
+    )
 
 
 def fit_on_drives(
@@ -89,15 +163,11 @@ def fit_on_drives(
     id -> real_experiment.SegmentInputs. Returns the scenario each drive runs with (its fold's
     weights; every drive when there is no trained filter) and the manifest's account. PlanError
     (one line) when a filter cannot be trained on a fold's drives."""
-    from ..models import Unicycle
-
     todo = trained_filters(scenario)
     if not todo:
         return {d.id: scenario for d in world.drives}, {}
-    model = Unicycle(scenario.odometry_period_s)
     folds = {tuple(scenario.tuning_sources(d.dataset)) for d in world.drives}
-    fitted_for: dict[tuple, dict[str, Any]] = {}
-    records: dict[str, dict] = {spec.name: {} for spec in todo}
+    requests, labels = [], []
     for sources in sorted(folds, key=lambda k: (len(k), k)):
         train = [d for d in world.drives if d.dataset in sources]
         if not train:
@@ -105,24 +175,16 @@ def fit_on_drives(
                 f"filters: {todo[0].name}: no training drive for the drives tuned on dataset(s)"
                 f" {', '.join(map(str, sources))}"
             )
-        label = "+".join(map(str, sources))
-        fitted_for[sources] = {}
+        fold = drive_fold(scenario, train, inputs, progress=progress)
         for spec in todo:
-            fingerprint = fold_fingerprint(scenario, spec, train)
-            drives = [(inputs[d.id].timeline, inputs[d.id].truth) for d in train]
-            fitted, cached = _fit_or_read(
-                spec, fingerprint, cache_dir,
-                partial(spec.fit_recorded, drives, model, progress,
-                        f"training {spec.name} on dataset(s) {label}"),
-            )  # fmt: skip
-            fitted_for[sources][spec.name] = spec.with_fit(fitted)
-            records[spec.name][label] = {
-                "kind": spec.kind,
-                "fingerprint": fingerprint,
-                "cached": cached,
-                "train_drives": [d.id for d in train],
-                "fitted": spec.fit_record(fitted),
-            }
+            requests.append((spec, fold))
+            labels.append((sources, "+".join(map(str, sources))))
+    found = fit_specs(requests, cache_dir)
+    fitted_for: dict[tuple, dict[str, Any]] = {}
+    records: dict[str, dict] = {spec.name: {} for spec in todo}
+    for (spec, fold), (sources, label), fit in zip(requests, labels, found, strict=True):
+        fitted_for.setdefault(sources, {})[spec.name] = spec.with_fit(fit.fitted)
+        records[spec.name][label] = fit.record(spec, fold)
     out = {}
     for d in world.drives:
         specs = fitted_for[tuple(scenario.tuning_sources(d.dataset))]
@@ -131,49 +193,37 @@ def fit_on_drives(
     return out, records
 
 
-# The scenario fields that decide a log's training segments (sources.recorded.cut_segments)
-_SEGMENT_FIELDS = _INPUT_FIELDS | {"split_fraction", "split_at_s", "segment_s", "min_scorable_s"}
-
-
 def fit_on_segments(
     scenario: RecordedScenario, rec, segments: list, cache_dir: Path | None, progress: Any = None
 ) -> tuple[RecordedScenario, dict]:
     """Protocol segments: every trained filter fitted once on the log's training segments
-    (`segments`: their real_experiment.SegmentInputs, each cold-started from ground truth, as
-    `ekf-tuned`'s tuning sees them; never a held-out one), or read from the cache. Returns the
-    scenario carrying the fits and the manifest's account (per filter, one fold keyed "train")."""
-    from ..models import Unicycle
-
+    (`segment_training`), or read from the cache. Returns the scenario carrying the fits and the
+    manifest's account (per filter, one fold keyed "train")."""
     todo = trained_filters(scenario)
     if not todo:
         return scenario, {}
-    model = Unicycle(scenario.odometry_period_s)
-    specs, records = {}, {}
-    for spec in todo:
-        doc = {
-            "filter": spec.model_dump(mode="json", exclude={"name"}),
-            "scenario": scenario.model_dump(mode="json", include=_SEGMENT_FIELDS),
-            "log": rec.digest,
-            "code": code_version(),
-        }
-        fingerprint = hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
-        fitted, cached = _fit_or_read(
-            spec, fingerprint, cache_dir,
-            partial(spec.fit_recorded, [(s.timeline, s.truth) for s in segments], model,
-                    progress, f"training {spec.name} on {len(segments)} training segments"),
-        )  # fmt: skip
-        specs[spec.name] = spec.with_fit(fitted)
-        records[spec.name] = {
-            "train": {
-                "kind": spec.kind,
-                "fingerprint": fingerprint,
-                "cached": cached,
-                "train_segments": [s.index for s in rec.train_segments],
-                "fitted": spec.fit_record(fitted),
-            }
-        }
+    training = segment_training(scenario, rec, segments, progress=progress)
+    found = fit_specs([(spec, training) for spec in todo], cache_dir)
+    specs = {spec.name: spec.with_fit(fit.fitted) for spec, fit in zip(todo, found, strict=True)}
+    records = {
+        spec.name: {"train": fit.record(spec, training)}
+        for spec, fit in zip(todo, found, strict=True)
+    }
     filters = [specs.get(f.name, f) for f in scenario.filters]
     return scenario.model_copy(update={"filters": filters}), records
+
+
+def tuned_reference(scenario: RecordedScenario):
+    """The scenario's ekf-tuned spec (its reference), or None."""
+    name = scenario.reference()
+    return next((f for f in scenario.filters if f.name == name), None)
+
+
+def tune_segments(scenario: RecordedScenario, rec, segments: list, jobs: int = 1) -> dict:
+    """ekf-tuned's noise on the log's training segments (`segments`, as `segment_training`),
+    through fitting.fit (not cached: the grid search is the reference of the batch)."""
+    training = segment_training(scenario, rec, segments, jobs)
+    return fit_specs([(tuned_reference(scenario), training)], None)[0].fitted
 
 
 # --------------------------------------------------------------------------------------------
@@ -412,18 +462,20 @@ def tune_drives(scenario: RecordedScenario, inputs: dict, world: DriveSet,
     its dataset, never its own), and the manifest's account: each tuning, and per drive the
     RMSE of the cross-dataset values against values tuned on its own dataset's drives (which
     include the drive itself: in-sample, the most tuning can give on that map)."""
-    by_dataset: dict[int, list[str]] = {}
+    by_dataset: dict[int, list] = {}
     for d in world.drives:
-        by_dataset.setdefault(d.dataset, []).append(d.id)
+        by_dataset.setdefault(d.dataset, []).append(d)
     keys = {tuple(scenario.tuning_sources(ds)) for ds in by_dataset}
     keys |= {(ds,) for ds in by_dataset}
+    reference = tuned_reference(scenario)
     tunings: dict[tuple, dict] = {}
     for key in sorted(keys, key=lambda k: (len(k), k)):  # single datasets first: they seed
         drives = [d for ds in key for d in by_dataset[ds]]
         seeds = [list(tunings[(ds,)]["log2_multipliers"].values()) for ds in key
                  if (ds,) in tunings]  # fmt: skip
-        tunings[key] = tune_on_drives(scenario, [inputs[d] for d in drives], jobs, seeds)
-        tunings[key]["train_drives"] = drives
+        fold = drive_fold(scenario, drives, inputs, jobs, seeds=seeds)
+        tunings[key] = fit_specs([(reference, fold)], None)[0].fitted
+        tunings[key]["train_drives"] = [d.id for d in drives]
     tuned_for, per_drive = {}, []
     for d in world.drives:
         cross = tunings[tuple(scenario.tuning_sources(d.dataset))]

@@ -37,13 +37,15 @@ from pydantic import Field, field_validator, model_validator
 
 from ..config import Scenario, ScenarioError, Start, validate_as
 from ..filters.ekf import RobotEKF
-from ..filters.fitted import EKFMLSpec
+from ..filters.fitted import EKFMLSpec, sigmas_problem
 from ..filters.registry import SPECS
 from ..filters.spec import FilterContext, FilterSpec, Role
 from ..schema import PositiveFloat, StrictModel
 from . import mrclam, user_log
 
 BUILTIN = "builtin"
+# The noise a recorded fit of a fixed EKF gives (the grid search, a run's own innovations)
+NOISE_KEYS = ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")
 
 
 class TunedEKFSpec(FilterSpec):
@@ -52,6 +54,15 @@ class TunedEKFSpec(FilterSpec):
 
     kind: Literal["ekf-tuned"]
     role: ClassVar[Role] = "fitted"
+    fit_sources: ClassVar[frozenset[str]] = frozenset({"recorded"})
+
+    def fit(self, training) -> dict:
+        """The grid search on the training segments or a fold's training drives (fitting.fit's
+        "recorded" training runs: fitting.recorded.tune, tune_on_drives)."""
+        return training.grid_search()
+
+    def fit_problem(self, fitted) -> str | None:
+        return sigmas_problem(fitted, NOISE_KEYS, "")
 
     def build(self, ctx: FilterContext) -> RobotEKF:
         return RobotEKF(**ctx.kwargs())

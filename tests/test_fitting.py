@@ -182,3 +182,10 @@ def test_each_source_preparation_fits_through_the_entry_point(through, spans, tm
     noise, record = fit_on_own_innovations(recorded, spans, ["a", "b"], tmp_path)
     assert through == [("ekf-ml", "own"), ("ekf-ml", "own")] and record["fitted_now"] == 2
     assert sorted(noise) == [0, 1]
+
+
+def test_a_spec_fitted_on_simulated_training_runs_declares_that_source():
+    """`fitted_on_training` (a spec the simulated path fits and hands out with `with_fit`) and
+    the declared "simulated" source say the same for every kind."""
+    for cls in dict.fromkeys((*SPECS, *REAL_SPECS)):
+        assert cls.fitted_on_training == ("simulated" in cls.fit_sources), cls.__name__

@@ -189,3 +189,35 @@ def test_a_spec_fitted_on_simulated_training_runs_declares_that_source():
     the declared "simulated" source say the same for every kind."""
     for cls in dict.fromkeys((*SPECS, *REAL_SPECS)):
         assert cls.fitted_on_training == ("simulated" in cls.fit_sources), cls.__name__
+
+
+def test_drive_folds_never_train_on_the_drives_they_score(through, spans, monkeypatch):
+    """Protocol drives: ekf-tuned is fitted (through fit_specs) once per fold on the other
+    datasets' drives; the values a drive runs with never saw it. The in-dataset tunings (the
+    audit's comparison) are fitted too, and used for nothing else."""
+    from types import SimpleNamespace
+
+    from anfekf_bench.fitting import recorded as fitting_recorded
+    from anfekf_bench.fitting.recorded import tune_drives
+    from anfekf_bench.sources import mrclam as m
+
+    folds = []
+    real = fitting_recorded.fit_specs
+
+    def spy(requests, cache_dir, jobs=1):
+        folds.extend(tuple(training.account["train_drives"]) for _, training in requests)
+        return real(requests, cache_dir, jobs)
+
+    monkeypatch.setattr(fitting_recorded, "fit_specs", spy)
+    ids = ["d6-r2", "d7-r1"]
+    world = SimpleNamespace(drives=[
+        SimpleNamespace(id=i, dataset=m.drive_dataset(i), log=m.load_drive(i)) for i in ids
+    ])  # fmt: skip
+    tuned_for, doc = tune_drives(recorded_scenario(), dict(zip(ids, spans, strict=True)), world)
+    assert through == [("ekf-tuned", "recorded")] * 2 and sorted(folds) == [("d6-r2",), ("d7-r1",)]
+    for drive in ids:
+        assert drive not in tuned_for[drive]["train_drives"]
+    assert {r["drive"]: r["tuned_on"] for r in doc["per_drive"]} == {
+        "d6-r2": ["d7-r1"],
+        "d7-r1": ["d6-r2"],
+    }

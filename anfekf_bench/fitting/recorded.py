@@ -44,6 +44,7 @@ from ..analysis.suite import LOST_LOCK_M
 from ..engines.tuning import score_setting, unicycle_terms
 from ..filters.context import recorded_p0
 from ..filters.ekf import gate_threshold
+from ..models import Unicycle
 from ..outputs import PlanError, code_version
 from ..sources.recorded import DriveSet, RecordedScenario, log_digest
 from .fit import TrainingRuns, fit_specs
@@ -74,8 +75,6 @@ class RecordedTraining(TrainingRuns):
 
     @property
     def model(self):
-        from ..models import Unicycle
-
         return Unicycle(self.scenario.odometry_period_s)
 
     def pairs(self) -> list[tuple]:

@@ -31,6 +31,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from ..config import SimulatedScenario, World
+from ..engines.tuning import SIGMA_NAMES, TrainingProblem, fit_noise, start_results
 from ..filters.ekf import gate_threshold
 from ..filters.spec import FilterSpec
 from ..outputs import code_version
@@ -111,8 +112,6 @@ class TrainingSet(TrainingRuns):
     def problem(self):
         """The training runs as the tuning kernel reads them (`engines.tuning.TrainingProblem`),
         built once for every fit of this set."""
-        from ..engines.tuning import TrainingProblem
-
         return TrainingProblem.of(
             self.runs, self.world, self.P0, self.gate, self.scenario.record_every
         )
@@ -121,8 +120,6 @@ class TrainingSet(TrainingRuns):
         """Run the Nelder-Mead starts of several `fit_noise` calls (criterion, starts,
         max_evaluations) in one batch of workers; each call then finds its starts done, and
         counts an equal share of the batch's wall time in its "seconds"."""
-        from ..engines.tuning import start_results
-
         todo = list(dict.fromkeys((c, tuple(s), n) for c, s, n in requests))
         if self.jobs < 2 or len(todo) < 2:
             return
@@ -139,8 +136,6 @@ class TrainingSet(TrainingRuns):
         only; "rmse": the truth) over these runs, from `starts` x the assumed sigmas
         (`engines.tuning.fit_noise`); a service of the training layer, so that a filter spec
         asks for it here and never imports an engine."""
-        from ..engines.tuning import SIGMA_NAMES, fit_noise
-
         done, seconds = self._starts_found.get((criterion, tuple(starts), max_evaluations),
                                                (None, 0.0))  # fmt: skip
         found = fit_noise(

@@ -199,12 +199,20 @@ def test_the_estimates_converge_to_the_injected_errors():
 AUGMENTED_FAMILIES = {
     "sage-husa": SageHusaSpec(name="sh", kind="sage-husa", augment={"estimate": list(PARAMETERS)}),
     "sage-husa accepted": SageHusaSpec(
-        name="sh", kind="sage-husa", adapt_from="accepted", warmup=3, bounds=(0.1, 10.0),
+        name="sh",
+        kind="sage-husa",
+        adapt_from="accepted",
+        warmup=3,
+        bounds=(0.1, 10.0),
         augment={"estimate": ["speed_scale", "turn_bias", "range_bias"]},
     ),  # fmt: skip
     "vb-r": VBRSpec(name="vb", kind="vb-r", augment={"estimate": list(PARAMETERS)}),
     "vb-r accepted": VBRSpec(
-        name="vb", kind="vb-r", adapt_from="accepted", rho=0.9, iterations=2,
+        name="vb",
+        kind="vb-r",
+        adapt_from="accepted",
+        rho=0.9,
+        iterations=2,
         augment={"estimate": ["turn_scale", "range_bias"], "start": (1.0, 1.2, 0.0, 0.1)},
     ),  # fmt: skip
 }

@@ -38,9 +38,7 @@ paths = [Path(p) for p in args.paths] or [
 
 
 def variants(aug, known):
-    injected = [
-        p for i, p in enumerate(PARAMETERS) if known.start[i] != (1.0, 1.0, 0.0, 0.0)[i]
-    ]
+    injected = [p for i, p in enumerate(PARAMETERS) if known.start[i] != (1.0, 1.0, 0.0, 0.0)[i]]
     s0, dr = np.array(aug.sigma0), np.array(aug.drift)
     return {
         "config": aug,
@@ -94,7 +92,7 @@ for path in paths:
         gm = np.exp(np.mean(np.log(np.sqrt(e.mean(axis=1) / ref.mean(axis=1)))))
         fifths = [
             np.sqrt(a.mean() / b.mean())
-            for a, b in zip(np.array_split(e, 5, axis=1), np.array_split(ref, 5, axis=1))
+            for a, b in zip(np.array_split(e, 5, 1), np.array_split(ref, 5, 1), strict=True)
         ]
         print(
             f"  {name:15s} {pooled:6.3f} [{lo:.3f}, {hi:.3f}]   {gm:6.3f}     "

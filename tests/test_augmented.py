@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 import pytest
+import yaml
 
 from anfekf_bench.config import parse_scenario, resolve_world
 from anfekf_bench.engines import fast
@@ -293,3 +294,26 @@ def test_an_augmented_family_estimates_the_injected_errors():
     truth = np.array(ErrorSources(**INJECTED).parameters())
     tolerance = np.array([0.03, 0.03, math.radians(0.25), 0.05])
     assert (np.abs(theta[-1] - truth) < tolerance).all(), (theta[-1], truth)
+
+
+@pytest.mark.parametrize(
+    ("entry", "says"),
+    [
+        ({"kind": "vb-r", "augment": {"estimate": ["wheel_scale"]}}, "augment.estimate"),
+        ({"kind": "sage-husa", "adapt": "RQ", "augment": {}}, "R adaptation only"),
+        ({"kind": "vb-r", "augment": {"drift": [0, 0, 0, -1]}}, "augment.drift"),
+    ],
+)
+def test_a_bad_augment_is_one_line_with_exit_2(tmp_path, entry, says):
+    from typer.testing import CliRunner
+
+    from anfekf_bench.cli import app
+
+    path = tmp_path / "bad.yaml"
+    doc = {"name": "bad", "runs": 1, "filters": [{"name": "f", **entry}]}
+    path.write_text(yaml.safe_dump(doc))
+    result = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
+    lines = result.output.strip().splitlines()
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert lines[0].startswith(f"error: {path}") and says in lines[0], result.output
+    assert not (tmp_path / "out").exists()

@@ -9,6 +9,9 @@
 - The error sources draw nothing: a run with them is the plain run's draws, scaled and biased;
   without them, the same bytes.
 - Convergence: on a run with every source injected the estimates end near the truth.
+- `augment:` on sage-husa and vb-r: fast = filterpy to 1e-9 on both motion models (R adapted,
+  parameters estimated, both `adapt_from` rules); nothing estimated is the family itself to
+  1e-12; the estimates converge as ekf-aug's; bad blocks are refused (one line, exit 2).
 """
 
 from __future__ import annotations

@@ -68,9 +68,10 @@ def begin_scan(fam, st, x, P, R, Qu):
     return (st[0], st[1], _scan(R)), R
 
 
-def feed(fam, st, x_prior, xp, Pp, R, H, lm, z):
-    """One landmark's samples: the residual at the update (xp, Pp) for R, x+ - x- for dx."""
-    start0, interval, scan = st
+def feed(fam, start0, scan, x_prior, xp, Pp, R, H, lm, z):
+    """One landmark's samples: the residual at the update (xp, Pp) for R, x+ - x- for dx; the
+    scan's part of the state and R (only that part passes through the call, not the interval's
+    27 floats)."""
     Rs0, Rs1, sum0, sum1, n_samples, dx0, dx1, dx2, _ = scan
     _, _, e, _ = innovation(xp, Pp, lm[0], lm[1], z[0], z[1])
     hph0, hph1 = hph_diag(H, Pp)
@@ -88,7 +89,7 @@ def feed(fam, st, x_prior, xp, Pp, R, H, lm, z):
             0.0, 0.0,
             clip_to_bounds(forget(Rs1, sum1 / n_samples, fam.alpha), start0[1], bounds),
         )  # fmt: skip
-    return (start0, interval, (Rs0, Rs1, sum0, sum1, n_samples, dx0, dx1, dx2, True)), R
+    return (Rs0, Rs1, sum0, sum1, n_samples, dx0, dx1, dx2, True), R
 
 
 def rejected(fam, st, x, P, R, H, zh, lm, z):
@@ -99,14 +100,15 @@ def rejected(fam, st, x, P, R, H, zh, lm, z):
     ok, xp, Pp = correct(x, P, H, zh, z[0], z[1], R)
     if not ok:
         return False, st, P, R
-    st, R = feed(fam, st, x, xp, Pp, R, H, lm, z)
-    return True, st, P, R
+    scan, R = feed(fam, st[0], st[2], x, xp, Pp, R, H, lm, z)
+    return True, (st[0], st[1], scan), P, R
 
 
 def corrected(fam, st, x_prior, P_prior, x, P, R, H, lm, z):
     if not fam.adaptation:
         return st, R
-    return feed(fam, st, x_prior, x, P, R, H, lm, z)
+    scan, R = feed(fam, st[0], st[2], x_prior, x, P, R, H, lm, z)
+    return (st[0], st[1], scan), R
 
 
 def end_scan(fam, st, x, P, R, Qu):

@@ -391,7 +391,8 @@ def run(
         files, problems = split_problem_files(scenario_files(scenario))
         plans = [make_plan(*load_scenario(p), **checked.plan_overrides()) for p in files]
     if problems:
-        _run_problems(problems, out, runs, seed, jobs, force, skip_existing, debug)
+        _run_problems(problems, out, runs, seed, jobs, force, skip_existing, debug,
+                      checked.engine)  # fmt: skip
         if not files:
             return
     if any(p.engine == "fast" for p in plans):
@@ -453,7 +454,8 @@ def run(
             _run_plan(plan, out, force, debug)
 
 
-def _run_problems(problems, out, runs, seed, jobs, force, skip_existing, debug) -> None:
+def _run_problems(problems, out, runs, seed, jobs, force, skip_existing, debug,
+                  engine=None) -> None:  # fmt: skip
     """Run problem scenarios (SPEC 17: anfekf_bench.problems) and print their tables."""
     from .problems.experiment import ProblemRunError, execute_problem, is_problem_result
     from .problems.report import problem_console_table
@@ -468,12 +470,13 @@ def _run_problems(problems, out, runs, seed, jobs, force, skip_existing, debug) 
                          " (--skip-existing)"), markup=False, highlight=False, soft_wrap=True,
             )  # fmt: skip
             continue
-        console.print(one_line(f"{scenario.name}: problem {scenario.problem}, running"),
+        on = engine or scenario.engine
+        console.print(one_line(f"{scenario.name}: problem {scenario.problem}, running on {on}"),
                       markup=False, highlight=False, soft_wrap=True)  # fmt: skip
         with one_line_errors(debug, (ProblemRunError, FolderBusy), prefix=f"{path}: ",
                              os_error=f"{scenario.name}: cannot write results"):  # fmt: skip
             _, target = execute_problem(scenario, out, runs=runs, seed=seed, jobs=jobs,
-                                        force=force)  # fmt: skip
+                                        force=force, engine=engine)  # fmt: skip
         table_console().print(problem_console_table(target))
         console.print(one_line(f"results written to {target}"), markup=False, highlight=False,
                       soft_wrap=True)  # fmt: skip

@@ -376,7 +376,7 @@ class ALSSpec(AdaptiveSpec):
     """Online LTV autocovariance least squares on Qu and R (module doc)."""
 
     kind: Literal["als"]
-    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
+    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "module"})
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     adapt: Literal["RQ", "R", "Q"] = Field(
         "RQ", description="which variances the identified values replace (all four are fitted)"

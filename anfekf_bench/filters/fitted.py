@@ -140,7 +140,7 @@ class EKFMLSpec(FittedNoiseSpec):
     scored on (its own innovations, never its ground truth: real_experiment.OwnInnovations)."""
 
     kind: Literal["ekf-ml"]
-    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
+    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "module"})
     criterion: ClassVar[str] = "likelihood"
 
 

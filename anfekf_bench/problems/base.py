@@ -75,6 +75,13 @@ class Problem(ABC):
     def H(self, x: np.ndarray, k: int) -> np.ndarray:
         """dh/dx at x (nz, n)."""
 
+    def compiled_model(self):
+        """Its functions compiled for the fast engine (`problems.fast.CompiledModel`), or
+        `problems.fast.NotCompilable` saying why not."""
+        from .fast import NotCompilable
+
+        raise NotCompilable(f"problem {self.name!r} has no compiled model")
+
     def simulate(self, rng: np.random.Generator) -> Trajectory:
         """Truth and measurements of one run: x(0) ~ N(x0, P0), then the model with its true
         noise. Draws, in order: x(0), all process noise, all measurement noise."""

@@ -75,6 +75,9 @@ class GenericKF:
         self.problem = problem
         self.Q = np.array(Q, dtype=float)
         self.R = np.array(R, dtype=float)
+        # The problem's compiled model (`problems.fast.CompiledModel`): set, `run` runs the
+        # family's compiled loop (the fast engine) instead of this Python loop.
+        self.model = None
 
     def before_gain(self, k: int, nu: np.ndarray, H: np.ndarray, P: np.ndarray) -> None:
         """Adapt R (or anything the gain uses) from the innovation of step k."""
@@ -87,6 +90,8 @@ class GenericKF:
         """After the last step (a batch identifier's final estimate)."""
 
     def run(self, z: np.ndarray) -> Trace:
+        if self.model is not None:
+            return self.run_compiled(z)
         p = self.problem
         steps = len(z)
         xs, Ps = np.empty((steps, p.n)), np.empty((steps, p.n, p.n))
@@ -108,6 +113,21 @@ class GenericKF:
         self.finish(z)
         Qs[-1], Rs[-1] = self.Q, self.R
         return Trace(xs, Ps, Qs, Rs, time.perf_counter() - started)
+
+    def run_compiled(self, z: np.ndarray) -> Trace:
+        """`run` on the fast engine: the family's loop in `problems.fast` (here: fixed Q, R)."""
+        from .fast import as_arrays, ekf_run
+
+        p = self.problem
+        started = time.perf_counter()
+        xs, Ps = ekf_run(*self.model.args(), *as_arrays(p.x0, p.P0, self.Q, self.R, z))
+        return Trace(xs, Ps, repeat(self.Q, len(z)), repeat(self.R, len(z)),
+                     time.perf_counter() - started)  # fmt: skip
+
+
+def repeat(M: np.ndarray, steps: int) -> np.ndarray:
+    """M at every step (steps, *M.shape)."""
+    return np.repeat(M[None], steps, axis=0)
 
 
 class EKFSpec(ProblemFilterSpec):
@@ -187,6 +207,16 @@ class SageHusaKF(GenericKF):
         if k + 1 >= self.spec.warmup:
             self.Q = nearest_psd(self.Q_hat, self.Q_floor)
 
+    def run_compiled(self, z):
+        from .fast import as_arrays, sage_husa_run
+
+        p, spec = self.problem, self.spec
+        started = time.perf_counter()
+        out = sage_husa_run(*self.model.args(), *as_arrays(p.x0, p.P0, self.Q, self.R, z),
+                            float(spec.b), int("R" in spec.adapt), int("Q" in spec.adapt),
+                            int(spec.warmup), self.R_floor, self.Q_floor)  # fmt: skip
+        return Trace(*out, time.perf_counter() - started)
+
 
 class VBRSpec(ProblemFilterSpec):
     """Variational Bayes with an inverse-Wishart posterior on the full R (Sarkka-Hartikainen)."""
@@ -215,7 +245,18 @@ class VBRKF(GenericKF):
         self.nu = m + 1.0 + (1.0 if spec.prior_dof is None else spec.prior_dof)
         self.V = self.nu * self.R  # so that the filter starts from the assumed R
 
+    def run_compiled(self, z):
+        from .fast import as_arrays, vbr_run
+
+        p, spec = self.problem, self.spec
+        started = time.perf_counter()
+        xs, Ps, Rs = vbr_run(*self.model.args(), *as_arrays(p.x0, p.P0, self.Q, self.R, z),
+                             float(spec.rho), int(spec.iterations), float(self.nu))  # fmt: skip
+        return Trace(xs, Ps, repeat(self.Q, len(z)), Rs, time.perf_counter() - started)
+
     def run(self, z):
+        if self.model is not None:
+            return self.run_compiled(z)
         # The VB update iterates the Kalman update itself: its own loop.
         p, spec, m = self.problem, self.spec, self.problem.nz
         steps = len(z)

@@ -26,7 +26,7 @@ runner = CliRunner()
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "custom_problem"
 
 # The survey's system (problems.linear) as a user would write it: a reference for the loader.
-SURVEY_MODULE = '''
+SURVEY_MODULE = """
 import numpy as np
 
 Fm = np.array([[0.9, 0.0], [-0.3, 0.8]])
@@ -56,7 +56,7 @@ def h(x, k, p):
 
 def H(x, k, p):
     return np.eye(2)
-'''
+"""
 
 FILTERS = [
     {"name": "kf", "kind": "ekf"},

@@ -92,9 +92,9 @@ def test_the_compiled_loop_equals_the_python_filter(problem, kind, extra):
 def test_a_problem_whose_functions_do_not_compile_is_one_line_with_exit_2(tmp_path):
     text = (EXAMPLE / "pendulum.py").read_text(encoding="utf-8")
     # A Python dictionary inside h: fine as Python, not in numba's nopython mode.
-    text = text.replace("    return np.array([x[0], p[2] * np.sin(x[0])])",
-                        "    table = {'a': object()}\n"
-                        "    return np.array([x[0], p[2] * np.sin(x[0]) + 0 * len(table)])")  # fmt: skip
+    good = "    return np.array([x[0], p[2] * np.sin(x[0])])"
+    bad = "    table = {'a': object()}\n    return np.array([x[0], 0 * len(table)])"
+    text = text.replace(good, bad)
     (tmp_path / "pendulum.py").write_text(text, encoding="utf-8")
     doc = {"name": "nc", "problem": "module", "module": {"file": "pendulum.py", "steps": 20},
            "runs": 1, "filters": [{"name": "kf", "kind": "ekf"}]}  # fmt: skip
@@ -112,8 +112,9 @@ def test_als_on_a_linear_module_compiled_equals_python(tmp_path):
     from .test_problems_custom import SURVEY_MODULE
 
     (tmp_path / "survey.py").write_text(SURVEY_MODULE, encoding="utf-8")
+    als = {"name": "a", "kind": "als", "min_steps": 30, "burn": 5, "every": 7}
     doc = {"name": "als", "problem": "module", "module": {"file": "survey.py", "steps": STEPS},
-           "filters": [{"name": "a", "kind": "als", "min_steps": 30, "burn": 5, "every": 7}]}  # fmt: skip
+           "filters": [als]}  # fmt: skip
     python = parse_problem_scenario(doc, tmp_path / "scenario.yaml")
     fast = python.model_copy(update={"engine": "fast"})
     py, fa = run_one(python, 2, 0, {})[1]["a"], run_one(fast, 2, 0, {})[1]["a"]
@@ -129,8 +130,8 @@ def test_the_example_on_the_fast_engine_same_bytes_whatever_the_workers(tmp_path
     outs = {}
     for engine, jobs in (("fast", "1"), ("fast", "2"), ("filterpy", "1")):
         out = tmp_path / f"{engine}{jobs}"
-        result = runner.invoke(app, ["run", str(EXAMPLE / "scenario.yaml"), "--runs", "3",
-                                     "--jobs", jobs, "--engine", engine, "--out", str(out)])  # fmt: skip
+        args = ["--runs", "3", "--jobs", jobs, "--engine", engine, "--out", str(out)]
+        result = runner.invoke(app, ["run", str(EXAMPLE / "scenario.yaml"), *args])
         assert result.exit_code == 0, result.output
         outs[engine + jobs] = out / "custom_problem_example"
     for key, file in TABLES.items():

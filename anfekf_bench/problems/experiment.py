@@ -139,7 +139,9 @@ def module_digest(scenario: ProblemScenario) -> str | None:
 
 def fingerprint(scenario: ProblemScenario, runs: int, seed: int) -> str:
     doc = {"scenario": scenario.model_dump(mode="json", exclude={"jobs", "runs"}), "runs": runs,
-           "seed": seed, "version": package_version(), "module": module_digest(scenario)}  # fmt: skip
+           "seed": seed, "version": package_version()}  # fmt: skip
+    if scenario.module is not None:  # a module's results depend on its code
+        doc["module"] = module_digest(scenario)
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
 
 

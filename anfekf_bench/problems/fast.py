@@ -13,9 +13,11 @@ on their own. A call through the function pointer costs a few nanoseconds.
 - `linear_model`: the linear problem's functions read F, G, H from `p` (cached like the loops);
 - `compile_module_model`: a user's module's functions compiled with that signature, or
   `NotCompilable` saying which one does not compile and why;
-- `ekf_run`, `sage_husa_run`, `vbr_run`, `als_run`: the loops of `filters.GenericKF`,
-  `SageHusaKF`, `VBRKF` and `als.ALSKF`, the same arithmetic in the same order (the engines'
-  equivalence test holds them to 1e-9: tests/test_problems_fast.py).
+- `sage_husa_run`, `vbr_run`, `als_run`: the loops of `filters.SageHusaKF`, `VBRKF` and
+  `als.ALSKF`, and `ekf_run`, `GenericKF`'s (Sage-Husa's adapting neither Q nor R), the same
+  arithmetic in the same order (the engines' equivalence test holds them to 1e-9:
+  tests/test_problems_fast.py). Three loops, not one per family: each costs 15-30 s of
+  compilation the first time.
 
 Importing this module compiles the loops (or loads them from numba's cache): only the fast
 engine imports it. Without numba importing it raises ImportError saying so.
@@ -38,7 +40,9 @@ class NotCompilable(Exception):
 try:
     from numba import njit, types
 except ImportError:  # pragma: no cover - numba is installed wherever CI runs the fast engine
-    raise ImportError("the fast engine of problems needs numba (pip install -e '.[fast]')") from None
+    raise ImportError(
+        "the fast engine of problems needs numba (pip install -e '.[fast]')"
+    ) from None
 
 A1, A2, A3 = types.float64[::1], types.float64[:, ::1], types.float64[:, :, ::1]
 VECTOR_FN = A1(A1, types.int64, A1)
@@ -158,7 +162,7 @@ def compile_module_model(problem) -> CompiledModel:
                          np.array(problem.angles, dtype=np.int64), seconds)  # fmt: skip
 
 
-# --- the shared arithmetic (filters.GenericKF, kalman.joseph_update, kalman.nearest_psd) -----------
+# --- the shared arithmetic (filters.GenericKF, kalman.joseph_update, kalman.nearest_psd) ----
 
 
 @njit(cache=True)
@@ -196,20 +200,6 @@ def _predict(f, F, G, p, x, P, Q, k):  # pragma: no cover - compiled
 
 
 # --- the loops -----------------------------------------------------------------------------------
-
-
-@njit((*MODEL_ARGS, A1, A2, A2, A2, A2), cache=True)
-def ekf_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z):  # pragma: no cover - compiled
-    """(x, P) of `GenericKF.run` with fixed Q and R."""
-    steps, n = z.shape[0], x0.shape[0]
-    xs, Ps = np.empty((steps, n)), np.empty((steps, n, n))
-    x, P = x0.copy(), P0.copy()
-    for k in range(steps):
-        nu = _wrap(z[k] - h(x, k, p), angles)
-        x, P = _joseph(x, P, nu, H(x, k, p), R)
-        xs[k], Ps[k] = x, P
-        x, P, _, _ = _predict(f, F, G, p, x, P, Q, k)
-    return xs, Ps
 
 
 @njit((*MODEL_ARGS, A1, A2, A2, A2, A2, F64, I64, I64, I64, F64, F64), cache=True)
@@ -286,8 +276,7 @@ def _from_vech(theta, m):  # pragma: no cover - compiled
     return M
 
 
-@njit((*MODEL_ARGS, A1, A2, A2, A2, A2, A2, A2, A2, A2, I64, I64, I64, I64, F64, F64),
-      cache=True)  # fmt: skip
+@njit((*MODEL_ARGS, A1, A2, A2, A2, A2, A2, A2, A2, A2, I64, I64, I64, I64, F64, F64), cache=True)
 def als_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, Fm, Hm, K, pinv, lags, every, burn,
             min_steps, q_floor, r_floor):  # fmt: skip  # pragma: no cover - compiled
     """(x, P, Q, R) of `ALSKF`: the fixed-gain predictor's innovations, their autocovariances
@@ -330,6 +319,14 @@ def als_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, Fm, Hm, K, pinv, lags, ev
         Qs[steps - 1] = _nearest_psd(_from_vech(theta[:nq], nw), q_floor)
         Rs[steps - 1] = _nearest_psd(_from_vech(theta[nq:], nz), r_floor)
     return xs, Ps, Qs, Rs
+
+
+def ekf_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z):
+    """(x, P) of `GenericKF.run` with fixed Q and R: Sage-Husa's loop adapting neither (one
+    compiled loop fewer; the same arithmetic)."""
+    xs, Ps, _, _ = sage_husa_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, 1.0, 0, 0, 0, 0.0,
+                                 0.0)  # fmt: skip
+    return xs, Ps
 
 
 def as_arrays(*arrays) -> tuple:

@@ -138,10 +138,15 @@ def module_digest(scenario: ProblemScenario) -> str | None:
 
 
 def fingerprint(scenario: ProblemScenario, runs: int, seed: int) -> str:
-    doc = {"scenario": scenario.model_dump(mode="json", exclude={"jobs", "runs"}), "runs": runs,
-           "seed": seed, "version": package_version()}  # fmt: skip
+    """A hash of what the result depends on. The keys a linear scenario on filterpy leaves at
+    their defaults (engine, module) are left out: its fingerprint is the one before they were."""
+    dump = scenario.model_dump(mode="json", exclude={"jobs", "runs", "engine", "module"})
+    doc = {"scenario": dump, "runs": runs, "seed": seed, "version": package_version()}
+    if scenario.engine != "filterpy":
+        doc["engine"] = scenario.engine
     if scenario.module is not None:  # a module's results depend on its code
-        doc["module"] = module_digest(scenario)
+        doc["module"] = {**scenario.module.model_dump(mode="json"),
+                         "sha256": module_digest(scenario)}  # fmt: skip
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
 
 

@@ -8,7 +8,10 @@ problem, compiled again in every process). Here every model function has one sig
 (F, G, H), where `p` is the problem's parameter vector; the loops take them as numba's
 first-class function type of that signature, so each loop is compiled once for all problems and
 cached on disk, and each problem's five functions are compiled (and cached, beside their source)
-on their own. A call through the function pointer costs a few nanoseconds.
+on their own. A call through the function pointer costs a few nanoseconds. The small matrix
+products are plain loops (`_mm`, `_mmt`, `_mv`, `_outer`): numba's `@` calls BLAS, which costs
+more than the product at these sizes (measured: the loops halve the per-run time and compile
+faster).
 
 - `linear_model`: the linear problem's functions read F, G, H from `p` (cached like the loops);
 - `compile_module_model`: a user's module's functions compiled with that signature, or
@@ -70,6 +73,54 @@ class CompiledModel:
         return (self.f, self.F, self.G, self.h, self.H, self.params, self.angles)
 
 
+@njit(cache=True)
+def _mm(A, B):  # pragma: no cover - compiled
+    """A @ B as a plain loop: numba's `@` on small matrices calls BLAS, costlier than the sum."""
+    n, m, q = A.shape[0], A.shape[1], B.shape[1]
+    out = np.zeros((n, q))
+    for i in range(n):
+        for l in range(m):
+            a = A[i, l]
+            for j in range(q):
+                out[i, j] += a * B[l, j]
+    return out
+
+
+@njit(cache=True)
+def _mmt(A, B):  # pragma: no cover - compiled
+    """A @ B.T as a plain loop."""
+    n, m, q = A.shape[0], A.shape[1], B.shape[0]
+    out = np.empty((n, q))
+    for i in range(n):
+        for j in range(q):
+            acc = 0.0
+            for l in range(m):
+                acc += A[i, l] * B[j, l]
+            out[i, j] = acc
+    return out
+
+
+@njit(cache=True)
+def _mv(A, x):  # pragma: no cover - compiled
+    """A @ x as a plain loop."""
+    out = np.empty(A.shape[0])
+    for i in range(A.shape[0]):
+        acc = 0.0
+        for j in range(A.shape[1]):
+            acc += A[i, j] * x[j]
+        out[i] = acc
+    return out
+
+
+@njit(cache=True)
+def _outer(a, b):  # pragma: no cover - compiled
+    out = np.empty((a.shape[0], b.shape[0]))
+    for i in range(a.shape[0]):
+        for j in range(b.shape[0]):
+            out[i, j] = a[i] * b[j]
+    return out
+
+
 # --- the linear problem: F, G, H packed in p = (n, nw, nz, F, G, H) ------------------------------
 
 
@@ -86,7 +137,7 @@ def _block(p, start, rows, cols):  # pragma: no cover - compiled
 @njit(VECTOR_FN, cache=True)
 def _linear_f(x, k, p):  # pragma: no cover - compiled
     n = int(p[0])
-    return _block(p, 3, n, n) @ x
+    return _mv(_block(p, 3, n, n), x)
 
 
 @njit(MATRIX_FN, cache=True)
@@ -104,7 +155,7 @@ def _linear_G(x, k, p):  # pragma: no cover - compiled
 @njit(VECTOR_FN, cache=True)
 def _linear_h(x, k, p):  # pragma: no cover - compiled
     n, nw, nz = int(p[0]), int(p[1]), int(p[2])
-    return _block(p, 3 + n * n + n * nw, nz, n) @ x
+    return _mv(_block(p, 3 + n * n + n * nw, nz, n), x)
 
 
 @njit(MATRIX_FN, cache=True)
@@ -180,23 +231,23 @@ def _symmetric(M):  # pragma: no cover - compiled
 @njit(cache=True)
 def _nearest_psd(M, floor):  # pragma: no cover - compiled
     w, V = np.linalg.eigh(_symmetric(M))
-    return _symmetric((V * np.maximum(w, floor)) @ V.T)
+    return _symmetric(_mmt(V * np.maximum(w, floor), V))
 
 
 @njit(cache=True)
 def _joseph(x, P, nu, H, R):  # pragma: no cover - compiled
-    S = H @ P @ H.T + R
-    K = np.linalg.solve(S.T, (P @ H.T).T).T.copy()
-    x = x + K @ nu
-    IKH = np.eye(x.shape[0]) - K @ H
-    P = IKH @ P @ IKH.T + K @ R @ K.T
+    S = _mmt(_mm(H, P), H) + R
+    K = np.linalg.solve(S.T, _mmt(P, H).T).T.copy()
+    x = x + _mv(K, nu)
+    IKH = np.eye(x.shape[0]) - _mm(K, H)
+    P = _mmt(_mm(IKH, P), IKH) + _mmt(_mm(K, R), K)
     return x, _symmetric(P)
 
 
 @njit(cache=True)
 def _predict(f, F, G, p, x, P, Q, k):  # pragma: no cover - compiled
     Fk, Gk = F(x, k, p), G(x, k, p)
-    return f(x, k, p), _symmetric(Fk @ P @ Fk.T + Gk @ Q @ Gk.T), Fk, Gk
+    return f(x, k, p), _symmetric(_mmt(_mm(Fk, P), Fk) + _mmt(_mm(Gk, Q), Gk)), Fk, Gk
 
 
 # --- the loops -----------------------------------------------------------------------------------
@@ -217,7 +268,7 @@ def sage_husa_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, b, adapt_r, adapt_q
         Hk = H(x, k, p)
         if adapt_r:
             d = 1.0 / (k + 1) if b == 1.0 else (1.0 - b) / (1.0 - b ** (k + 1))
-            R_hat = (1.0 - d) * R_hat + d * (np.outer(nu, nu) - Hk @ P @ Hk.T)
+            R_hat = (1.0 - d) * R_hat + d * (_outer(nu, nu) - _mmt(_mm(Hk, P), Hk))
             if k + 1 >= warmup:
                 R = _nearest_psd(R_hat, r_floor)
         x_prior = x
@@ -225,8 +276,8 @@ def sage_husa_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, b, adapt_r, adapt_q
         if adapt_q and k > 0:
             dx = x - x_prior
             G_pinv = np.linalg.pinv(G_prev)
-            sample = np.outer(dx, dx) + P - (F_prev @ P_prev) @ F_prev.T
-            sample = G_pinv @ (0.5 * (sample + sample.T)) @ G_pinv.T
+            sample = _outer(dx, dx) + P - _mmt(_mm(F_prev, P_prev), F_prev)
+            sample = _mmt(_mm(G_pinv, 0.5 * (sample + sample.T)), G_pinv)
             j = k - 1
             d = 1.0 / (j + 1) if b == 1.0 else (1.0 - b) / (1.0 - b ** (j + 1))
             Q_hat = (1.0 - d) * Q_hat + d * _symmetric(sample)
@@ -258,7 +309,7 @@ def vbr_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, rho, iterations,
             x_post, P_post = _joseph(x, P, nu_z, H(x, k, p), Rk)
             r = _wrap(z[k] - h(x_post, k, p), angles)
             Hp = H(x_post, k, p)
-            Vk = V_prior + np.outer(r, r) + Hp @ P_post @ Hp.T
+            Vk = V_prior + _outer(r, r) + _mmt(_mm(Hp, P_post), Hp)
         V = _symmetric(Vk)
         x, P = x_post, P_post
         xs[k], Ps[k], Rs[k] = x, P, V / dof
@@ -293,21 +344,21 @@ def als_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, Fm, Hm, K, pinv, lags, ev
     for k in range(steps):
         nu = _wrap(z[k] - h(x, k, p), angles)
         Hk = H(x, k, p)
-        y = z[k] - Hm @ xp
+        y = z[k] - _mv(Hm, xp)
         if k >= burn:
             ys[used] = y
             used += 1
             for j in range(min(used, lags)):
-                sums[j] += np.outer(y, ys[used - 1 - j])
+                sums[j] += _outer(y, ys[used - 1 - j])
                 counts[j] += 1
             if used >= min_steps and (used - min_steps) % every == 0:
                 C = np.empty((lags, nz, nz))
                 for j in range(lags):
                     C[j] = sums[j] / counts[j]
-                theta = pinv @ C.ravel()
+                theta = _mv(pinv, C.ravel())
                 Q = _nearest_psd(_from_vech(theta[:nq], nw), q_floor)
                 R = _nearest_psd(_from_vech(theta[nq:], nz), r_floor)
-        xp = Fm @ xp + K @ y
+        xp = _mv(Fm, xp) + _mv(K, y)
         x, P = _joseph(x, P, nu, Hk, R)
         xs[k], Ps[k], Qs[k], Rs[k] = x, P, Q, R
         x, P, _, _ = _predict(f, F, G, p, x, P, Q, k)
@@ -315,7 +366,7 @@ def als_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, Fm, Hm, K, pinv, lags, ev
         C = np.empty((lags, nz, nz))
         for j in range(lags):
             C[j] = sums[j] / counts[j]
-        theta = pinv @ C.ravel()
+        theta = _mv(pinv, C.ravel())
         Qs[steps - 1] = _nearest_psd(_from_vech(theta[:nq], nw), q_floor)
         Rs[steps - 1] = _nearest_psd(_from_vech(theta[nq:], nz), r_floor)
     return xs, Ps, Qs, Rs

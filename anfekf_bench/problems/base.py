@@ -25,6 +25,10 @@ def wrap(residual: np.ndarray, angles: tuple[int, ...]) -> np.ndarray:
     return out
 
 
+class NotCompilable(Exception):
+    """A problem cannot run on the fast engine; `str()` says why in one line."""
+
+
 @dataclass(frozen=True)
 class Trajectory:
     """One simulated run: the true states x (steps, n) and the measurements z (steps, nz);
@@ -77,9 +81,7 @@ class Problem(ABC):
 
     def compiled_model(self):
         """Its functions compiled for the fast engine (`problems.fast.CompiledModel`), or
-        `problems.fast.NotCompilable` saying why not."""
-        from .fast import NotCompilable
-
+        `NotCompilable` saying why not."""
         raise NotCompilable(f"problem {self.name!r} has no compiled model")
 
     def simulate(self, rng: np.random.Generator) -> Trajectory:

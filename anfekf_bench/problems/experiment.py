@@ -35,6 +35,7 @@ from ..storage import (
     write_json,
     write_parquet,
 )
+from .base import NotCompilable
 from .ml import MLKF, fit_noise
 from .module import ModuleProblemError, file_digest
 from .schema import ProblemScenario
@@ -106,13 +107,8 @@ def prepare_engine(scenario: ProblemScenario) -> dict:
         return {}
     started = time.perf_counter()
     try:
-        from .fast import NotCompilable
-
-        try:
-            model = scenario.build_problem().compiled_model()
-        except NotCompilable as exc:
-            raise ProblemRunError(f"engine fast: {exc}") from None
-    except ImportError as exc:  # pragma: no cover - numba missing: fast.py says so
+        model = scenario.build_problem().compiled_model()
+    except (NotCompilable, ImportError) as exc:  # ImportError: numba missing (fast.py says so)
         raise ProblemRunError(f"engine fast: {exc}") from None
     return {"prepare_seconds": round(time.perf_counter() - started, 3),
             "model_compile_seconds": round(model.compile_seconds, 3)}  # fmt: skip

@@ -35,10 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-class NotCompilable(Exception):
-    """A problem cannot run on the fast engine; `str()` says why in one line."""
-
+from .base import NotCompilable
 
 try:
     from numba import njit, types
@@ -205,9 +202,7 @@ def _compile_functions(path: str, digest: str, module_name: str) -> tuple[tuple,
 def compile_module_model(problem) -> CompiledModel:
     """The compiled model of a `module.ModuleProblem` (compiled once per process and file
     content; numba's cache keeps it on disk between processes)."""
-    from .module import file_digest
-
-    functions, seconds = _compile_functions(str(problem.path), file_digest(problem.path),
+    functions, seconds = _compile_functions(str(problem.path), problem.digest,
                                             problem.module.__name__)  # fmt: skip
     return CompiledModel(*functions, np.ascontiguousarray(problem.params, dtype=float),
                          np.array(problem.angles, dtype=np.int64), seconds)  # fmt: skip

@@ -66,12 +66,13 @@ def _load(path: str, digest: str):
 
 
 def load_module(path: Path):
-    """The user's module (ModuleProblemError when it cannot be read or imported)."""
+    """(the user's module, its file's sha256); ModuleProblemError when it cannot be read or
+    imported."""
     try:
         digest = file_digest(path)
     except OSError as exc:
         raise ModuleProblemError(f"cannot read it ({exc.strerror or exc})") from None
-    return _load(str(path), digest)
+    return _load(str(path), digest), digest
 
 
 def _matrix(value, what: str, shape: tuple[int, ...] | None = None) -> np.ndarray:
@@ -118,7 +119,8 @@ class ModuleProblem(Problem):
 
     def __init__(self, path: Path, *, params=None, steps: int | None = None):
         self.path = Path(path)
-        self.module = mod = load_module(self.path)
+        self.module, self.digest = load_module(self.path)
+        mod = self.module
         missing = [key for key in REQUIRED if not hasattr(mod, key)]
         if missing:
             raise ModuleProblemError(

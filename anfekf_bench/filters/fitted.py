@@ -140,7 +140,7 @@ class EKFMLSpec(FittedNoiseSpec):
     scored on (its own innovations, never its ground truth: real_experiment.OwnInnovations)."""
 
     kind: Literal["ekf-ml"]
-    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
+    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking"})
     criterion: ClassVar[str] = "likelihood"
 
 
@@ -149,5 +149,5 @@ class EKFTunedSpec(FittedNoiseSpec):
     the fair "tuned with truth" reference of a simulated scenario."""
 
     kind: Literal["ekf-tuned"]
-    robot_only_because: ClassVar[str] = "its grid search is over the robot's four noise sigmas"
+    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking"})
     criterion: ClassVar[str] = "rmse"

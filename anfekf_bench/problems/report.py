@@ -21,6 +21,8 @@ def _g(value: float, digits: int = 3) -> str:
 
 
 def _mean_sd(mean: float, sd: float) -> str:
+    if math.isfinite(sd) and sd <= 1e-12 * abs(mean):  # a constant's rounding (a fitted filter)
+        sd = 0.0
     return f"{_g(mean)} ± {_g(sd, 2)}"
 
 

@@ -108,7 +108,6 @@ def test_simulated_noise_has_the_true_covariances():
     assert abs(np.corrcoef(v.T)[0, 1]) < 0.04
 
 
-@pytest.mark.slow  # about 8 s on a loaded machine (numba's first load included)
 def test_the_ekf_with_the_true_noise_is_consistent():
     p = problem()
     nees, gated = [], 0
@@ -270,3 +269,17 @@ def test_the_registry_says_which_kinds_run_on_tracking():
 def test_the_turn_dataclass_is_half_open():
     turn = Turn(0.1, 3, 5)
     assert [turn.rate(k) for k in range(7)] == [0, 0, 0, 0.1, 0.1, 0, 0]
+
+
+def test_the_truth_tuned_fit_runs_the_python_loop_where_there_is_no_compiled_filter():
+    scenario = parse_problem_scenario(
+        {"name": "lin", "problem": "linear", "system": {"steps": 60},
+         "filter_noise": {"Q_scale": 0.2, "R_scale": 1.0},
+         "filters": [{"name": "t", "kind": "ekf-tuned", "tolerance": 0.05}]}, "x.yaml",
+    )  # fmt: skip
+    p = scenario.build_problem()
+    assert p.fast_filter(p.Q, p.R, np.zeros((60, 2))) is None
+    runs = [p.simulate(run_rng(4, i, training=True)) for i in range(3)]
+    Q, R, record = scenario.filters[0].fit_training(p, runs, *scenario.assumed_noise())
+    assert record["Q_factor"] * 0.2 > 0.3  # moved towards the true Q (factor 5 from the start)
+    assert np.allclose(Q, record["Q_factor"] * 0.2 * p.Q)

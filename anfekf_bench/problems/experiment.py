@@ -35,7 +35,6 @@ from ..storage import (
     write_json,
     write_parquet,
 )
-from .ml import MLKF, fit_noise
 from .schema import ProblemScenario
 from .scoring import score
 
@@ -63,18 +62,13 @@ def fit_training(scenario: ProblemScenario, seed: int) -> tuple[dict, dict]:
     if not specs:
         return fitted, records
     problem = scenario.build_problem()
-    runs = [problem.simulate(run_rng(seed, i, training=True)).z
+    runs = [problem.simulate(run_rng(seed, i, training=True))
             for i in range(scenario.training.runs)]  # fmt: skip
     Q0, R0 = scenario.assumed_noise()
     for spec in specs:
-        started = time.perf_counter()
-        Q, R, result = fit_noise(problem, runs, *spec.start(Q0, R0), maxiter=spec.maxiter)
+        Q, R, record = spec.fit_training(problem, runs, Q0, R0)
         fitted[spec.name] = (Q, R)
-        records[spec.name] = {
-            "training_runs": len(runs), "Q": Q.tolist(), "R": R.tolist(),
-            "iterations": int(result.nit), "converged": bool(result.success),
-            "seconds": round(time.perf_counter() - started, 3),
-        }  # fmt: skip
+        records[spec.name] = record
     return fitted, records
 
 
@@ -86,10 +80,8 @@ def run_one(scenario: ProblemScenario, seed: int, i: int, fitted: dict) -> tuple
     traces = {}
     for spec in scenario.filters:
         Q, R = (problem.Q, problem.R) if spec.uses_true_noise else (Q_a, R_a)
-        flt = spec.build(problem, Q, R)
-        if isinstance(flt, MLKF) and spec.name in fitted:
-            flt.fitted = fitted[spec.name]
-        traces[spec.name] = flt.run(trajectory.z)
+        Q, R = fitted.get(spec.name, (Q, R))
+        traces[spec.name] = spec.build(problem, Q, R).run(trajectory.z)
     return trajectory.x, traces
 
 

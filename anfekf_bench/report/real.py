@@ -60,20 +60,6 @@ LOST_LOCK_M = 1.0
 # (each in its style of the whole report: plots.filter_style).
 
 
-def is_real_result(folder: Path) -> bool:
-    """Whether a result folder holds a real-data scenario (its manifest says kind recorded)."""
-    try:
-        return read_manifest(Path(folder)).get("kind") == "recorded"
-    except ResultsError:
-        return False
-
-
-def split_folders(folders: Sequence[Path]) -> tuple[list[Path], list[Path]]:
-    """(simulated result folders, real-data result folders)."""
-    real = [f for f in folders if is_real_result(f)]
-    return [f for f in folders if f not in real], real
-
-
 @dataclass(frozen=True)
 class RealData:
     """One real-data result, as the figures use it."""

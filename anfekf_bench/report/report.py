@@ -40,7 +40,7 @@ from ..analysis.tables import filter_arrays
 from ..config import NoiseSigmas
 from ..filters.registry import adapted_noise, role_of
 from ..models import control_covariance, measurement_covariance
-from ..problems.experiment import problem_result_folders, read_problem_result
+from ..problems.experiment import read_problem_result
 from ..storage import (
     CLAIMS_FILE,
     COMPARISONS_FILE,
@@ -55,7 +55,6 @@ from ..storage import (
     read_parquet,
     read_steps,
     read_summary,
-    scenario_dirs,
     write_atomic,
 )
 from ..workers import local_workers
@@ -97,6 +96,15 @@ from .document import (
     to_markdown,
 )
 from .problems import problem_blocks
+from .results import (  # noqa: F401  (find_scenarios re-exported: it lived here)
+    PROBLEM,
+    RECORDED,
+    SIMULATED,
+    SWEEP,
+    find_results,
+    find_scenarios,
+    load_result,
+)
 from .tables import (  # noqa: F401  (re-exported: the table API lived here)
     LEADERBOARD_CAPTION,
     TABLE_HEADER,
@@ -130,25 +138,6 @@ class ReportResult:
     files: list[Path] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     problems: int = 0  # problem results (SPEC 17) in the report
-
-
-# --------------------------------------------------------------------------- finding results
-
-
-def find_scenarios(results_dirs: Sequence[Path], out_dir: Path | None = None) -> list[Path]:
-    """The scenario folders under the given folders, minus the report folder, each once."""
-    found: dict[Path, Path] = {}
-    skip = Path(out_dir).resolve() if out_dir is not None else None
-    for results_dir in results_dirs:
-        for folder in scenario_dirs(Path(results_dir)):
-            resolved = folder.resolve()
-            if skip is not None and (resolved == skip or skip in resolved.parents):
-                continue
-            found.setdefault(resolved, folder)
-    if not found:
-        shown = ", ".join(str(d) for d in results_dirs)
-        raise ResultsError(f"{shown}: no results found outside the report folder {out_dir}")
-    return list(found.values())
 
 
 # --------------------------------------------------------------------------- series
@@ -460,12 +449,7 @@ def load_summary_only(folder: Path) -> ScenarioData:
     manifest = _manifest(folder)
     manifest_path = folder / MANIFEST_FILE
     check_one_batch(folder, manifest)
-    if manifest["scenario"].get("steps_table", True) is not False:
-        # The scenario writes steps.parquet: its absence is damage, not a summary-only result.
-        raise ResultsError(
-            f"{folder / STEPS_FILE}: missing, though {manifest_path} says the scenario writes it"
-            " (steps_table: true); the result is damaged: run it again with --force"
-        )
+    load_result(folder)  # the tables a summary-only result needs (steps.parquet if written)
     specs = _filter_specs(manifest, manifest_path)
     summary = read_summary(folder)
     where = folder / "summary.parquet"
@@ -878,20 +862,12 @@ def write_report(
     """
     out_dir = Path(out_dir)
     fmt = ImageFormat(fmt)
-    swept = [sweep_report.read_sweep(Path(f)) for f in sweeps]  # read before anything is written
-    problem_results = [read_problem_result(f) for f in problem_result_folders(results_dirs)]
-    try:
-        found = (
-            find_scenarios(results_dirs, out_dir)
-            if not sweeps or sweep_report.has_scenario_results(list(results_dirs))
-            else []
-        )
-    except ResultsError:
-        if not problem_results:  # a folder of problem results alone (SPEC 17) is a report too
-            raise
-        found = []
-    folders, recorded_folders = real.split_folders(found)
-    recorded = [real.load_real(f) for f in recorded_folders]
+    # Every result read (and checked) before anything is written: one loader for every kind.
+    loaded = find_results(results_dirs, out_dir, sweeps)
+    swept = [sweep_report.read_sweep(r.folder) for r in loaded if r.kind == SWEEP]
+    problem_results = [read_problem_result(r.folder) for r in loaded if r.kind == PROBLEM]
+    recorded = [real.load_real(r.folder) for r in loaded if r.kind == RECORDED]
+    folders = [r.folder for r in loaded if r.kind == SIMULATED]
     scenarios = load_scenarios(folders)
     _check_unique_names([*scenarios, *recorded])
     rows = summary_rows(scenarios)

@@ -24,7 +24,6 @@ from ..storage import (
     ResultsError,
     read_json,
     read_parquet,
-    sweep_folders,
 )
 from .document import Block, Cell, Heading, Paragraph, TableBlock
 from .plots import (
@@ -290,20 +289,3 @@ def section(data: SweepData, save: FigureSaver, within: float = 1.5, level: int 
     return out
 
 
-def find_sweeps(folders: list[Path]) -> list[Path]:
-    """The sweep folders among `folders` and their children."""
-    return [sweep for folder in folders for sweep in sweep_folders(folder)]
-
-
-def has_scenario_results(folders: list[Path]) -> bool:
-    """Whether any folder holds (or is) an ordinary scenario result, besides the sweeps."""
-
-    def is_result(p: Path) -> bool:
-        return (p / "manifest.json").is_file() and (p / "summary.parquet").is_file()
-
-    for folder in map(Path, folders):
-        if is_result(folder) or (
-            folder.is_dir() and any(is_result(p) for p in folder.iterdir() if p.is_dir())
-        ):
-            return True
-    return False

@@ -866,7 +866,7 @@ def write_report(
     loaded = find_results(results_dirs, out_dir, sweeps)
     swept = [sweep_report.read_sweep(r.folder) for r in loaded if r.kind == SWEEP]
     problem_results = [read_problem_result(r.folder) for r in loaded if r.kind == PROBLEM]
-    recorded = [real.load_real(r.folder) for r in loaded if r.kind == RECORDED]
+    recorded = [real.load_real(r) for r in loaded if r.kind == RECORDED]
     folders = [r.folder for r in loaded if r.kind == SIMULATED]
     scenarios = load_scenarios(folders)
     _check_unique_names([*scenarios, *recorded])

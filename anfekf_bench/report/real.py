@@ -29,7 +29,7 @@ import pandas as pd
 
 from ..analysis.metrics import format_number, format_share
 from ..config import FILTER_NAME_PATTERN
-from ..filters.registry import adapted_noise, role_of
+from ..filters.registry import role_of
 from ..storage import (
     AUDIT_FILES,
     COMPARISONS_FILE,
@@ -45,6 +45,7 @@ from ..storage import (
     scenario_name_problem,
 )
 from .audit import audit_blocks, nees_per_drive_blocks
+from .data import NOISE_COLUMNS, adapts_of
 from .document import Block, Cell, Heading, ListBlock, Paragraph, TableBlock
 from .plots import (
     FigureSaver,
@@ -241,22 +242,13 @@ def shown_filters(rd: RealData) -> list[str]:
 
 
 def adapts(rd: RealData, instance: dict) -> frozenset[str]:
-    """What a filter instance adapts: as the registry says for its spec (the scenario's entry
-    it was made from), or for a kind the spec cannot tell about, the noise whose recorded R/Qu
+    """What a filter instance adapts (data.adapts_of, as for a simulated filter): as the
+    registry says for the scenario's entry it was made from, else the noise whose recorded R/Qu
     vary."""
     specs = {s.get("name"): s for s in rd.manifest["scenario"].get("filters", [])}
-    declared = adapted_noise(specs.get(instance["base"], {"kind": instance["kind"]}))
-    if declared is not None:
-        return frozenset(declared)
+    spec = specs.get(instance["base"], {"kind": instance["kind"]})
     one = rd.steps[rd.steps["filter"] == instance["name"]]
-    found = set()
-    for letter, cols in (("R", ("R_rr", "R_bb")), ("Q", ("Q_vv", "Q_gg"))):
-        for col in cols:
-            values = one[col].to_numpy(float) if col in one else np.zeros(0)
-            values = values[np.isfinite(values)]
-            if values.size > 1 and values.max() - values.min() > 1e-9 * np.abs(values).max():
-                found.add(letter)
-    return frozenset(found)
+    return adapts_of(spec, lambda: {c: one[c].to_numpy(float) for c in NOISE_COLUMNS if c in one})
 
 
 def _nan_last(x: float) -> float:
@@ -639,7 +631,9 @@ def drives_heatmap_figure(rd: RealData):
     ref = rd.reference
     ratio = rm.div(rm.loc[ref], axis=1) if ref else rm
     ratio = ratio.drop(index=ref) if ref else ratio
-    fig, axes = _figure(1, 1, (1.6 + 0.62 * ratio.shape[1], 1.2 + 0.24 * ratio.shape[0]))
+    # at least the title's width and the colour bar's ticks' height, however few the drives
+    size = (max(6.0, 2.6 + 0.62 * ratio.shape[1]), max(3.2, 1.4 + 0.24 * ratio.shape[0]))
+    fig, axes = _figure(1, 1, size)
     ax = axes[0, 0]
     image = ratio_image(ax, ratio.to_numpy(float), gid="drives_heatmap")
     for (i, j), v in np.ndenumerate(ratio.to_numpy(float)):

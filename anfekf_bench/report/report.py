@@ -38,7 +38,7 @@ from ..analysis.metrics import (
 from ..analysis.statistics import Interval, interval_too_wide
 from ..analysis.tables import filter_arrays
 from ..config import NoiseSigmas
-from ..filters.registry import adapted_noise, role_of
+from ..filters.registry import role_of
 from ..models import control_covariance, measurement_covariance
 from ..problems.experiment import read_problem_result
 from ..storage import (
@@ -63,7 +63,6 @@ from . import suite as suite_report
 from . import sweep as sweep_report
 from .consistency import check_saved_result
 from .data import (
-    _ADAPTED,
     _NEEDED_COLUMNS,
     BAND_PERCENTILES,
     ELLIPSE_COUNT,
@@ -80,6 +79,7 @@ from .data import (
     ScenarioData,
     SummaryRow,
     Track,
+    adapts_of,
     first_of_kind,
 )
 from .document import (
@@ -190,28 +190,6 @@ def _filter_specs(manifest: dict, path: Path) -> dict[str, dict]:
     return by_name
 
 
-def _adapts(spec: dict, noise: dict[str, np.ndarray] | None = None) -> frozenset[str]:
-    """What a filter adapts: as the registry says for its kind and parameters; for a filter the
-    spec cannot tell about (a custom class, a kind this version does not know), the noise whose
-    recorded R/Qu columns vary (`noise`: column -> (runs, steps) values)."""
-    declared = adapted_noise(spec)
-    if declared is not None:
-        return frozenset(declared)
-    return frozenset(a for a, cols in _ADAPTED.items() if any(_varies(noise, c) for c in cols))
-
-
-def _varies(noise: dict[str, np.ndarray] | None, col: str) -> bool:
-    values = None if noise is None else noise.get(col)
-    if values is None or np.size(values) == 0:
-        return False
-    finite = np.asarray(values, dtype=float)
-    finite = finite[np.isfinite(finite)]
-    # a relative change well above rounding: a fixed filter stores one value for every step
-    return finite.size > 1 and float(finite.max() - finite.min()) > 1e-9 * float(
-        np.abs(finite).max()
-    )
-
-
 def _percentiles(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     lo, hi = np.percentile(values, BAND_PERCENTILES, axis=0)
     return lo, hi, np.median(values, axis=0)
@@ -265,7 +243,7 @@ def filter_series(steps: pd.DataFrame, name: str, spec: dict) -> FilterSeries:
     return FilterSeries(
         name=name,
         kind=str(spec.get("kind", "?")),
-        adapts=_adapts(spec, noise),
+        adapts=adapts_of(spec, noise),
         runs=len(ok),
         runs_used=n,
         t=np.asarray(a["t"], dtype=float),
@@ -476,7 +454,7 @@ def load_summary_only(folder: Path) -> ScenarioData:
             FilterSeries(
                 name=name,
                 kind=str(specs[name].get("kind", "?")),
-                adapts=_adapts(specs[name]),
+                adapts=adapts_of(specs[name]),
                 runs=record["runs"],
                 runs_used=record["runs_used"],
                 t=_NO_SERIES,

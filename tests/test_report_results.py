@@ -50,8 +50,11 @@ def _folder(root: Path, name: str, manifest: dict, tables: tuple[str, ...]) -> P
     return folder
 
 
-def simulated(root: Path, tables=(STEPS_FILE, RUNS_FILE, SUMMARY_PARQUET, COMPARISONS_FILE,
-                                   CLAIMS_FILE), **scenario) -> Path:  # fmt: skip
+SIMULATED_TABLES = (STEPS_FILE, RUNS_FILE, SUMMARY_PARQUET, COMPARISONS_FILE, CLAIMS_FILE)
+RECORDED_TABLES = (STEPS_FILE, RUNS_FILE, SUMMARY_PARQUET, SUMMARY_JSON, COMPARISONS_FILE)
+
+
+def simulated(root: Path, tables=SIMULATED_TABLES, **scenario) -> Path:
     filters = [{"name": "ekf", "kind": "ekf"}, {"name": "ekf-oracle", "kind": "ekf-oracle"},
                {"name": "anfekf", "kind": "anfekf"}]  # fmt: skip
     manifest = {"format": RESULT_FORMAT, "seed": 3, "fingerprint": "f" * 16,
@@ -59,14 +62,21 @@ def simulated(root: Path, tables=(STEPS_FILE, RUNS_FILE, SUMMARY_PARQUET, COMPAR
     return _folder(root, "sim", manifest, tables)
 
 
-def recorded(root: Path, protocol: str, tables=(STEPS_FILE, RUNS_FILE, SUMMARY_PARQUET,
-                                                SUMMARY_JSON, COMPARISONS_FILE)) -> Path:  # fmt: skip
-    instances = [{"name": "ekf x1", "base": "ekf", "kind": "ekf", "start": 1.0},
-                 {"name": "ekf-tuned", "base": "ekf-tuned", "kind": "ekf-tuned", "start": None},
-                 {"name": "sage-husa x4", "base": "sage-husa", "kind": "sage-husa", "start": 4}]
-    manifest = {"format": RESULT_FORMAT, "kind": "recorded", "protocol": protocol, "seed": 3,
-                "fingerprint": "f" * 16, "filters": instances,
-                "scenario": {"name": protocol, "filters": [{"name": "ekf", "kind": "ekf"}]}}
+def recorded(root: Path, protocol: str, tables=RECORDED_TABLES) -> Path:
+    instances = [
+        {"name": "ekf x1", "base": "ekf", "kind": "ekf", "start": 1.0},
+        {"name": "ekf-tuned", "base": "ekf-tuned", "kind": "ekf-tuned", "start": None},
+        {"name": "sage-husa x4", "base": "sage-husa", "kind": "sage-husa", "start": 4},
+    ]
+    manifest = {
+        "format": RESULT_FORMAT,
+        "kind": "recorded",
+        "protocol": protocol,
+        "seed": 3,
+        "fingerprint": "f" * 16,
+        "filters": instances,
+        "scenario": {"name": protocol, "filters": [{"name": "ekf", "kind": "ekf"}]},
+    }
     return _folder(root, protocol, manifest, tables)  # fmt: skip
 
 
@@ -108,7 +118,11 @@ def test_find_results_lists_every_kind_under_a_parent(tmp_path):
     problem(tmp_path)
     found = find_results([tmp_path])
     assert [(r.kind, r.folder.name) for r in found] == [
-        ("recorded", "drives"), ("simulated", "sim"), ("sweep", "sw"), ("problem", "lin")]
+        ("recorded", "drives"),
+        ("simulated", "sim"),
+        ("sweep", "sw"),
+        ("problem", "lin"),
+    ]
     # the report folder is left out
     assert [r.folder.name for r in find_results([tmp_path], out_dir=tmp_path / "sim")] == [
         "drives", "sw", "lin"]  # fmt: skip

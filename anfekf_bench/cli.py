@@ -714,9 +714,11 @@ def format_interval(estimate: float, lo: float, hi: float, digits: int = 3) -> s
 def print_comparisons(out: Console, target: Path) -> None:
     """The paired ratios (95 % bootstrap intervals) and the claims' verdicts of a result."""
     from .analysis.metrics import format_number
-    from .storage import CLAIMS_FILE, COMPARISONS_FILE, read_json, read_parquet
+    from .report.results import load_result
+    from .storage import CLAIMS_FILE, COMPARISONS_FILE
 
-    comparisons = read_parquet(target / COMPARISONS_FILE)
+    result = load_result(target)  # the report's one loader of results
+    comparisons = result.read(COMPARISONS_FILE)
     if len(comparisons):
         table = Table(
             title="paired ratios over runs, 95 % bootstrap interval (p: Wilcoxon signed-rank)",
@@ -739,7 +741,7 @@ def print_comparisons(out: Console, target: Path) -> None:
                 " discriminate",
                 highlight=False,
             )
-    claims = read_json(target / CLAIMS_FILE)
+    claims = result.read(CLAIMS_FILE)
     if claims:
         table = Table(title="claims (decided on the interval)", title_justify="left")
         for col in ("claim", "estimate [95 % interval]", "verdict", "note"):
@@ -786,7 +788,7 @@ def report(
     """Draw figures and tables of saved results: report.md and report.html (never re-runs)."""
     # Imported here so that `anfekf run` does not pay for matplotlib.
     from .report import HTML_FILE, REPORT_FILE, ImageFormat, rich_table, write_report
-    from .report.sweep import find_sweeps
+    from .report.results import find_sweeps
     from .storage import ResultsError
 
     warnings.showwarning = _one_line_warning  # a library's warning may quote a name

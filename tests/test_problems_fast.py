@@ -17,6 +17,7 @@ from typer.testing import CliRunner
 from anfekf_bench.cli import app
 from anfekf_bench.config import ScenarioError
 from anfekf_bench.filters.registry import supports_problem
+from anfekf_bench.problems.base import NotCompilable
 from anfekf_bench.problems.experiment import TABLES, read_problem_result, run_one
 from anfekf_bench.problems.schema import PROBLEM_KINDS, PROBLEMS, parse_problem_scenario
 
@@ -72,6 +73,10 @@ def test_the_compiled_loop_equals_the_python_filter(problem, kind, extra):
         base = scenario_of(problem, filters)
     except ScenarioError as exc:  # a kind the problem's instance cannot run (ALS: nonlinear)
         pytest.skip(str(exc))
+    try:
+        base.build_problem().compiled_model()
+    except NotCompilable as exc:  # tracking, for now: no compiled model (docs/PROBLEMS.md)
+        pytest.skip(f"{problem}: {exc}")
     # Wrong assumed noise, so that every adaptive family moves its estimate.
     python = with_assumed_noise(base, 0.2, 3.0)
     fast = python.model_copy(update={"engine": "fast"})

@@ -248,10 +248,11 @@ def _predict(f, F, G, p, x, P, Q, k):  # pragma: no cover - compiled
 # --- the loops -----------------------------------------------------------------------------------
 
 
-@njit((*MODEL_ARGS, A1, A2, A2, A2, A2, F64, I64, I64, I64, F64, F64), cache=True)
+@njit((*MODEL_ARGS, A1, A2, A2, A2, A2, F64, I64, I64, I64, A2, A2, F64), cache=True)
 def sage_husa_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, b, adapt_r, adapt_q, warmup,
-                  r_floor, q_floor):  # fmt: skip  # pragma: no cover - compiled
-    """(x, P, Q, R) of `SageHusaKF`: R's sample before the gain, Q's from the correction."""
+                  r_units, q_units, floor):  # fmt: skip  # pragma: no cover - compiled
+    """(x, P, Q, R) of `SageHusaKF`: R's sample before the gain, Q's from the correction, each
+    projected in units of its starting standard deviations (`r_units`, `q_units`)."""
     steps, n, nw, nz = z.shape[0], x0.shape[0], Q.shape[0], R.shape[0]
     xs, Ps = np.empty((steps, n)), np.empty((steps, n, n))
     Qs, Rs = np.empty((steps, nw, nw)), np.empty((steps, nz, nz))
@@ -265,7 +266,7 @@ def sage_husa_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, b, adapt_r, adapt_q
             d = 1.0 / (k + 1) if b == 1.0 else (1.0 - b) / (1.0 - b ** (k + 1))
             R_hat = (1.0 - d) * R_hat + d * (_outer(nu, nu) - _mmt(_mm(Hk, P), Hk))
             if k + 1 >= warmup:
-                R = _nearest_psd(R_hat, r_floor)
+                R = _nearest_psd(R_hat / r_units, floor) * r_units
         x_prior = x
         x, P = _joseph(x, P, nu, Hk, R)
         if adapt_q and k > 0:
@@ -277,7 +278,7 @@ def sage_husa_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, b, adapt_r, adapt_q
             d = 1.0 / (j + 1) if b == 1.0 else (1.0 - b) / (1.0 - b ** (j + 1))
             Q_hat = (1.0 - d) * Q_hat + d * _symmetric(sample)
             if k + 1 >= warmup:
-                Q = _nearest_psd(Q_hat, q_floor)
+                Q = _nearest_psd(Q_hat / q_units, floor) * q_units
         xs[k], Ps[k], Qs[k], Rs[k] = x, P, Q, R
         P_prev = P
         x, P, F_prev, G_prev = _predict(f, F, G, p, x, P, Q, k)
@@ -370,8 +371,8 @@ def als_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, Fm, Hm, K, pinv, lags, ev
 def ekf_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z):
     """(x, P) of `GenericKF.run` with fixed Q and R: Sage-Husa's loop adapting neither (one
     compiled loop fewer; the same arithmetic)."""
-    xs, Ps, _, _ = sage_husa_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, 1.0, 0, 0, 0, 0.0,
-                                 0.0)  # fmt: skip
+    xs, Ps, _, _ = sage_husa_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, 1.0, 0, 0, 0,
+                                 np.ones(R.shape), np.ones(Q.shape), 0.0)  # fmt: skip
     return xs, Ps
 
 

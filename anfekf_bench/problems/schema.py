@@ -1,6 +1,6 @@
-"""The scenario file of a problem beyond the robot (`problem: linear`; SPEC 17), validated
-strictly like every scenario: unknown keys, wrong shapes and non-positive covariances are
-one-line `ScenarioError`s naming the file and the field.
+"""The scenario file of a problem beyond the robot (`problem: linear`, `problem: tracking`;
+SPEC 17), validated strictly like every scenario: unknown keys, wrong shapes and non-positive
+covariances are one-line `ScenarioError`s naming the file and the field.
 
     name: survey
     problem: linear
@@ -8,6 +8,9 @@ one-line `ScenarioError`s naming the file and the field.
     system: {F: ..., H: ..., Q: ..., R: ..., steps: 1001}   # default: the survey's system
     filter_noise: {Q: [[1, 0], [0, 1]], R: [[1, 0], [0, 1]]}  # what the filters assume / start from
     filters: [{name: kf, kind: ekf}, {name: oracle, kind: ekf-oracle}, ...]
+
+`system:` is validated by the model of the scenario's problem (`SYSTEMS`): `LinearSystem`,
+`TrackingSystem` (problems.tracking_schema).
 
 A user's own problem (`problem: module`) names its Python file instead of `system`:
 `module: {file: pendulum.py}` (a path relative to the scenario file's folder, inside it;
@@ -34,16 +37,19 @@ from ..filters.registry import supports_problem, unsupported_reason
 from ..schema import StrictModel
 from ..storage import scenario_name_problem
 from .als import ALSSpec
+from .base import Problem
 from .filters import EKFSpec, Matrix, OracleSpec, SageHusaSpec, VBRSpec
 from .linear import SURVEY_F, SURVEY_H, SURVEY_Q, SURVEY_R, SURVEY_STEPS, LinearProblem
 from .ml import MLSpec
 from .module import ModuleProblem, ModuleProblemError
+from .tracking_schema import TrackingSystem
+from .tuned import TunedSpec
 
-PROBLEM_FILTER_SPECS = (EKFSpec, OracleSpec, SageHusaSpec, VBRSpec, ALSSpec, MLSpec)
+PROBLEM_FILTER_SPECS = (EKFSpec, OracleSpec, SageHusaSpec, VBRSpec, ALSSpec, MLSpec, TunedSpec)
 PROBLEM_KINDS = tuple(s.model_fields["kind"].annotation.__args__[0] for s in PROBLEM_FILTER_SPECS)
 AnyProblemFilter = Annotated[Union[PROBLEM_FILTER_SPECS], Field(discriminator="kind")]
 # Problems a scenario may name besides the robot (the default, `problem: robot` or absent).
-PROBLEMS = ("linear", "module")
+PROBLEMS = ("linear", "tracking", "module")
 MAX_DIM = 50
 MAX_STEPS = 10**6
 
@@ -171,8 +177,25 @@ class ModuleSystem(StrictModel):
 class AssumedNoise(StrictModel):
     """The noise the filters assume, and where the adaptive ones start."""
 
-    Q: Matrix | None = Field(None, description="assumed Q (default I)")
-    R: Matrix | None = Field(None, description="assumed R (default I)")
+    Q: Matrix | None = Field(
+        None, description="assumed Q (default: the problem's; linear: I, tracking: the true Q)"
+    )
+    R: Matrix | None = Field(
+        None, description="assumed R (default: the problem's; linear: I, tracking: the true R)"
+    )
+    Q_scale: Annotated[float, Field(gt=0, le=1e12, allow_inf_nan=False)] | None = Field(
+        None, description="assumed Q = this factor x the true Q (instead of Q)"
+    )
+    R_scale: Annotated[float, Field(gt=0, le=1e12, allow_inf_nan=False)] | None = Field(
+        None, description="assumed R = this factor x the true R (instead of R)"
+    )
+
+    @model_validator(mode="after")
+    def _one_way_each(self) -> AssumedNoise:
+        for key in ("Q", "R"):
+            if getattr(self, key) is not None and getattr(self, f"{key}_scale") is not None:
+                raise ValueError(f"{key} and {key}_scale: give one of them")
+        return self
 
 
 class ProblemTraining(StrictModel):
@@ -184,7 +207,7 @@ class ProblemScenario(StrictModel):
 
     name: str = Field(min_length=1, description="the result folder's name: OUT/<name>/")
     description: str = Field("", max_length=10_000)
-    problem: Literal["linear", "module"] = Field(
+    problem: Literal["linear", "tracking", "module"] = Field(
         description="the problem (robot: the default pipeline; module: a user's own, `module`)"
     )
     seed: int = Field(0, ge=0, le=MAX_SEED)
@@ -195,7 +218,10 @@ class ProblemScenario(StrictModel):
         description="filterpy: the filters as Python (the reference); fast: their loops compiled"
         " by numba (`--engine` overrides)",
     )
-    system: LinearSystem = LinearSystem()
+    system: LinearSystem | TrackingSystem | None = Field(
+        None, validate_default=True,
+        description="the true system, keys by problem (absent: the problem's default)",
+    )  # fmt: skip
     module: ModuleSystem | None = Field(None, description="problem: module's file")
     filter_noise: AssumedNoise = AssumedNoise()
     training: ProblemTraining = ProblemTraining()
@@ -208,6 +234,16 @@ class ProblemScenario(StrictModel):
         if problem:
             raise ValueError(problem)
         return name
+
+    @field_validator("system", mode="wrap")
+    @classmethod
+    def _system_of_the_problem(cls, value, handler, info: ValidationInfo):
+        model = SYSTEMS.get(info.data.get("problem"))
+        if model is None:  # the problem itself is wrong: that is the error reported
+            return value
+        if isinstance(value, model):
+            return value
+        return model.model_validate({} if value is None else value)
 
     @field_validator("filters")
     @classmethod
@@ -244,16 +280,25 @@ class ProblemScenario(StrictModel):
                     raise ValueError(f"filters.{i} ({spec.name}): {exc}") from None
         return self
 
-    def build_problem(self, steps: int | None = None) -> LinearProblem | ModuleProblem:
+    def build_problem(self, steps: int | None = None) -> Problem:
         if self.module is not None:
             return self.module.problem(steps)
         return self.system.problem(steps)
 
     def assumed_noise(self) -> tuple[np.ndarray, np.ndarray]:
-        p = self.build_problem()
-        Q = np.eye(p.nw) if self.filter_noise.Q is None else np.array(self.filter_noise.Q, float)
-        R = np.eye(p.nz) if self.filter_noise.R is None else np.array(self.filter_noise.R, float)
-        return Q, R
+        """(Q, R) the filters assume: filter_noise's matrices, or its factors on the true
+        ones, or the problem's default."""
+        p, noise = self.build_problem(), self.filter_noise
+        out = list(p.default_assumed())
+        for i, (key, true) in enumerate((("Q", p.Q), ("R", p.R))):
+            if getattr(noise, key) is not None:
+                out[i] = np.array(getattr(noise, key), float)
+            elif getattr(noise, f"{key}_scale") is not None:
+                out[i] = getattr(noise, f"{key}_scale") * true
+        return out[0], out[1]
+
+
+SYSTEMS: dict[str, type[StrictModel]] = {"linear": LinearSystem, "tracking": TrackingSystem}
 
 
 def is_problem_document(data: object) -> bool:

@@ -89,7 +89,8 @@ def test_the_compiled_loop_equals_the_python_filter(problem, kind, extra):
         want, got = getattr(py, key), getattr(fa, key)
         assert got.shape == want.shape
         np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9, err_msg=key)
-    if "R" in python.filters[0].estimated():  # the estimate moved: the test can fail
+    spec = python.filters[0]
+    if "R" in spec.estimated() and not spec.fits_on_training():  # moved: the test can fail
         assert not np.allclose(fa.R[-1], 3.0 * python.build_problem().R)
 
 

@@ -127,7 +127,7 @@ class EKFMLSpec(FittedNoiseSpec):
 
     kind: Literal["ekf-ml"]
     fast_family: ClassVar[str | None] = "anfekf"  # engines/families/anfekf.py
-    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
+    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking", "module"})
     criterion: ClassVar[str] = "likelihood"
     fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated", "own"})
 
@@ -138,6 +138,6 @@ class EKFTunedSpec(FittedNoiseSpec):
 
     kind: Literal["ekf-tuned"]
     fast_family: ClassVar[str | None] = "anfekf"  # engines/families/anfekf.py
-    robot_only_because: ClassVar[str] = "its grid search is over the robot's four noise sigmas"
+    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking"})
     criterion: ClassVar[str] = "rmse"
     fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated"})

@@ -395,8 +395,8 @@ def source_of(document: dict) -> Literal["simulated", "recorded"]:
 
 class TrainingConfig(_Strict):
     """Training runs for the filters fitted before the batch (`ekf-ml`, `ekf-tuned`,
-    `kalmannet`: see anfekf_bench.training). Their seeds come from a branch of the root seed
-    that no evaluation run draws from; unused when no filter of the scenario is fitted."""
+    `kalmannet`: see anfekf_bench.fitting.simulated). Their seeds come from a branch of the root
+    seed that no evaluation run draws from; unused when no filter of the scenario is fitted."""
 
     runs: int = Field(20, ge=1, le=10_000, description="training runs simulated for fitting")
 

@@ -50,7 +50,7 @@ WINDOW_S = 0.5  # odometry is compared with the truth over windows of this lengt
 LAGS_S = np.arange(0.0, 0.41, 0.05)  # the response lags tried (`response_lag`)
 BLOCK_S = 30.0  # the bootstrap's blocks (a turn lasts 1-3 s; the errors of a manoeuvre persist)
 RESAMPLES = 1000
-LOST_LOCK_M = 1.0  # as real_experiment.LOST_LOCK_M
+LOST_LOCK_M = 1.0  # as analysis.suite.LOST_LOCK_M
 LAGS = 10
 GAP_S = 2.0  # landmark gaps counted in the drive table are longer than this
 

@@ -47,6 +47,7 @@ from .analysis.tables import (
 from .config import BackendConfig, Engine, Scenario, SimulatedScenario, World
 from .filters.context import build_filter
 from .filters.custom import CustomFilterFailed, CustomSpec
+from .fitting.simulated import TrainingSet, fit_filters, fitted_filters
 from .outputs import (
     OutputExists,
     PlanError,
@@ -74,7 +75,6 @@ from .storage import (
     scenario_name_problem,
     write_json,
 )
-from .training import fit_filters, fitted_filters
 
 __all__ = ["FolderBusy", "OutputExists", "PlanError", "RUNS_DIR", "execute", "make_plan"]
 
@@ -361,7 +361,8 @@ def check_plan(plan: Plan) -> int:
 @dataclass(frozen=True)
 class SimulatedSource:
     """Runs simulated from the scenario's world: run i from the i-th child of the plan's seed
-    (SPEC 6); fitted filters are fitted on training runs of a disjoint seed branch (training)."""
+    (SPEC 6); fitted filters are fitted on training runs of a disjoint seed branch
+    (fitting.simulated)."""
 
     world: World
     runs: int
@@ -379,20 +380,11 @@ class SimulatedSource:
         }
 
     def training_fingerprint(self, plan: Plan, spec) -> str:
-        """Hash of everything a fitted filter's fit depends on (anfekf_bench.training): its own
-        parameters, the scenario's world, noise, start, gate, recording and training settings,
-        the seed and the code; not the evaluation runs, the other filters or the engine."""
-        fields = {"world", "true_noise", "filter_noise", "p0", "gate_probability", "training",
-                  "record_every"}  # fmt: skip
-        doc = {
-            "filter": spec.model_dump(mode="json", exclude={"name"}),
-            "scenario": plan.scenario.model_dump(mode="json", include=fields),
-            "seed": plan.seed,
-            "landmarks": self.world.landmarks.tolist(),
-            "waypoints": self.world.waypoints.tolist(),
-            "code": code_version(),
-        }
-        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+        """The cache key of a fitted filter's fit on the plan's training runs
+        (`fitting.simulated.TrainingSet.fingerprint`)."""
+        return TrainingSet(scenario=plan.scenario, world=self.world, seed=plan.seed).fingerprint(
+            spec
+        )
 
     def check(self, plan: Plan) -> int:
         """The fitted filters' training, the route (completed, long enough to record), a

@@ -470,7 +470,7 @@ def write_result_tables(
 
 
 # --------------------------------------------------------------------------------------------
-# Fitted filters' values in the run store (training.fit_filters, real_experiment's ekf-ml)
+# Fitted filters' values in the run store (the fits of anfekf_bench.fitting)
 
 FIT_FILE = "fit-{fingerprint}.json"
 FIT_FORMAT = "anfekf-bench fit v2"  # v2: with the SHA-256 of the fingerprint and the fit

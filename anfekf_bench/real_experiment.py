@@ -26,8 +26,6 @@
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import time
 from dataclasses import dataclass, replace
@@ -35,18 +33,22 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
-from joblib import Parallel, delayed
 
 from .analysis.metrics import nees_single_run
+from .analysis.suite import LOST_LOCK_M
 from .drive_audit import audit_tables
-from .engines.tuning import TimelineLikelihood, fit_noise, score_setting, unicycle_terms
-from .filters.context import recorded_context, recorded_p0
-from .filters.ekf import gate_threshold
-from .filters.fitted import EKFMLSpec, sigmas_problem
+from .filters.context import recorded_context
 from .filters.spec import FilterContext
+from .fitting.own import fit_on_own_innovations
+from .fitting.recorded import (
+    fit_on_drives,
+    fit_on_segments,
+    trained_filters,
+    tune_drives,
+    tune_segments,
+)
 from .models import Unicycle
-from .outputs import FIT_FILE, PlanError, code_version, read_cached_fit, write_fit
-from .real_training import fit_on_drives, fit_on_segments, trained_filters
+from .outputs import PlanError
 from .runner import Prepared, RunInputs, engine_of, pad_to, run_one
 from .sources import mrclam
 from .sources.recorded import (
@@ -56,10 +58,6 @@ from .sources.recorded import (
     Segment,
 )
 from .timeline import Timeline, timeline
-from .workers import local_workers
-
-LOST_LOCK_M = 1.0  # a run whose position error exceeds this at a scored time has lost lock
-
 
 # --------------------------------------------------------------------------------------------
 # Segments as filter inputs
@@ -124,397 +122,12 @@ def segment_inputs(rec, seg: Segment, eval_period_s: float | None = None) -> Seg
 
 
 # --------------------------------------------------------------------------------------------
-# 1. Tuning
-
-
-AXES = ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing")
-
-
-def _score_chunk(exps: np.ndarray, naive: np.ndarray, segs, P0, gate, T0) -> np.ndarray:
-    """(G, 5): sq_sum, count, max_err, n_updates, n_rejected of each setting over every training
-    segment (the tuning kernel, one setting at a time)."""
-    out = np.zeros((len(exps), 5))
-    terms = [unicycle_terms(s.timeline) for s in segs]
-    for g, e in enumerate(exps):
-        sig = naive * np.exp2(e)
-        for s, tk in zip(segs, terms, strict=True):
-            sq, mx, nu, nr, _ = score_setting(
-                s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth, s.scored, terms=tk
-            )
-            out[g] += (sq, int(s.scored.sum()), 0.0, nu, nr)
-            out[g, 2] = max(out[g, 2], mx)
-    return out
-
-
-def _score(exps: np.ndarray, naive, segs, P0, gate, T0, jobs: int) -> np.ndarray:
-    """`_score_chunk` with the settings dealt round-robin to `jobs` threads (the compiled kernel
-    releases the GIL: no worker processes to start, nothing to pickle)."""
-    parts = max(1, min(jobs, len(exps)))
-    if parts == 1:
-        return _score_chunk(exps, naive, segs, P0, gate, T0)
-    found = Parallel(n_jobs=parts, backend="threading")(
-        delayed(_score_chunk)(exps[i::parts], naive, segs, P0, gate, T0) for i in range(parts)
-    )
-    out = np.zeros((len(exps), 5))
-    for i, f in enumerate(found):
-        out[i::parts] = f
-    return out
-
-
-def _criterion(scores: np.ndarray) -> np.ndarray:
-    with np.errstate(all="ignore"):
-        rmse = np.sqrt(scores[:, 0] / scores[:, 1])
-    return np.where(np.isfinite(rmse), rmse, np.inf)
-
-
-def tune(scenario: RecordedScenario, rec: Recording, jobs: int = 1) -> dict:
-    """The grid search of `ekf-tuned` on the training segments (see the module doc).
-
-    Returns the chosen standard deviations (sigma_v, sigma_w_rad, sigma_range,
-    sigma_bearing_rad), their log2 multipliers of the naive values, the criterion there, the
-    stages (settings and best value of each), the share of coarse settings that lost lock (a
-    position error above 1 m) and the time it took.
-    """
-    started = time.perf_counter()
-    segs = [segment_inputs(rec, s) for s in rec.train_segments]
-    naive = scenario.naive.sigmas()
-    P0 = recorded_p0(scenario)
-    gate = gate_threshold(scenario.gate_probability)
-    T0 = scenario.odometry_period_s
-    axes = scenario.tuning.axes()
-    coarse = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 4)
-    scores = _score(coarse, naive, segs, P0, gate, T0, jobs)
-    crit = _criterion(scores)
-    all_exps, all_scores, all_crit = [coarse], [scores], [crit]
-    best = int(np.argmin(crit))
-    stages = [{"stage": "coarse (step 2^1)", "settings": len(coarse), "best": float(crit[best])}]
-    best_exp = coarse[best]
-    if scenario.tuning.refine:
-        offsets = np.stack(np.meshgrid(*[[-1.0, 0.0, 1.0]] * 4, indexing="ij"), -1).reshape(-1, 4)
-        for step, label in ((0.5, "2^(1/2)"), (0.25, "2^(1/4)")):
-            exps = best_exp + step * offsets
-            s = _score(exps, naive, segs, P0, gate, T0, jobs)
-            c = _criterion(s)
-            all_exps.append(exps)
-            all_scores.append(s)
-            all_crit.append(c)
-            stages.append({"stage": f"refine (step {label})", "settings": len(exps),
-                           "best": float(c.min())})  # fmt: skip
-            best_exp = np.vstack(all_exps)[int(np.argmin(np.concatenate(all_crit)))]
-    exps = np.vstack(all_exps)
-    crit = np.concatenate(all_crit)
-    scores = np.vstack(all_scores)
-    i = int(np.argmin(crit))
-    best_exp = exps[i]
-    sig = naive * np.exp2(best_exp)
-    seen = scores[i, 3] + scores[i, 4]
-    return {
-        "criterion": "pooled position RMSE over the scorable evaluation times of the training"
-        " segments [m]",
-        "sigma_v": float(sig[0]),
-        "sigma_w_rad": float(sig[1]),
-        "sigma_range": float(sig[2]),
-        "sigma_bearing_rad": float(sig[3]),
-        "log2_multipliers": {a: float(e) for a, e in zip(AXES, best_exp, strict=True)},
-        "train_rmse_pos": float(crit[i]),
-        "train_max_pos_err": float(scores[i, 2]),
-        "train_gate_rejected": float(scores[i, 4] / seen) if seen else math.nan,
-        "train_segments": len(segs),
-        "settings": int(len(exps)),
-        "coarse_lost_lock_share": float(np.mean(scores[: len(coarse), 2] > LOST_LOCK_M)),
-        "stages": stages,
-        "seconds": round(time.perf_counter() - started, 3),
-    }
-
-
-# --------------------------------------------------------------------------------------------
-# 1b. Tuning across drives (protocol drives, SPEC 15): the same grid and refinement as `tune`,
-# on whole drives, by branch and bound on the compiled tuning kernel (engines.tuning)
-
-
-def _bnb_chunk(exps: np.ndarray, naive, inputs, P0, gate, T0, bound: float) -> np.ndarray:
-    """(G, 5): sq_sum, max_err, n_updates, n_rejected, finished of each setting over all
-    `inputs`, stopping a setting once its sum passes the best complete sum seen (or `bound`)."""
-    out = np.zeros((len(exps), 5))
-    best = bound
-    terms = [unicycle_terms(s.timeline) for s in inputs]
-    for g, e in enumerate(exps):
-        sig = naive * np.exp2(e)
-        total, worst, upd, rej, finished = 0.0, 0.0, 0, 0, True
-        for s, tk in zip(inputs, terms, strict=True):
-            sq, mx, nu, nr, fin = score_setting(
-                s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth, s.scored,
-                best - total, terms=tk,
-            )  # fmt: skip
-            total, worst, upd, rej = total + sq, max(worst, mx), upd + nu, rej + nr
-            if not fin or not math.isfinite(total):
-                finished = finished and math.isfinite(total) and fin
-                break
-        out[g] = (total, worst, upd, rej, float(finished))
-        if finished and total < best:
-            best = total
-    return out
-
-
-def _bnb(exps: np.ndarray, naive, inputs, P0, gate, T0, jobs: int, bound: float) -> np.ndarray:
-    """`_bnb_chunk` with the settings dealt round-robin to `jobs` threads (as `_score`)."""
-    parts = max(1, min(jobs, len(exps)))
-    if parts == 1:
-        return _bnb_chunk(exps, naive, inputs, P0, gate, T0, bound)
-    found = Parallel(n_jobs=parts, backend="threading")(
-        delayed(_bnb_chunk)(exps[i::parts], naive, inputs, P0, gate, T0, bound)
-        for i in range(parts)
-    )
-    out = np.zeros((len(exps), 5))
-    for i, f in enumerate(found):
-        out[i::parts] = f
-    return out
-
-
-def _bnb_best(scores: np.ndarray) -> int:
-    """The setting with the smallest complete sum (every setting is scored at the same times)."""
-    crit = np.where(scores[:, 4] > 0, scores[:, 0], np.inf)
-    crit = np.where(np.isfinite(crit), crit, np.inf)
-    return int(np.argmin(crit))
-
-
-def tune_on_drives(
-    scenario: RecordedScenario, inputs: list[SegmentInputs], jobs: int = 1, seeds=()
-) -> dict:
-    """`tune`'s grid search (coarse grid, then 3^4 around the best with steps 2^(1/2) and
-    2^(1/4)) on whole drives. The criterion, the pooled position RMSE over every scored time of
-    `inputs`, has the same denominator for every setting, so the smallest sum of squares wins
-    and a setting stops once its partial sum passes the best complete one (branch and bound:
-    the same winner as scoring every setting in full). `seeds` (log2 multipliers) are scored
-    first, to start with a tight bound; the coarse grid then runs nearest the seeds first."""
-    started = time.perf_counter()
-    naive = scenario.naive.sigmas()
-    P0 = recorded_p0(scenario)
-    gate = gate_threshold(scenario.gate_probability)
-    T0 = scenario.odometry_period_s
-    count = int(sum(int(s.scored.sum()) for s in inputs))
-    coarse = np.stack(np.meshgrid(*scenario.tuning.axes(), indexing="ij"), -1).reshape(-1, 4)
-    seeds = np.array(seeds, dtype=float).reshape(-1, 4)
-    anchor = seeds[0] if len(seeds) else coarse.mean(axis=0)
-    coarse = coarse[np.argsort(np.abs(coarse - anchor).sum(axis=1), kind="stable")]
-    bound = math.inf
-    all_exps, all_scores, stages = [], [], []
-    if len(seeds):
-        sc = _bnb_chunk(seeds, naive, inputs, P0, gate, T0, bound)
-        all_exps.append(seeds)
-        all_scores.append(sc)
-        bound = float(sc[_bnb_best(sc), 0]) if np.any(sc[:, 4] > 0) else bound
-    sc = _bnb(coarse, naive, inputs, P0, gate, T0, jobs, bound)
-    all_exps.append(coarse)
-    all_scores.append(sc)
-    stopped = float(np.mean(sc[:, 4] == 0))
-    stages.append({"stage": "coarse (step 2^1)", "settings": len(coarse), "stopped_early": stopped})
-    if scenario.tuning.refine:
-        offsets = np.stack(np.meshgrid(*[[-1.0, 0.0, 1.0]] * 4, indexing="ij"), -1).reshape(-1, 4)
-        for step, label in ((0.5, "2^(1/2)"), (0.25, "2^(1/4)")):
-            exps, scores = np.vstack(all_exps), np.vstack(all_scores)
-            i = _bnb_best(scores)
-            sc = _bnb(exps[i] + step * offsets, naive, inputs, P0, gate, T0, jobs,
-                      float(scores[i, 0]))  # fmt: skip
-            all_exps.append(exps[i] + step * offsets)
-            all_scores.append(sc)
-            stages.append({"stage": f"refine (step {label})", "settings": len(offsets),
-                           "stopped_early": float(np.mean(sc[:, 4] == 0))})  # fmt: skip
-    exps, scores = np.vstack(all_exps), np.vstack(all_scores)
-    i = _bnb_best(scores)
-    sig = naive * np.exp2(exps[i])
-    seen = scores[i, 2] + scores[i, 3]
-    return {
-        "criterion": "pooled position RMSE over the scored evaluation times of the training"
-        " drives, whole [m]",
-        "sigma_v": float(sig[0]),
-        "sigma_w_rad": float(sig[1]),
-        "sigma_range": float(sig[2]),
-        "sigma_bearing_rad": float(sig[3]),
-        "log2_multipliers": {a: float(e) for a, e in zip(AXES, exps[i], strict=True)},
-        "train_rmse_pos": float(math.sqrt(scores[i, 0] / count)) if count else math.nan,
-        "train_max_pos_err": float(scores[i, 1]),
-        "train_gate_rejected": float(scores[i, 3] / seen) if seen else math.nan,
-        "settings": int(len(exps)),
-        "search": "branch and bound (engines.tuning): a setting stops once its sum of squared"
-        " errors passes the best complete one; the winner is the full grid's",
-        "stages": stages,
-        "seconds": round(time.perf_counter() - started, 3),
-    }
-
-
-def drive_rmse(scenario: RecordedScenario, inputs: SegmentInputs, tuned: dict) -> float:
-    """The position RMSE of the plain EKF with `tuned` noise on one drive (engines.tuning)."""
-    sig = [tuned[k] for k in ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")]
-    sq, *_ = score_setting(
-        inputs.timeline, inputs.segment.pose, recorded_p0(scenario), sig,
-        gate_threshold(scenario.gate_probability), scenario.odometry_period_s,
-        inputs.truth, inputs.scored,
-    )  # fmt: skip
-    n = int(inputs.scored.sum())
-    return float(math.sqrt(sq / n)) if n else math.nan
-
-
-def tune_drives(scenario: RecordedScenario, inputs: dict[str, SegmentInputs], world: DriveSet,
-                jobs: int = 1) -> tuple[dict[str, dict], dict]:  # fmt: skip
-    """ekf-tuned's noise for every drive (tuned on the drives of `scenario.tuning_sources` of
-    its dataset, never its own), and the manifest's account: each tuning, and per drive the
-    RMSE of the cross-dataset values against values tuned on its own dataset's drives (which
-    include the drive itself: in-sample, the most tuning can give on that map)."""
-    by_dataset: dict[int, list[str]] = {}
-    for d in world.drives:
-        by_dataset.setdefault(d.dataset, []).append(d.id)
-    keys = {tuple(scenario.tuning_sources(ds)) for ds in by_dataset}
-    keys |= {(ds,) for ds in by_dataset}
-    tunings: dict[tuple, dict] = {}
-    for key in sorted(keys, key=lambda k: (len(k), k)):  # single datasets first: they seed
-        drives = [d for ds in key for d in by_dataset[ds]]
-        seeds = [list(tunings[(ds,)]["log2_multipliers"].values()) for ds in key
-                 if (ds,) in tunings]  # fmt: skip
-        tunings[key] = tune_on_drives(scenario, [inputs[d] for d in drives], jobs, seeds)
-        tunings[key]["train_drives"] = drives
-    tuned_for, per_drive = {}, []
-    for d in world.drives:
-        cross = tunings[tuple(scenario.tuning_sources(d.dataset))]
-        tuned_for[d.id] = cross
-        per_drive.append(
-            {
-                "drive": d.id,
-                "dataset": d.dataset,
-                "tuned_on": cross["train_drives"],
-                "cross_rmse_pos": drive_rmse(scenario, inputs[d.id], cross),
-                "in_dataset_rmse_pos": drive_rmse(scenario, inputs[d.id], tunings[(d.dataset,)]),
-            }
-        )
-    doc = {
-        "protocol": "drives",
-        "tunings": {"+".join(map(str, k)): v for k, v in tunings.items()},
-        "per_drive": per_drive,
-        "seconds": round(sum(t["seconds"] for t in tunings.values()), 3),
-    }
-    return tuned_for, doc
-
-
-# --------------------------------------------------------------------------------------------
-# 1c. ekf-ml: each run's noise fitted on that run's own innovations, never its ground truth
-
-NOISE_KEYS = ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")
-
-
-@dataclass(frozen=True, eq=False)
-class OwnInnovations:
-    """What `EKFMLSpec.fit` gets on recorded data (in place of the simulated training runs): one
-    run's landmark innovations under the unicycle EKF (`engines.tuning.TimelineLikelihood`, which
-    holds no ground truth) and the naive sigmas its Nelder-Mead starts multiply."""
-
-    problem: TimelineLikelihood
-    naive: np.ndarray
-
-    def fit_noise(self, criterion: str, starts: list[float], max_evaluations: int) -> dict:
-        if criterion != "likelihood":  # only the likelihood needs no truth
-            raise ValueError(f"a recorded run's own data fits the likelihood, not {criterion!r}")
-        found = fit_noise(self.problem, criterion, self.naive, starts, max_evaluations)
-        sigmas = found.pop("sigmas")
-        found["at_fit"] = found.pop("training")
-        return {**dict(zip(NOISE_KEYS, sigmas, strict=True)), **found}
-
-
-def own_fit_problem(fitted: dict) -> str | None:
-    """Why a cached fit of one run's own innovations (what `OwnInnovations.fit_noise` returns)
-    cannot be used: its four sigmas, each a number whose square is finite and positive."""
-    return sigmas_problem(fitted, NOISE_KEYS, "")
-
-
-def own_innovations(scenario: RecordedScenario, inputs: SegmentInputs) -> OwnInnovations:
-    """The objective of `ekf-ml` on one run: its timeline from its cold start (the start pose,
-    as every filter's), with the scenario's P0, gate and T0; `inputs.truth` is not passed on."""
-    problem = TimelineLikelihood.of(
-        inputs.timeline, inputs.segment.pose, recorded_p0(scenario),
-        gate_threshold(scenario.gate_probability), scenario.odometry_period_s,
-    )  # fmt: skip
-    return OwnInnovations(problem, scenario.naive.sigmas())
-
-
-def own_fit_fingerprint(spec, own: OwnInnovations) -> str:
-    """Hash of what one run's fit depends on: the filter's parameters, the run's timeline and
-    start, P0, the gate, T0, the naive sigmas and the code (not the ground truth)."""
-    pr = own.problem
-    h = hashlib.sha256()
-    doc = {
-        "filter": spec.model_dump(mode="json", exclude={"name"}),
-        "P0": pr.P0.tolist(), "gate": pr.gate, "T0": pr.T0, "naive": own.naive.tolist(),
-        "x0": pr.x0.tolist(), "code": code_version(),
-    }  # fmt: skip
-    h.update(json.dumps(doc, sort_keys=True).encode())
-    for a in (pr.dt, pr.u, pr.lm, pr.z, pr.xy):
-        h.update(np.ascontiguousarray(a).tobytes())
-    return h.hexdigest()[:16]
-
-
-def _fit_own(spec, own: OwnInnovations) -> dict:
-    return spec.fit(own)
-
-
-def fit_on_own_innovations(
-    scenario: RecordedScenario, inputs: list[SegmentInputs], labels: list[str],
-    cache_dir: Path | None, jobs: int = 1,
-) -> tuple[dict[int, dict[str, dict]], dict]:  # fmt: skip
-    """Every `ekf-ml` filter of the scenario fitted on each run's own innovations (`inputs`, in
-    run order; `labels` name them: drive ids or segment numbers), the fits spread over `jobs`
-    processes, each cached in `cache_dir` by its fingerprint (a resumed batch does not refit).
-    Returns, per run index, the noise of each ekf-ml instance (instance name -> the sigma keys
-    of `noise_sigmas`), and the manifest's account of every fit and its cost."""
-    specs = [spec for spec in scenario.filters if isinstance(spec, EKFMLSpec)]
-    if not specs:
-        return {}, {}
-    started = time.perf_counter()
-    todo, found = [], {}
-    for spec in specs:
-        for inp in inputs:
-            own = own_innovations(scenario, inp)
-            fp = own_fit_fingerprint(spec, own)
-            path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fp)
-            cached = None if path is None else read_cached_fit(path, fp, own_fit_problem)
-            found[spec.name, inp.segment.index] = (fp, cached is not None, cached)
-            if cached is None:
-                todo.append((spec, inp.segment.index, own, fp, path))
-    if todo:
-        with local_workers():
-            fits = Parallel(n_jobs=max(1, min(jobs, len(todo))))(
-                delayed(_fit_own)(spec, own) for spec, _, own, _, _ in todo
-            )
-        for (spec, run, _, fp, path), fitted in zip(todo, fits, strict=True):
-            if path is not None:
-                write_fit(path, fp, fitted)
-            found[spec.name, run] = (fp, False, fitted)
-    noise: dict[int, dict[str, dict]] = {}
-    record = {}
-    for spec in specs:
-        runs = []
-        for inp, label in zip(inputs, labels, strict=True):
-            fp, cached, fitted = found[spec.name, inp.segment.index]
-            noise.setdefault(inp.segment.index, {})[spec.name] = fitted
-            runs.append({"run": inp.segment.index, "label": label, "fingerprint": fp,
-                         "cached": cached, **fitted})  # fmt: skip
-        record[spec.name] = {
-            "kind": spec.kind,
-            "criterion": "innovation negative log-likelihood of the run itself: sum over every"
-            " associated landmark measurement (accepted by the gate or not) of log|S| +"
-            " nu^T S^-1 nu, per measurement; the filter gates as it runs",
-            "uses": "each run's own odometry and landmark measurements; never its ground truth"
-            " (the start pose is the run's cold start, as for every filter)",
-            "runs": runs,
-        }
-    seconds = round(time.perf_counter() - started, 3)
-    return noise, {"filters": record, "seconds": seconds, "fitted_now": len(todo)}
-
-
-# --------------------------------------------------------------------------------------------
 # 2. The held-out segments
 
 
 def noise_sigmas(noise: dict) -> tuple[float, float, float, float]:
-    """(sv, sw, sr, sb) of a tuned or fitted noise record (`tune`, `fit_on_own_innovations`)."""
+    """(sv, sw, sr, sb) of a tuned or fitted noise record (`fitting.recorded.tune`,
+    `fitting.own.fit_on_own_innovations`)."""
     return noise["sigma_v"], noise["sigma_w_rad"], noise["sigma_range"], noise["sigma_bearing_rad"]
 
 
@@ -685,16 +298,17 @@ class RecordedSource:
 def _prepare_segments(plan, rec: Recording, store: Path, progress) -> Prepared:
     scenario = plan.scenario
     # Trained filters (kalmannet): fitted on the training segments only (or the cache).
+    tunes = scenario.reference() is not None
     learns = bool(trained_filters(scenario))
-    training = [segment_inputs(rec, s) for s in rec.train_segments] if learns else []
+    training = [segment_inputs(rec, s) for s in rec.train_segments] if learns or tunes else []
     run_scenario, trained = fit_on_segments(scenario, rec, training, store, progress)
     action = ""
     for name in trained:
         how = "read from the cache" if trained[name]["train"]["cached"] else "trained"
         action += f"; {name} {how} on the training segments"
     tuned = None
-    if scenario.reference() is not None:
-        tuned = tune(scenario, rec, plan.jobs)
+    if tunes:
+        tuned = tune_segments(scenario, rec, training, plan.jobs)
         action += (
             f"; ekf-tuned on {tuned['train_segments']} training segments"
             f" ({tuned['settings']} settings, {tuned['seconds']:.1f} s): sigma_v"

@@ -18,14 +18,9 @@ from anfekf_bench.engines.events import run_filter_events, timeline
 from anfekf_bench.engines.tuning import score_setting
 from anfekf_bench.filters.ekf import RobotEKF, gate_threshold
 from anfekf_bench.filters.spec import FilterContext
+from anfekf_bench.fitting.recorded import _bnb_chunk, tune_on_drives
 from anfekf_bench.models import Unicycle
-from anfekf_bench.real_experiment import (
-    SegmentInputs,
-    _bnb_chunk,
-    segment_inputs,
-    thin_records,
-    tune_on_drives,
-)
+from anfekf_bench.real_experiment import SegmentInputs, segment_inputs, thin_records
 from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources import mrclam as m
 from anfekf_bench.sources.recorded import Segment, parse_real_scenario

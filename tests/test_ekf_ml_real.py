@@ -1,5 +1,5 @@
 """`ekf-ml` on recorded data (issue 25): the EKF whose noise maximises the innovation likelihood of
-the very run it is scored on, never its ground truth (real_experiment.fit_on_own_innovations on
+the very run it is scored on, never its ground truth (fitting.own.fit_on_own_innovations on
 engines.tuning's kernel)."""
 
 from __future__ import annotations
@@ -15,13 +15,9 @@ from anfekf_bench.engines.events import run_filter_events, timeline
 from anfekf_bench.engines.tuning import DIVERGED, TimelineLikelihood, fit_noise
 from anfekf_bench.filters.ekf import RobotEKF, gate_threshold
 from anfekf_bench.filters.fitted import EKFMLSpec
+from anfekf_bench.fitting.own import fit_on_own_innovations, own_innovations
 from anfekf_bench.models import Unicycle
-from anfekf_bench.real_experiment import (
-    SegmentInputs,
-    fit_on_own_innovations,
-    own_innovations,
-    recorded_run,
-)
+from anfekf_bench.real_experiment import SegmentInputs, recorded_run
 from anfekf_bench.sources import mrclam as m
 from anfekf_bench.sources.recorded import Segment, parse_real_scenario
 

@@ -559,11 +559,14 @@ def test_paper_scenario(name):
     _check_paper(name, 1, extra=(VARIANTS["anfekf-RQ"],))
 
 
+# Runs differ only in their draws: `make test` checks 3 of each paper scenario, `make test-all`
+# (heavy) 10.
 @pytest.mark.slow
+@pytest.mark.parametrize("runs", [3, pytest.param(10, marks=pytest.mark.heavy)])
 @pytest.mark.parametrize("name", PAPER)
-def test_paper_scenario_many_runs(name):
+def test_paper_scenario_many_runs(name, runs):
     extra = tuple(VARIANTS[k] for k in ("anfekf-R", "anfekf-Q", "anfekf-RQ", "from-accepted"))
-    _check_paper(name, 10, extra=extra)
+    _check_paper(name, runs, extra=extra)
 
 
 @pytest.mark.slow

@@ -1,4 +1,4 @@
-"""Filters fitted on training runs (anfekf_bench.training, filters.fitted, engines.tuning):
+"""Filters fitted on training runs (anfekf_bench.fitting.simulated, filters.fitted, engines.tuning):
 `ekf-ml` (innovation likelihood, no truth) and `ekf-tuned` (position RMSE, truth) on simulated
 scenarios; training seeds disjoint from evaluation; the fit cached in the run store, recorded in
 the manifest, handed to the workers."""
@@ -20,9 +20,14 @@ from anfekf_bench.experiment import execute, make_plan
 from anfekf_bench.filters.context import build_filter, filter_context
 from anfekf_bench.filters.ekf import RobotEKF
 from anfekf_bench.filters.fitted import EKFMLSpec, EKFTunedSpec, FilterNotFitted
+from anfekf_bench.fitting.simulated import (
+    TRAINING_BRANCH,
+    fit_filters,
+    simulate_training,
+    training_seeds,
+)
 from anfekf_bench.runner import run_tasks, simulate
 from anfekf_bench.storage import MANIFEST_FILE, RUNS_DIR
-from anfekf_bench.training import TRAINING_BRANCH, fit_filters, simulate_training, training_seeds
 
 from .conftest import small_scenario
 
@@ -266,7 +271,7 @@ def test_a_recorded_log_keeps_its_own_ekf_tuned_and_fits_ekf_ml_on_its_own_runs(
 def test_two_noise_fits_run_their_starts_in_one_batch_with_the_same_fits(monkeypatch):
     """With workers, ekf-ml's and ekf-tuned's Nelder-Mead starts run in one batch
     (TrainingSet.prepare_noise_fits): the fits are those of one process, start by start."""
-    from anfekf_bench.training import TrainingSet, fit_filters
+    from anfekf_bench.fitting.simulated import TrainingSet, fit_filters
 
     scenario, world = _scenario(training_runs=2)
     batches = []

@@ -530,8 +530,14 @@ def test_pyarrow_reads_native_files_only(claimed, monkeypatch) -> None:
     assert not python_files, python_files
 
 
+# The crash this guards against (exit 134 at interpreter exit, arrow#33975) was intermittent; its
+# cause is pinned deterministically by the test above. `make test` repeats the round trip 5 times,
+# `make test-all` (heavy) 20 times.
 @pytest.mark.slow
-def test_a_one_filter_result_is_written_and_read_back_20_times_with_exit_0(tmp_path) -> None:
+@pytest.mark.parametrize(
+    "repeats", [5, pytest.param(20, marks=pytest.mark.heavy)], ids=["5-times", "20-times"]
+)
+def test_a_one_filter_result_is_written_and_read_back_with_exit_0(tmp_path, repeats) -> None:
     doc = small_scenario(runs=1, record_every=50, name="one")
     doc["world"] = {"landmarks": [[10, 8], [25, -6]], "waypoints": [[20, 0]]}
     doc["filters"] = [{"name": "ekf", "kind": "ekf"}]
@@ -541,7 +547,7 @@ def test_a_one_filter_result_is_written_and_read_back_20_times_with_exit_0(tmp_p
         "import sys; from anfekf_bench.storage import read_parquet, read_manifest;"
         " read_parquet(sys.argv[1] + '/steps.parquet'); read_manifest(sys.argv[1])"
     )
-    for i in range(20):
+    for i in range(repeats):
         run = subprocess.run([*ANFEKF, "run", str(path), "--out", str(out), "--force"],
                              capture_output=True, text=True)  # fmt: skip
         assert run.returncode == 0, (i, run.returncode, run.stderr[-500:])

@@ -281,7 +281,7 @@ def _fit_scenario():
 @pytest.fixture(scope="module")
 def fitted_cache(tmp_path_factory):
     """A real ekf-ml fit and its cache file (fitted once for the module)."""
-    from anfekf_bench.training import fit_filters
+    from anfekf_bench.fitting.simulated import fit_filters
 
     scenario, world = _fit_scenario()
     plan = make_plan(scenario, world, None, None, 1)
@@ -339,8 +339,8 @@ def test_a_tampered_noise_fit_cache_is_refitted_with_a_warning(tmp_path, fitted_
     import json
 
     from anfekf_bench.filters.fitted import EKFMLSpec
+    from anfekf_bench.fitting.simulated import fit_filters
     from anfekf_bench.outputs import CachedFitRefused
-    from anfekf_bench.training import fit_filters
 
     plan, name, good_bytes, good_fit = fitted_cache
     (tmp_path / name).write_bytes(NOISE_FIT_TAMPERED[case](json.loads(good_bytes)))
@@ -366,7 +366,7 @@ def test_an_intact_fit_cache_is_used_without_a_word(tmp_path, fitted_cache, monk
     import warnings
 
     from anfekf_bench.filters.fitted import EKFMLSpec
-    from anfekf_bench.training import fit_filters
+    from anfekf_bench.fitting.simulated import fit_filters
 
     plan, name, good_bytes, good_fit = fitted_cache
     (tmp_path / name).write_bytes(good_bytes)
@@ -589,7 +589,7 @@ def test_the_estimate_is_of_the_order_of_what_training_takes(tmp_path):
     import tracemalloc
 
     from anfekf_bench.experiment import training_memory_estimate
-    from anfekf_bench.training import simulate_training
+    from anfekf_bench.fitting.simulated import simulate_training
 
     def used(plan) -> int:
         tracemalloc.start()

@@ -19,9 +19,9 @@ from anfekf_bench.engines.filterpy_engine import run_filter
 from anfekf_bench.filters.context import build_filter, filter_context
 from anfekf_bench.filters.kalmannet import INSTALL_HINT, KalmanNetSpec, KalmanNetWeights
 from anfekf_bench.filters.registry import KINDS
+from anfekf_bench.fitting.simulated import training_seeds
 from anfekf_bench.runner import simulate
 from anfekf_bench.sources.simulator import world_path
-from anfekf_bench.training import training_seeds
 
 from .conftest import small_scenario, write_scenario
 
@@ -296,7 +296,7 @@ def test_a_non_finite_gain_marks_the_run_diverged(tiny_robot):
 
 
 # ---------------------------------------------------------------------------------------------
-# Trained by `anfekf run` itself: the training-runs mechanism (anfekf_bench.training)
+# Trained by `anfekf run` itself: the training-runs mechanism (anfekf_bench.fitting.simulated)
 
 
 class _Stop(Exception):

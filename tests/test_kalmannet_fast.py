@@ -124,8 +124,8 @@ def test_a_non_finite_posterior_diverges_at_the_same_stamp_on_both_engines(drive
 
 
 def test_the_fitted_weights_reach_the_kernel_through_with_fit(drive):
-    """The simulated (training.py) and recorded (real_training.py) trainings hand the workers
-    `spec.with_fit(fitted)`: the kernel runs those weights, bytes for bytes."""
+    """The simulated (fitting/simulated.py) and recorded (fitting/recorded.py) trainings hand the
+    workers `spec.with_fit(fitted)`: the kernel runs those weights, bytes for bytes."""
     ctx, tl = drive
     weights = KalmanNetWeights.random(hidden_size=8, seed=6)
     raw = weights.to_bytes()

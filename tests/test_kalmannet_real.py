@@ -22,9 +22,9 @@ from anfekf_bench.engines.events import run_filter_events  # noqa: E402
 from anfekf_bench.filters import kalmannet_train as kt  # noqa: E402
 from anfekf_bench.filters.kalmannet import INSTALL_HINT, KalmanNetSpec  # noqa: E402
 from anfekf_bench.filters.spec import FilterContext  # noqa: E402
+from anfekf_bench.fitting.recorded import fit_on_drives  # noqa: E402
 from anfekf_bench.models import Unicycle  # noqa: E402
 from anfekf_bench.real_experiment import segment_inputs  # noqa: E402
-from anfekf_bench.real_training import fit_on_drives  # noqa: E402
 from anfekf_bench.sources import mrclam as m  # noqa: E402
 from anfekf_bench.sources.recorded import Segment, parse_real_scenario  # noqa: E402
 
@@ -185,7 +185,7 @@ def learned(fitted: dict) -> dict:
 
 
 def fit_folds(scenario, stretches, monkeypatch):
-    monkeypatch.setattr("anfekf_bench.real_training.log_digest", lambda log: "fixed")
+    monkeypatch.setattr("anfekf_bench.fitting.recorded.log_digest", lambda log: "fixed")
     return fit_on_drives(scenario, two_drive_world(stretches), stretches, None)
 
 
@@ -220,7 +220,7 @@ def test_each_fold_trains_on_the_other_datasets_drive_only_and_deterministically
 
 def test_a_fold_is_read_from_the_cache(stretches, monkeypatch, tmp_path):
     scenario = fold_scenario(epochs=1)
-    monkeypatch.setattr("anfekf_bench.real_training.log_digest", lambda log: "fixed")
+    monkeypatch.setattr("anfekf_bench.fitting.recorded.log_digest", lambda log: "fixed")
     world = two_drive_world(stretches)
     _, first = fit_on_drives(scenario, world, stretches, tmp_path)
     assert len(list(tmp_path.glob("fit-*.json"))) == 2
@@ -228,7 +228,7 @@ def test_a_fold_is_read_from_the_cache(stretches, monkeypatch, tmp_path):
     def refuse(*a, **k):
         raise AssertionError("a cached fold was trained again")
 
-    monkeypatch.setattr(KalmanNetSpec, "fit_recorded", refuse)
+    monkeypatch.setattr(KalmanNetSpec, "fit", refuse)
     _, second = fit_on_drives(scenario, world, stretches, tmp_path)
     assert all(second["kn"][k]["cached"] for k in ("6", "7"))
     assert [second["kn"][k]["fitted"] for k in ("6", "7")] == [

@@ -22,8 +22,9 @@ from anfekf_bench.cli import app
 from anfekf_bench.config import ScenarioError
 from anfekf_bench.engines.events import run_filter_events, timeline
 from anfekf_bench.filters.ekf import RobotEKF, gate_threshold
+from anfekf_bench.fitting.recorded import _score, tune
 from anfekf_bench.models import Unicycle, measurement_covariance, wrap_angle
-from anfekf_bench.real_experiment import _score, recorded_run, segment_inputs, tune
+from anfekf_bench.real_experiment import recorded_run, segment_inputs
 from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources import mrclam as m
 from anfekf_bench.sources import user_log
@@ -465,7 +466,7 @@ def test_a_broken_user_log_is_a_one_line_error(tmp_path):
 
 def test_tuning_picks_the_best_setting_of_the_grid(tmp_path):
     scenario, rec = load_scenario(user_scenario(tmp_path, fmt="parquet"))
-    found = tune(scenario, rec)
+    found = tune(scenario, [segment_inputs(rec, s) for s in rec.train_segments])
     assert found["settings"] == 4 and found["stages"][0]["best"] == found["train_rmse_pos"]
     assert found["train_rmse_pos"] == pytest.approx(found["stages"][0]["best"])
     assert json.dumps(found)  # plain data for the manifest

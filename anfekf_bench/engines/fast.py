@@ -34,7 +34,7 @@ from ..config import World
 from ..filters.akhlaghi import AkhlaghiSpec
 from ..filters.als import ALSSpec
 from ..filters.anfekf import ANFEKFSpec
-from ..filters.augmented import PARAMETERS, AugmentedSpec
+from ..filters.augmented import PARAMETERS, AugmentedSpec, augment_of
 from ..filters.bank import IMMSpec, MMAESpec, hypotheses
 from ..filters.ekf import EKFSpec
 from ..filters.fading import FadingSpec
@@ -135,12 +135,12 @@ def run_filter_fast(
     R = np.full((n, 2), np.nan)
     Qu = np.full((n, 2), np.nan)
     # Without numba the modules' own kernels are already plain Python.
+    if augment_of(spec) is not None:  # ekf-aug, or a family's `augment:`
+        return run_augmented(spec, ctx, run, x, P, R, Qu, n, jit)[0]
     if families.for_spec(spec) is not None:
         return _run_family(spec, ctx, run, x, P, R, Qu, n, jit)
     if isinstance(spec, KalmanNetSpec):
         return _run_kalmannet(spec, ctx, run, x, P, R, Qu, n, jit)
-    if isinstance(spec, AugmentedSpec):
-        return run_augmented(spec, ctx, run, x, P, R, Qu, n, jit)[0]
     if isinstance(spec, ALSSpec):
         ka = _jit_kernels_als.pure_module() if (JIT and not jit) else _jit_kernels_als
         diverged, j, nis_sum, n_updates, n_rejected = ka.run_als_kernel(
@@ -241,25 +241,27 @@ def _run_kalmannet(spec: KalmanNetSpec, ctx: FilterContext, run: tuple, x, P, R,
     return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
 
 
-def run_augmented(spec: AugmentedSpec, ctx: FilterContext, run: tuple, x, P, R, Qu, n, jit):
-    """filters.augmented.AugmentedEKF on `kernels_augmented.run_augmented_kernel`: the run's
-    dict and the four parameters at the recorded stamps, (n, 4)."""
+def run_augmented(spec: FilterSpec, ctx: FilterContext, run: tuple, x, P, R, Qu, n, jit):
+    """filters.augmented.AugmentedEKF (or an adaptive family's filter with `augment:`) on
+    `kernels_augmented.run_augmented_kernel`: the run's dict and the four parameters at the
+    recorded stamps, (n, 4)."""
     ka = _jit_kernels_augmented.pure_module() if (JIT and not jit) else _jit_kernels_augmented
+    aug = augment_of(spec)
     theta = np.full((n, 4), np.nan)
     diverged, j, nis_sum, n_updates, n_rejected = ka.run_augmented_kernel(
         *_common_args(ctx, run),
-        np.array(spec.estimated(), dtype=np.int64), np.array(spec.start, dtype=float),
-        np.array(spec.sigma0, dtype=float), np.array(spec.drift, dtype=float),
-        run[-1], x, P, R, Qu, theta,
+        np.array(aug.estimated(), dtype=np.int64), np.array(aug.start, dtype=float),
+        np.array(aug.sigma0, dtype=float), np.array(aug.drift, dtype=float),
+        _jit_kernels_augmented.rule_params(spec), run[-1], x, P, R, Qu, theta,
     )  # fmt: skip
     if diverged:
         theta[j:] = np.nan
     return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected), theta
 
 
-def augmented_run(spec: AugmentedSpec, ctx: FilterContext, tl: Timeline, *, jit: bool = True):
-    """`run_filter_fast` of an `ekf-aug` and its parameter estimates at the recorded stamps
-    (n, 4: speed scale, turn scale, turn bias, range bias)."""
+def augmented_run(spec: FilterSpec, ctx: FilterContext, tl: Timeline, *, jit: bool = True):
+    """`run_filter_fast` of an `ekf-aug` (or a family's `augment:`) and its parameter estimates
+    at the recorded stamps (n, 4: speed scale, turn scale, turn bias, range bias)."""
     motion = _motion(ctx.model)
     if motion is None:
         raise ValueError(f"the fast engine does not implement {type(ctx.model)}")

@@ -18,7 +18,10 @@ import math
 
 import numpy as np
 
+from ..filters import adaptive as _adaptive
 from ..filters import augmented as _aug
+from ..filters import sage_husa as _sh
+from ..filters import vb as _vb
 from . import kernels as _kernels
 
 _PURE_COPY: bool = globals().get("_PURE", False)
@@ -28,16 +31,28 @@ maybe_njit = _k.maybe_njit
 jacobians = _k.jacobians
 noise_scale = _k.noise_scale
 wrap = _k.wrap
+feeds_adaptation = _k.feeds_adaptation
 MOTION_BICYCLE, MOTION_UNICYCLE = _k.MOTION_BICYCLE, _k.MOTION_UNICYCLE
 
 if JIT and not _PURE_COPY:
     from numba.extending import register_jitable
 
-    for _rule in (_aug.true_controls, _aug.control_derivative):
+    for _rule in (
+        _aug.true_controls, _aug.control_derivative, _adaptive.clip_to_bounds, _sh.r_sample,
+        _sh.fading_mean, _sh.next_beta, _vb.vb_r_predict, _vb.vb_r_beta, _vb.vb_r_bounded_beta,
+    ):  # fmt: skip
         register_jitable(_rule)
 
 true_controls = _aug.true_controls
 control_derivative = _aug.control_derivative
+clip_to_bounds = _adaptive.clip_to_bounds
+r_sample, fading_mean, next_beta = _sh.r_sample, _sh.fading_mean, _sh.next_beta
+vb_r_predict, vb_r_beta, vb_r_bounded_beta = _vb.vb_r_predict, _vb.vb_r_beta, _vb.vb_r_bounded_beta
+
+# The R rule the state is combined with (`augment:` on an adaptive family's spec), and the
+# layout of its parameters `rp` (float64, 8): rule, adaptation, adapt_from all, floor,
+# ceiling, then Sage-Husa's b, warmup or VB-R's rho, iterations, alpha0.
+RULE_NONE, RULE_SAGE_HUSA, RULE_VB_R = 0, 1, 2
 
 
 def pure_module():
@@ -85,23 +100,170 @@ def _parameters(x, theta0, est):
     return theta
 
 
+# -- the R rules on the augmented state (filters.sage_husa.SageHusaEKF, filters.vb.VBREKF with
+# filters.augmented.AugmentedState first in their method order); their state `rs` (float64,
+# 12): Sage-Husa: beta, events, d, R at the scan's start (2), sums of samples (2), landmarks
+# fed, R_hat (2); VB-R: alpha (2), beta (2). R (4, row-major) is changed in place.
+
+
+@maybe_njit
+def rule_start(rp, R):
+    rs = np.zeros(12)
+    if rp[0] == RULE_SAGE_HUSA:
+        rs[0] = 1.0
+        rs[8] = R[0]
+        rs[9] = R[3]
+    elif rp[0] == RULE_VB_R:
+        rs[0] = rp[7]
+        rs[1] = rp[7]
+        rs[2] = rp[7] * R[0]
+        rs[3] = rp[7] * R[3]
+    return rs
+
+
+@maybe_njit
+def rule_begin_scan(rp, rs):
+    if rp[0] == RULE_SAGE_HUSA:  # SageHusaEKF.begin_scan
+        rs[2] = rs[0]
+        rs[3] = rs[8]
+        rs[4] = rs[9]
+        rs[5] = 0.0
+        rs[6] = 0.0
+        rs[7] = 0.0
+    elif rp[0] == RULE_VB_R and rp[1] != 0.0:  # VBREKF.begin_scan
+        rs[0], rs[2] = vb_r_predict(rs[0], rs[2], rp[5])
+        rs[1], rs[3] = vb_r_predict(rs[1], rs[3], rp[5])
+
+
+@maybe_njit
+def _joseph(x, P, nu0, nu1, H, r0, r1):
+    """filters.vb.kalman_update with R = diag(r0, r1): (ok, x+, P+) on the augmented state."""
+    n = x.shape[0]
+    PHt = P @ H.T
+    S = H @ PHt
+    s00 = S[0, 0] + r0
+    s01 = S[0, 1]
+    s10 = S[1, 0]
+    s11 = S[1, 1] + r1
+    det = s00 * s11 - s01 * s10
+    if det == 0.0 or not math.isfinite(det):
+        return False, x, P
+    Kg = np.empty((n, 2))
+    for i in range(n):
+        Kg[i, 0] = (PHt[i, 0] * s11 - PHt[i, 1] * s10) / det
+        Kg[i, 1] = (-PHt[i, 0] * s01 + PHt[i, 1] * s00) / det
+    xn = x.copy()
+    for i in range(n):
+        xn[i] = x[i] + Kg[i, 0] * nu0 + Kg[i, 1] * nu1
+    A = np.eye(n) - Kg @ H
+    KR = np.empty((n, 2))
+    for i in range(n):
+        KR[i, 0] = Kg[i, 0] * r0
+        KR[i, 1] = Kg[i, 1] * r1
+    return True, xn, A @ P @ A.T + KR @ Kg.T
+
+
+@maybe_njit
+def _residual(x, lm0, lm1, z0, z1, range_col, range_bias0):
+    """wrap(z - h(x)) at an augmented iterate (AugmentedState.residual_of)."""
+    dx = lm0 - x[0]
+    dy = lm1 - x[1]
+    r = math.hypot(dx, dy) + (x[range_col] if range_col >= 0 else range_bias0)
+    return z0 - r, wrap(z1 - wrap(math.atan2(dy, dx) - x[2]))
+
+
+@maybe_njit
+def rule_before_gain(rp, rs, R, R00, R11, x, P, H, HPHt, nu0, nu1, lm0, lm1, z0, z1,
+                     gate, has_gate, range_col, range_bias0):  # fmt: skip
+    """The rule's before_gain: may set R; False where a matrix is singular (diverged)."""
+    if rp[0] == RULE_NONE or rp[1] == 0.0:
+        return True
+    bounds = (rp[3], rp[4])
+    hph = (HPHt[0, 0], HPHt[0, 1], HPHt[1, 0], HPHt[1, 1])
+    if rp[0] == RULE_VB_R:  # VBREKF.before_gain
+        R[0] = rs[2] / rs[0]
+        R[1] = 0.0
+        R[2] = 0.0
+        R[3] = rs[3] / rs[1]
+    ok, feeds = feeds_adaptation(hph, (R[0], R[1], R[2], R[3]), (nu0, nu1), rp[2] != 0.0,
+                                 gate, has_gate)  # fmt: skip
+    if not ok:
+        return False
+    if not feeds:
+        return True
+    if rp[0] == RULE_SAGE_HUSA:  # SageHusaEKF.before_gain
+        rs[5] += r_sample(nu0, hph[0], rp[3] * R00, rp[4] * R00)
+        rs[6] += r_sample(nu1, hph[3], rp[3] * R11, rp[4] * R11)
+        rs[7] += 1.0
+        rs[8] = fading_mean(rs[2], rs[3], rs[5], rs[7])
+        rs[9] = fading_mean(rs[2], rs[4], rs[6], rs[7])
+        if rs[1] >= rp[6]:
+            R[0] = clip_to_bounds(rs[8], R00, bounds)
+            R[1] = 0.0
+            R[2] = 0.0
+            R[3] = clip_to_bounds(rs[9], R11, bounds)
+        return True
+    # filters.vb.vb_r_update, the iterates on the augmented state
+    ap0 = rs[0] + 0.5
+    ap1 = rs[1] + 0.5
+    bn0 = rs[2]
+    bn1 = rs[3]
+    for _ in range(int(rp[6])):
+        R[0] = clip_to_bounds(bn0 / ap0, R00, bounds)
+        R[3] = clip_to_bounds(bn1 / ap1, R11, bounds)
+        ok, xn, Pn = _joseph(x, P, nu0, nu1, H, R[0], R[3])
+        if not ok:
+            return False
+        e0, e1 = _residual(xn, lm0, lm1, z0, z1, range_col, range_bias0)
+        HPn = H @ Pn
+        hph0 = 0.0
+        hph1 = 0.0
+        for c in range(x.shape[0]):
+            hph0 += HPn[0, c] * H[0, c]
+            hph1 += HPn[1, c] * H[1, c]
+        bn0 = vb_r_beta(rs[2], e0, hph0)
+        bn1 = vb_r_beta(rs[3], e1, hph1)
+    rs[0] = ap0
+    rs[1] = ap1
+    rs[2], rs[3] = vb_r_bounded_beta(ap0, ap1, bn0, bn1, R00, R11, rp[3], rp[4])
+    return True
+
+
+@maybe_njit
+def rule_end_scan(rp, rs, R):
+    if rp[0] == RULE_SAGE_HUSA:  # SageHusaEKF.end_scan (R only)
+        if rs[7] > 0.0:
+            rs[0] = next_beta(rs[0], rp[5])
+            rs[1] += 1.0
+    elif rp[0] == RULE_VB_R and rp[1] != 0.0:  # VBREKF.end_scan
+        R[0] = rs[2] / rs[0]
+        R[1] = 0.0
+        R[2] = 0.0
+        R[3] = rs[3] / rs[1]
+
+
 @maybe_njit
 def run_augmented_kernel(
     u_odo, dt, scan_start, scan_lm, scan_z,
     motion, B, T0, x0, P0, Qu, R, gate, has_gate,
-    est, theta0, sigma0, drift,
+    est, theta0, sigma0, drift, rp,
     record_at, out_x, out_P, out_R, out_Q, out_theta,
 ):  # fmt: skip
     """One `ekf-aug` over one run (filterpy_engine.run_filter with `AugmentedEKF`).
 
     The common head as every kernel (kernels.run_kernel); est (m,) int64: the indices of the
     estimated parameters (filters.augmented.PARAMETERS), theta0, sigma0, drift (4,): their
-    start values, start standard deviations and random-walk rates. Records the pose block in
+    start values, start standard deviations and random-walk rates; rp (8,): the R rule
+    combined with the state (RULE_NONE: `ekf-aug`; `rule_start`). Records the pose block in
     out_x (n, 3), out_P (n, 3, 3), R and Qu's diagonals, and the four parameters in
     out_theta (n, 4). Returns (diverged, rows written, nis_sum, n_updates, n_rejected).
     """
     K = u_odo.shape[0]
     m = est.shape[0]
+    R = R.copy()  # the rule adapts it
+    R00 = R[0]
+    R11 = R[3]
+    rs = rule_start(rp, R)
     n = 3 + m
     x = np.zeros(n)
     P = np.zeros((n, n))
@@ -180,6 +342,7 @@ def run_augmented_kernel(
         first = scan_start[k]
         last = scan_start[k + 1]
         if last > first:
+            rule_begin_scan(rp, rs)
             for mm in range(first, last):
                 z0 = scan_z[mm, 0]
                 z1 = scan_z[mm, 1]
@@ -204,6 +367,11 @@ def run_augmented_kernel(
                 nu1 = wrap(z1 - zh1)
                 PHt[:, :] = P @ H.T
                 S = H @ PHt
+                if not rule_before_gain(
+                    rp, rs, R, R00, R11, x, P, H, S, nu0, nu1, scan_lm[mm, 0], scan_lm[mm, 1],
+                    z0, z1, gate, has_gate, range_col, theta0[3],
+                ):  # fmt: skip
+                    return True, j, nis_sum, n_updates, n_rejected
                 s00 = S[0, 0] + R[0]
                 s01 = S[0, 1] + R[1]
                 s10 = S[1, 0] + R[2]
@@ -239,6 +407,7 @@ def run_augmented_kernel(
                 P = A @ P @ A.T + KR @ Kg.T
                 P = 0.5 * (P + P.T)
                 x[2] = wrap(x[2])
+            rule_end_scan(rp, rs, R)
             if not _healthy(x, P, R, Qu):
                 return True, j, nis_sum, n_updates, n_rejected
         if record_at[k] and j < n_rows:
@@ -259,3 +428,19 @@ def run_augmented_kernel(
             bad_record = bad_record or bad
             j += 1
     return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+def rule_params(spec) -> np.ndarray:
+    """`rp` of `run_augmented_kernel` for a spec: `ekf-aug`'s (no rule) or an adaptive family's
+    with `augment:` (Sage-Husa R, VB-R)."""
+    rp = np.zeros(8)
+    if isinstance(spec, _aug.AugmentedSpec):
+        return rp
+    rp[1:5] = (bool(spec.adaptation), spec.adapt_from == "all", *spec.bounds)
+    if isinstance(spec, _sh.SageHusaSpec):
+        rp[0], rp[5], rp[6] = RULE_SAGE_HUSA, spec.b, spec.warmup
+    elif isinstance(spec, _vb.VBRSpec):
+        rp[0], rp[5], rp[6], rp[7] = RULE_VB_R, spec.rho, spec.iterations, spec.alpha0
+    else:
+        raise ValueError(f"the fast engine does not combine {type(spec).__name__} with augment")
+    return rp

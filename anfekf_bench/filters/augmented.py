@@ -23,21 +23,25 @@ the NEES are the pose block's.
 Jacobians of one step: F = [[F_pose, G dU], [0, I]], dU = d u_true / d theta: -u0_true / k_v
 for k_v, -u1_true / k_w for k_w, -1 / k_w for b_w; H = [H_pose, (1, 0) for b_r].
 
-Combining with the adaptive families: not yet. Their rules read a 3-state P and the pose's G
-(the Q-adapting ones project their estimates through G; the VB ones iterate on a 3x3 update),
-so each would need its own augmented variant: the R-adapting rules (`sage-husa`, `iae`,
-`vb-r`) are the natural first, since they touch only R and S.
+Combining with the adaptive families (`augment:` on `sage-husa` and `vb-r`, `Augmentable`):
+their filter class runs on this state (`augmented_class`: this predict and innovation, then the
+family's hooks). R-adapting rules read only nu, H P- H^T and H, so they apply unchanged; the VB
+iteration's residual at an iterate adds the range bias (`residual_of`). The Q- and P-adapting
+rules (Sage-Husa `adapt: RQ`, iae Q, vbakf, the banks' Qu hypotheses, so the default `vb-imm`)
+project their estimates through the 3-state pose model and are not combined.
 """
 
 from __future__ import annotations
 
+import functools
 from typing import Annotated, ClassVar, Literal
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from ..models import h
 from ..models.range_bearing import H_jacobian, residual_z
+from ..schema import StrictModel
 from .ekf import Innovation, RobotEKF
 from .spec import FilterContext, FilterSpec, Role
 
@@ -53,12 +57,9 @@ FourPositive = tuple[
 ]
 
 
-class AugmentedSpec(FilterSpec):
-    """The EKF with the odometry's scale factors and turn bias (optionally the range bias) as
-    states: errors that are not white noise (SPEC 18)."""
+class AugmentParams(StrictModel):
+    """Which odometry and range errors are states, their start values, spreads and drift."""
 
-    kind: Literal["ekf-aug"]
-    role: ClassVar[Role] = "adaptive"
     estimate: list[Parameter] = Field(
         ["speed_scale", "turn_scale", "turn_bias"],
         max_length=4,
@@ -96,8 +97,49 @@ class AugmentedSpec(FilterSpec):
         """Indices into PARAMETERS of the estimated ones, in state order."""
         return tuple(i for i, p in enumerate(PARAMETERS) if p in self.estimate)
 
+
+class AugmentedSpec(FilterSpec, AugmentParams):
+    """The EKF with the odometry's scale factors and turn bias (optionally the range bias) as
+    states: errors that are not white noise (SPEC 18)."""
+
+    kind: Literal["ekf-aug"]
+    role: ClassVar[Role] = "adaptive"
+
+    @property
+    def augment(self) -> AugmentParams:
+        return self
+
     def build(self, ctx: FilterContext) -> AugmentedEKF:
-        return AugmentedEKF(**ctx.kwargs(), params=self)
+        return AugmentedEKF(**ctx.kwargs(), params=self, augment=self)
+
+
+class Augmentable(StrictModel):
+    """The `augment:` option of an adaptive family's spec (SPEC 18): its filter on the
+    augmented state. The family's rule must adapt R only (a rule that adapts Qu or P- projects
+    through the 3-state pose model)."""
+
+    augment: AugmentParams | None = Field(
+        None,
+        description="estimate odometry scale factors, turn bias and range bias as states"
+        " (ekf-aug's fields: estimate, start, sigma0, drift); {} for ekf-aug's defaults;"
+        " null: the 3-state filter",
+    )
+
+    @model_validator(mode="after")
+    def _r_only(self):
+        if self.augment is not None and "Q" in str(getattr(self, "adapt", "R")):
+            raise ValueError("augment: combines with R adaptation only (adapt: R)")
+        return self
+
+    def build_augmented(self, base: type, ctx: FilterContext):
+        """The family's filter class `base` on the augmented state (`augmented_class`)."""
+        return augmented_class(base)(**ctx.kwargs(), params=self, augment=self.augment)
+
+
+def augment_of(spec) -> AugmentParams | None:
+    """The augmentation a spec asks for: ekf-aug's own, an adaptive family's `augment:`, or
+    None (the 3-state filter)."""
+    return getattr(spec, "augment", None)
 
 
 def true_controls(u0: float, u1: float, theta) -> tuple[float, float, float, float]:
@@ -118,23 +160,24 @@ def control_derivative(p: int, ut0: float, ut1: float, kv: float, kw: float) -> 
     return 0.0, 0.0
 
 
-class AugmentedEKF(RobotEKF):
-    """`RobotEKF` on the augmented state (module docstring); filterpy's update as it is."""
+class AugmentedState(RobotEKF):
+    """A `RobotEKF` (or an adaptive subclass: `augmented_class`) on the augmented state (module
+    docstring): predict and innovation replaced; filterpy's update as it is."""
 
-    def __init__(self, x0, P0, Qu, R, model, dt, gate, params: AugmentedSpec):
-        super().__init__(x0, P0, Qu, R, model, dt, gate, params)
-        self.est = params.estimated()
+    def __init__(self, x0, P0, Qu, R, model, dt, gate, params, augment: AugmentParams):
+        super().__init__(x0, P0, Qu, R, model, dt, gate, params=params)
+        self.est = augment.estimated()
         n = 3 + len(self.est)
         self.dim_x = n
-        self.theta0 = np.array(params.start, dtype=float)
-        self.drift2 = np.array(params.drift, dtype=float) ** 2
+        self.theta0 = np.array(augment.start, dtype=float)
+        self.drift2 = np.array(augment.drift, dtype=float) ** 2
         x = np.zeros(n)
         x[:3] = x0
         P = np.zeros((n, n))
         P[:3, :3] = P0
         for i, p in enumerate(self.est):
             x[3 + i] = self.theta0[p]
-            P[3 + i, 3 + i] = params.sigma0[p] ** 2
+            P[3 + i, 3 + i] = augment.sigma0[p] ** 2
         self.x, self.P = x, P
         self._I = np.eye(n)
         self.F = np.eye(n)
@@ -182,6 +225,36 @@ class AugmentedEKF(RobotEKF):
         nu = residual_z(np.asarray(z, dtype=float), z_hat)
         return Innovation(z=z, landmark=landmark, z_hat=z_hat, nu=nu, H=H, HPHt=H @ self.P @ H.T)
 
+    def residual_of(self, inn: Innovation):
+        """e(x) = wrap(z - h(x)) at an augmented iterate, the range bias included (the VB
+        rules' residual)."""
+        z = np.asarray(inn.z, dtype=float)
+        landmark = inn.landmark
+
+        def residual(x: np.ndarray) -> np.ndarray:
+            return residual_z(z, augmented_z(x, landmark, self.est, self.theta0[3]))
+
+        return residual
+
+
+class AugmentedEKF(AugmentedState):
+    """`ekf-aug`: the EKF on the augmented state."""
+
+
+@functools.cache
+def augmented_class(base: type) -> type:
+    """`base` (an adaptive family's filter class) on the augmented state: the state's predict
+    and innovation come first in the method order, the family's hooks after. Used only with
+    rules that read nu, H P- H^T and H (R-adapting ones)."""
+    return type(f"Augmented{base.__name__}", (AugmentedState, base), {})
+
+
+def augmented_z(x: np.ndarray, landmark: np.ndarray, est: tuple[int, ...], range_bias0: float):
+    """h of the augmented state: the pose's range and bearing, the range bias added."""
+    z = h(x[:3], landmark)
+    z[0] += x[3 + est.index(3)] if 3 in est else range_bias0
+    return z
+
 
 def augmented_f(model, x: np.ndarray, u: np.ndarray, dt: float, spec: AugmentedSpec) -> np.ndarray:
     """The augmented state's noise-free step (for the Jacobian checks): the pose by the model
@@ -197,7 +270,4 @@ def augmented_f(model, x: np.ndarray, u: np.ndarray, dt: float, spec: AugmentedS
 
 def augmented_h(x: np.ndarray, landmark: np.ndarray, spec: AugmentedSpec) -> np.ndarray:
     """The augmented state's measurement (for the Jacobian checks)."""
-    z = h(x[:3], landmark)
-    est = spec.estimated()
-    z[0] += x[3 + est.index(3)] if 3 in est else spec.start[3]
-    return z
+    return augmented_z(x, landmark, spec.estimated(), spec.start[3])

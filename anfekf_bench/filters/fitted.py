@@ -1,9 +1,9 @@
 """Filters fitted on training runs before the batch (SPEC 13): `ekf-ml` and, on simulated
 scenarios, `ekf-tuned`.
 
-A `FittedSpec` declares `fitted_on_training`: the experiment (anfekf_bench.training) simulates
-the scenario's training runs, from seeds disjoint from every evaluation run, calls `fit` once,
-caches what it returns, and hands every worker a copy of the spec carrying those values
+A `FittedSpec` declares `fitted_on_training`: the experiment (anfekf_bench.fitting.simulated)
+simulates the scenario's training runs, from seeds disjoint from every evaluation run, calls `fit`
+once, caches what it returns, and hands every worker a copy of the spec carrying those values
 (`with_fit`); `filter_context` then builds the filter from them. The learned filter
 (`kalmannet`, filters.kalmannet) uses the same mechanism: a `FittedSpec` whose `fit` trains the
 network and returns its weights.
@@ -56,11 +56,6 @@ class FittedSpec(FilterSpec):
     role: ClassVar[Role] = "fitted"
     _fit: dict | None = PrivateAttr(default=None)
 
-    def fit(self, training: Any) -> dict:
-        """Fit on `training` (anfekf_bench.training.TrainingSet); a JSON-able dict that
-        `with_fit` accepts and that the manifest records (with the cost)."""
-        raise NotImplementedError
-
     def with_fit(self, fitted: dict) -> FittedSpec:
         """A copy of this spec that builds its filter from `fitted`."""
         spec = self.model_copy()
@@ -71,16 +66,6 @@ class FittedSpec(FilterSpec):
         """Why `training_runs` training runs cannot fit this filter ("<field>: <why>"), or None;
         checked before any work."""
         return None
-
-    def fit_record(self, fitted: dict) -> dict:
-        """What the manifest's `training` key records of `fitted` (all of it, unless bulky)."""
-        return fitted
-
-    def fit_problem(self, fitted: Any) -> str | None:
-        """Why `fitted`, read back from the fit cache (outputs.read_cached_fit), cannot be
-        handed to `with_fit` ("<field>: <why>"), or None: what a hand-edited or damaged cache
-        file must never get past."""
-        return None if isinstance(fitted, dict) else "fitted: must be a mapping"
 
     def noise_fit_request(self) -> tuple[str, list[float], int] | None:
         """(criterion, starts, max_evaluations) when `fit` is a `fit_noise` of the training
@@ -100,7 +85,7 @@ class FittedSpec(FilterSpec):
 
 
 class FittedNoiseSpec(FittedSpec):
-    """A fixed EKF whose four sigmas are fitted (`training.TrainingSet.fit_noise`)."""
+    """A fixed EKF whose four sigmas are fitted (`fitting.simulated.TrainingSet.fit_noise`)."""
 
     criterion: ClassVar[str]
     starts: list[Multiplier] = Field(
@@ -115,7 +100,8 @@ class FittedNoiseSpec(FittedSpec):
     )
 
     def fit(self, training: Any) -> dict:
-        # The training layer fits the sigmas on its tuning kernel (training.TrainingSet).
+        # The training runs fit the sigmas on the tuning kernel (fitting.simulated.TrainingSet,
+        # fitting.own.OwnInnovations): a spec never imports an engine.
         return training.fit_noise(*self.noise_fit_request())
 
     def noise_fit_request(self) -> tuple[str, list[float], int]:
@@ -137,11 +123,12 @@ class FittedNoiseSpec(FittedSpec):
 class EKFMLSpec(FittedNoiseSpec):
     """The EKF with the sigmas that maximise the innovation log-likelihood of the training runs
     (no truth): the fair "tuned without truth" reference. On a recorded log, of the run it is
-    scored on (its own innovations, never its ground truth: real_experiment.OwnInnovations)."""
+    scored on (its own innovations, never its ground truth: fitting.own.OwnInnovations)."""
 
     kind: Literal["ekf-ml"]
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
     criterion: ClassVar[str] = "likelihood"
+    fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated", "own"})
 
 
 class EKFTunedSpec(FittedNoiseSpec):
@@ -151,3 +138,4 @@ class EKFTunedSpec(FittedNoiseSpec):
     kind: Literal["ekf-tuned"]
     robot_only_because: ClassVar[str] = "its grid search is over the robot's four noise sigmas"
     criterion: ClassVar[str] = "rmse"
+    fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated"})

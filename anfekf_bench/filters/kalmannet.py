@@ -31,9 +31,9 @@ from .spec import FilterContext, Role
 class KalmanNetSpec(FittedSpec):
     """KalmanNet (Revach et al. 2022, architecture 1): the EKF's structure with each landmark's
     gain from a GRU, trained on the scenario's training runs (`training.runs`, see
-    anfekf_bench.training) or, on recorded data, on the training drives of each cross-drive fold
-    (or the training segments; anfekf_bench.real_training); the extra `.[learned]`; no
-    covariance, no NEES.
+    anfekf_bench.fitting.simulated) or, on recorded data, on the training drives of each
+    cross-drive fold (or the training segments; anfekf_bench.fitting.recorded); the extra
+    `.[learned]`; no covariance, no NEES.
 
     A fitted filter like `ekf-ml`: `fit` trains on the training set and returns the weights
     (base64 of `KalmanNetWeights.to_bytes`, their SHA-256) with the training cost, which the
@@ -42,6 +42,7 @@ class KalmanNetSpec(FittedSpec):
     kind: Literal["kalmannet"]
     robot_only_because: ClassVar[str] = "its features, network sizes and training are the robot's"
     role: ClassVar[Role] = "trained"
+    fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated", "recorded"})
     epochs: int = Field(30, ge=1, le=10_000, description="passes over the training runs")
     learning_rate: float = Field(
         2e-3, gt=0, le=1, allow_inf_nan=False, description="Adam's step size"
@@ -105,20 +106,26 @@ class KalmanNetSpec(FittedSpec):
         return kalmannet_train.train(self, runs, world, ctx, progress=progress)
 
     def fit(self, training) -> dict:
-        """Train on the training set's runs (all `training.runs` of them, the last
-        `validation_runs` held out); the weights and the cost, JSON-able."""
+        """Train on the training runs (fitting.fit): the simulated training set's runs (all
+        `training.runs` of them, the last `validation_runs` held out), or a recorded log's
+        training segments or a fold's training drives (their timelines and truth, NaN where not
+        scored, on the unicycle: kalmannet_train.train_recorded). The weights and the cost,
+        JSON-able."""
+        if training.source == "recorded":
+            from . import kalmannet_train
+
+            return self.fitted_doc(
+                kalmannet_train.train_recorded(
+                    self,
+                    training.pairs(),
+                    training.model,
+                    training.progress,
+                    training.progress_label(self),
+                )
+            )
         ctx = filter_context(self, training.scenario, training.world)
         return self.fitted_doc(
             self.train(training.runs, training.world, ctx, progress=training.progress)
-        )
-
-    def fit_recorded(self, drives, model, progress=False, description: str | None = None) -> dict:
-        """`fit` on recorded training drives: (Timeline, truth at its evaluation times, NaN
-        where not scored) pairs on the unicycle `model` (kalmannet_train.train_recorded)."""
-        from . import kalmannet_train
-
-        return self.fitted_doc(
-            kalmannet_train.train_recorded(self, drives, model, progress, description)
         )
 
     @staticmethod

@@ -35,6 +35,7 @@ from pydantic import Field
 
 from ..models import wrap_scalar
 from .adaptive import AdaptiveEKF, clip_to_bounds, matmul, outer
+from .augmented import Augmentable
 from .ekf import Innovation
 from .spec import AdaptiveSpec, FilterContext
 
@@ -78,7 +79,7 @@ def q_sample(
     return 0.5 * (Q_hat + Q_hat.T)
 
 
-class SageHusaSpec(AdaptiveSpec):
+class SageHusaSpec(AdaptiveSpec, Augmentable):
     """Fading-memory Sage-Husa (Sage & Husa 1969): R per channel before the gain, Qu optional."""
 
     kind: Literal["sage-husa"]
@@ -109,6 +110,8 @@ class SageHusaSpec(AdaptiveSpec):
     )
 
     def build(self, ctx: FilterContext) -> SageHusaEKF:
+        if self.augment is not None:
+            return self.build_augmented(SageHusaEKF, ctx)
         return SageHusaEKF(**ctx.kwargs(), params=self)
 
 

@@ -8,7 +8,7 @@ from a `FilterContext`: the starting noise, the motion model and the gate, resol
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated, ClassVar, Literal, get_args
+from typing import Annotated, Any, ClassVar, Literal, get_args
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -30,6 +30,14 @@ Bounds = Annotated[
 # "adaptive": a filter that adapts online from the assumed noise (a user's class included).
 Role = Literal["reference", "oracle", "fitted", "trained", "adaptive"]
 ROLES: tuple[str, ...] = get_args(Role)
+
+# The training runs a fit reads, declared on a spec class (`FilterSpec.fit_sources`) and
+# supplied by the source (anfekf_bench.fitting):
+# "simulated": training runs of the scenario's world, seeds disjoint from every evaluation run;
+# "recorded": a recorded log's training segments, or the other datasets' drives of a fold;
+# "own": a recorded run's own innovations (its odometry and landmarks), never its ground truth.
+FitSource = Literal["simulated", "recorded", "own"]
+FIT_SOURCES: tuple[str, ...] = get_args(FitSource)
 
 
 @dataclass(frozen=True)
@@ -70,7 +78,9 @@ class FilterSpec(StrictModel):
       (`registry.role_of`, `registry.kinds_with_role`), never compare a kind with a string;
     - `user_defined`: a user's class (kind `custom` and entry points), run only where it is named;
     - `problems`: the problems (SPEC 17) it runs on, and `robot_only_because`: why not the others
-      (`registry.supports_problem`, `registry.unsupported_reason`).
+      (`registry.supports_problem`, `registry.unsupported_reason`);
+    - its fit, where it has one: `fit_sources`, the training runs it can be fitted on
+      (FIT_SOURCES), and `fit(training)`, run by anfekf_bench.fitting's one entry point.
     """
 
     name: str = Field(min_length=1)
@@ -87,6 +97,7 @@ class FilterSpec(StrictModel):
         "not yet written for the problem interface (anfekf_bench.problems)"
     )
     default_filter: ClassVar[bool] = False  # the one to use when nothing is known (SPEC 19)
+    fit_sources: ClassVar[frozenset[str]] = frozenset()  # of FIT_SOURCES; empty: no fit
 
     def build(self, ctx: FilterContext):
         """A fresh filter for one run."""
@@ -96,6 +107,21 @@ class FilterSpec(StrictModel):
         """What this filter adapts ("R", "Q", "P"), or None when the spec cannot tell (a user's
         class: the report then looks at whether its recorded R/Qu vary)."""
         return self.adapts_noise
+
+    def fit(self, training) -> dict:
+        """Fit on `training` (the training runs of one of `fit_sources`, a
+        fitting.fit.TrainingRuns): a JSON-able dict of the fitted values and their cost."""
+        raise NotImplementedError(f"kind {self.kind} declares no fit")
+
+    def fit_record(self, fitted: dict) -> dict:
+        """What the manifest records of `fitted` (all of it, unless bulky)."""
+        return fitted
+
+    def fit_problem(self, fitted: Any) -> str | None:
+        """Why `fitted`, read back from the fit cache (outputs.read_cached_fit), cannot be
+        used ("<field>: <why>"), or None: what a hand-edited or damaged cache file must never
+        get past."""
+        return None if isinstance(fitted, dict) else "fitted: must be a mapping"
 
 
 class FilterParams(StrictModel):

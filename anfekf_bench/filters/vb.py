@@ -26,6 +26,7 @@ from scipy import linalg
 from ..models import h, residual_z
 from ..schema import PositiveFloat
 from .adaptive import AdaptiveEKF, clip_to_bounds
+from .augmented import Augmentable
 from .ekf import Innovation
 from .spec import AdaptiveSpec, FilterContext
 
@@ -170,7 +171,7 @@ def vb_r_predict(alpha: np.ndarray, beta: np.ndarray, rho: float) -> tuple[np.nd
     return rho * alpha, rho * beta
 
 
-class VBRSpec(AdaptiveSpec):
+class VBRSpec(AdaptiveSpec, Augmentable):
     """Sarkka & Nummenmaa (2009) variational-Bayes adaptive EKF: diagonal R, inverse-gamma per
     channel."""
 
@@ -190,6 +191,8 @@ class VBRSpec(AdaptiveSpec):
     )
 
     def build(self, ctx: FilterContext) -> VBREKF:
+        if self.augment is not None:
+            return self.build_augmented(VBREKF, ctx)
         return VBREKF(**ctx.kwargs(), params=self)
 
 
@@ -230,7 +233,7 @@ class VBREKF(AdaptiveEKF):
         R0 = np.diag(self.R0)
         post = vb_r_update(
             self.x, self.P, inn.nu, inn.H, self.alpha, self.beta, self.params.iterations,
-            landmark_residual(inn.z, inn.landmark),
+            self.residual_of(inn),
             clip=lambda r: clip_to_bounds(r, R0, self.bounds),
         )  # fmt: skip
         self.alpha = post.alpha
@@ -242,6 +245,10 @@ class VBREKF(AdaptiveEKF):
             )
         )  # fmt: skip
         self.R = np.diag(post.R_gain)
+
+    def residual_of(self, inn: Innovation) -> Residual:
+        """The residual at a VB iterate (an augmented state's adds its range bias)."""
+        return landmark_residual(inn.z, inn.landmark)
 
     def end_scan(self) -> None:
         if self.params.adaptation:

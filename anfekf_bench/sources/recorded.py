@@ -19,9 +19,9 @@ Angles of this block are in radians, as their keys say (`_rad`): the unit of the
 research notes. Every filter but `ekf-tuned` and `ekf-ml` runs once per naive start m, as the
 instance `"<name> x<m>"` (e.g. `anfekf x0.25`), starting from the naive standard deviations times m
 (the variances times m^2). `ekf-tuned` is the fixed EKF whose noise the grid search on the training
-part chose (`TuningConfig`, real_experiment.tune); `ekf-ml` the fixed EKF whose noise maximises the
+part chose (`TuningConfig`, fitting.recorded.tune); `ekf-ml` the fixed EKF whose noise maximises the
 innovation likelihood of the very run it is scored on (its own odometry and landmarks, never its
-ground truth: real_experiment.fit_on_own_innovations); both run once, without naive starts.
+ground truth: fitting.own.fit_on_own_innovations); both run once, without naive starts.
 Resolving the file reads the log and cuts it (`Recording`): nothing is run here.
 """
 
@@ -37,13 +37,15 @@ from pydantic import Field, field_validator, model_validator
 
 from ..config import Scenario, ScenarioError, Start, validate_as
 from ..filters.ekf import RobotEKF
-from ..filters.fitted import EKFMLSpec
+from ..filters.fitted import EKFMLSpec, sigmas_problem
 from ..filters.registry import SPECS
 from ..filters.spec import FilterContext, FilterSpec, Role
 from ..schema import PositiveFloat, StrictModel
 from . import mrclam, user_log
 
 BUILTIN = "builtin"
+# The noise a recorded fit of a fixed EKF gives (the grid search, a run's own innovations)
+NOISE_KEYS = ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")
 
 
 class TunedEKFSpec(FilterSpec):
@@ -52,6 +54,15 @@ class TunedEKFSpec(FilterSpec):
 
     kind: Literal["ekf-tuned"]
     role: ClassVar[Role] = "fitted"
+    fit_sources: ClassVar[frozenset[str]] = frozenset({"recorded"})
+
+    def fit(self, training) -> dict:
+        """The grid search on the training segments or a fold's training drives (fitting.fit's
+        "recorded" training runs: fitting.recorded.tune, tune_on_drives)."""
+        return training.grid_search()
+
+    def fit_problem(self, fitted) -> str | None:
+        return sigmas_problem(fitted, NOISE_KEYS, "")
 
     def build(self, ctx: FilterContext) -> RobotEKF:
         return RobotEKF(**ctx.kwargs())
@@ -59,14 +70,14 @@ class TunedEKFSpec(FilterSpec):
 
 # A recorded log has no training runs of its own: the simulated scenarios' ekf-tuned gives way to
 # this grid-searched one; ekf-ml is fitted on each run's own innovations (no truth needed:
-# real_experiment.fit_on_own_innovations); the other fitted kinds are not available here.
+# fitting.own.fit_on_own_innovations); the other fitted kinds are not available here.
 REAL_SPECS: tuple[type[FilterSpec], ...] = (
     *(s for s in SPECS if not s.fitted_on_training),
     TunedEKFSpec,
     EKFMLSpec,
 )
 # KalmanNet is trained on the training drives (protocol drives) or the training segments
-# (protocol segments) by anfekf_bench.real_training.
+# (protocol segments) by anfekf_bench.fitting.recorded.
 REAL_SPECS += tuple(s for s in SPECS if s.role == "trained")
 REAL_KINDS = tuple(s.model_fields["kind"].annotation.__args__[0] for s in REAL_SPECS)
 RealFilterSpec = Annotated[Union[REAL_SPECS], Field(discriminator="kind")]  # noqa: UP007
@@ -135,7 +146,7 @@ Exponents = tuple[Annotated[float, Field(ge=-20, le=20)], Annotated[float, Field
 
 
 class TuningConfig(StrictModel):
-    """The grid search behind `ekf-tuned` (real_experiment.tune).
+    """The grid search behind `ekf-tuned` (fitting.recorded.tune).
 
     Coarse stage: every combination of multipliers 2^e of the naive standard deviations, e from
     the first to the last exponent of each range in steps of 1 (the research notes' grid:

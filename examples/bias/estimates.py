@@ -7,7 +7,10 @@ the run's end, the largest error, the share of runs within the stated tolerance,
 position RMSE ratio of ekf-aug to ekf-aug-known (geometric mean over runs) over the whole run
 and over its second half (after the estimates settle).
 
-    python examples/bias/estimates.py [configs/bias/speed_scale.yaml ...]
+    python examples/bias/estimates.py [--family vb-r|sage-husa] [configs/bias/speed_scale.yaml ...]
+
+--family: the same for that adaptive family with `augment:` set to ekf-aug's states and
+settings (sage-husa adapts R), against the same oracle.
 """
 
 import math
@@ -18,8 +21,9 @@ import numpy as np
 
 from anfekf_bench.config import parse_scenario, read_scenario_document, resolve_world
 from anfekf_bench.engines import fast
-from anfekf_bench.filters.augmented import PARAMETERS
+from anfekf_bench.filters.augmented import PARAMETERS, AugmentParams
 from anfekf_bench.filters.context import filter_context
+from anfekf_bench.filters.registry import SPEC_BY_KIND
 from anfekf_bench.runner import simulate
 from anfekf_bench.sources.simulator import world_path
 from anfekf_bench.timeline import from_run
@@ -27,13 +31,20 @@ from anfekf_bench.timeline import from_run
 # Stated tolerances on the estimate at the run's end: scales, steering bias [rad], range bias [m]
 TOLERANCE = np.array([0.03, 0.03, math.radians(0.25), 0.05])
 configs = Path(__file__).resolve().parents[2] / "configs" / "bias"
-paths = [Path(p) for p in sys.argv[1:]] or sorted(configs.glob("*.yaml"))
+argv = sys.argv[1:]
+family = None
+if argv[:1] == ["--family"]:
+    family, argv = argv[1], argv[2:]
+paths = [Path(p) for p in argv] or sorted(configs.glob("*.yaml"))
 
 for path in paths:
     scenario = parse_scenario(read_scenario_document(path), path)
     world = resolve_world(scenario.world, path.parent)
     specs = {s.name: s for s in scenario.filters}
     aug, known = specs["ekf-aug"], specs["ekf-aug-known"]
+    if family is not None:
+        params = AugmentParams(**aug.model_dump(include=set(AugmentParams.model_fields)))
+        aug = SPEC_BY_KIND[family](name="ekf-aug", kind=family, augment=params)
     truth = np.array(known.start)
     shared = world_path(world)
     ends, ratio_all, ratio_late = [], [], []

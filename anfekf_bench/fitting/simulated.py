@@ -6,11 +6,13 @@ filters.kalmannet: `kalmannet`, trained on them).
    of `SeedSequence(seed, spawn_key=(TRAINING_BRANCH,))`, spawn key (TRAINING_BRANCH, j). No
    evaluation run can have that key (a key of length 2; and TRAINING_BRANCH itself is beyond any
    run index), so the two sets of streams are disjoint by construction, whatever `runs` is.
-2. **Fit.** The training runs are simulated in this process (the scenario's world and true
-   noise, `training.runs` of them) once per batch, and each fitted filter's `fit` is called on
-   them (the fitting code decides its engine; the built-in kinds use the fast engine's kernels).
+2. **Fit.** The training runs (a `TrainingSet`, the "simulated" training runs of fitting.fit)
+   are simulated in this process (the scenario's world and true noise, `training.runs` of them)
+   once per batch, when a fit is not in the cache, and each fitted filter's `fit` is called on
+   them through `fitting.fit.fit_specs` (the fitting code decides its engine; the built-in kinds
+   use the fast engine's kernels).
 3. **Cache.** What a fit returns is saved as `<out>/<name>/.runs/fit-<fingerprint>.json`, keyed
-   by `SimulatedSource.training_fingerprint` (the filter's parameters, the scenario fields a fit
+   by `TrainingSet.fingerprint` (the filter's parameters, the scenario fields a fit
    depends on, the seed, the training settings, the code version): a resumed batch reuses it
    (no refit); --force and a completed batch remove it with the rest of the run store.
 4. **Hand out.** Every evaluation run gets a copy of the spec carrying the fitted values
@@ -19,22 +21,28 @@ filters.kalmannet: `kalmannet`, trained on them).
 
 from __future__ import annotations
 
+import hashlib
+import json
 import time
 from dataclasses import dataclass, field
 from functools import cached_property
-from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
-from .config import SimulatedScenario, World
-from .filters.ekf import gate_threshold
-from .filters.spec import FilterSpec
-from .outputs import FIT_FILE, read_cached_fit, write_fit
-from .runner import simulate
-from .sources.simulator import RunData, world_path
+from ..config import SimulatedScenario, World
+from ..engines.tuning import SIGMA_NAMES, TrainingProblem, fit_noise, start_results
+from ..filters.ekf import gate_threshold
+from ..filters.spec import FilterSpec
+from ..outputs import code_version
+from ..runner import simulate
+from ..sources.simulator import RunData, world_path
+from .fit import TrainingRuns, fit_specs
 
 TRAINING_BRANCH = 2**32 - 1  # spawn key of the training branch of the root seed
+# The scenario fields a simulated fit depends on (besides the filter, the seed and the map)
+FINGERPRINT_FIELDS = {"world", "true_noise", "filter_noise", "p0", "gate_probability", "training",
+                      "record_every"}  # fmt: skip
 
 
 def training_seeds(seed: int, runs: int) -> list[np.random.SeedSequence]:
@@ -42,15 +50,16 @@ def training_seeds(seed: int, runs: int) -> list[np.random.SeedSequence]:
     return np.random.SeedSequence(seed, spawn_key=(TRAINING_BRANCH,)).spawn(runs)
 
 
-@dataclass
-class TrainingSet:
-    """What a fitted filter's `fit` gets: the scenario, its world, the simulated training runs,
-    their seeds, the filters' start covariance and gate, and the worker processes it may use."""
+@dataclass(eq=False)
+class TrainingSet(TrainingRuns):
+    """The "simulated" training runs (fitting.fit): what a fitted filter's `fit` gets: the
+    scenario, its world, the training runs (simulated when first read), their seeds, the
+    filters' start covariance and gate, and the worker processes it may use."""
 
+    source: ClassVar[str] = "simulated"
     scenario: SimulatedScenario
     world: World
-    runs: list[RunData]
-    seeds: list[np.random.SeedSequence]
+    seed: int
     jobs: int = 1
     progress: Any = None  # the CLI's rich Progress, for a long fit's bar (kalmannet); None: quiet
     P0: np.ndarray = field(init=False)
@@ -64,11 +73,45 @@ class TrainingSet:
         self.gate = gate_threshold(self.scenario.gate_probability)
 
     @cached_property
+    def seeds(self) -> list[np.random.SeedSequence]:
+        return training_seeds(self.seed, self.scenario.training.runs)
+
+    @cached_property
+    def runs(self) -> list[RunData]:
+        """The training runs, simulated here on first use (see the module doc)."""
+        path = world_path(self.world)
+        return [simulate(self.scenario, self.world, s, path) for s in self.seeds]
+
+    def fingerprint(self, spec) -> str:
+        """Hash of everything a fitted filter's fit depends on: its own parameters, the
+        scenario's world, noise, start, gate, recording and training settings, the seed and the
+        code; not the evaluation runs, the other filters or the engine."""
+        doc = {
+            "filter": spec.model_dump(mode="json", exclude={"name"}),
+            "scenario": self.scenario.model_dump(mode="json", include=FINGERPRINT_FIELDS),
+            "seed": self.seed,
+            "landmarks": self.world.landmarks.tolist(),
+            "waypoints": self.world.waypoints.tolist(),
+            "code": code_version(),
+        }
+        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+
+    def describe(self) -> dict:
+        return {
+            "training_runs": self.scenario.training.runs,
+            "training_seed_branch": [self.seed, TRAINING_BRANCH],
+        }
+
+    def prepare(self, specs: list) -> None:
+        """With workers, the noise fits about to run start together (`prepare_noise_fits`)."""
+        requests = [r for spec in specs if (r := spec.noise_fit_request()) is not None]
+        if self.jobs > 1 and len(requests) > 1:
+            self.prepare_noise_fits(requests)
+
+    @cached_property
     def problem(self):
         """The training runs as the tuning kernel reads them (`engines.tuning.TrainingProblem`),
         built once for every fit of this set."""
-        from .engines.tuning import TrainingProblem
-
         return TrainingProblem.of(
             self.runs, self.world, self.P0, self.gate, self.scenario.record_every
         )
@@ -77,8 +120,6 @@ class TrainingSet:
         """Run the Nelder-Mead starts of several `fit_noise` calls (criterion, starts,
         max_evaluations) in one batch of workers; each call then finds its starts done, and
         counts an equal share of the batch's wall time in its "seconds"."""
-        from .engines.tuning import start_results
-
         todo = list(dict.fromkeys((c, tuple(s), n) for c, s, n in requests))
         if self.jobs < 2 or len(todo) < 2:
             return
@@ -95,8 +136,6 @@ class TrainingSet:
         only; "rmse": the truth) over these runs, from `starts` x the assumed sigmas
         (`engines.tuning.fit_noise`); a service of the training layer, so that a filter spec
         asks for it here and never imports an engine."""
-        from .engines.tuning import SIGMA_NAMES, fit_noise
-
         done, seconds = self._starts_found.get((criterion, tuple(starts), max_evaluations),
                                                (None, 0.0))  # fmt: skip
         found = fit_noise(
@@ -110,13 +149,10 @@ class TrainingSet:
 def simulate_training(
     scenario: SimulatedScenario, world: World, seed: int, jobs: int = 1, progress: Any = None
 ) -> TrainingSet:
-    """The scenario's training runs (see the module doc)."""
-    seeds = training_seeds(seed, scenario.training.runs)
-    path = world_path(world)
-    runs = [simulate(scenario, world, s, path) for s in seeds]
-    return TrainingSet(
-        scenario=scenario, world=world, runs=runs, seeds=seeds, jobs=jobs, progress=progress
-    )
+    """The scenario's training runs (see the module doc), simulated now."""
+    training = TrainingSet(scenario=scenario, world=world, seed=seed, jobs=jobs, progress=progress)
+    _ = training.runs
+    return training
 
 
 def fitted_filters(scenario: SimulatedScenario) -> list[FilterSpec]:
@@ -132,55 +168,23 @@ class Fits:
     fitted_now: int  # fits computed by this call (not read from the cache)
 
 
-def fit_filters(plan, cache_dir: Path | None, progress: Any = None) -> Fits:
-    """Fit every fitted filter of `plan` (an experiment.Plan) once, or read its fit from
-    `cache_dir` (None: no cache); see the module doc. `progress`: a rich Progress a long fit
-    adds its bar to (None: quiet)."""
+def fit_filters(plan, cache_dir, progress: Any = None) -> Fits:
+    """Fit every fitted filter of `plan` (an experiment.Plan) once on its simulated training
+    runs, or read its fit from `cache_dir` (None: no cache), through `fitting.fit.fit_specs`;
+    see the module doc. `progress`: a rich Progress a long fit adds its bar to (None: quiet)."""
     scenario = plan.scenario
     todo = fitted_filters(scenario)
     if not todo:
         return Fits(scenario=scenario, records={}, fitted_now=0)
-    training: TrainingSet | None = None
-    records, specs, fitted_now = {}, {}, 0
-    # Each fit's (fingerprint, cache file, cached values or None), the cache read once
-    stored = {}
-    for spec in todo:
-        fingerprint = plan.source.training_fingerprint(plan, spec)
-        path = None if cache_dir is None else cache_dir / FIT_FILE.format(fingerprint=fingerprint)
-        cached = None if path is None else read_cached_fit(path, fingerprint, spec.fit_problem)
-        stored[spec.name] = (fingerprint, path, cached)
-    if plan.jobs > 1:
-        # The noise fits not in the cache: their starts in one batch of workers
-        # (`prepare_noise_fits`); each fit below then finds its starts done, the same numbers.
-        fresh = [
-            r for spec in todo
-            if stored[spec.name][2] is None and (r := spec.noise_fit_request()) is not None
-        ]  # fmt: skip
-        if len(fresh) > 1:
-            training = simulate_training(scenario, plan.world, plan.seed, plan.jobs, progress)
-            training.prepare_noise_fits(fresh)
-    for spec in todo:
-        fingerprint, path, fitted = stored[spec.name]
-        cached = fitted is not None
-        if fitted is None:
-            if training is None:
-                training = simulate_training(scenario, plan.world, plan.seed, plan.jobs, progress)
-            fitted = spec.fit(training)
-            fitted_now += 1
-            if path is not None:
-                write_fit(path, fingerprint, fitted)
-        specs[spec.name] = spec.with_fit(fitted)
-        records[spec.name] = {
-            "kind": spec.kind,
-            "fingerprint": fingerprint,
-            "cached": cached,
-            "training_runs": scenario.training.runs,
-            "training_seed_branch": [plan.seed, TRAINING_BRANCH],
-            "fitted": spec.fit_record(fitted),
-        }
+    training = TrainingSet(
+        scenario=scenario, world=plan.world, seed=plan.seed, jobs=plan.jobs, progress=progress
+    )
+    found = fit_specs([(spec, training) for spec in todo], cache_dir, plan.jobs)
+    pairs = list(zip(todo, found, strict=True))
+    specs = {spec.name: spec.with_fit(fit.fitted) for spec, fit in pairs}
     filters = [specs.get(f.name, f) for f in scenario.filters]
     return Fits(
         scenario=scenario.model_copy(update={"filters": filters}),
-        records=records,
-        fitted_now=fitted_now,
+        records={spec.name: fit.record(spec, training) for spec, fit in pairs},
+        fitted_now=sum(not fit.cached for fit in found),
     )

@@ -1,0 +1,497 @@
+"""The "recorded" training runs (fitting.fit): a recorded log's training segments (protocol
+segments) or, per cross-drive fold, the drives of the datasets that tune a test dataset
+(protocol drives), each cold-started from ground truth (`RecordedTraining`); and the fits on them,
+each through `fitting.fit.fit_specs`:
+
+- `ekf-tuned` (the recorded schema's `TunedEKFSpec`): the grid search on the training segments
+  (`tune`, via `tune_segments`) or, per fold, branch and bound over whole drives
+  (`tune_on_drives`, via `tune_drives`); not cached (it is the batch's reference, as before);
+- `kalmannet` (filters.kalmannet): trained once on the training segments (`fit_on_segments`) or
+  once per fold (`fit_on_drives`).
+
+A drive is scored by values fitted on the drives of the datasets that tune its `ekf-tuned`
+(`RecordedScenario.tuning_sources`: tune on Dataset 6, test on 7, and the reverse; Dataset 9 on
+both), never on its own dataset's drives. Per fold and fitted filter:
+
+1. **Fit** on the training drives' timelines and their ground truth at the evaluation times,
+   NaN where not scored (`RecordedTraining.pairs`, `grid_search`): nothing of a test drive is
+   read.
+2. **Cache** what a trained filter's fit returns as `<out>/<name>/.runs/fit-<fingerprint>.json`
+   (as fitting.simulated), keyed by `RecordedTraining.fingerprint`: the filter's parameters, the
+   training drives and their logs' content (or the log and the fields that cut its segments),
+   what shapes their timelines and truth, the code version. A resumed batch reads it.
+3. **Hand out** to each drive a copy of the scenario whose fitted filter carries its fold's
+   weights (`with_fit`); the manifest's `training` key records, per filter and fold, the
+   training drives, the fingerprint, whether it came from the cache, and the fit's record
+   (weights' SHA-256, training time, losses). ekf-tuned's noise reaches each run as its
+   `tuned` record (real_experiment.recorded_run); the manifest's `tuning` key records it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+from joblib import Parallel, delayed
+
+from ..analysis.suite import LOST_LOCK_M
+from ..engines.tuning import score_setting, unicycle_terms
+from ..filters.context import recorded_p0
+from ..filters.ekf import gate_threshold
+from ..models import Unicycle
+from ..outputs import PlanError, code_version
+from ..sources.recorded import DriveSet, RecordedScenario, log_digest
+from .fit import TrainingRuns, fit_specs
+
+# The scenario fields a drive's timeline and scored truth depend on (real_experiment.segment_inputs)
+_INPUT_FIELDS = {"eval_period_s", "odometry_period_s", "max_gap_s", "misfit_detection"}
+# The scenario fields that decide a log's training segments (sources.recorded.cut_segments)
+_SEGMENT_FIELDS = _INPUT_FIELDS | {"split_fraction", "split_at_s", "segment_s", "min_scorable_s"}
+
+
+@dataclass(eq=False)
+class RecordedTraining(TrainingRuns):
+    """The "recorded" training runs (fitting.fit): a log's training segments (protocol
+    segments), or the drives of one cross-drive fold (protocol drives: the drives of the datasets
+    that tune a test dataset, never one of its own), each cold-started from ground truth. What a
+    spec's `fit` reads: `pairs()` (kalmannet) or `grid_search()` (ekf-tuned)."""
+
+    source: ClassVar[str] = "recorded"
+    scenario: RecordedScenario
+    inputs: list  # real_experiment.SegmentInputs of the training segments or drives
+    what: str  # what they are, for a progress bar ("dataset(s) 6", "3 training segments")
+    account: dict  # the manifest's account of them ({"train_drives": [...]}, ...)
+    data_doc: dict  # what they depend on, for the fingerprint (not the filter, not the code)
+    drives: bool = False  # whole drives (grid search by branch and bound) or segments
+    jobs: int = 1
+    progress: Any = None
+    seeds: list | tuple = ()  # drives: log2 multipliers scored first (tune_on_drives)
+
+    @property
+    def model(self):
+        return Unicycle(self.scenario.odometry_period_s)
+
+    def pairs(self) -> list[tuple]:
+        """(Timeline, truth at its evaluation times, NaN where not scored) of each run."""
+        return [(s.timeline, s.truth) for s in self.inputs]
+
+    def progress_label(self, spec) -> str:
+        return f"training {spec.name} on {self.what}"
+
+    def grid_search(self) -> dict:
+        """ekf-tuned's grid search on these runs: `tune` (segments), `tune_on_drives` (drives)."""
+        if self.drives:
+            return tune_on_drives(self.scenario, self.inputs, self.jobs, self.seeds)
+        return tune(self.scenario, self.inputs, self.jobs)
+
+    def fingerprint(self, spec) -> str:
+        """Hash of what a fit on these runs depends on (see the module doc); not the test
+        drives or segments."""
+        doc = {
+            "filter": spec.model_dump(mode="json", exclude={"name"}),
+            **self.data_doc,
+            "code": code_version(),
+        }
+        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+
+    def describe(self) -> dict:
+        return self.account
+
+
+def trained_filters(scenario: RecordedScenario) -> list:
+    """The filters trained on training drives or segments (kalmannet); ekf-ml is fitted on each
+    run's own innovations instead (fitting.own.fit_on_own_innovations)."""
+    return [f for f in scenario.filters if f.role == "trained"]
+
+
+def drive_fold(
+    scenario: RecordedScenario, train: list, inputs: dict, jobs: int = 1, progress: Any = None,
+    seeds: list | tuple = (),
+) -> RecordedTraining:  # fmt: skip
+    """The training runs of one cross-drive fold: the drives `train` (whole), their inputs."""
+    label = "+".join(map(str, sorted({d.dataset for d in train})))
+    return RecordedTraining(
+        scenario=scenario,
+        inputs=[inputs[d.id] for d in train],
+        what=f"dataset(s) {label}",
+        account={"train_drives": [d.id for d in train]},
+        data_doc={
+            "scenario": scenario.model_dump(mode="json", include=_INPUT_FIELDS),
+            "drives": [[d.id, log_digest(d.log)] for d in train],
+        },
+        drives=True,
+        jobs=jobs,
+        progress=progress,
+        seeds=seeds,
+    )
+
+
+def segment_training(
+    scenario: RecordedScenario, rec, segments: list, jobs: int = 1, progress: Any = None
+) -> RecordedTraining:
+    """The training runs of protocol segments: the log's training segments (`segments`: their
+    real_experiment.SegmentInputs, each cold-started from ground truth; never a held-out one)."""
+    return RecordedTraining(
+        scenario=scenario,
+        inputs=segments,
+        what=f"{len(segments)} training segments",
+        account={"train_segments": [s.index for s in rec.train_segments]},
+        data_doc={
+            "scenario": scenario.model_dump(mode="json", include=_SEGMENT_FIELDS),
+            "log": rec.digest,
+        },
+        jobs=jobs,
+        progress=progress,
+    )
+
+
+def fit_on_drives(
+    scenario: RecordedScenario,
+    world: DriveSet,
+    inputs: dict,
+    cache_dir: Path | None,
+    progress: Any = None,
+) -> tuple[dict[str, RecordedScenario], dict]:
+    """Fit every trained filter of `scenario` once per fold (see the module doc). `inputs`: drive
+    id -> real_experiment.SegmentInputs. Returns the scenario each drive runs with (its fold's
+    weights; every drive when there is no trained filter) and the manifest's account. PlanError
+    (one line) when a filter cannot be trained on a fold's drives."""
+    todo = trained_filters(scenario)
+    if not todo:
+        return {d.id: scenario for d in world.drives}, {}
+    folds = {tuple(scenario.tuning_sources(d.dataset)) for d in world.drives}
+    requests, labels = [], []
+    for sources in sorted(folds, key=lambda k: (len(k), k)):
+        train = [d for d in world.drives if d.dataset in sources]
+        if not train:
+            raise PlanError(
+                f"filters: {todo[0].name}: no training drive for the drives tuned on dataset(s)"
+                f" {', '.join(map(str, sources))}"
+            )
+        fold = drive_fold(scenario, train, inputs, progress=progress)
+        for spec in todo:
+            requests.append((spec, fold))
+            labels.append((sources, "+".join(map(str, sources))))
+    found = fit_specs(requests, cache_dir)
+    fitted_for: dict[tuple, dict[str, Any]] = {}
+    records: dict[str, dict] = {spec.name: {} for spec in todo}
+    for (spec, fold), (sources, label), fit in zip(requests, labels, found, strict=True):
+        fitted_for.setdefault(sources, {})[spec.name] = spec.with_fit(fit.fitted)
+        records[spec.name][label] = fit.record(spec, fold)
+    out = {}
+    for d in world.drives:
+        specs = fitted_for[tuple(scenario.tuning_sources(d.dataset))]
+        filters = [specs.get(f.name, f) for f in scenario.filters]
+        out[d.id] = scenario.model_copy(update={"filters": filters})
+    return out, records
+
+
+def fit_on_segments(
+    scenario: RecordedScenario, rec, segments: list, cache_dir: Path | None, progress: Any = None
+) -> tuple[RecordedScenario, dict]:
+    """Protocol segments: every trained filter fitted once on the log's training segments
+    (`segment_training`), or read from the cache. Returns the scenario carrying the fits and the
+    manifest's account (per filter, one fold keyed "train")."""
+    todo = trained_filters(scenario)
+    if not todo:
+        return scenario, {}
+    training = segment_training(scenario, rec, segments, progress=progress)
+    found = fit_specs([(spec, training) for spec in todo], cache_dir)
+    specs = {spec.name: spec.with_fit(fit.fitted) for spec, fit in zip(todo, found, strict=True)}
+    records = {
+        spec.name: {"train": fit.record(spec, training)}
+        for spec, fit in zip(todo, found, strict=True)
+    }
+    filters = [specs.get(f.name, f) for f in scenario.filters]
+    return scenario.model_copy(update={"filters": filters}), records
+
+
+def tuned_reference(scenario: RecordedScenario):
+    """The scenario's ekf-tuned spec (its reference), or None."""
+    name = scenario.reference()
+    return next((f for f in scenario.filters if f.name == name), None)
+
+
+def tune_segments(scenario: RecordedScenario, rec, segments: list, jobs: int = 1) -> dict:
+    """ekf-tuned's noise on the log's training segments (`segments`, as `segment_training`),
+    through fitting.fit (not cached: the grid search is the reference of the batch)."""
+    training = segment_training(scenario, rec, segments, jobs)
+    return fit_specs([(tuned_reference(scenario), training)], None)[0].fitted
+
+
+# --------------------------------------------------------------------------------------------
+# ekf-tuned: the grid search on the training segments
+
+
+AXES = ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing")
+
+
+def _score_chunk(exps: np.ndarray, naive: np.ndarray, segs, P0, gate, T0) -> np.ndarray:
+    """(G, 5): sq_sum, count, max_err, n_updates, n_rejected of each setting over every training
+    segment (the tuning kernel, one setting at a time)."""
+    out = np.zeros((len(exps), 5))
+    terms = [unicycle_terms(s.timeline) for s in segs]
+    for g, e in enumerate(exps):
+        sig = naive * np.exp2(e)
+        for s, tk in zip(segs, terms, strict=True):
+            sq, mx, nu, nr, _ = score_setting(
+                s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth, s.scored, terms=tk
+            )
+            out[g] += (sq, int(s.scored.sum()), 0.0, nu, nr)
+            out[g, 2] = max(out[g, 2], mx)
+    return out
+
+
+def _score(exps: np.ndarray, naive, segs, P0, gate, T0, jobs: int) -> np.ndarray:
+    """`_score_chunk` with the settings dealt round-robin to `jobs` threads (the compiled kernel
+    releases the GIL: no worker processes to start, nothing to pickle)."""
+    parts = max(1, min(jobs, len(exps)))
+    if parts == 1:
+        return _score_chunk(exps, naive, segs, P0, gate, T0)
+    found = Parallel(n_jobs=parts, backend="threading")(
+        delayed(_score_chunk)(exps[i::parts], naive, segs, P0, gate, T0) for i in range(parts)
+    )
+    out = np.zeros((len(exps), 5))
+    for i, f in enumerate(found):
+        out[i::parts] = f
+    return out
+
+
+def _criterion(scores: np.ndarray) -> np.ndarray:
+    with np.errstate(all="ignore"):
+        rmse = np.sqrt(scores[:, 0] / scores[:, 1])
+    return np.where(np.isfinite(rmse), rmse, np.inf)
+
+
+def tune(scenario: RecordedScenario, segs: list, jobs: int = 1) -> dict:
+    """The grid search of `ekf-tuned` on the training segments `segs` (their
+    real_experiment.SegmentInputs, each cold-started from ground truth; see the module doc).
+
+    Returns the chosen standard deviations (sigma_v, sigma_w_rad, sigma_range,
+    sigma_bearing_rad), their log2 multipliers of the naive values, the criterion there, the
+    stages (settings and best value of each), the share of coarse settings that lost lock (a
+    position error above 1 m) and the time it took.
+    """
+    started = time.perf_counter()
+    naive = scenario.naive.sigmas()
+    P0 = recorded_p0(scenario)
+    gate = gate_threshold(scenario.gate_probability)
+    T0 = scenario.odometry_period_s
+    axes = scenario.tuning.axes()
+    coarse = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 4)
+    scores = _score(coarse, naive, segs, P0, gate, T0, jobs)
+    crit = _criterion(scores)
+    all_exps, all_scores, all_crit = [coarse], [scores], [crit]
+    best = int(np.argmin(crit))
+    stages = [{"stage": "coarse (step 2^1)", "settings": len(coarse), "best": float(crit[best])}]
+    best_exp = coarse[best]
+    if scenario.tuning.refine:
+        offsets = np.stack(np.meshgrid(*[[-1.0, 0.0, 1.0]] * 4, indexing="ij"), -1).reshape(-1, 4)
+        for step, label in ((0.5, "2^(1/2)"), (0.25, "2^(1/4)")):
+            exps = best_exp + step * offsets
+            s = _score(exps, naive, segs, P0, gate, T0, jobs)
+            c = _criterion(s)
+            all_exps.append(exps)
+            all_scores.append(s)
+            all_crit.append(c)
+            stages.append({"stage": f"refine (step {label})", "settings": len(exps),
+                           "best": float(c.min())})  # fmt: skip
+            best_exp = np.vstack(all_exps)[int(np.argmin(np.concatenate(all_crit)))]
+    exps = np.vstack(all_exps)
+    crit = np.concatenate(all_crit)
+    scores = np.vstack(all_scores)
+    i = int(np.argmin(crit))
+    best_exp = exps[i]
+    sig = naive * np.exp2(best_exp)
+    seen = scores[i, 3] + scores[i, 4]
+    return {
+        "criterion": "pooled position RMSE over the scorable evaluation times of the training"
+        " segments [m]",
+        "sigma_v": float(sig[0]),
+        "sigma_w_rad": float(sig[1]),
+        "sigma_range": float(sig[2]),
+        "sigma_bearing_rad": float(sig[3]),
+        "log2_multipliers": {a: float(e) for a, e in zip(AXES, best_exp, strict=True)},
+        "train_rmse_pos": float(crit[i]),
+        "train_max_pos_err": float(scores[i, 2]),
+        "train_gate_rejected": float(scores[i, 4] / seen) if seen else math.nan,
+        "train_segments": len(segs),
+        "settings": int(len(exps)),
+        "coarse_lost_lock_share": float(np.mean(scores[: len(coarse), 2] > LOST_LOCK_M)),
+        "stages": stages,
+        "seconds": round(time.perf_counter() - started, 3),
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# ekf-tuned across drives (protocol drives, SPEC 15): the same grid and refinement as `tune`,
+# on whole drives, by branch and bound on the compiled tuning kernel (engines.tuning)
+
+
+def _bnb_chunk(exps: np.ndarray, naive, inputs, P0, gate, T0, bound: float) -> np.ndarray:
+    """(G, 5): sq_sum, max_err, n_updates, n_rejected, finished of each setting over all
+    `inputs`, stopping a setting once its sum passes the best complete sum seen (or `bound`)."""
+    out = np.zeros((len(exps), 5))
+    best = bound
+    terms = [unicycle_terms(s.timeline) for s in inputs]
+    for g, e in enumerate(exps):
+        sig = naive * np.exp2(e)
+        total, worst, upd, rej, finished = 0.0, 0.0, 0, 0, True
+        for s, tk in zip(inputs, terms, strict=True):
+            sq, mx, nu, nr, fin = score_setting(
+                s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth, s.scored,
+                best - total, terms=tk,
+            )  # fmt: skip
+            total, worst, upd, rej = total + sq, max(worst, mx), upd + nu, rej + nr
+            if not fin or not math.isfinite(total):
+                finished = finished and math.isfinite(total) and fin
+                break
+        out[g] = (total, worst, upd, rej, float(finished))
+        if finished and total < best:
+            best = total
+    return out
+
+
+def _bnb(exps: np.ndarray, naive, inputs, P0, gate, T0, jobs: int, bound: float) -> np.ndarray:
+    """`_bnb_chunk` with the settings dealt round-robin to `jobs` threads (as `_score`)."""
+    parts = max(1, min(jobs, len(exps)))
+    if parts == 1:
+        return _bnb_chunk(exps, naive, inputs, P0, gate, T0, bound)
+    found = Parallel(n_jobs=parts, backend="threading")(
+        delayed(_bnb_chunk)(exps[i::parts], naive, inputs, P0, gate, T0, bound)
+        for i in range(parts)
+    )
+    out = np.zeros((len(exps), 5))
+    for i, f in enumerate(found):
+        out[i::parts] = f
+    return out
+
+
+def _bnb_best(scores: np.ndarray) -> int:
+    """The setting with the smallest complete sum (every setting is scored at the same times)."""
+    crit = np.where(scores[:, 4] > 0, scores[:, 0], np.inf)
+    crit = np.where(np.isfinite(crit), crit, np.inf)
+    return int(np.argmin(crit))
+
+
+def tune_on_drives(scenario: RecordedScenario, inputs: list, jobs: int = 1, seeds=()) -> dict:
+    """`tune`'s grid search (coarse grid, then 3^4 around the best with steps 2^(1/2) and
+    2^(1/4)) on whole drives. The criterion, the pooled position RMSE over every scored time of
+    `inputs`, has the same denominator for every setting, so the smallest sum of squares wins
+    and a setting stops once its partial sum passes the best complete one (branch and bound:
+    the same winner as scoring every setting in full). `seeds` (log2 multipliers) are scored
+    first, to start with a tight bound; the coarse grid then runs nearest the seeds first."""
+    started = time.perf_counter()
+    naive = scenario.naive.sigmas()
+    P0 = recorded_p0(scenario)
+    gate = gate_threshold(scenario.gate_probability)
+    T0 = scenario.odometry_period_s
+    count = int(sum(int(s.scored.sum()) for s in inputs))
+    coarse = np.stack(np.meshgrid(*scenario.tuning.axes(), indexing="ij"), -1).reshape(-1, 4)
+    seeds = np.array(seeds, dtype=float).reshape(-1, 4)
+    anchor = seeds[0] if len(seeds) else coarse.mean(axis=0)
+    coarse = coarse[np.argsort(np.abs(coarse - anchor).sum(axis=1), kind="stable")]
+    bound = math.inf
+    all_exps, all_scores, stages = [], [], []
+    if len(seeds):
+        sc = _bnb_chunk(seeds, naive, inputs, P0, gate, T0, bound)
+        all_exps.append(seeds)
+        all_scores.append(sc)
+        bound = float(sc[_bnb_best(sc), 0]) if np.any(sc[:, 4] > 0) else bound
+    sc = _bnb(coarse, naive, inputs, P0, gate, T0, jobs, bound)
+    all_exps.append(coarse)
+    all_scores.append(sc)
+    stopped = float(np.mean(sc[:, 4] == 0))
+    stages.append({"stage": "coarse (step 2^1)", "settings": len(coarse), "stopped_early": stopped})
+    if scenario.tuning.refine:
+        offsets = np.stack(np.meshgrid(*[[-1.0, 0.0, 1.0]] * 4, indexing="ij"), -1).reshape(-1, 4)
+        for step, label in ((0.5, "2^(1/2)"), (0.25, "2^(1/4)")):
+            exps, scores = np.vstack(all_exps), np.vstack(all_scores)
+            i = _bnb_best(scores)
+            sc = _bnb(exps[i] + step * offsets, naive, inputs, P0, gate, T0, jobs,
+                      float(scores[i, 0]))  # fmt: skip
+            all_exps.append(exps[i] + step * offsets)
+            all_scores.append(sc)
+            stages.append({"stage": f"refine (step {label})", "settings": len(offsets),
+                           "stopped_early": float(np.mean(sc[:, 4] == 0))})  # fmt: skip
+    exps, scores = np.vstack(all_exps), np.vstack(all_scores)
+    i = _bnb_best(scores)
+    sig = naive * np.exp2(exps[i])
+    seen = scores[i, 2] + scores[i, 3]
+    return {
+        "criterion": "pooled position RMSE over the scored evaluation times of the training"
+        " drives, whole [m]",
+        "sigma_v": float(sig[0]),
+        "sigma_w_rad": float(sig[1]),
+        "sigma_range": float(sig[2]),
+        "sigma_bearing_rad": float(sig[3]),
+        "log2_multipliers": {a: float(e) for a, e in zip(AXES, exps[i], strict=True)},
+        "train_rmse_pos": float(math.sqrt(scores[i, 0] / count)) if count else math.nan,
+        "train_max_pos_err": float(scores[i, 1]),
+        "train_gate_rejected": float(scores[i, 3] / seen) if seen else math.nan,
+        "settings": int(len(exps)),
+        "search": "branch and bound (engines.tuning): a setting stops once its sum of squared"
+        " errors passes the best complete one; the winner is the full grid's",
+        "stages": stages,
+        "seconds": round(time.perf_counter() - started, 3),
+    }
+
+
+def drive_rmse(scenario: RecordedScenario, inputs, tuned: dict) -> float:
+    """The position RMSE of the plain EKF with `tuned` noise on one drive (engines.tuning)."""
+    sig = [tuned[k] for k in ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")]
+    sq, *_ = score_setting(
+        inputs.timeline, inputs.segment.pose, recorded_p0(scenario), sig,
+        gate_threshold(scenario.gate_probability), scenario.odometry_period_s,
+        inputs.truth, inputs.scored,
+    )  # fmt: skip
+    n = int(inputs.scored.sum())
+    return float(math.sqrt(sq / n)) if n else math.nan
+
+
+def tune_drives(scenario: RecordedScenario, inputs: dict, world: DriveSet,
+                jobs: int = 1) -> tuple[dict[str, dict], dict]:  # fmt: skip
+    """ekf-tuned's noise for every drive (tuned on the drives of `scenario.tuning_sources` of
+    its dataset, never its own), and the manifest's account: each tuning, and per drive the
+    RMSE of the cross-dataset values against values tuned on its own dataset's drives (which
+    include the drive itself: in-sample, the most tuning can give on that map)."""
+    by_dataset: dict[int, list] = {}
+    for d in world.drives:
+        by_dataset.setdefault(d.dataset, []).append(d)
+    keys = {tuple(scenario.tuning_sources(ds)) for ds in by_dataset}
+    keys |= {(ds,) for ds in by_dataset}
+    reference = tuned_reference(scenario)
+    tunings: dict[tuple, dict] = {}
+    for key in sorted(keys, key=lambda k: (len(k), k)):  # single datasets first: they seed
+        drives = [d for ds in key for d in by_dataset[ds]]
+        seeds = [list(tunings[(ds,)]["log2_multipliers"].values()) for ds in key
+                 if (ds,) in tunings]  # fmt: skip
+        fold = drive_fold(scenario, drives, inputs, jobs, seeds=seeds)
+        tunings[key] = fit_specs([(reference, fold)], None)[0].fitted
+        tunings[key]["train_drives"] = [d.id for d in drives]
+    tuned_for, per_drive = {}, []
+    for d in world.drives:
+        cross = tunings[tuple(scenario.tuning_sources(d.dataset))]
+        tuned_for[d.id] = cross
+        per_drive.append(
+            {
+                "drive": d.id,
+                "dataset": d.dataset,
+                "tuned_on": cross["train_drives"],
+                "cross_rmse_pos": drive_rmse(scenario, inputs[d.id], cross),
+                "in_dataset_rmse_pos": drive_rmse(scenario, inputs[d.id], tunings[(d.dataset,)]),
+            }
+        )
+    doc = {
+        "protocol": "drives",
+        "tunings": {"+".join(map(str, k)): v for k, v in tunings.items()},
+        "per_drive": per_drive,
+        "seconds": round(sum(t["seconds"] for t in tunings.values()), 3),
+    }
+    return tuned_for, doc

@@ -14,6 +14,7 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e ".[dev,dask,fast]"
 	$(PY) -m anfekf_bench.engines.fast --warm-up
+	$(PY) -c "import anfekf_bench.problems.fast"  # the problems' compiled loops (SPEC 17)
 	touch $@
 
 ## The paper's four experiments at 50 runs each, then the report (after the runs, even with -j).

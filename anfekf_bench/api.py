@@ -30,6 +30,7 @@ import pandas as pd
 from . import arguments
 from .config import ScenarioError
 from .experiment import FolderBusy, OutputExists, Plan, PlanError, execute, make_plan
+from .report.results import LoadedResult, load_result
 from .scenarios import load_scenario, scenario_from_data
 from .storage import (
     CLAIMS_FILE,
@@ -38,10 +39,8 @@ from .storage import (
     STEPS_FILE,
     SUMMARY_PARQUET,
     ResultsError,
-    check_one_batch,
     read_json,
     read_manifest,
-    read_parquet,
 )
 
 __all__ = ["Experiment", "FolderBusy", "OutputExists", "PlanError", "Result", "ResultsError",
@@ -88,14 +87,19 @@ class Result:
         """What ran: the scenario, runs, seed, engines, fingerprint, versions, timings."""
         return read_manifest(self.folder)
 
+    def loaded(self) -> LoadedResult:
+        """The result as the report reads it (the report's one loader): its kind (simulated,
+        recorded, sweep, problem), the tables it holds, its manifest, its filters and their
+        roles."""
+        return load_result(self.folder)
+
     def _table(self, name: str) -> pd.DataFrame:
         """A table of this result; ResultsError when it belongs to another batch than the
         manifest's (the check `anfekf report` and `anfekf check` apply)."""
         path = self.folder / name
         if not path.exists():
             raise FileNotFoundError(f"{path}: not written for this result")
-        check_one_batch(self.folder, read_manifest(self.folder))
-        return read_parquet(path)
+        return self.loaded().read(name)
 
     def summary(self) -> pd.DataFrame:
         """One row per filter: RMSE, ANEES, NEES in bounds, updates, divergence."""
@@ -155,7 +159,7 @@ def run(
 def open_result(folder: str | Path) -> Result:
     """A result written earlier (by `run` or `anfekf run`)."""
     folder = arguments.path(folder, "folder")
-    read_manifest(folder)  # a folder that holds no result fails here, with its reason
+    load_result(folder)  # a folder that holds no result (or lacks a table) fails here, with why
     return Result(folder)
 
 
@@ -164,7 +168,7 @@ def report(results: Result | str | Path | Iterable[Result | str | Path], out: st
     the path of report.md. Results folders or their parents (one, or a list), as `anfekf
     report` takes them, sweeps included."""
     from .report import REPORT_FILE, write_report
-    from .report.sweep import find_sweeps
+    from .report.results import find_sweeps
 
     folders = arguments.result_paths(results, "results")
     out = arguments.output_folder(out, "out")

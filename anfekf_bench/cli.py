@@ -391,7 +391,8 @@ def run(
         files, problems = split_problem_files(scenario_files(scenario))
         plans = [make_plan(*load_scenario(p), **checked.plan_overrides()) for p in files]
     if problems:
-        _run_problems(problems, out, runs, seed, jobs, force, skip_existing, debug)
+        _run_problems(problems, out, runs, seed, jobs, force, skip_existing, debug,
+                      checked.engine)  # fmt: skip
         if not files:
             return
     if any(p.engine == "fast" for p in plans):
@@ -453,7 +454,8 @@ def run(
             _run_plan(plan, out, force, debug)
 
 
-def _run_problems(problems, out, runs, seed, jobs, force, skip_existing, debug) -> None:
+def _run_problems(problems, out, runs, seed, jobs, force, skip_existing, debug,
+                  engine=None) -> None:  # fmt: skip
     """Run problem scenarios (SPEC 17: anfekf_bench.problems) and print their tables."""
     from .problems.experiment import ProblemRunError, execute_problem, is_problem_result
     from .problems.report import problem_console_table
@@ -468,12 +470,13 @@ def _run_problems(problems, out, runs, seed, jobs, force, skip_existing, debug) 
                          " (--skip-existing)"), markup=False, highlight=False, soft_wrap=True,
             )  # fmt: skip
             continue
-        console.print(one_line(f"{scenario.name}: problem {scenario.problem}, running"),
+        on = engine or scenario.engine
+        console.print(one_line(f"{scenario.name}: problem {scenario.problem}, running on {on}"),
                       markup=False, highlight=False, soft_wrap=True)  # fmt: skip
         with one_line_errors(debug, (ProblemRunError, FolderBusy), prefix=f"{path}: ",
                              os_error=f"{scenario.name}: cannot write results"):  # fmt: skip
             _, target = execute_problem(scenario, out, runs=runs, seed=seed, jobs=jobs,
-                                        force=force)  # fmt: skip
+                                        force=force, engine=engine)  # fmt: skip
         table_console().print(problem_console_table(target))
         console.print(one_line(f"results written to {target}"), markup=False, highlight=False,
                       soft_wrap=True)  # fmt: skip
@@ -711,9 +714,11 @@ def format_interval(estimate: float, lo: float, hi: float, digits: int = 3) -> s
 def print_comparisons(out: Console, target: Path) -> None:
     """The paired ratios (95 % bootstrap intervals) and the claims' verdicts of a result."""
     from .analysis.metrics import format_number
-    from .storage import CLAIMS_FILE, COMPARISONS_FILE, read_json, read_parquet
+    from .report.results import load_result
+    from .storage import CLAIMS_FILE, COMPARISONS_FILE
 
-    comparisons = read_parquet(target / COMPARISONS_FILE)
+    result = load_result(target)  # the report's one loader of results
+    comparisons = result.read(COMPARISONS_FILE)
     if len(comparisons):
         table = Table(
             title="paired ratios over runs, 95 % bootstrap interval (p: Wilcoxon signed-rank)",
@@ -736,7 +741,7 @@ def print_comparisons(out: Console, target: Path) -> None:
                 " discriminate",
                 highlight=False,
             )
-    claims = read_json(target / CLAIMS_FILE)
+    claims = result.read(CLAIMS_FILE)
     if claims:
         table = Table(title="claims (decided on the interval)", title_justify="left")
         for col in ("claim", "estimate [95 % interval]", "verdict", "note"):
@@ -783,7 +788,7 @@ def report(
     """Draw figures and tables of saved results: report.md and report.html (never re-runs)."""
     # Imported here so that `anfekf run` does not pay for matplotlib.
     from .report import HTML_FILE, REPORT_FILE, ImageFormat, rich_table, write_report
-    from .report.sweep import find_sweeps
+    from .report.results import find_sweeps
     from .storage import ResultsError
 
     warnings.showwarning = _one_line_warning  # a library's warning may quote a name

@@ -266,8 +266,8 @@ def filter_kinds_markdown() -> str:
             out.append("No parameters.")
     out += [
         "",
-        "On a problem beyond the robot (`problem: linear`, docs/PROBLEMS.md) these kinds have a"
-        " dimension-generic implementation with full Q and R, and these parameters:",
+        "On a problem beyond the robot (`problem: linear`, `tracking`; docs/PROBLEMS.md) these"
+        " kinds have a dimension-generic implementation with full Q and R, and these parameters:",
     ]
     for spec in PROBLEM_FILTER_SPECS:
         kind = spec.model_fields["kind"].annotation.__args__[0]

@@ -44,10 +44,12 @@ from .experiment import (
     survey_output,
 )
 from .outputs import check_not_nested
+from .report.results import load_result
 from .storage import (
     COMPARISONS_FILE,
     LOCK_FILE,
     MANIFEST_FILE,
+    SUMMARY_PARQUET,
     SWEEP_CELLS_DIR,
     SWEEP_FILE,
     SWEEP_KIND,
@@ -56,7 +58,6 @@ from .storage import (
     is_result_manifest,
     parquet_provenance,
     read_json,
-    read_parquet,
     scenario_name_problem,
     write_json,
     write_parquet,
@@ -350,9 +351,9 @@ def sweep_table(axes: list[SweepAxis], cells: list[Cell], cells_dir: Path) -> pd
     """One row per (cell, filter): swept values, summary metrics, ratios to the references."""
     rows = []
     for cell in cells:
-        folder = cells_dir / cell.name
-        summary = read_parquet(folder / "summary.parquet")
-        comparisons = read_parquet(folder / COMPARISONS_FILE)
+        result = load_result(cells_dir / cell.name)  # the report's one loader of results
+        summary = result.read(SUMMARY_PARQUET)
+        comparisons = result.read(COMPARISONS_FILE)
         kinds = {f.name: f.kind for f in cell.scenario.filters}
         refs = {
             "ekf": next((n for n, k in kinds.items() if k == "ekf"), None),

@@ -376,7 +376,12 @@ class ALSSpec(AdaptiveSpec):
     """Online LTV autocovariance least squares on Qu and R (module doc)."""
 
     kind: Literal["als"]
-    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
+    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "module"})
+    robot_only_because: ClassVar[str] = (
+        "beyond the robot, autocovariance least squares needs a linear time-invariant problem"
+        " (constant F, G, H: the innovations' autocovariances are linear in Q and R only then;"
+        " a module problem saying `linear = True`)"
+    )
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     adapt: Literal["RQ", "R", "Q"] = Field(
         "RQ", description="which variances the identified values replace (all four are fitted)"

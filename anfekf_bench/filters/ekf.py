@@ -199,7 +199,7 @@ class EKFSpec(FilterSpec):
     """The plain EKF with the scenario's assumed noise (`filter_noise`)."""
 
     kind: Literal["ekf"] = "ekf"
-    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
+    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking", "module"})
     role: ClassVar[Role] = "reference"
 
     def build(self, ctx: FilterContext) -> RobotEKF:
@@ -229,7 +229,7 @@ class OracleSpec(FilterSpec):
     schedule, the true noise of every step (`ScheduledOracle`)."""
 
     kind: Literal["ekf-oracle"]
-    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
+    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking", "module"})
     uses_true_noise: ClassVar[bool] = True
     role: ClassVar[Role] = "oracle"
 

@@ -126,7 +126,7 @@ class EKFMLSpec(FittedNoiseSpec):
     scored on (its own innovations, never its ground truth: fitting.own.OwnInnovations)."""
 
     kind: Literal["ekf-ml"]
-    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
+    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking", "module"})
     criterion: ClassVar[str] = "likelihood"
     fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated", "own"})
 
@@ -136,6 +136,6 @@ class EKFTunedSpec(FittedNoiseSpec):
     the fair "tuned with truth" reference of a simulated scenario."""
 
     kind: Literal["ekf-tuned"]
-    robot_only_because: ClassVar[str] = "its grid search is over the robot's four noise sigmas"
+    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking"})
     criterion: ClassVar[str] = "rmse"
     fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated"})

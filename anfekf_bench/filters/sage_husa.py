@@ -83,7 +83,7 @@ class SageHusaSpec(AdaptiveSpec, Augmentable):
     """Fading-memory Sage-Husa (Sage & Husa 1969): R per channel before the gain, Qu optional."""
 
     kind: Literal["sage-husa"]
-    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
+    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking", "module"})
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     b: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = Field(
         0.97,

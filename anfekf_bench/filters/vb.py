@@ -176,7 +176,7 @@ class VBRSpec(AdaptiveSpec, Augmentable):
     channel."""
 
     kind: Literal["vb-r"]
-    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear"})
+    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking", "module"})
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R"})
     rho: float = Field(
         RHO, gt=0, le=1, allow_inf_nan=False,

@@ -18,6 +18,7 @@ far and uses the latest estimate (causal); its estimate at the end uses the whol
 
 from __future__ import annotations
 
+import time
 from typing import Annotated, ClassVar, Literal
 
 import numpy as np
@@ -25,7 +26,7 @@ from pydantic import Field
 from scipy.linalg import solve_discrete_lyapunov
 
 from .base import Problem
-from .filters import PSD_FLOOR, GenericKF, Matrix, ProblemFilterSpec
+from .filters import PSD_FLOOR, GenericKF, Matrix, ProblemFilterSpec, Trace
 from .kalman import linear_recursion, nearest_psd
 
 
@@ -180,3 +181,14 @@ class ALSKF(GenericKF):
     def finish(self, z):
         if len(self.y) >= self.spec.lags:
             self.identify()
+
+    def run_compiled(self, z):
+        from .fast import als_run, as_arrays
+
+        p, spec = self.problem, self.spec
+        started = time.perf_counter()
+        arrays = as_arrays(p.x0, p.P0, self.Q, self.R, z, p.Fm, p.Hm, self.K,
+                           self.identifier.pinv)  # fmt: skip
+        out = als_run(*self.model.args(), *arrays, int(spec.lags), int(spec.every),
+                      int(spec.burn), int(spec.min_steps), self.Q_floor, self.R_floor)  # fmt: skip
+        return Trace(*out, time.perf_counter() - started)

@@ -4,7 +4,9 @@ Motion x(k+1) = f(x(k), k) + G w(k), w ~ N(0, Q) (Q is nw x nw: G maps the noise
 state); measurement z(k) = h(x(k), k) + v(k), v ~ N(0, R). `F`, `G`, `H` are the Jacobians.
 Measurement components listed in `angles` are angle-valued: their residuals are wrapped to
 (-pi, pi]. `position` names the state components scored as position (the rest are scored
-together as "rest").
+together as "rest"). `gate`, where set, is the threshold of the normalised innovation squared
+above which the filters drop a measurement (counted per run); `default_assumed` is the noise the
+filters assume when a scenario does not say.
 """
 
 from __future__ import annotations
@@ -23,6 +25,10 @@ def wrap(residual: np.ndarray, angles: tuple[int, ...]) -> np.ndarray:
     idx = list(angles)
     out[..., idx] = np.pi - np.mod(np.pi - out[..., idx], 2 * np.pi)
     return out
+
+
+class NotCompilable(Exception):
+    """A problem cannot run on the fast engine; `str()` says why in one line."""
 
 
 @dataclass(frozen=True)
@@ -44,6 +50,7 @@ class Problem(ABC):
     angles: tuple[int, ...] = ()  # angle-valued measurement components
     position: tuple[int, ...] = ()  # state components scored as position
     linear: bool = False  # f and h linear and time-invariant (F, G, H constant)
+    gate: float | None = None  # nu^T S^-1 nu above which a measurement is dropped; None: none
     Q: np.ndarray  # true process-noise covariance (nw, nw)
     R: np.ndarray  # true measurement-noise covariance (nz, nz)
     x0: np.ndarray  # mean of the true initial state, and the filters' starting estimate
@@ -54,6 +61,15 @@ class Problem(ABC):
     def rest(self) -> tuple[int, ...]:
         """The state components scored as the rest (those not in `position`)."""
         return tuple(i for i in range(self.n) if i not in self.position)
+
+    def default_assumed(self) -> tuple[np.ndarray, np.ndarray]:
+        """The (Q, R) the filters assume when the scenario gives no `filter_noise`: I, I."""
+        return np.eye(self.nw), np.eye(self.nz)
+
+    def fast_filter(self, Q: np.ndarray, R: np.ndarray, z: np.ndarray, *, gated: bool = True):
+        """(x, P, -log likelihood, dropped) of the (E)KF with Q, R on z, compiled; None where
+        the problem has no compiled filter (the fits then run the Python loop)."""
+        return None
 
     @abstractmethod
     def f(self, x: np.ndarray, k: int) -> np.ndarray:
@@ -74,6 +90,11 @@ class Problem(ABC):
     @abstractmethod
     def H(self, x: np.ndarray, k: int) -> np.ndarray:
         """dh/dx at x (nz, n)."""
+
+    def compiled_model(self):
+        """Its functions compiled for the fast engine (`problems.fast.CompiledModel`), or
+        `NotCompilable` saying why not."""
+        raise NotCompilable(f"problem {self.name!r} has no compiled model")
 
     def simulate(self, rng: np.random.Generator) -> Trajectory:
         """Truth and measurements of one run: x(0) ~ N(x0, P0), then the model with its true

@@ -35,7 +35,8 @@ from ..storage import (
     write_json,
     write_parquet,
 )
-from .ml import MLKF, fit_noise
+from .base import NotCompilable
+from .module import ModuleProblemError, file_digest
 from .schema import ProblemScenario
 from .scoring import score
 
@@ -63,34 +64,50 @@ def fit_training(scenario: ProblemScenario, seed: int) -> tuple[dict, dict]:
     if not specs:
         return fitted, records
     problem = scenario.build_problem()
-    runs = [problem.simulate(run_rng(seed, i, training=True)).z
+    runs = [problem.simulate(run_rng(seed, i, training=True))
             for i in range(scenario.training.runs)]  # fmt: skip
     Q0, R0 = scenario.assumed_noise()
     for spec in specs:
-        started = time.perf_counter()
-        Q, R, result = fit_noise(problem, runs, *spec.start(Q0, R0), maxiter=spec.maxiter)
+        Q, R, record = spec.fit_training(problem, runs, Q0, R0)
         fitted[spec.name] = (Q, R)
-        records[spec.name] = {
-            "training_runs": len(runs), "Q": Q.tolist(), "R": R.tolist(),
-            "iterations": int(result.nit), "converged": bool(result.success),
-            "seconds": round(time.perf_counter() - started, 3),
-        }  # fmt: skip
+        records[spec.name] = record
     return fitted, records
 
 
 def run_one(scenario: ProblemScenario, seed: int, i: int, fitted: dict) -> tuple[np.ndarray, dict]:
-    """(truth x, {filter name: Trace}) of evaluation run i."""
+    """(truth x, {filter name: Trace}) of evaluation run i. On the fast engine every filter
+    runs its family's compiled loop (`problems.fast`); the truth and measurements are the same
+    on both engines (the problem's simulator)."""
     problem = scenario.build_problem()
+    model = problem.compiled_model() if scenario.engine == "fast" else None
     trajectory = problem.simulate(run_rng(seed, i))
     Q_a, R_a = scenario.assumed_noise()
     traces = {}
     for spec in scenario.filters:
         Q, R = (problem.Q, problem.R) if spec.uses_true_noise else (Q_a, R_a)
+        Q, R = fitted.get(spec.name, (Q, R))
         flt = spec.build(problem, Q, R)
-        if isinstance(flt, MLKF) and spec.name in fitted:
-            flt.fitted = fitted[spec.name]
+        flt.model = model
         traces[spec.name] = flt.run(trajectory.z)
     return trajectory.x, traces
+
+
+def prepare_engine(scenario: ProblemScenario) -> dict:
+    """The fast engine's loops and the problem's functions compiled (or loaded from numba's
+    cache) once, before the runs, and what that cost: {} on filterpy; ProblemRunError when the
+    problem's functions do not compile."""
+    if scenario.engine != "fast":
+        return {}
+    started = time.perf_counter()
+    if scenario.build_problem().gate is not None:
+        raise ProblemRunError("engine fast: the compiled loops do not implement the problem's"
+                              " gate yet; run it on engine filterpy")  # fmt: skip
+    try:
+        model = scenario.build_problem().compiled_model()
+    except (NotCompilable, ImportError) as exc:  # ImportError: numba missing (fast.py says so)
+        raise ProblemRunError(f"engine fast: {exc}") from None
+    return {"prepare_seconds": round(time.perf_counter() - started, 3),
+            "model_compile_seconds": round(model.compile_seconds, 3)}  # fmt: skip
 
 
 def run_batch(scenario: ProblemScenario, runs: int, seed: int, jobs: int, fitted: dict):
@@ -107,9 +124,21 @@ def run_batch(scenario: ProblemScenario, runs: int, seed: int, jobs: int, fitted
     return [run_one(scenario, seed, i, fitted) for i in range(runs)]
 
 
+def module_digest(scenario: ProblemScenario) -> str | None:
+    """The sha256 of a module problem's file (its results depend on its code), else None."""
+    return None if scenario.module is None else file_digest(scenario.build_problem().path)
+
+
 def fingerprint(scenario: ProblemScenario, runs: int, seed: int) -> str:
-    doc = {"scenario": scenario.model_dump(mode="json", exclude={"jobs", "runs"}), "runs": runs,
-           "seed": seed, "version": package_version()}  # fmt: skip
+    """A hash of what the result depends on. The keys a linear scenario on filterpy leaves at
+    their defaults (engine, module) are left out: its fingerprint is the one before they were."""
+    dump = scenario.model_dump(mode="json", exclude={"jobs", "runs", "engine", "module"})
+    doc = {"scenario": dump, "runs": runs, "seed": seed, "version": package_version()}
+    if scenario.engine != "filterpy":
+        doc["engine"] = scenario.engine
+    if scenario.module is not None:  # a module's results depend on its code
+        doc["module"] = {**scenario.module.model_dump(mode="json"),
+                         "sha256": module_digest(scenario)}  # fmt: skip
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -148,20 +177,27 @@ def check_target(out: Path, name: str, force: bool) -> Path:
 
 
 def execute_problem(scenario: ProblemScenario, out: Path, *, runs: int | None = None,
-                    seed: int | None = None, jobs: int | None = None,
-                    force: bool = False) -> tuple[pd.DataFrame, Path]:  # fmt: skip
-    """Run a problem scenario and write its result; (summary, folder)."""
+                    seed: int | None = None, jobs: int | None = None, force: bool = False,
+                    engine: str | None = None) -> tuple[pd.DataFrame, Path]:  # fmt: skip
+    """Run a problem scenario and write its result; (summary, folder). `engine` overrides the
+    scenario's (filterpy or fast)."""
     started = time.time()
+    if engine is not None:
+        scenario = scenario.model_copy(update={"engine": engine})
     runs = scenario.runs if runs is None else runs
     seed = scenario.seed if seed is None else seed
     jobs = scenario.jobs if jobs is None else jobs
     target = check_target(out, scenario.name, force)
     with folder_lock(target):
         check_target(out, scenario.name, force)
-        fitted, fit_records = fit_training(scenario, seed)
-        run_started = time.perf_counter()
-        results = run_batch(scenario, runs, seed, jobs, fitted)
-        run_seconds = time.perf_counter() - run_started
+        engine_record = prepare_engine(scenario)
+        try:
+            fitted, fit_records = fit_training(scenario, seed)
+            run_started = time.perf_counter()
+            results = run_batch(scenario, runs, seed, jobs, fitted)
+            run_seconds = time.perf_counter() - run_started
+        except ModuleProblemError as exc:  # the user's module failed during a run
+            raise ProblemRunError(f"module {scenario.module.file}: {exc}") from None
         truth = np.stack([x for x, _ in results])
         names = [s.name for s in scenario.filters]
         traces = {name: [tr[name] for _, tr in results] for name in names}
@@ -179,6 +215,8 @@ def execute_problem(scenario: ProblemScenario, out: Path, *, runs: int | None = 
             "format": PROBLEM_FORMAT,
             "scenario": scenario.model_dump(mode="json"),
             "problem": scenario.problem,
+            "engine": scenario.engine, "engine_setup": engine_record,
+            "module_sha256": module_digest(scenario),
             "runs": runs, "seed": seed, "jobs": jobs, "fingerprint": fp,
             "reference": oracles[0] if oracles else None,
             "training": fit_records,

@@ -12,7 +12,8 @@ problems the kind supports and why not where it does not); here is its implement
 - `vb-r`: variational Bayes with an inverse-Wishart posterior on the full R (Sarkka & Hartikainen
   2013's adaptive filter in its full-matrix form); Q stays the assumed one (the VB of Q needs a
   smoother over a window: not defined here);
-- `als` (`problems.als`) and `ekf-ml` (`problems.ml`) build on the same loop.
+- `als` (`problems.als`), `ekf-ml` (`problems.ml`) and `ekf-tuned` (`problems.tuned`) build on
+  the same loop.
 """
 
 from __future__ import annotations
@@ -27,24 +28,27 @@ from pydantic import Field
 from ..filters.sage_husa import fading_weight, q_sample
 from ..schema import StrictModel
 from .base import Problem
-from .kalman import innovation, joseph_update, nearest_psd, symmetric
+from .kalman import innovation, joseph_update, nearest_psd, outside_gate, symmetric
 
 Matrix = list[list[Annotated[float, Field(allow_inf_nan=False)]]]
 
-# Floor of a projected covariance's eigenvalues, as a share of the mean variance it started at.
+# Floor of a projected covariance's eigenvalues, as a share of the mean variance it started at
+# (sage-husa: of each component's starting variance).
 PSD_FLOOR = 1e-6
 
 
 @dataclass
 class Trace:
     """A filter's run: x (steps, n), P (steps, n, n) after each update, the Q and R in force
-    at each step (steps, nw, nw), (steps, nz, nz), and its seconds (fits on the run included)."""
+    at each step (steps, nw, nw), (steps, nz, nz), its seconds (fits on the run included) and
+    the measurements the problem's gate dropped."""
 
     x: np.ndarray
     P: np.ndarray
     Q: np.ndarray
     R: np.ndarray
     seconds: float = 0.0
+    gated: int = 0
 
 
 class ProblemFilterSpec(StrictModel):
@@ -62,6 +66,12 @@ class ProblemFilterSpec(StrictModel):
     def estimated(self) -> frozenset[str]:
         return self.estimates
 
+    def fit_training(self, problem: Problem, runs: list, Q0: np.ndarray, R0: np.ndarray):
+        """(Q, R, record) fitted on the training runs (`base.Trajectory`s: truth and
+        measurements) from the assumed (Q0, R0); the record goes to the manifest. Only for
+        the specs that `fits_on_training`."""
+        raise NotImplementedError
+
     def build(self, problem: Problem, Q: np.ndarray, R: np.ndarray) -> GenericKF:
         """A fresh filter for one run, starting from (Q, R): the assumed noise, or the true one
         for the oracle (the caller decides by `uses_true_noise`)."""
@@ -75,6 +85,9 @@ class GenericKF:
         self.problem = problem
         self.Q = np.array(Q, dtype=float)
         self.R = np.array(R, dtype=float)
+        # The problem's compiled model (`problems.fast.CompiledModel`): set, `run` runs the
+        # family's compiled loop (the fast engine) instead of this Python loop.
+        self.model = None
 
     def before_gain(self, k: int, nu: np.ndarray, H: np.ndarray, P: np.ndarray) -> None:
         """Adapt R (or anything the gain uses) from the innovation of step k."""
@@ -87,19 +100,25 @@ class GenericKF:
         """After the last step (a batch identifier's final estimate)."""
 
     def run(self, z: np.ndarray) -> Trace:
+        if self.model is not None:
+            return self.run_compiled(z)
         p = self.problem
         steps = len(z)
         xs, Ps = np.empty((steps, p.n)), np.empty((steps, p.n, p.n))
         Qs, Rs = np.empty((steps, p.nw, p.nw)), np.empty((steps, p.nz, p.nz))
         x, P = p.x0.copy(), p.P0.copy()
         prev = None
+        gated = 0
         started = time.perf_counter()
         for k in range(steps):
             nu, H = innovation(p, x, z[k], k)
-            self.before_gain(k, nu, H, P)
-            x_prior = x
-            x, P, _, _ = joseph_update(x, P, nu, H, self.R)
-            self.after_update(k, x - x_prior, P, prev)
+            if outside_gate(p, nu, H, P, self.R):  # dropped: no update, nothing adapted
+                gated += 1
+            else:
+                self.before_gain(k, nu, H, P)
+                x_prior = x
+                x, P, _, _ = joseph_update(x, P, nu, H, self.R)
+                self.after_update(k, x - x_prior, P, prev)
             xs[k], Ps[k], Qs[k], Rs[k] = x, P, self.Q, self.R
             F, G = p.F(x, k), p.G(x, k)
             prev = (F, G, P)
@@ -107,7 +126,22 @@ class GenericKF:
             P = symmetric(F @ P @ F.T + G @ self.Q @ G.T)
         self.finish(z)
         Qs[-1], Rs[-1] = self.Q, self.R
-        return Trace(xs, Ps, Qs, Rs, time.perf_counter() - started)
+        return Trace(xs, Ps, Qs, Rs, time.perf_counter() - started, gated)
+
+    def run_compiled(self, z: np.ndarray) -> Trace:
+        """`run` on the fast engine: the family's loop in `problems.fast` (here: fixed Q, R)."""
+        from .fast import as_arrays, ekf_run
+
+        p = self.problem
+        started = time.perf_counter()
+        xs, Ps = ekf_run(*self.model.args(), *as_arrays(p.x0, p.P0, self.Q, self.R, z))
+        return Trace(xs, Ps, repeat(self.Q, len(z)), repeat(self.R, len(z)),
+                     time.perf_counter() - started)  # fmt: skip
+
+
+def repeat(M: np.ndarray, steps: int) -> np.ndarray:
+    """M at every step (steps, *M.shape)."""
+    return np.repeat(M[None], steps, axis=0)
 
 
 class EKFSpec(ProblemFilterSpec):
@@ -159,8 +193,11 @@ class SageHusaKF(GenericKF):
         super().__init__(problem, Q, R)
         self.spec = spec
         self.R_hat, self.Q_hat = self.R.copy(), self.Q.copy()
-        self.R_floor = PSD_FLOOR * float(np.trace(self.R)) / problem.nz
-        self.Q_floor = PSD_FLOOR * float(np.trace(self.Q)) / problem.nw
+        # The projection works in units of the starting standard deviations, so that a floor
+        # of PSD_FLOOR means the same for every component (range in m, bearing in rad: the
+        # tracking radar's R spans seven decades).
+        sd_R, sd_Q = np.sqrt(np.diag(self.R)), np.sqrt(np.diag(self.Q))
+        self.R_units, self.Q_units = np.outer(sd_R, sd_R), np.outer(sd_Q, sd_Q)
 
     def weight(self, k: int) -> float:
         b = self.spec.b
@@ -173,7 +210,7 @@ class SageHusaKF(GenericKF):
         d = self.weight(k)
         self.R_hat = (1.0 - d) * self.R_hat + d * sample
         if k + 1 >= self.spec.warmup:
-            self.R = nearest_psd(self.R_hat, self.R_floor)
+            self.R = nearest_psd(self.R_hat / self.R_units, PSD_FLOOR) * self.R_units
 
     def after_update(self, k, dx, P_post, prev):
         if "Q" not in self.spec.adapt or prev is None:
@@ -185,7 +222,18 @@ class SageHusaKF(GenericKF):
         d = self.weight(k - 1)  # Q's first sample comes at step 1
         self.Q_hat = (1.0 - d) * self.Q_hat + d * symmetric(sample)
         if k + 1 >= self.spec.warmup:
-            self.Q = nearest_psd(self.Q_hat, self.Q_floor)
+            self.Q = nearest_psd(self.Q_hat / self.Q_units, PSD_FLOOR) * self.Q_units
+
+    def run_compiled(self, z):
+        from .fast import as_arrays, sage_husa_run
+
+        p, spec = self.problem, self.spec
+        started = time.perf_counter()
+        out = sage_husa_run(*self.model.args(), *as_arrays(p.x0, p.P0, self.Q, self.R, z),
+                            float(spec.b), int("R" in spec.adapt), int("Q" in spec.adapt),
+                            int(spec.warmup), *as_arrays(self.R_units, self.Q_units),
+                            PSD_FLOOR)  # fmt: skip
+        return Trace(*out, time.perf_counter() - started)
 
 
 class VBRSpec(ProblemFilterSpec):
@@ -215,15 +263,35 @@ class VBRKF(GenericKF):
         self.nu = m + 1.0 + (1.0 if spec.prior_dof is None else spec.prior_dof)
         self.V = self.nu * self.R  # so that the filter starts from the assumed R
 
+    def run_compiled(self, z):
+        from .fast import as_arrays, vbr_run
+
+        p, spec = self.problem, self.spec
+        started = time.perf_counter()
+        xs, Ps, Rs = vbr_run(*self.model.args(), *as_arrays(p.x0, p.P0, self.Q, self.R, z),
+                             float(spec.rho), int(spec.iterations), float(self.nu))  # fmt: skip
+        return Trace(xs, Ps, repeat(self.Q, len(z)), Rs, time.perf_counter() - started)
+
     def run(self, z):
+        if self.model is not None:
+            return self.run_compiled(z)
         # The VB update iterates the Kalman update itself: its own loop.
         p, spec, m = self.problem, self.spec, self.problem.nz
         steps = len(z)
         xs, Ps = np.empty((steps, p.n)), np.empty((steps, p.n, p.n))
         Qs, Rs = np.empty((steps, p.nw, p.nw)), np.empty((steps, m, m))
         x, P = p.x0.copy(), p.P0.copy()
+        gated = 0
         started = time.perf_counter()
         for k in range(steps):
+            nu_z, H = innovation(p, x, z[k], k)
+            if outside_gate(p, nu_z, H, P, self.R):  # dropped: the posterior stays as it was
+                gated += 1
+                xs[k], Ps[k], Qs[k], Rs[k] = x, P, self.Q, self.R
+                F, G = p.F(x, k), p.G(x, k)
+                x = p.f(x, k)
+                P = symmetric(F @ P @ F.T + G @ self.Q @ G.T)
+                continue
             nu_prior = spec.rho * (self.nu - m - 1.0) + m + 1.0
             V_prior = spec.rho * self.V
             self.nu = nu_prior + 1.0
@@ -241,4 +309,4 @@ class VBRKF(GenericKF):
             F, G = p.F(x, k), p.G(x, k)
             x = p.f(x, k)
             P = symmetric(F @ P @ F.T + G @ self.Q @ G.T)
-        return Trace(xs, Ps, Qs, Rs, time.perf_counter() - started)
+        return Trace(xs, Ps, Qs, Rs, time.perf_counter() - started, gated)

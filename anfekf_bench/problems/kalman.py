@@ -72,6 +72,14 @@ def innovation(problem: Problem, x: np.ndarray, z: np.ndarray, k: int):
     return wrap(z - problem.h(x, k), problem.angles), problem.H(x, k)
 
 
+def outside_gate(problem: Problem, nu: np.ndarray, H: np.ndarray, P: np.ndarray,
+                 R: np.ndarray) -> bool:  # fmt: skip
+    """Whether the problem's gate drops the measurement: nu^T (H P H^T + R)^-1 nu > gate."""
+    if problem.gate is None:
+        return False
+    return float(nu @ np.linalg.solve(H @ P @ H.T + R, nu)) > problem.gate
+
+
 def gaussian_nll(nu: np.ndarray, S: np.ndarray) -> float:
     """-log N(nu; 0, S)."""
     sign, logdet = np.linalg.slogdet(S)

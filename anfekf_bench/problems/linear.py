@@ -50,6 +50,11 @@ class LinearProblem(Problem):
         x = linear_recursion(self.Fm, self.Gm, w, x0)
         return Trajectory(x=x, z=x @ self.Hm.T + v)
 
+    def compiled_model(self):
+        from .fast import linear_model
+
+        return linear_model(self.Fm, self.Gm, self.Hm, self.angles)
+
     def f(self, x, k):
         return self.Fm @ x
 

@@ -43,11 +43,17 @@ def from_cholesky_params(theta: np.ndarray, m: int) -> np.ndarray:
 
 
 def negative_log_likelihood(problem: Problem, runs: list[np.ndarray], Q, R) -> float:
-    """Sum over runs of -log p(z | Q, R) (compiled for a linear problem)."""
+    """Sum over runs of -log p(z | Q, R) (compiled for a linear problem and where the problem
+    has a compiled filter). The gate is not applied: every measurement's likelihood counts (a
+    gated likelihood rewards noise small enough to drop every measurement)."""
     if problem.linear:
         args = (problem.Fm, problem.Gm, problem.Hm, Q, R, problem.x0, problem.P0)
         return float(sum(linear_nll(*args, z) for z in runs))
-    return float(sum(ekf_nll(problem, z, Q, R) for z in runs))
+    total = 0.0
+    for z in runs:
+        fast = problem.fast_filter(Q, R, z, gated=False)
+        total += ekf_nll(problem, z, Q, R) if fast is None else fast[2]
+    return float(total)
 
 
 def fit_noise(problem: Problem, runs: list[np.ndarray], Q0, R0, maxiter: int = 200):
@@ -85,6 +91,16 @@ class MLSpec(ProblemFilterSpec):
     def fits_on_training(self) -> bool:
         return self.fit_on == "training"
 
+    def fit_training(self, problem, runs, Q0, R0):
+        started = time.perf_counter()
+        Q, R, result = fit_noise(problem, [t.z for t in runs], *self.start(Q0, R0),
+                                 maxiter=self.maxiter)  # fmt: skip
+        return Q, R, {
+            "training_runs": len(runs), "Q": Q.tolist(), "R": R.tolist(),
+            "iterations": int(result.nit), "converged": bool(result.success),
+            "seconds": round(time.perf_counter() - started, 3),
+        }  # fmt: skip
+
     def start(self, Q, R):
         return (Q if self.start_Q is None else np.array(self.start_Q, float),
                 R if self.start_R is None else np.array(self.start_R, float))  # fmt: skip
@@ -94,18 +110,16 @@ class MLSpec(ProblemFilterSpec):
 
 
 class MLKF(GenericKF):
-    """The KF with the fitted Q, R: `fitted` (from training) or fitted on the run first."""
+    """The KF with the fitted Q, R: built with the training fit's (`fit_on: training`), or
+    fitted on the run's own measurements first (`fit_on: run`, from the Q, R it is built with)."""
 
-    def __init__(self, problem, Q, R, spec: MLSpec, fitted=None):
+    def __init__(self, problem, Q, R, spec: MLSpec):
         super().__init__(problem, Q, R)
         self.spec = spec
-        self.fitted = fitted
 
     def run(self, z) -> Trace:
         started = time.perf_counter()
-        if self.fitted is not None:
-            self.Q, self.R = self.fitted
-        else:
+        if not self.spec.fits_on_training():
             self.Q, self.R, _ = fit_noise(self.problem, [z], *self.spec.start(self.Q, self.R),
                                           maxiter=self.spec.maxiter)  # fmt: skip
         trace = super().run(z)

@@ -21,6 +21,8 @@ def _g(value: float, digits: int = 3) -> str:
 
 
 def _mean_sd(mean: float, sd: float) -> str:
+    if math.isfinite(sd) and sd <= 1e-12 * abs(mean):  # a constant's rounding (a fitted filter)
+        sd = 0.0
     return f"{_g(mean)} ± {_g(sd, 2)}"
 
 
@@ -37,7 +39,16 @@ def summary_rows(result: dict) -> list[list[str]]:
         rows.append([r.filter, r.kind, r.estimates or "-", ratio, _g(r.anees),
                      f"{r.nees_in_bounds:.0%}", q_err, r_err,
                      _g(float(seconds.get(r.filter, math.nan)), 2)])  # fmt: skip
+        if "gated" in summary:
+            rows[-1].insert(-1, _g(r.gated, 3))
     return rows
+
+
+def summary_header(result: dict) -> tuple[str, ...]:
+    """SUMMARY_HEADER, with the gated measurements per run where the problem gates."""
+    if "gated" not in result["summary"]:
+        return SUMMARY_HEADER
+    return (*SUMMARY_HEADER[:-1], "gated / run", SUMMARY_HEADER[-1])
 
 
 def noise_table(result: dict) -> tuple[list[str], list[list[str]]]:
@@ -73,7 +84,7 @@ def problem_console_table(folder: Path):
     title = (f"{m['scenario']['name']}: problem {m['problem']}, {m['runs']} runs, seed"
              f" {m['seed']}")  # fmt: skip
     t = Table(title=title, title_justify="left")
-    for col in SUMMARY_HEADER:
+    for col in summary_header(result):
         t.add_column(col, justify="left" if col in ("filter", "kind") else "right")
     for row in summary_rows(result):
         t.add_row(*row)

@@ -1,6 +1,6 @@
-"""The scenario file of a problem beyond the robot (`problem: linear`; SPEC 17), validated
-strictly like every scenario: unknown keys, wrong shapes and non-positive covariances are
-one-line `ScenarioError`s naming the file and the field.
+"""The scenario file of a problem beyond the robot (`problem: linear`, `problem: tracking`;
+SPEC 17), validated strictly like every scenario: unknown keys, wrong shapes and non-positive
+covariances are one-line `ScenarioError`s naming the file and the field.
 
     name: survey
     problem: linear
@@ -8,6 +8,13 @@ one-line `ScenarioError`s naming the file and the field.
     system: {F: ..., H: ..., Q: ..., R: ..., steps: 1001}   # default: the survey's system
     filter_noise: {Q: [[1, 0], [0, 1]], R: [[1, 0], [0, 1]]}  # what the filters assume / start from
     filters: [{name: kf, kind: ekf}, {name: oracle, kind: ekf-oracle}, ...]
+
+`system:` is validated by the model of the scenario's problem (`SYSTEMS`): `LinearSystem`,
+`TrackingSystem` (problems.tracking_schema).
+
+A user's own problem (`problem: module`) names its Python file instead of `system`:
+`module: {file: pendulum.py}` (a path relative to the scenario file's folder, inside it;
+`problems.module` reads and checks it; docs/CUSTOM_PROBLEMS.md).
 """
 
 from __future__ import annotations
@@ -16,22 +23,33 @@ from pathlib import Path
 from typing import Annotated, Literal, Union
 
 import numpy as np
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    Field,
+    PrivateAttr,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from ..config import MAX_SEED, ScenarioError, check_unique_names
 from ..filters.registry import supports_problem, unsupported_reason
 from ..schema import StrictModel
 from ..storage import scenario_name_problem
 from .als import ALSSpec
+from .base import Problem
 from .filters import EKFSpec, Matrix, OracleSpec, SageHusaSpec, VBRSpec
 from .linear import SURVEY_F, SURVEY_H, SURVEY_Q, SURVEY_R, SURVEY_STEPS, LinearProblem
 from .ml import MLSpec
+from .module import ModuleProblem, ModuleProblemError
+from .tracking_schema import TrackingSystem
+from .tuned import TunedSpec
 
-PROBLEM_FILTER_SPECS = (EKFSpec, OracleSpec, SageHusaSpec, VBRSpec, ALSSpec, MLSpec)
+PROBLEM_FILTER_SPECS = (EKFSpec, OracleSpec, SageHusaSpec, VBRSpec, ALSSpec, MLSpec, TunedSpec)
 PROBLEM_KINDS = tuple(s.model_fields["kind"].annotation.__args__[0] for s in PROBLEM_FILTER_SPECS)
 AnyProblemFilter = Annotated[Union[PROBLEM_FILTER_SPECS], Field(discriminator="kind")]
 # Problems a scenario may name besides the robot (the default, `problem: robot` or absent).
-PROBLEMS = ("linear",)
+PROBLEMS = ("linear", "tracking", "module")
 MAX_DIM = 50
 MAX_STEPS = 10**6
 
@@ -100,11 +118,84 @@ class LinearSystem(StrictModel):
                              position=self.position)  # fmt: skip
 
 
+def module_path(file: str, folder: Path) -> Path:
+    """The module file `file` names, relative to the scenario's folder and inside it (a scenario
+    and the code it runs travel together), or ValueError."""
+    relative = Path(file)
+    if relative.is_absolute():
+        raise ValueError(f"{file}: give a path relative to the scenario file's folder")
+    if relative.suffix != ".py":
+        raise ValueError(f"{file}: expected a Python file (.py)")
+    path = (folder / relative).resolve()
+    if not path.is_relative_to(folder.resolve()):
+        raise ValueError(f"{file}: outside the scenario file's folder ({folder}); keep the"
+                         " module beside the scenario or below it")  # fmt: skip
+    if not path.is_file():
+        raise ValueError(f"{file}: no such file in {folder}")
+    return path
+
+
+def scenario_folder(info: ValidationInfo) -> Path:
+    folder = (info.context or {}).get("folder")
+    return Path(".") if folder is None else Path(folder)
+
+
+class ModuleSystem(StrictModel):
+    """A user's own problem: a Python file defining f, F, G, h, H, Q, R, x0, P0, steps."""
+
+    file: str = Field(
+        min_length=1, description="the module (.py), relative to the scenario file's folder"
+    )
+    params: list[Annotated[float, Field(allow_inf_nan=False)]] | None = Field(
+        None, description="the parameter vector p its functions receive (default its `params`)"
+    )
+    steps: int | None = Field(
+        None, ge=10, le=MAX_STEPS, description="measurements per run (default its `steps`)"
+    )
+    _path: Path | None = PrivateAttr(None)
+
+    @field_validator("file")
+    @classmethod
+    def _readable_module(cls, file: str, info: ValidationInfo) -> str:
+        try:
+            ModuleProblem(module_path(file, scenario_folder(info)))
+        except ModuleProblemError as exc:
+            raise ValueError(f"{file}: {exc}") from None
+        return file
+
+    @model_validator(mode="after")
+    def _overrides(self, info: ValidationInfo) -> ModuleSystem:
+        self._path = module_path(self.file, scenario_folder(info))
+        self.problem()  # params and steps fit the module
+        return self
+
+    def problem(self, steps: int | None = None) -> ModuleProblem:
+        return ModuleProblem(self._path, params=self.params,
+                             steps=self.steps if steps is None else steps)  # fmt: skip
+
+
 class AssumedNoise(StrictModel):
     """The noise the filters assume, and where the adaptive ones start."""
 
-    Q: Matrix | None = Field(None, description="assumed Q (default I)")
-    R: Matrix | None = Field(None, description="assumed R (default I)")
+    Q: Matrix | None = Field(
+        None, description="assumed Q (default: the problem's; linear: I, tracking: the true Q)"
+    )
+    R: Matrix | None = Field(
+        None, description="assumed R (default: the problem's; linear: I, tracking: the true R)"
+    )
+    Q_scale: Annotated[float, Field(gt=0, le=1e12, allow_inf_nan=False)] | None = Field(
+        None, description="assumed Q = this factor x the true Q (instead of Q)"
+    )
+    R_scale: Annotated[float, Field(gt=0, le=1e12, allow_inf_nan=False)] | None = Field(
+        None, description="assumed R = this factor x the true R (instead of R)"
+    )
+
+    @model_validator(mode="after")
+    def _one_way_each(self) -> AssumedNoise:
+        for key in ("Q", "R"):
+            if getattr(self, key) is not None and getattr(self, f"{key}_scale") is not None:
+                raise ValueError(f"{key} and {key}_scale: give one of them")
+        return self
 
 
 class ProblemTraining(StrictModel):
@@ -116,11 +207,22 @@ class ProblemScenario(StrictModel):
 
     name: str = Field(min_length=1, description="the result folder's name: OUT/<name>/")
     description: str = Field("", max_length=10_000)
-    problem: Literal["linear"] = Field(description="the problem (robot: the default pipeline)")
+    problem: Literal["linear", "tracking", "module"] = Field(
+        description="the problem (robot: the default pipeline; module: a user's own, `module`)"
+    )
     seed: int = Field(0, ge=0, le=MAX_SEED)
     runs: int = Field(100, ge=1, le=100_000)
     jobs: int = Field(1, ge=1, le=1024, description="local worker processes")
-    system: LinearSystem = LinearSystem()
+    engine: Literal["filterpy", "fast"] = Field(
+        "filterpy",
+        description="filterpy: the filters as Python (the reference); fast: their loops compiled"
+        " by numba (`--engine` overrides)",
+    )
+    system: LinearSystem | TrackingSystem | None = Field(
+        None, validate_default=True,
+        description="the true system, keys by problem (absent: the problem's default)",
+    )  # fmt: skip
+    module: ModuleSystem | None = Field(None, description="problem: module's file")
     filter_noise: AssumedNoise = AssumedNoise()
     training: ProblemTraining = ProblemTraining()
     filters: list[AnyProblemFilter] = Field(min_length=1)
@@ -133,6 +235,16 @@ class ProblemScenario(StrictModel):
             raise ValueError(problem)
         return name
 
+    @field_validator("system", mode="wrap")
+    @classmethod
+    def _system_of_the_problem(cls, value, handler, info: ValidationInfo):
+        model = SYSTEMS.get(info.data.get("problem"))
+        if model is None:  # the problem itself is wrong: that is the error reported
+            return value
+        if isinstance(value, model):
+            return value
+        return model.model_validate({} if value is None else value)
+
     @field_validator("filters")
     @classmethod
     def _unique_names(cls, filters: list) -> list:
@@ -140,7 +252,15 @@ class ProblemScenario(StrictModel):
 
     @model_validator(mode="after")
     def _noise_shapes_and_support(self) -> ProblemScenario:
-        problem = self.build_problem()
+        if (self.problem == "module") != (self.module is not None):
+            raise ValueError("problem: module names its file in `module: {file: ...}`; `module`"
+                             " is for problem: module only")  # fmt: skip
+        if self.module is not None and "system" in self.model_fields_set:
+            raise ValueError("system: the linear problem's; a module defines its own system")
+        try:
+            problem = self.build_problem()
+        except ModuleProblemError as exc:
+            raise ValueError(f"module: {exc}") from None
         for key, m in (("Q", problem.nw), ("R", problem.nz)):
             value = getattr(self.filter_noise, key)
             if value is not None:
@@ -160,14 +280,25 @@ class ProblemScenario(StrictModel):
                     raise ValueError(f"filters.{i} ({spec.name}): {exc}") from None
         return self
 
-    def build_problem(self, steps: int | None = None) -> LinearProblem:
+    def build_problem(self, steps: int | None = None) -> Problem:
+        if self.module is not None:
+            return self.module.problem(steps)
         return self.system.problem(steps)
 
     def assumed_noise(self) -> tuple[np.ndarray, np.ndarray]:
-        p = self.build_problem()
-        Q = np.eye(p.nw) if self.filter_noise.Q is None else np.array(self.filter_noise.Q, float)
-        R = np.eye(p.nz) if self.filter_noise.R is None else np.array(self.filter_noise.R, float)
-        return Q, R
+        """(Q, R) the filters assume: filter_noise's matrices, or its factors on the true
+        ones, or the problem's default."""
+        p, noise = self.build_problem(), self.filter_noise
+        out = list(p.default_assumed())
+        for i, (key, true) in enumerate((("Q", p.Q), ("R", p.R))):
+            if getattr(noise, key) is not None:
+                out[i] = np.array(getattr(noise, key), float)
+            elif getattr(noise, f"{key}_scale") is not None:
+                out[i] = getattr(noise, f"{key}_scale") * true
+        return out[0], out[1]
+
+
+SYSTEMS: dict[str, type[StrictModel]] = {"linear": LinearSystem, "tracking": TrackingSystem}
 
 
 def is_problem_document(data: object) -> bool:
@@ -178,7 +309,7 @@ def is_problem_document(data: object) -> bool:
 def parse_problem_scenario(data: dict, path: str | Path) -> ProblemScenario:
     """Validate a problem scenario's document; ScenarioError (one line) otherwise."""
     try:
-        return ProblemScenario.model_validate(data)
+        return ProblemScenario.model_validate(data, context={"folder": Path(path).parent})
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = [str(p) for p in err["loc"]]

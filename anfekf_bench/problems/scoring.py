@@ -3,6 +3,9 @@ rest, NEES of the whole state in chi-square bounds of its dimension) and the noi
 (each filter's Q and R at the last step against the true ones: every entry's mean, standard
 deviation and bias over runs, and the relative Frobenius error ||Q^ - Q||_F / ||Q||_F per run).
 
+Where the problem gates its measurements (tracking), the runs and the summary also count the
+measurements each filter's gate dropped (`gated`: per run; the summary's: mean per run).
+
 The RMSE ratio against the oracle carries the package's paired bootstrap interval over runs
 (`analysis.statistics.paired_bootstrap`, seeded from the scenario's seed). Timings sit in a table
 of their own, so every other table is the same bytes for the same seed.
@@ -73,6 +76,8 @@ def score(problem: Problem, truth: np.ndarray, traces: dict[str, list], specs: d
             **entry_columns("q", Q_end),
             **entry_columns("r", R_end),
         }
+        if problem.gate is not None:
+            frame["gated"] = [t.gated for t in traces_f]
         run_rows.append(pd.DataFrame(frame))
         timing_rows.append(pd.DataFrame({"filter": name, "run": np.arange(runs_n),
                                          "seconds": [t.seconds for t in traces_f]}))  # fmt: skip
@@ -92,6 +97,8 @@ def score(problem: Problem, truth: np.ndarray, traces: dict[str, list], specs: d
             "r_rel_err": float(r_err.mean()),
             "r_rel_err_sd": float(r_err.std(ddof=1)) if runs_n > 1 else np.nan,
         })  # fmt: skip
+        if problem.gate is not None:
+            summary_rows[-1]["gated"] = float(np.mean([t.gated for t in traces_f]))
         for label, est, true in (("Q", Q_end, problem.Q), ("R", R_end, problem.R)):
             m = true.shape[0]
             for i in range(m):

@@ -15,6 +15,7 @@ import pandas as pd
 
 from ..analysis.statistics import too_few_runs
 from ..config import NoiseSigmas
+from ..filters.registry import adapted_noise
 from ..schedule import NoiseSchedule
 
 BAND_PERCENTILES = (10.0, 90.0)  # the shaded band: this spread of the per-run values over runs
@@ -205,3 +206,27 @@ class SummaryRow:
 def first_of_kind(sc: ScenarioData, kind: str) -> FilterSeries | None:
     """The scenario's first filter of `kind` (the reference of that kind), or None."""
     return next((f for f in sc.filters if f.kind == kind), None)
+
+
+def adapts_of(spec: dict, noise=None) -> frozenset[str]:
+    """What a filter adapts ("R", "Q", "P"), for every source: as the registry says for its
+    kind and parameters; for a filter the spec cannot tell about (a custom class, a kind this
+    version does not know), the noise whose recorded R/Qu columns vary (`noise`: column ->
+    values over its runs and steps, or a function giving them, called only then)."""
+    declared = adapted_noise(spec)
+    if declared is not None:
+        return frozenset(declared)
+    noise = noise() if callable(noise) else noise
+    return frozenset(a for a, cols in _ADAPTED.items() if any(_varies(noise, c) for c in cols))
+
+
+def _varies(noise: dict[str, np.ndarray] | None, col: str) -> bool:
+    values = None if noise is None else noise.get(col)
+    if values is None or np.size(values) == 0:
+        return False
+    finite = np.asarray(values, dtype=float)
+    finite = finite[np.isfinite(finite)]
+    # a relative change well above rounding: a fixed filter stores one value for every step
+    return finite.size > 1 and float(finite.max() - finite.min()) > 1e-9 * float(
+        np.abs(finite).max()
+    )

@@ -353,11 +353,8 @@ def _ratio_heatmap(fig: Figure, ax: Axes, sc: ScenarioData, ref: FilterSeries, o
                                           ratios[f.name].estimate))  # fmt: skip
     t = others[0].t
     grid = np.vstack([rmse_ratio_curve(f, ref) for f in order])
-    with np.errstate(all="ignore"):
-        shown = np.clip(np.log10(grid), math.log10(RATIO_MIN), math.log10(RATIO_MAX))
-    image = ax.imshow(np.ma.masked_invalid(shown), cmap=ratio_cmap(), norm=ratio_norm(),
-                      aspect="auto", interpolation="nearest", gid="rmse_ratio_heatmap",
-                      extent=(t[0], t[-1], len(order) - 0.5, -0.5))  # fmt: skip
+    image = ratio_image(ax, grid, gid="rmse_ratio_heatmap",
+                        extent=(t[0], t[-1], len(order) - 0.5, -0.5))  # fmt: skip
     ax.set_yticks(np.arange(len(order)),
                   [f"{f.name} {format_sig(ratios[f.name].estimate)}" for f in order],
                   fontsize=6.5)  # fmt: skip
@@ -727,6 +724,42 @@ def _zoom_half_width(sc: ScenarioData, k: int) -> float:
     return 1.4 * reach
 
 
+def draw_paths(
+    ax: Axes,
+    landmarks: np.ndarray,
+    truth: np.ndarray,
+    estimates: dict[str, np.ndarray],
+    *,
+    labels: dict[str, str] | None = None,
+    kinds: dict[str, str] | None = None,
+    gid=lambda what: what,
+    truth_label: str = "true path",
+    truth_alpha: float = 1.0,
+    lw: float = 0.9,
+    marker_size: float = 60,
+    landmark_ids: Sequence | None = None,
+) -> None:
+    """THE map of every source's figures (simulated runs, recorded segments, each drive): the
+    landmarks (stars; `landmark_ids` beside them), the true path (black; NaN rows break it, as
+    between segments) and each filter's estimate in its report style, on `ax` in metres.
+    `gid(what)` names the artists ('landmarks', 'truth', 'est/<filter>'; None: unnamed)."""
+    labels = labels or {}
+    kinds = kinds or {}
+    ax.scatter(*np.asarray(landmarks, dtype=float).reshape(-1, 2).T, marker="*", s=marker_size,
+               color="#b8860b", label="landmarks", zorder=3, gid=gid("landmarks"))  # fmt: skip
+    if landmark_ids is not None:
+        for i, (x, y) in zip(landmark_ids, landmarks, strict=True):
+            ax.annotate(str(i), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
+    if len(truth):
+        ax.plot(*np.asarray(truth).T, color="black", lw=1.4, alpha=truth_alpha,
+                label=truth_label, gid=gid("truth"))  # fmt: skip
+    for name, est in estimates.items():
+        ax.plot(*np.asarray(est).T, lw=lw, label=labels.get(name, name), gid=gid(f"est/{name}"),
+                **filter_style(name, kinds.get(name)).line())  # fmt: skip
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+
+
 @matplotlib.rc_context(_RC)
 def map_figure(sc: ScenarioData) -> Figure:
     """Landmarks, waypoints, the true path, one run's estimates and 3-sigma ellipses, a zoom."""
@@ -737,17 +770,12 @@ def map_figure(sc: ScenarioData) -> Figure:
     k = _zoom_index(sc)
     half = _zoom_half_width(sc, k)
     centre = tr.truth[k]
+    labels = {name: f"{name} estimate{_ends(est, tr.t)}" for name, est in tr.estimate.items()}
+    kinds = {f.name: f.kind for f in sc.filters}
     for ax in (ax_map, ax_zoom):
         main = ax is ax_map  # gids on the full map only: tests read the data back from there
-        ax.scatter(*sc.landmarks.T, marker="*", s=60, color="#b8860b", label="landmarks",
-                   zorder=3, gid="map_landmarks" if main else None)  # fmt: skip
-        ax.plot(*tr.truth.T, color="black", lw=1.4, label="true path",
-                gid="map_truth" if main else None)  # fmt: skip
-        for name, est in tr.estimate.items():
-            ax.plot(*est.T, lw=0.9, label=f"{name} estimate{_ends(est, tr.t)}",
-                    gid=f"map_est/{name}" if main else None, **styles[name])  # fmt: skip
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
+        draw_paths(ax, sc.landmarks, tr.truth, tr.estimate, labels=labels, kinds=kinds,
+                   gid=(lambda what: f"map_{what}") if main else (lambda what: None))  # fmt: skip
     ax_map.scatter(*sc.waypoints.T, marker="o", s=30, facecolors="none", edgecolors="#7f7f7f",
                    label="waypoints", zorder=3, gid="map_waypoints")  # fmt: skip
     for name in tr.estimate:
@@ -823,6 +851,17 @@ def ratio_colour(ratio: float) -> tuple[float, float, float, float]:
         return NO_RATIO_COLOUR
     value = min(max(math.log10(ratio), math.log10(RATIO_MIN)), math.log10(RATIO_MAX))
     return tuple(float(c) for c in ratio_cmap()(ratio_norm()(value)))
+
+
+def ratio_image(ax: Axes, values: np.ndarray, **kw):
+    """THE ratio heatmap of every report (the leaderboard, the RMSE figure's many filters, the
+    sweeps, the drives): `values` (ratios; NaN or <= 0: no value, light grey) coloured by their
+    log10 on the ratio scale, clipped to its ends; `kw` to imshow (gid, extent, origin, ...)."""
+    with np.errstate(all="ignore"):
+        logs = np.log10(np.where(np.asarray(values, dtype=float) > 0, values, np.nan))
+    shown = np.ma.masked_invalid(np.clip(logs, math.log10(RATIO_MIN), math.log10(RATIO_MAX)))
+    kw = {"aspect": "auto", "interpolation": "nearest", **kw}
+    return ax.imshow(shown, cmap=ratio_cmap(), norm=ratio_norm(), **kw)
 
 
 def ratio_colourbar(fig: Figure, mappable, ax, label: str) -> None:

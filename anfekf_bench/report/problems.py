@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 from matplotlib.figure import Figure
 
-from ..problems.report import SUMMARY_HEADER, noise_table, summary_rows
+from ..problems.report import noise_table, summary_header, summary_rows
 from .document import Block, Heading, Paragraph, TableBlock
 from .plots import FigureSaver
 
@@ -58,9 +58,13 @@ def problem_blocks(results: Sequence[dict], save: FigureSaver, fmt: str) -> list
                 " over runs); seconds per run.")  # fmt: skip
         if m["scenario"].get("description"):
             text = m["scenario"]["description"] + " " + text
+        if "gated" in result["summary"]:
+            text += (" Gated / run: the measurements the filter's gate dropped, mean per run (it"
+                     " neither updates nor adapts on them).")  # fmt: skip
         blocks.append(Paragraph(text))
-        blocks.append(TableBlock(SUMMARY_HEADER, summary_rows(result),
-                                 numeric=[False, False, False] + [True] * 6))  # fmt: skip
+        header = summary_header(result)
+        numeric = [False, False, False] + [True] * (len(header) - 3)
+        blocks.append(TableBlock(header, summary_rows(result), numeric=numeric))
         header, rows = noise_table(result)
         caption = "Q and R at the last step: mean ± sd over runs"
         numeric = [False] + [True] * (len(header) - 1)

@@ -29,8 +29,9 @@ import pandas as pd
 
 from ..analysis.metrics import format_number, format_share
 from ..config import FILTER_NAME_PATTERN
-from ..filters.registry import adapted_noise
+from ..filters.registry import role_of
 from ..storage import (
+    AUDIT_FILES,
     COMPARISONS_FILE,
     COORDINATE_LIMIT,
     MANIFEST_FILE,
@@ -39,39 +40,29 @@ from ..storage import (
     check_manifest_text,
     check_one_batch,
     read_json,
-    read_manifest,
     read_parquet,
     read_steps,
     scenario_name_problem,
 )
 from .audit import audit_blocks, nees_per_drive_blocks
+from .data import NOISE_COLUMNS, adapts_of
 from .document import Block, Cell, Heading, ListBlock, Paragraph, TableBlock
 from .plots import (
     FigureSaver,
+    draw_paths,
     filter_colour,
     filter_linestyle,
     filter_style,
     legend_entries,
     plain_log_axis,
+    ratio_colourbar,
+    ratio_image,
 )
+from .results import LoadedResult, load_result
 
 LOST_LOCK_M = 1.0
 # The track and error figures show three filters: the reference, the naive EKF, the best adaptive
 # (each in its style of the whole report: plots.filter_style).
-
-
-def is_real_result(folder: Path) -> bool:
-    """Whether a result folder holds a real-data scenario (its manifest says kind recorded)."""
-    try:
-        return read_manifest(Path(folder)).get("kind") == "recorded"
-    except ResultsError:
-        return False
-
-
-def split_folders(folders: Sequence[Path]) -> tuple[list[Path], list[Path]]:
-    """(simulated result folders, real-data result folders)."""
-    real = [f for f in folders if is_real_result(f)]
-    return [f for f in folders if f not in real], real
 
 
 @dataclass(frozen=True)
@@ -85,15 +76,24 @@ class RealData:
     steps: pd.DataFrame
     summary: list[dict]
     comparisons: pd.DataFrame
+    tables: tuple[str, ...] = ()  # the tables the folder holds (results.LoadedResult.tables)
 
     @property
     def slug(self) -> str:
         return self.name
 
+    def has(self, table: str) -> bool:
+        return table in self.tables
+
     @property
     def reference(self) -> str | None:
-        return next((f["name"] for f in self.manifest["filters"] if f["kind"] == "ekf-tuned"),
-                    None)  # fmt: skip
+        """The filter every ratio is taken against (ekf-tuned): the one comparisons.parquet
+        compares with, else the first fitted filter (the registry's role)."""
+        vs = self.comparisons["vs"] if "vs" in self.comparisons else ()
+        if len(vs):
+            return str(vs.iloc[0])
+        return next((f["name"] for f in self.manifest["filters"]
+                     if role_of(f["kind"]) == "fitted"), None)  # fmt: skip
 
     def instances(self) -> list[dict]:
         return list(self.manifest["filters"])
@@ -187,9 +187,10 @@ def _check_drives(path: Path, data: dict) -> None:
             )
 
 
-def load_real(folder: Path) -> RealData:
-    folder = Path(folder)
-    manifest = read_manifest(folder)
+def load_real(result: Path | LoadedResult) -> RealData:
+    """A recorded result (a folder, or as the one loader read it) with its manifest checked."""
+    loaded = result if isinstance(result, LoadedResult) else load_result(Path(result))
+    folder, manifest = loaded.folder, loaded.manifest
     for key in ("filters", "data", "scenario"):
         if key not in manifest:
             raise ResultsError(f"{folder}: manifest.json has no {key!r}: not a real-data result")
@@ -212,6 +213,7 @@ def load_real(folder: Path) -> RealData:
         steps=read_steps(folder),
         summary=summary,
         comparisons=read_parquet(folder / COMPARISONS_FILE),
+        tables=loaded.tables,
     )
 
 
@@ -228,7 +230,7 @@ def shown_filters(rd: RealData) -> list[str]:
     out = []
     if rd.reference:
         out.append(rd.reference)
-    plain = [f for f in rd.instances() if f["kind"] == "ekf"]
+    plain = [f for f in rd.instances() if role_of(f["kind"]) == "reference"]
     if plain:
         x1 = [f for f in plain if f["start"] == 1.0]
         out.append((x1 or plain)[0]["name"])
@@ -240,22 +242,13 @@ def shown_filters(rd: RealData) -> list[str]:
 
 
 def adapts(rd: RealData, instance: dict) -> frozenset[str]:
-    """What a filter instance adapts: as the registry says for its spec (the scenario's entry
-    it was made from), or for a kind the spec cannot tell about, the noise whose recorded R/Qu
+    """What a filter instance adapts (data.adapts_of, as for a simulated filter): as the
+    registry says for the scenario's entry it was made from, else the noise whose recorded R/Qu
     vary."""
     specs = {s.get("name"): s for s in rd.manifest["scenario"].get("filters", [])}
-    declared = adapted_noise(specs.get(instance["base"], {"kind": instance["kind"]}))
-    if declared is not None:
-        return frozenset(declared)
+    spec = specs.get(instance["base"], {"kind": instance["kind"]})
     one = rd.steps[rd.steps["filter"] == instance["name"]]
-    found = set()
-    for letter, cols in (("R", ("R_rr", "R_bb")), ("Q", ("Q_vv", "Q_gg"))):
-        for col in cols:
-            values = one[col].to_numpy(float) if col in one else np.zeros(0)
-            values = values[np.isfinite(values)]
-            if values.size > 1 and values.max() - values.min() > 1e-9 * np.abs(values).max():
-                found.add(letter)
-    return frozenset(found)
+    return adapts_of(spec, lambda: {c: one[c].to_numpy(float) for c in NOISE_COLUMNS if c in one})
 
 
 def _nan_last(x: float) -> float:
@@ -296,24 +289,17 @@ def _figure(rows: int, cols: int, size: tuple[float, float]):
 
 
 def track_figure(rd: RealData):
+    """The map, Vicon at the scored times of the held-out segments and the shown filters'
+    estimates (plots.draw_paths: the map of every source)."""
     fig, axes = _figure(1, 1, (7.5, 6.5))
     ax = axes[0, 0]
     lm = rd.manifest["data"]["landmarks"]
-    ax.plot(lm["x"], lm["y"], "k^", ms=7, gid="landmarks", label="landmarks")
-    for i, x, y in zip(lm["id"], lm["x"], lm["y"], strict=True):
-        ax.annotate(str(i), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
     names = shown_filters(rd)
-    if names:
-        truth = _broken(_one(rd, names[0]), ["x_true", "y_true"])
-        ax.plot(truth[:, 0], truth[:, 1], color="k", lw=1.6, alpha=0.45, gid="truth",
-                label="Vicon (scored times)")  # fmt: skip
-    for name in names:
-        est = _broken(_one(rd, name), ["x_est", "y_est"])
-        ax.plot(est[:, 0], est[:, 1], lw=0.9, gid=f"est/{name}", label=name,
-                **filter_style(name).line())  # fmt: skip
+    truth = _broken(_one(rd, names[0]), ["x_true", "y_true"]) if names else np.zeros((0, 2))
+    estimates = {name: _broken(_one(rd, name), ["x_est", "y_est"]) for name in names}
+    draw_paths(ax, np.column_stack([lm["x"], lm["y"]]), truth, estimates, landmark_ids=lm["id"],
+               truth_label="Vicon (scored times)", truth_alpha=0.45)  # fmt: skip
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
     ax.set_title(f"{rd.name}: held-out segments against Vicon")
     fig.legend(*ax.get_legend_handles_labels(), loc="outside right upper")  # off the map
     return fig
@@ -400,6 +386,7 @@ def ratio_rows(rd: RealData) -> list[dict]:
         )  # fmt: skip
         rows.append({
             "filter": name, "base": f["base"], "kind": f["kind"], "start": f["start"],
+            "reference": name == ref,
             "rmse_pos": _value(rec["rmse_pos"]), "rmse_pos_pooled": _value(rec["rmse_pos_pooled"]),
             "rmse_heading_deg": math.degrees(_value(rec["rmse_heading"])),
             "ratio": est, "lo": lo, "hi": hi, "anees": _value(rec["anees"]),
@@ -412,7 +399,7 @@ def ratio_rows(rd: RealData) -> list[dict]:
 
 
 def ratio_figure(rd: RealData):
-    rows = [r for r in ratio_rows(rd) if r["kind"] != "ekf-tuned"]
+    rows = [r for r in ratio_rows(rd) if r["filter"] != rd.reference]
     bases = list(dict.fromkeys(r["base"] for r in rows))
     # A trained filter (kalmannet) has one instance, start None: drawn after the naive starts.
     starts = sorted({r["start"] for r in rows}, key=lambda m: (m is None, m or 0.0))
@@ -454,7 +441,7 @@ def _start_text(r: dict) -> str:
     """A row's start: 'x1' (a naive start), 'tuned' (ekf-tuned), 'trained' (kalmannet)."""
     if r["start"] is not None:
         return f"x{r['start']:g}"
-    return "tuned" if r["kind"] == "ekf-tuned" else "trained"
+    return "tuned" if r["reference"] else "trained"
 
 
 def _number(value: float, digits: int) -> Cell:
@@ -538,16 +525,16 @@ def segments_section(rd: RealData, save: FigureSaver, level: int = 3) -> list[Bl
         f" Lost lock: segments whose position error exceeds {LOST_LOCK_M:g} m at a scored time."
     ))  # fmt: skip
     out.append(results_table(rd))
-    return out + _figures(rd, save, SEGMENTS_FIGURES)
+    return out
 
 
 def section(rd: RealData, save: FigureSaver, level: int = 3) -> list[Block]:
-    """A recorded result's part of the report, by its protocol (segments, drives); its figures
-    saved through `save` (the report's one figure writer)."""
+    """A recorded result's part of the report: every part of `PARTS` whose test the result
+    passes (its protocol, the tables it holds), in order; its figures saved through `save`
+    (the report's one figure writer)."""
     try:
-        if is_drives_result(rd):  # per-drive figures and statistics over drives
-            return drives_section(rd, save, level)
-        return segments_section(rd, save, level)
+        return [block for _, wanted, build in PARTS if wanted(rd)
+                for block in build(rd, save, level)]  # fmt: skip
     except (KeyError, TypeError, ValueError, IndexError, OverflowError, AttributeError) as exc:
         # A hand-edited manifest the checks above let through: one line, not a traceback.
         raise ResultsError(
@@ -612,6 +599,7 @@ def drive_ratio_rows(rd: RealData, confidence: float = 0.95, resamples: int = 99
     for f in rd.instances():
         name = f["name"]
         row = {"filter": name, "base": f["base"], "kind": f["kind"], "start": f["start"],
+               "reference": name == ref,
                "lost_lock": int(lost.loc[name].sum()), "drives": int(rm.shape[1]),
                "rmse_median": float(np.nanmedian(rm.loc[name]))}  # fmt: skip
         if ref is None or name == ref:
@@ -637,21 +625,24 @@ def drive_ratio_rows(rd: RealData, confidence: float = 0.95, resamples: int = 99
 
 
 def drives_heatmap_figure(rd: RealData):
-    """Filters x drives: each instance's RMSE over ekf-tuned's on that drive (log2 colour)."""
+    """Filters x drives: each instance's RMSE over ekf-tuned's on that drive, on the report's
+    one ratio scale (plots.ratio_image, as the leaderboard and the sweeps)."""
     rm = drive_rmse(rd)
     ref = rd.reference
     ratio = rm.div(rm.loc[ref], axis=1) if ref else rm
     ratio = ratio.drop(index=ref) if ref else ratio
-    fig, axes = _figure(1, 1, (1.0 + 0.62 * ratio.shape[1], 1.2 + 0.24 * ratio.shape[0]))
+    # at least the title's width and the colour bar's ticks' height, however few the drives
+    size = (max(6.0, 2.6 + 0.62 * ratio.shape[1]), max(3.2, 1.4 + 0.24 * ratio.shape[0]))
+    fig, axes = _figure(1, 1, size)
     ax = axes[0, 0]
-    values = np.log2(ratio.to_numpy(float))
-    image = ax.imshow(np.clip(values, -3, 3), cmap="RdBu_r", vmin=-3, vmax=3, aspect="auto")
+    image = ratio_image(ax, ratio.to_numpy(float), gid="drives_heatmap")
     for (i, j), v in np.ndenumerate(ratio.to_numpy(float)):
         text = "div." if not math.isfinite(v) else (f"{v:.2f}" if v < 10 else f"{v:.0f}")
         ax.text(j, i, text, ha="center", va="center", fontsize=5.5)
     ax.set_xticks(range(ratio.shape[1]), list(ratio.columns), rotation=45, fontsize=7)
     ax.set_yticks(range(ratio.shape[0]), list(ratio.index), fontsize=6)
-    fig.colorbar(image, ax=ax, label="log2(RMSE / ekf-tuned's RMSE)")
+    ax.grid(False)
+    ratio_colourbar(fig, image, ax, f"RMSE / {ref or 'the reference'}'s (log)")
     ax.set_title(f"{rd.name}: position RMSE over ekf-tuned's, per drive")
     return fig
 
@@ -667,22 +658,23 @@ def _drive_grid(rd: RealData, size_per: tuple[float, float]):
 
 
 def drives_track_figure(rd: RealData):
-    """Every drive: its dataset's map, Vicon at the scored times, and the shown filters."""
+    """Every drive: its dataset's map, Vicon at the scored times, and the shown filters
+    (plots.draw_paths: the map of every source)."""
     ids, fig, axes = _drive_grid(rd, (3.6, 3.4))
     names = shown_filters(rd)
     for run, (drive, ax) in enumerate(zip(ids, axes, strict=False)):
         lm = rd.manifest["data"]["drives"][run]["landmarks"]
-        ax.plot(lm["x"], lm["y"], "k^", ms=4, gid=f"landmarks/{drive}")
-        for k, name in enumerate(names):
-            sub = _one_run(rd, name, run)
-            if k == 0:
-                ax.plot(sub["x_true"], sub["y_true"], color="k", lw=1.4, alpha=0.4,
-                        gid=f"truth/{drive}", label="Vicon")  # fmt: skip
-            ax.plot(sub["x_est"], sub["y_est"], lw=0.6, gid=f"est/{drive}/{name}", label=name,
-                    **filter_style(name).line())  # fmt: skip
+        subs = {name: _one_run(rd, name, run) for name in names}
+        truth = subs[names[0]][["x_true", "y_true"]].to_numpy(float) if names else np.zeros((0, 2))
+        draw_paths(ax, np.column_stack([lm["x"], lm["y"]]), truth,
+                   {n: sub[["x_est", "y_est"]].to_numpy(float) for n, sub in subs.items()},
+                   gid=lambda what, drive=drive: f"{what}/{drive}", truth_label="Vicon",
+                   truth_alpha=0.4, lw=0.6, marker_size=20)  # fmt: skip
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_title(drive, fontsize=8)
         ax.tick_params(labelsize=6)
+        ax.set_xlabel("")
+        ax.set_ylabel("")
     axes[0].legend(loc="best", fontsize=6)
     fig.suptitle(f"{rd.name}: every drive against Vicon, with its dataset's map")
     return fig
@@ -719,7 +711,7 @@ def drives_noise_figure(rd: RealData):
     starts = {f["start"] for f in rd.instances() if f["start"] is not None}
     start = 1.0 if 1.0 in starts else (min(starts) if starts else None)
     adaptive = {f["name"]: f["base"] for f in rd.instances()
-                if f["kind"] not in ("ekf", "ekf-tuned") and f["start"] == start}  # fmt: skip
+                if role_of(f["kind"]) != "reference" and f["start"] == start}  # fmt: skip
     tuning = rd.manifest.get("tuning") or {}
     per_drive = {d["drive"]: d for d in tuning.get("per_drive", [])}
     tunings = tuning.get("tunings", {})
@@ -816,12 +808,17 @@ def drives_section(rd: RealData, save: FigureSaver, level: int = 3) -> list[Bloc
     rows = [[Cell(str(name)), *(_number(v, 3) for v in row)] for name, row in rm.iterrows()]
     out.append(TableBlock(("filter", *rm.columns), rows, (False,) + (True,) * rm.shape[1],
                           caption="Per drive position RMSE [m]:"))  # fmt: skip
-    out += nees_per_drive_blocks(rd.folder, [f["name"] for f in rd.instances()], drive_ids(rd))
+    return out + nees_per_drive_blocks(rd.folder, [f["name"] for f in rd.instances()],
+                                       drive_ids(rd))  # fmt: skip
+
+
+def audit_section(rd: RealData, save: FigureSaver, level: int = 3) -> list[Block]:
+    """The drives audited against Vicon (SPEC 18: its tables, audit_*.parquet)."""
     audit = audit_blocks(rd.folder)
-    if audit:
-        out += [Heading(f"{rd.name}: the drives audited against Vicon", level + 1,
-                        anchor=f"real-{rd.slug}-audit"), *audit]  # fmt: skip
-    return out + _figures(rd, save, DRIVES_FIGURES)
+    if not audit:
+        return []
+    return [Heading(f"{rd.name}: the drives audited against Vicon", level + 1,
+                    anchor=f"real-{rd.slug}-audit"), *audit]  # fmt: skip
 
 
 DRIVES_FIGURES = (
@@ -829,4 +826,23 @@ DRIVES_FIGURES = (
     ("tracks", drives_track_figure, "every drive against Vicon"),
     ("errors", drives_errors_figure, "position error over time per drive"),
     ("noise", drives_noise_figure, "adapted noise per drive against the tuned values"),
+)
+
+
+def _has_audit(rd: RealData) -> bool:
+    return any(rd.has(name) for name in AUDIT_FILES.values())
+
+
+def _is_segments(rd: RealData) -> bool:
+    return not is_drives_result(rd)
+
+
+# A recorded result's section, part by part: (name, whether the result has what it draws, its
+# blocks). Chosen by what the result holds, not by a module per source.
+PARTS = (
+    ("segments", _is_segments, segments_section),
+    ("drives", is_drives_result, drives_section),
+    ("audit", _has_audit, audit_section),
+    ("segment figures", _is_segments, lambda rd, save, _: _figures(rd, save, SEGMENTS_FIGURES)),
+    ("drive figures", is_drives_result, lambda rd, save, _: _figures(rd, save, DRIVES_FIGURES)),
 )

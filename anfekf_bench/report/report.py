@@ -38,9 +38,9 @@ from ..analysis.metrics import (
 from ..analysis.statistics import Interval, interval_too_wide
 from ..analysis.tables import filter_arrays
 from ..config import NoiseSigmas
-from ..filters.registry import adapted_noise, role_of
+from ..filters.registry import role_of
 from ..models import control_covariance, measurement_covariance
-from ..problems.experiment import problem_result_folders, read_problem_result
+from ..problems.experiment import read_problem_result
 from ..storage import (
     CLAIMS_FILE,
     COMPARISONS_FILE,
@@ -55,7 +55,6 @@ from ..storage import (
     read_parquet,
     read_steps,
     read_summary,
-    scenario_dirs,
     write_atomic,
 )
 from ..workers import local_workers
@@ -64,7 +63,6 @@ from . import suite as suite_report
 from . import sweep as sweep_report
 from .consistency import check_saved_result
 from .data import (
-    _ADAPTED,
     _NEEDED_COLUMNS,
     BAND_PERCENTILES,
     ELLIPSE_COUNT,
@@ -81,6 +79,7 @@ from .data import (
     ScenarioData,
     SummaryRow,
     Track,
+    adapts_of,
     first_of_kind,
 )
 from .document import (
@@ -97,6 +96,15 @@ from .document import (
     to_markdown,
 )
 from .problems import problem_blocks
+from .results import (  # noqa: F401  (find_scenarios re-exported: it lived here)
+    PROBLEM,
+    RECORDED,
+    SIMULATED,
+    SWEEP,
+    find_results,
+    find_scenarios,
+    load_result,
+)
 from .tables import (  # noqa: F401  (re-exported: the table API lived here)
     LEADERBOARD_CAPTION,
     TABLE_HEADER,
@@ -130,25 +138,6 @@ class ReportResult:
     files: list[Path] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     problems: int = 0  # problem results (SPEC 17) in the report
-
-
-# --------------------------------------------------------------------------- finding results
-
-
-def find_scenarios(results_dirs: Sequence[Path], out_dir: Path | None = None) -> list[Path]:
-    """The scenario folders under the given folders, minus the report folder, each once."""
-    found: dict[Path, Path] = {}
-    skip = Path(out_dir).resolve() if out_dir is not None else None
-    for results_dir in results_dirs:
-        for folder in scenario_dirs(Path(results_dir)):
-            resolved = folder.resolve()
-            if skip is not None and (resolved == skip or skip in resolved.parents):
-                continue
-            found.setdefault(resolved, folder)
-    if not found:
-        shown = ", ".join(str(d) for d in results_dirs)
-        raise ResultsError(f"{shown}: no results found outside the report folder {out_dir}")
-    return list(found.values())
 
 
 # --------------------------------------------------------------------------- series
@@ -199,28 +188,6 @@ def _filter_specs(manifest: dict, path: Path) -> dict[str, dict]:
         if isinstance(instance, dict) and instance.get("base") in by_name:
             by_name.setdefault(str(instance.get("name")), by_name[instance["base"]])
     return by_name
-
-
-def _adapts(spec: dict, noise: dict[str, np.ndarray] | None = None) -> frozenset[str]:
-    """What a filter adapts: as the registry says for its kind and parameters; for a filter the
-    spec cannot tell about (a custom class, a kind this version does not know), the noise whose
-    recorded R/Qu columns vary (`noise`: column -> (runs, steps) values)."""
-    declared = adapted_noise(spec)
-    if declared is not None:
-        return frozenset(declared)
-    return frozenset(a for a, cols in _ADAPTED.items() if any(_varies(noise, c) for c in cols))
-
-
-def _varies(noise: dict[str, np.ndarray] | None, col: str) -> bool:
-    values = None if noise is None else noise.get(col)
-    if values is None or np.size(values) == 0:
-        return False
-    finite = np.asarray(values, dtype=float)
-    finite = finite[np.isfinite(finite)]
-    # a relative change well above rounding: a fixed filter stores one value for every step
-    return finite.size > 1 and float(finite.max() - finite.min()) > 1e-9 * float(
-        np.abs(finite).max()
-    )
 
 
 def _percentiles(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -276,7 +243,7 @@ def filter_series(steps: pd.DataFrame, name: str, spec: dict) -> FilterSeries:
     return FilterSeries(
         name=name,
         kind=str(spec.get("kind", "?")),
-        adapts=_adapts(spec, noise),
+        adapts=adapts_of(spec, noise),
         runs=len(ok),
         runs_used=n,
         t=np.asarray(a["t"], dtype=float),
@@ -460,12 +427,7 @@ def load_summary_only(folder: Path) -> ScenarioData:
     manifest = _manifest(folder)
     manifest_path = folder / MANIFEST_FILE
     check_one_batch(folder, manifest)
-    if manifest["scenario"].get("steps_table", True) is not False:
-        # The scenario writes steps.parquet: its absence is damage, not a summary-only result.
-        raise ResultsError(
-            f"{folder / STEPS_FILE}: missing, though {manifest_path} says the scenario writes it"
-            " (steps_table: true); the result is damaged: run it again with --force"
-        )
+    load_result(folder)  # the tables a summary-only result needs (steps.parquet if written)
     specs = _filter_specs(manifest, manifest_path)
     summary = read_summary(folder)
     where = folder / "summary.parquet"
@@ -492,7 +454,7 @@ def load_summary_only(folder: Path) -> ScenarioData:
             FilterSeries(
                 name=name,
                 kind=str(specs[name].get("kind", "?")),
-                adapts=_adapts(specs[name]),
+                adapts=adapts_of(specs[name]),
                 runs=record["runs"],
                 runs_used=record["runs_used"],
                 t=_NO_SERIES,
@@ -878,20 +840,12 @@ def write_report(
     """
     out_dir = Path(out_dir)
     fmt = ImageFormat(fmt)
-    swept = [sweep_report.read_sweep(Path(f)) for f in sweeps]  # read before anything is written
-    problem_results = [read_problem_result(f) for f in problem_result_folders(results_dirs)]
-    try:
-        found = (
-            find_scenarios(results_dirs, out_dir)
-            if not sweeps or sweep_report.has_scenario_results(list(results_dirs))
-            else []
-        )
-    except ResultsError:
-        if not problem_results:  # a folder of problem results alone (SPEC 17) is a report too
-            raise
-        found = []
-    folders, recorded_folders = real.split_folders(found)
-    recorded = [real.load_real(f) for f in recorded_folders]
+    # Every result read (and checked) before anything is written: one loader for every kind.
+    loaded = find_results(results_dirs, out_dir, sweeps)
+    swept = [sweep_report.read_sweep(r.folder) for r in loaded if r.kind == SWEEP]
+    problem_results = [read_problem_result(r.folder) for r in loaded if r.kind == PROBLEM]
+    recorded = [real.load_real(r) for r in loaded if r.kind == RECORDED]
+    folders = [r.folder for r in loaded if r.kind == SIMULATED]
     scenarios = load_scenarios(folders)
     _check_unique_names([*scenarios, *recorded])
     rows = summary_rows(scenarios)

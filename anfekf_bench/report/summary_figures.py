@@ -22,17 +22,14 @@ from .plots import (
     _RC,
     MAX_LABELLED_GROUP,
     ORACLE_COLOUR,
-    RATIO_MAX,
-    RATIO_MIN,
     filter_colour,
     filter_marker,
     filter_style,
     legend_entries,
     plain_log_axis,
-    ratio_cmap,
     ratio_colour,
     ratio_colourbar,
-    ratio_norm,
+    ratio_image,
 )
 from .ranking import CONSISTENCY_NOTE, GREY_NOTE, consistent, rank, ranking_note, rmse_ratio
 
@@ -167,11 +164,7 @@ def leaderboard_figure(rows: Sequence[SummaryRow]) -> Figure:
     n, m = len(names), len(scenarios)
     fig = Figure(figsize=(max(6.5, 3.6 + 1.15 * m), max(5.6, 3.4 + 0.3 * n)), layout="constrained")
     ax = fig.subplots()
-    with np.errstate(all="ignore"):
-        logs = np.log10(np.where(values > 0, values, np.nan))
-    shown = np.clip(logs, math.log10(RATIO_MIN), math.log10(RATIO_MAX))
-    image = ax.imshow(np.ma.masked_invalid(shown), cmap=ratio_cmap(), norm=ratio_norm(),
-                      aspect="auto", interpolation="nearest", gid="leaderboard")  # fmt: skip
+    image = ratio_image(ax, values, gid="leaderboard")
     for i, name in enumerate(names):
         for j, scen in enumerate(scenarios):
             row = cells.get((name, scen))

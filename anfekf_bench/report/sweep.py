@@ -24,17 +24,15 @@ from ..storage import (
     ResultsError,
     read_json,
     read_parquet,
-    sweep_folders,
 )
 from .document import Block, Cell, Heading, Paragraph, TableBlock
 from .plots import (
-    RATIO_MAX,
-    RATIO_MIN,
     FigureSaver,
     filter_style,
     legend_entries,
     ratio_cmap,
     ratio_colourbar,
+    ratio_image,
     ratio_norm,
 )
 
@@ -177,15 +175,12 @@ def heatmap_figure(
     for ax, name in zip(axes, names, strict=False):
         sub = rows[rows["filter"] == name].pivot_table(index=y_axis, columns=x_axis, values=column)
         grid = sub.reindex(index=ys, columns=xs).to_numpy(float)
-        shown = grid
         if ratio:  # coloured by log10 of the ratio, clipped to the scale's ends
-            with np.errstate(all="ignore"):
-                shown = np.log10(np.where(grid > 0, grid, np.nan))
-            shown = np.ma.masked_invalid(
-                np.clip(shown, math.log10(RATIO_MIN), math.log10(RATIO_MAX))
-            )
-        image = ax.imshow(shown, origin="lower", cmap=cmap, norm=norm, aspect="auto",
-                          gid=f"{column}/{name}")  # fmt: skip
+            image = ratio_image(ax, grid, origin="lower", interpolation=None,
+                                gid=f"{column}/{name}")  # fmt: skip
+        else:
+            image = ax.imshow(grid, origin="lower", cmap=cmap, norm=norm, aspect="auto",
+                              gid=f"{column}/{name}")  # fmt: skip
         for (i, j), v in np.ndenumerate(grid):
             share = column == "nees_in_bounds"
             text = "-" if not math.isfinite(v) else (f"{v:.0%}" if share else f"{v:#.3g}")
@@ -288,22 +283,3 @@ def section(data: SweepData, save: FigureSaver, within: float = 1.5, level: int 
             name = f"sweep-{data.name}-{column}{suffix}.{save.fmt}"
             out.append(save(fig, name, f"{data.name}: {label}{where}"))
     return out
-
-
-def find_sweeps(folders: list[Path]) -> list[Path]:
-    """The sweep folders among `folders` and their children."""
-    return [sweep for folder in folders for sweep in sweep_folders(folder)]
-
-
-def has_scenario_results(folders: list[Path]) -> bool:
-    """Whether any folder holds (or is) an ordinary scenario result, besides the sweeps."""
-
-    def is_result(p: Path) -> bool:
-        return (p / "manifest.json").is_file() and (p / "summary.parquet").is_file()
-
-    for folder in map(Path, folders):
-        if is_result(folder) or (
-            folder.is_dir() and any(is_result(p) for p in folder.iterdir() if p.is_dir())
-        ):
-            return True
-    return False

@@ -52,7 +52,7 @@ from rich.table import Table
 
 from .analysis.metrics import add_trace_metrics, recorded_steps
 from .bench_figures import DEFINITIONS, TARGETS
-from .breakdown import breakdown_rows, paper_breakdown
+from .breakdown import breakdown_rows, first_run_compiles, make_zoo_wall, paper_breakdown
 from .config import Scenario, World, parse_scenario, scenario_files
 from .engines.filterpy_engine import run_filter
 from .experiment import execute, machine_info, make_plan, package_versions
@@ -164,12 +164,13 @@ class BenchSizes:
     sweep_cells: int = 10  # the sweep-sized batch: cells x runs x 5 filters
     sweep_runs: int = 30
     cli_repeats: int = 3  # `anfekf run --engine fast` of the step scenario from a fresh process
+    zoo: bool = True  # `make zoo`'s two commands timed (the configs folder's zoo/, when it has one)
 
 
 FULL = BenchSizes()
 QUICK = BenchSizes(
     repeats=2, batch_runs=2, batch_repeats=1, scenario_runs=2, waypoints=3, fast_inner=2,
-    compile_probe=False, e2e_jobs=1, sweep_cells=2, sweep_runs=2, cli_repeats=0,
+    compile_probe=False, e2e_jobs=1, sweep_cells=2, sweep_runs=2, cli_repeats=0, zoo=False,
 )  # fmt: skip
 
 
@@ -778,10 +779,15 @@ def run_bench(
     prep_s = time_scan_flattening(setup, max(sizes.repeats, 5))
     engine_us = engine_figures(engine_s, prep_s, K)
     compiled = {"compile_s": None, "cache_load_s": None}
+    first_run = None
+    zoo = configs / "zoo"
     if sizes.compile_probe and fast.JIT:
         say("fast engine: numba compile and cache load, each in a fresh interpreter")
         with tempfile.TemporaryDirectory(prefix="anfekf-numba-") as cache_dir:
             compiled = compile_probe(Path(cache_dir))
+            say("first runs after the warm-up: what numba still compiles")
+            folders = [configs, *([zoo] if zoo.is_dir() else [])]
+            first_run = first_run_compiles(Path(cache_dir), folders, Path(cache_dir) / "out")
 
     say(f"batch of {sizes.batch_runs} runs on 1 and on 2 workers, {sizes.batch_repeats} repeats")
     batch_scenario, batch_world = load_scenario(configs / BATCH_SCENARIO)
@@ -799,6 +805,10 @@ def run_bench(
         e2e = fast_end_to_end(configs, sizes, Path(tmp), say)
         trim = partial(trimmed, waypoints=sizes.waypoints)
         breakdown = paper_breakdown(files, Path(tmp), sizes.scenario_runs, say, trim)
+        make_zoo = None
+        if sizes.zoo and zoo.is_dir():
+            say(f"make zoo: anfekf run {zoo} and anfekf report, each in a fresh process")
+            make_zoo = make_zoo_wall(zoo, Path(tmp))
     reference = scenarios[e2e["scenario"]]
     summary_diff = None  # no filterpy reference when the file itself asks for the fast engine
     if reference["engine"] == "filterpy":
@@ -852,6 +862,11 @@ def run_bench(
             default=None,
         ),
         "fast_e2e_breakdown": breakdown,
+        "report_paper_total_s": breakdown["report_total_s"],
+        "make_zoo_s": None if make_zoo is None else make_zoo["total_s"],
+        "make_zoo": make_zoo,
+        "first_run_compiled": None if first_run is None else first_run["count"],
+        "first_run": first_run,
         "peak_rss_mb": max(r["peak_rss_mb"] for r in scenarios.values()),
         "steps_parquet_mb": max(r["steps_parquet_mb"] for r in scenarios.values()),
         "wall_time_paper_scenarios_s": walls,
@@ -927,6 +942,9 @@ def bench_table(report: dict) -> Table:
         ("fast_sweep_batch_s", "s"),
         ("fast_e2e_paper_total_s", "s"),
         ("fast_e2e_over_filter", "x"),
+        ("report_paper_total_s", "s"),
+        ("make_zoo_s", "s"),
+        ("first_run_compiled", ""),
         ("default_over_ekf_fast_step_cost", "x"),
     ):
         row(key, report.get(key), unit)

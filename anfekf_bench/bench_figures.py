@@ -20,6 +20,8 @@ TARGETS: dict[str, tuple[str, float, str]] = {
     # issue 37: the paper scenarios end to end (breakdown.py)
     "fast_e2e_paper_total_s": ("<=", 5.0, "s"),
     "fast_e2e_over_filter": ("<=", 3.0, "x"),
+    "make_zoo_s": ("<=", 40.0, "s"),
+    "first_run_compiled": ("<=", 0, "functions"),
     "default_over_ekf_fast_step_cost": ("<=", 30.0, "x"),  # issue 36
 }
 
@@ -72,6 +74,15 @@ DEFINITIONS = {
     "default_over_ekf_fast_step_cost": "per-step time of the default filter (a kind whose spec"
     " says `default_filter`, with its defaults: vb-imm, 9 members) over the EKF's, both on the"
     " fast engine (engine_step_us)",
+    "report_paper_total_s": "the report of each paper scenario's fast-engine result (figures and"
+    " HTML included), in this process, summed (the breakdown's report phases)",
+    "make_zoo_s": "`make zoo` as it runs: `anfekf run configs/zoo` then `anfekf report` on it,"
+    " each a fresh process with numba's cache warm, wall time summed (make_zoo has each);"
+    " null at quick sizes",
+    "first_run_compiled": "functions numba compiled on the first `anfekf run --engine fast"
+    " --runs 2` of the paper's scenarios and of configs/zoo, in fresh processes whose numba"
+    " cache holds only what the warm-up (`make setup`) compiled (first_run names them);"
+    " null at quick sizes",
     "fast_sweep_batch_s": "wall time of a sweep-sized batch on the fast engine: cells x runs x 5"
     " filters (1500 filter-runs at full size), each cell an experiment.execute with summaries"
     " only (steps_table false), 2 workers kept warm across cells",

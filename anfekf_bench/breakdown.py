@@ -4,13 +4,23 @@ Per scenario file, in this process with warm caches: the whole `experiment.execu
 `anfekf run` does it, process start excluded, work placed by `runner.place_runs`), then the same
 runs once more phase by phase, each timed on its own: simulate (the truth path and every run's
 odometry and scans), filter (every filter instance on every run, its timeline included),
-metrics (per-step errors and NEES), tables (every table computed and written), and report (the
-report of the result `execute` wrote, figures included). `e2e_over_filter` is the end-to-end
-wall over the filters' own time: issue 37 asks for at most 3x on a 50-run paper scenario.
+metrics (per-step errors and NEES), store (each run saved to the run store, as `execute` saves
+it for a resume), tables (every table computed and written), and report (the report of the
+result `execute` wrote, figures included). `e2e_over_filter` is the end-to-end wall over the
+filters' own time: issue 37 asks for at most 3x on a 50-run paper scenario.
+
+Beside it, from fresh processes (process start included): `make_zoo` (`anfekf run configs/zoo`
+then `anfekf report` on it, as `make zoo` runs them; issue 37: at most 40 s) and `first_run`
+(the first `anfekf run` of the paper's scenarios and the zoo after numba's cache holds only what
+`make setup`'s warm-up compiled: which functions numba still compiled; issue 37: none).
 """
 
 from __future__ import annotations
 
+import os
+import re
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -26,9 +36,9 @@ from .report import write_report
 from .runner import run_filter_on, simulate
 from .scenarios import load_scenario
 from .sources.simulator import world_path
-from .storage import MANIFEST_FILE, read_json
+from .storage import MANIFEST_FILE, read_json, write_run_file
 
-PHASES = ("simulate", "filter", "metrics", "tables", "report")
+PHASES = ("simulate", "filter", "metrics", "store", "tables", "report")
 E2E_OVER_FILTER_TARGET = 3.0  # issue 37
 
 
@@ -60,6 +70,7 @@ def scenario_breakdown(
     wp = world_path(world_)
     lap("simulate")
     ordered = []
+    fingerprint = plan.fingerprint()
     for run, seed in enumerate(np.random.SeedSequence(plan.seed).spawn(plan.runs)):
         data = simulate(sc, world_, seed, wp)
         steps = recorded_steps(len(data.u_odo), sc.record_every)
@@ -75,6 +86,8 @@ def scenario_breakdown(
             "run": run, "control_steps": len(data.u_odo), "step": steps,
             "t": steps * world_.T, "x_true": x_true, "filters": filters,
         })  # fmt: skip
+        write_run_file(tmp / "store.npz", ordered[-1], fingerprint)
+        lap("store")
     tables = result_tables(plan, ordered)
     with tempfile.TemporaryDirectory(dir=tmp) as staging:
         write_result_tables(Path(staging), tables, steps_table=True)
@@ -109,7 +122,52 @@ def paper_breakdown(
         say(f"end-to-end breakdown of {path.name} on the fast engine")
         name = load_scenario(path)[0].name
         out[name] = scenario_breakdown(path, tmp / "breakdown" / name, runs, trim=trim)
-    return {"scenarios": out, "e2e_total_s": sum(b["e2e_s"] for b in out.values())}
+    return {
+        "scenarios": out,
+        "e2e_total_s": sum(b["e2e_s"] for b in out.values()),
+        "report_total_s": sum(b["phases_s"]["report"] for b in out.values()),
+    }
+
+
+def _cli(args: list[str], env: dict | None = None) -> tuple[float, str]:
+    """`anfekf ARGS` in a fresh interpreter: its wall time and its output (stdout + stderr)."""
+    t0 = time.perf_counter()
+    proc = subprocess.run(
+        [sys.executable, "-m", "anfekf_bench.entry", *args], capture_output=True, text=True,
+        env=env, check=False,
+    )  # fmt: skip
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+        raise RuntimeError(f"anfekf {' '.join(args)} failed ({proc.returncode}): {tail}")
+    return wall, proc.stdout + proc.stderr
+
+
+def make_zoo_wall(zoo: Path, tmp: Path) -> dict:
+    """`make zoo` as it runs: `anfekf run ZOO` then `anfekf report` on it, each in a fresh
+    process (numba's cache warm): their wall times and the sum (issue 37: at most 40 s)."""
+    out = tmp / "zoo"
+    run_s, _ = _cli(["run", str(zoo), "--out", str(out), "--force"])
+    report_s, _ = _cli(["report", str(out), "--out", str(out / "report")])
+    return {"run_s": run_s, "report_s": report_s, "total_s": run_s + report_s}
+
+
+_SAVED = re.compile(r"\[cache\] data saved to '?([^'\n]+)")
+
+
+def first_run_compiles(cache_dir: Path, folders: list[Path], tmp: Path, runs: int = 2) -> dict:
+    """The first `anfekf run FOLDER --engine fast --runs RUNS` of each folder with numba's cache
+    at `cache_dir` (holding what the warm-up compiled): the functions numba compiled and saved
+    there on the way (its cache log; issue 37 asks for none) and the runs' wall time."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache_dir), NUMBA_DEBUG_CACHE="1")
+    compiled: list[str] = []
+    wall = 0.0
+    for i, folder in enumerate(folders):
+        args = ["run", str(folder), "--engine", "fast", "--runs", str(runs)]
+        seconds, text = _cli([*args, "--out", str(tmp / f"first-run-{i}"), "--force"], env)
+        wall += seconds
+        compiled += [Path(m).name for m in _SAVED.findall(text) if m.endswith(".nbc")]
+    return {"compiled": sorted(set(compiled)), "count": len(set(compiled)), "wall_s": wall}
 
 
 def breakdown_rows(breakdown: dict) -> list[tuple[str, str]]:
@@ -122,4 +180,6 @@ def breakdown_rows(breakdown: dict) -> list[tuple[str, str]]:
         ratio = b["e2e_over_filter"]
         rows.append((f"  e2e / filter {name}", "-" if ratio is None else f"{ratio:.2f} x"))
     rows.append(("e2e paper scenarios, fast engine", f"{breakdown['e2e_total_s']:.2f} s"))
+    if "report_total_s" in breakdown:
+        rows.append(("report of the paper scenarios", f"{breakdown['report_total_s']:.2f} s"))
     return rows

@@ -6,6 +6,7 @@ place, and the tables and provenance every result writes (docs/HARDENING.md).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -91,6 +92,7 @@ class PlanError(ValueError):
     """Command-line overrides that do not fit together; `str()` is the one-line message."""
 
 
+@functools.cache  # the imported code cannot change under a running process; hashing it is ~50 ms
 def code_version() -> str:
     """Hash of this package's source: runs saved by other code must not be resumed into a batch."""
     digest = hashlib.sha256()
@@ -115,13 +117,18 @@ def machine_info() -> dict:
 
 
 def package_versions() -> dict[str, str]:
+    return dict(_package_versions())
+
+
+@functools.cache  # installed versions are fixed for a running process; reading metadata is ~100 ms
+def _package_versions() -> tuple[tuple[str, str], ...]:
     out = {"python": platform.python_version()}
     for pkg in _PACKAGES:
         try:
             out[pkg] = version(pkg)
         except PackageNotFoundError:
             out[pkg] = "not installed"
-    return out
+    return tuple(out.items())
 
 
 # --------------------------------------------------------------------------------------------

@@ -119,13 +119,20 @@ def test_quick_bench_writes_every_figure(tmp_path):
     assert set(breakdown["scenarios"]) == {"correct", "wrong_r"}
     for name, b in breakdown["scenarios"].items():
         assert b["runs"] == 2 and b["placement"] == "in-process", name
-        assert set(b["phases_s"]) == {"simulate", "filter", "metrics", "tables", "report"}
+        assert set(b["phases_s"]) == {
+            "simulate", "filter", "metrics", "store", "tables", "report"
+        }  # fmt: skip
         assert all(_finite_positive(v) for v in b["phases_s"].values()), name
         assert b["e2e_over_filter"] == pytest.approx(b["e2e_s"] / b["phases_s"]["filter"])
     assert breakdown["e2e_total_s"] == pytest.approx(
         sum(b["e2e_s"] for b in breakdown["scenarios"].values())
     )
     assert "e2e / filter correct" in result.output
+    assert doc["report_paper_total_s"] == pytest.approx(
+        sum(b["phases_s"]["report"] for b in breakdown["scenarios"].values())
+    )
+    # make zoo and the first run after the warm-up: fresh processes, full sizes only
+    assert doc["make_zoo_s"] is None and doc["first_run_compiled"] is None
 
 
 def test_the_command_line_probe_runs_anfekf_run_in_a_fresh_process(tmp_path):
@@ -235,3 +242,31 @@ def test_every_built_in_kind_is_timed_on_both_engines():
     assert weights.hidden_size == KalmanNetSpec.model_fields["hidden_size"].default
     again = bench.bench_kalmannet().trained_weights
     assert again.to_bytes() == weights.to_bytes()  # seeded
+
+
+def test_first_run_compiles_reads_numba_cache_log(monkeypatch, tmp_path) -> None:
+    """The functions numba saved to its cache on a first run are read from its cache log (the
+    format of numba.core.caching's `_cache_log`), each once; index saves and loads are not
+    compiles."""
+    from anfekf_bench import breakdown
+
+    log = (
+        "[cache] index loaded from '/c/loop.run_loop-148.py311.nbi'\n"
+        "[cache] data loaded from '/c/loop.run_loop-148.py311.1.nbc'\n"
+        "[cache] data saved to '/c/simulator._truth-120.py311.1.nbc'\n"
+        "[cache] index saved to '/c/simulator._truth-120.py311.nbi'\n"
+    )
+    calls = []
+
+    def fake_cli(args, env=None):
+        calls.append((args, env))
+        return 1.5, log
+
+    monkeypatch.setattr(breakdown, "_cli", fake_cli)
+    got = breakdown.first_run_compiles(tmp_path / "cache", [Path("a"), Path("b")], tmp_path)
+    assert got == {"compiled": ["simulator._truth-120.py311.1.nbc"], "count": 1, "wall_s": 3.0}
+    assert all(env["NUMBA_CACHE_DIR"] == str(tmp_path / "cache") for _, env in calls)
+    assert all(env["NUMBA_DEBUG_CACHE"] == "1" and "fast" in args for args, env in calls)
+    monkeypatch.setattr(breakdown, "_cli", lambda args, env=None: (2.0 + len(args), ""))
+    zoo = breakdown.make_zoo_wall(Path("zoo"), tmp_path)
+    assert zoo["total_s"] == zoo["run_s"] + zoo["report_s"] and zoo["run_s"] > zoo["report_s"]

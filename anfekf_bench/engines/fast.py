@@ -381,6 +381,13 @@ def warm_up(jit: bool = True) -> float:
     for spec in warm_up_specs():
         run_filter_fast(spec, ctx, data, world, 1, jit=jit)
     clear_cache()
+    # The fits' kernel (ekf-ml, ekf-tuned and the recorded data's grid searches): one likelihood
+    # pass compiles it and its step table; without it a first fitted run compiled them.
+    from ..timeline import from_run
+    from .tuning import TimelineLikelihood
+
+    likelihood = TimelineLikelihood.of(from_run(data, world, 0), ctx.x0, ctx.P0, ctx.gate, 0.0)
+    likelihood.nll(np.array([0.3, 0.05, 0.1, 0.02]))
     simulate_truth(dataclasses.replace(world, max_steps=10_000))  # the simulator's truth loop
     return time.perf_counter() - t0
 

@@ -719,7 +719,9 @@ def test_a_library_warning_is_one_escaped_line(capsys) -> None:
     assert err.count("\n") == 1 and "\x1b" not in err and "\\x1b[2J" in err
 
 
-@pytest.mark.slow  # a 600 kB YAML file parsed by PyYAML: about a minute on a busy machine
+# A 600 kB YAML file parsed by PyYAML: 46 s in CI, so in `make test-all` (heavy) only.
+@pytest.mark.slow
+@pytest.mark.heavy
 @pytest.mark.parametrize(("points", "fragment"), [(100_001, "more than 100000 points")])
 def test_an_inline_map_is_limited_by_its_points_not_by_aliases(tmp_path, points, fragment):
     doc = small_scenario(**SMALL)

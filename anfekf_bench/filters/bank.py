@@ -374,44 +374,50 @@ class _Member(RobotEKF):
         self.inn = inn
 
 
-class BankEKF(AdaptiveEKF):
-    """A bank of `_Member` EKFs, one per hypothesis of `hypotheses(params)` (module doc).
-
-    The engines see one filter: x, P are the mixture (B.3), R, Qu the mixture weights' average
-    of the hypotheses' noise, recomputed after every predict and every scan. Each member gates
-    its own innovation with its own S_i. The bank's NIS sum and update / rejection counts are its
-    most probable member's at the start of each scan.
+class MemberBank(AdaptiveEKF):
+    """What every bank of member EKFs shares (`BankEKF`, vb_bank.VBIMMEKF): the engines see one
+    filter, x, P the mixture of its members (B.3), R, Qu the mixture weights' average of the
+    members' noise, recomputed after every predict and every scan. Per scan every member's
+    begin_scan, each landmark through every member (its own gate, with its own S_i) and the
+    member's log-likelihood added to its weight, every member's end_scan, the weights
+    normalised and floored, the mixture, and where the members interact the IMM's mixed
+    restarts (B.4). The NIS sum and update / rejection counts are the most probable member's at
+    the start of each scan. A bank says how its members are made (`_start_bank`), the R each
+    holds (`member_R`) and how a member's innovation scores (`member_loglik`).
     """
 
     adapts: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
-    params: MMAESpec
 
-    def __init__(self, *args, params: MMAESpec, **kwargs):
-        super().__init__(*args, params=params, **kwargs)
-        factors = hypotheses(params)
-        self.factors = factors
-        qu0, r0 = np.diag(self.Qu0), np.diag(self.R0)
-        self.Qu_members = factors[:, :2] * qu0
-        self.R_members = factors[:, 2:] * r0
-        self.members = [
-            _Member(self.x, self.P, np.diag(qu), np.diag(r), self.model, self.dt, self.gate)
-            for qu, r in zip(self.Qu_members, self.R_members, strict=True)
-        ]
-        M = len(self.members)
+    def _start_bank(self, members: list, Qu_members: np.ndarray, p_stay: float, interacts: bool):
+        self.members = members
+        self.Qu_members = Qu_members
+        M = len(members)
         self.logw = np.full(M, -math.log(M))
         self.w = np.empty(M)
         self.censor_at = (
-            self.gate if (params.adapt_from == "accepted" and self.gate is not None) else math.inf
+            self.gate
+            if (self.params.adapt_from == "accepted" and self.gate is not None)
+            else math.inf
         )
-        self.log_floor = math.log(params.weight_floor)
+        self.log_floor = math.log(self.params.weight_floor)
+        self.p_stay = p_stay
+        self.interacts = interacts
         self._weights_changed()
         self._output()
+
+    def member_R(self) -> np.ndarray:
+        """(M, 2): every member's R diagonal now."""
+        raise NotImplementedError
+
+    def member_loglik(self, m: RobotEKF) -> float:
+        """The log-likelihood of member m's last innovation."""
+        raise NotImplementedError
 
     def _weights_changed(self) -> None:
         mixture_weights(self.logw, self.params.mixture_threshold, self.w)
         self.active = np.flatnonzero(self.w != 0.0)
         R, Qu = np.empty(2), np.empty(2)
-        weighted_noise(self.w, self.R_members, R)
+        weighted_noise(self.w, self.member_R(), R)
         weighted_noise(self.w, self.Qu_members, Qu)
         self.R, self.Qu = np.diag(R), np.diag(Qu)
 
@@ -434,20 +440,21 @@ class BankEKF(AdaptiveEKF):
     def update_scan(self, zs: np.ndarray, landmarks: np.ndarray) -> None:
         best = self.members[most_probable(self.logw)]
         before = (best.nis_sum, best.n_updates, best.n_rejected)
+        for m in self.members:
+            m.begin_scan()
         for z, landmark in zip(zs, landmarks, strict=True):
             for i, m in enumerate(self.members):
                 m.update_landmark(z, landmark)
-                S = m.inn.S
-                self.logw[i] += innovation_loglik(
-                    m.inn.nis, S[0, 0], S[0, 1], S[1, 0], S[1, 1], self.censor_at
-                )
+                self.logw[i] += self.member_loglik(m)
+        for m in self.members:
+            m.end_scan()
         self.nis_sum += best.nis_sum - before[0]
         self.n_updates += best.n_updates - before[1]
         self.n_rejected += best.n_rejected - before[2]
         normalise_log_weights(self.logw, self.log_floor)
         self._weights_changed()
         self._output()
-        if isinstance(self.params, IMMSpec):
+        if self.interacts:
             self._interact()
 
     def _interact(self) -> None:
@@ -457,7 +464,7 @@ class BankEKF(AdaptiveEKF):
         P = np.array([m.P.ravel() for m in self.members])
         X0, P0 = np.empty_like(X), np.empty_like(P)
         imm_mix(
-            self.logw, self.params.p_stay, self.params.mixture_threshold, X, P, X0, P0,
+            self.logw, self.p_stay, self.params.mixture_threshold, X, P, X0, P0,
             np.empty(M), np.empty(M), np.empty(M), np.empty(3), np.empty(9),
             np.empty(M, np.int64), np.empty(M, np.int64),
         )  # fmt: skip
@@ -465,3 +472,32 @@ class BankEKF(AdaptiveEKF):
             m.x, m.P = x0, p0.reshape(3, 3)
         # The recorded R, Qu and the between-scan mixture now use the predicted weights c_j.
         self._weights_changed()
+
+
+class BankEKF(MemberBank):
+    """A bank of `_Member` EKFs, one per hypothesis of `hypotheses(params)` (module doc), each
+    with fixed noise; the likelihood of a member's innovation is `innovation_loglik` (censored
+    at the gate where it adapts from accepted landmarks)."""
+
+    params: MMAESpec
+
+    def __init__(self, *args, params: MMAESpec, **kwargs):
+        super().__init__(*args, params=params, **kwargs)
+        factors = hypotheses(params)
+        self.factors = factors
+        qu0, r0 = np.diag(self.Qu0), np.diag(self.R0)
+        Qu_members = factors[:, :2] * qu0
+        self.R_members = factors[:, 2:] * r0
+        members = [
+            _Member(self.x, self.P, np.diag(qu), np.diag(r), self.model, self.dt, self.gate)
+            for qu, r in zip(Qu_members, self.R_members, strict=True)
+        ]
+        imm = isinstance(params, IMMSpec)
+        self._start_bank(members, Qu_members, params.p_stay if imm else 1.0, imm)
+
+    def member_R(self) -> np.ndarray:
+        return self.R_members
+
+    def member_loglik(self, m: RobotEKF) -> float:
+        S = m.inn.S
+        return innovation_loglik(m.inn.nis, S[0, 0], S[0, 1], S[1, 0], S[1, 1], self.censor_at)

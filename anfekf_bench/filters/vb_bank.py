@@ -38,16 +38,10 @@ from typing import Annotated, ClassVar, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from .adaptive import AdaptiveEKF
 from .bank import (
     Factors,
-    imm_mix,
+    MemberBank,
     innovation_loglik,
-    mix_moments,
-    mixture_weights,
-    most_probable,
-    normalise_log_weights,
-    weighted_noise,
 )
 from .ekf import Innovation, RobotEKF
 from .sage_husa import SageHusaEKF, SageHusaSpec
@@ -206,98 +200,33 @@ def _member(spec: VBIMMSpec, x0, P0, Qu, R, model, dt, gate) -> RobotEKF:
     return _FixedMember(x0, P0, Qu, R, model, dt, gate)
 
 
-class VBIMMEKF(AdaptiveEKF):
+class VBIMMEKF(MemberBank):
     """A bank of members (module doc): x, P the mixture, R and Qu the mixture weights' average
-    of the members' current R and Qu; counts are the most probable member's, as in BankEKF."""
+    of the members' current R and Qu; counts are the most probable member's, as in BankEKF (the
+    bank's cycle is bank.MemberBank's); a member's innovation scores by the predictive
+    likelihood from the R it held before the landmark (D.1)."""
 
-    adapts: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     params: VBIMMSpec
 
     def __init__(self, *args, params: VBIMMSpec, **kwargs):
         super().__init__(*args, params=params, **kwargs)
         factors = member_factors(params)
         qu0, r0 = np.diag(self.Qu0), np.diag(self.R0)
-        self.Qu_members = np.outer(factors[:, 0], qu0)
-        self.members = [
+        Qu_members = np.outer(factors[:, 0], qu0)
+        members = [
             _member(params, self.x, self.P, np.diag(qu), np.diag(f[1:] * r0), self.model,
                     self.dt, self.gate)
-            for qu, f in zip(self.Qu_members, factors, strict=True)
+            for qu, f in zip(Qu_members, factors, strict=True)
         ]  # fmt: skip
-        M = len(self.members)
-        self.logw = np.full(M, -math.log(M))
-        self.w = np.empty(M)
-        self.censor_at = (
-            self.gate if (params.adapt_from == "accepted" and self.gate is not None) else math.inf
-        )
-        self.log_floor = math.log(params.weight_floor)
-        self.p_stay = params.p_stay if params.adaptation else 1.0
-        self._weights_changed()
-        self._output()
+        p_stay = params.p_stay if params.adaptation else 1.0
+        self._start_bank(members, Qu_members, p_stay, p_stay < 1.0 and len(members) > 1)
 
     def member_R(self) -> np.ndarray:
-        """(M, 2): every member's R diagonal now."""
         return np.array([np.diag(m.R) for m in self.members])
 
-    def _weights_changed(self) -> None:
-        mixture_weights(self.logw, self.params.mixture_threshold, self.w)
-        self.active = np.flatnonzero(self.w != 0.0)
-        R, Qu = np.empty(2), np.empty(2)
-        weighted_noise(self.w, self.member_R(), R)
-        weighted_noise(self.w, self.Qu_members, Qu)
-        self.R, self.Qu = np.diag(R), np.diag(Qu)
-
-    def _output(self) -> None:
-        act = self.active
-        X = np.array([self.members[i].x for i in act])
-        P = np.array([self.members[i].P.ravel() for i in act])
-        ref = self.members[most_probable(self.logw)].x[2]
-        x, Pm = np.empty(3), np.empty(9)
-        mix_moments(self.w[act], X, P, ref, x, Pm)
-        self.x, self.P = x, Pm.reshape(3, 3)
-
-    def predict(self, u=0, dt: float | None = None):
-        if dt is not None:
-            self.dt = dt
-        for m in self.members:
-            m.predict(u, dt)
-        self._output()
-
-    def update_scan(self, zs: np.ndarray, landmarks: np.ndarray) -> None:
-        best = self.members[most_probable(self.logw)]
-        before = (best.nis_sum, best.n_updates, best.n_rejected)
-        for m in self.members:
-            m.begin_scan()
-        for z, landmark in zip(zs, landmarks, strict=True):
-            for i, m in enumerate(self.members):
-                m.update_landmark(z, landmark)
-                S = m.inn.HPHt + m.R_prior
-                nis = float(m.inn.nu @ np.linalg.solve(S, m.inn.nu))
-                self.logw[i] += predictive_loglik(
-                    nis, S[0, 0], S[0, 1], S[1, 0], S[1, 1], self.censor_at,
-                    self.params.likelihood_dof,
-                )  # fmt: skip
-        for m in self.members:
-            m.end_scan()
-        self.nis_sum += best.nis_sum - before[0]
-        self.n_updates += best.n_updates - before[1]
-        self.n_rejected += best.n_rejected - before[2]
-        normalise_log_weights(self.logw, self.log_floor)
-        self._weights_changed()
-        self._output()
-        if self.p_stay < 1.0 and len(self.members) > 1:
-            self._interact()
-
-    def _interact(self) -> None:
-        """bank.py's B.4 after the scan's output: members restart from their mixed starts."""
-        M = len(self.members)
-        X = np.array([m.x for m in self.members])
-        P = np.array([m.P.ravel() for m in self.members])
-        X0, P0 = np.empty_like(X), np.empty_like(P)
-        imm_mix(
-            self.logw, self.p_stay, self.params.mixture_threshold, X, P, X0, P0,
-            np.empty(M), np.empty(M), np.empty(M), np.empty(3), np.empty(9),
-            np.empty(M, np.int64), np.empty(M, np.int64),
-        )  # fmt: skip
-        for m, x0, p0 in zip(self.members, X0, P0, strict=True):
-            m.x, m.P = x0, p0.reshape(3, 3)
-        self._weights_changed()
+    def member_loglik(self, m: RobotEKF) -> float:
+        S = m.inn.HPHt + m.R_prior
+        nis = float(m.inn.nu @ np.linalg.solve(S, m.inn.nu))
+        return predictive_loglik(
+            nis, S[0, 0], S[0, 1], S[1, 0], S[1, 1], self.censor_at, self.params.likelihood_dof
+        )

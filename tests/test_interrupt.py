@@ -72,12 +72,14 @@ def assert_nothing_looks_complete(target: Path, runs: int) -> list[int]:
 
 # --- A real process, killed -------------------------------------------------------------------
 
-KILL_RUNS = 6
+# Enough runs that the batch is still going when the first run file appears and the signal is
+# sent: with 6, a faster harness sometimes finished the batch first (CI, one worker).
+KILL_RUNS = 16
 
 
 @pytest.fixture(scope="module")
 def kill_scenario(tmp_path_factory) -> tuple[Path, pd.DataFrame]:
-    """The default world, 2 filters, 6 runs (a few seconds); and its uninterrupted steps."""
+    """The default world, 2 filters, 16 runs (a few seconds); and its uninterrupted steps."""
     root = tmp_path_factory.mktemp("kill")
     doc = {
         "name": "killed",

@@ -94,6 +94,14 @@ def kill_scenario(tmp_path_factory) -> tuple[Path, pd.DataFrame]:
     return path, read_steps(target)
 
 
+def as_from_a_terminal() -> None:
+    """Ctrl-C as a shell's command gets it: SIGINT at its default and not blocked. A test
+    worker's mask or disposition is inherited by the command otherwise (in the full suite the
+    command once went on to finish its batch, as if the signal had never come)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 @pytest.mark.parametrize(
     ("sig", "jobs"),
     [(signal.SIGKILL, 2), (signal.SIGINT, 1)],
@@ -109,7 +117,12 @@ def test_killed_run_leaves_nothing_complete_and_resumes(
     command = "from anfekf_bench.cli import main; main()"
     args = [sys.executable, "-c", command, "run", str(path), "--out", str(out), "--jobs", str(jobs)]
     proc = subprocess.Popen(
-        args, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        args,
+        start_new_session=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=as_from_a_terminal,
     )
     try:
         deadline = time.monotonic() + 120

@@ -183,12 +183,13 @@ class ALSKF(GenericKF):
             self.identify()
 
     def run_compiled(self, z):
-        from .fast import als_run, as_arrays
+        from .fast import als_run, as_arrays, gate_of
 
         p, spec = self.problem, self.spec
         started = time.perf_counter()
-        arrays = as_arrays(p.x0, p.P0, self.Q, self.R, z, p.Fm, p.Hm, self.K,
-                           self.identifier.pinv)  # fmt: skip
-        out = als_run(*self.model.args(), *arrays, int(spec.lags), int(spec.every),
-                      int(spec.burn), int(spec.min_steps), self.Q_floor, self.R_floor)  # fmt: skip
-        return Trace(*out, time.perf_counter() - started)
+        x0, P0, Q, R, z = as_arrays(p.x0, p.P0, self.Q, self.R, z)
+        identifier = as_arrays(p.Fm, p.Hm, self.K, self.identifier.pinv)
+        *out, gated = als_run(*self.model.args(), x0, P0, Q, R, z, gate_of(p), *identifier,
+                              int(spec.lags), int(spec.every), int(spec.burn),
+                              int(spec.min_steps), self.Q_floor, self.R_floor)  # fmt: skip
+        return Trace(*out, time.perf_counter() - started, gated)

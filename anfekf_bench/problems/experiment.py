@@ -99,9 +99,6 @@ def prepare_engine(scenario: ProblemScenario) -> dict:
     if scenario.engine != "fast":
         return {}
     started = time.perf_counter()
-    if scenario.build_problem().gate is not None:
-        raise ProblemRunError("engine fast: the compiled loops do not implement the problem's"
-                              " gate yet; run it on engine filterpy")  # fmt: skip
     try:
         model = scenario.build_problem().compiled_model()
     except (NotCompilable, ImportError) as exc:  # ImportError: numba missing (fast.py says so)

@@ -28,6 +28,7 @@ engine imports it. Without numba importing it raises ImportError saying so.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from functools import lru_cache
@@ -167,6 +168,67 @@ def linear_model(F, G, H, angles=()) -> CompiledModel:
                          linear_params(F, G, H), np.array(angles, dtype=np.int64))  # fmt: skip
 
 
+# --- the tracking radar: p = (px, py, start, end, known, A_ncv, A_ct) ----------------------------
+# (`tracking.TrackingProblem`: the filters' transition is the coordinated turn A_ct over the
+# steps [start, end) when they are told of the turn (known = 1), else A_ncv.)
+
+
+def tracking_params(radar, ncv: np.ndarray, ct: np.ndarray | None, turn) -> np.ndarray:
+    known = turn is not None and turn.known
+    start, end = (turn.start, turn.end) if turn is not None else (0, 0)
+    ct = ncv if ct is None else ct
+    head = [radar[0], radar[1], start, end, 1.0 if known else 0.0]
+    return np.concatenate([head, ncv.ravel(), ct.ravel()]).astype(float)
+
+
+@njit(cache=True)
+def _tracking_A(k, p):  # pragma: no cover - compiled
+    if p[4] != 0.0 and p[2] <= k < p[3]:
+        return _block(p, 21, 4, 4)
+    return _block(p, 5, 4, 4)
+
+
+@njit(VECTOR_FN, cache=True)
+def _tracking_f(x, k, p):  # pragma: no cover - compiled
+    return _mv(_tracking_A(k, p), x)
+
+
+@njit(MATRIX_FN, cache=True)
+def _tracking_F(x, k, p):  # pragma: no cover - compiled
+    return _tracking_A(k, p).copy()
+
+
+@njit(MATRIX_FN, cache=True)
+def _tracking_G(x, k, p):  # pragma: no cover - compiled
+    return np.eye(4)
+
+
+@njit(VECTOR_FN, cache=True)
+def _tracking_h(x, k, p):  # pragma: no cover - compiled
+    dx, dy = x[0] - p[0], x[2] - p[1]
+    out = np.empty(2)
+    out[0], out[1] = math.hypot(dx, dy), math.atan2(dy, dx)
+    return out
+
+
+@njit(MATRIX_FN, cache=True)
+def _tracking_H(x, k, p):  # pragma: no cover - compiled
+    dx, dy = x[0] - p[0], x[2] - p[1]
+    r2 = max(dx * dx + dy * dy, 1e-12)  # as TrackingProblem.H: the bearing undefined at 0
+    r = math.sqrt(r2)
+    out = np.zeros((2, 4))
+    out[0, 0], out[0, 2], out[1, 0], out[1, 2] = dx / r, dy / r, -dy / r2, dx / r2
+    return out
+
+
+def tracking_model(radar, ncv, ct, turn, angles) -> CompiledModel:
+    """The compiled model of a `tracking.TrackingProblem` (the functions are cached): its
+    radar, transitions (nearly constant velocity; the turn's or None) and `Turn` or None."""
+    return CompiledModel(_tracking_f, _tracking_F, _tracking_G, _tracking_h, _tracking_H,
+                         tracking_params(radar, ncv, ct, turn),
+                         np.array(angles, dtype=np.int64))  # fmt: skip
+
+
 # --- a user's module -----------------------------------------------------------------------------
 
 
@@ -240,6 +302,18 @@ def _joseph(x, P, nu, H, R):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
+def _outside_gate(nu, H, P, R, gate):  # pragma: no cover - compiled
+    """kalman.outside_gate: nu^T (H P H^T + R)^-1 nu > gate (gate inf: the problem has none)."""
+    if gate == np.inf:
+        return False
+    v = np.linalg.solve(_mmt(_mm(H, P), H) + R, nu)
+    acc = 0.0
+    for i in range(nu.shape[0]):
+        acc += nu[i] * v[i]
+    return acc > gate
+
+
+@njit(cache=True)
 def _predict(f, F, G, p, x, P, Q, k):  # pragma: no cover - compiled
     Fk, Gk = F(x, k, p), G(x, k, p)
     return f(x, k, p), _symmetric(_mmt(_mm(Fk, P), Fk) + _mmt(_mm(Gk, Q), Gk)), Fk, Gk
@@ -248,53 +322,65 @@ def _predict(f, F, G, p, x, P, Q, k):  # pragma: no cover - compiled
 # --- the loops -----------------------------------------------------------------------------------
 
 
-@njit((*MODEL_ARGS, A1, A2, A2, A2, A2, F64, I64, I64, I64, A2, A2, F64), cache=True)
-def sage_husa_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, b, adapt_r, adapt_q, warmup,
+@njit((*MODEL_ARGS, A1, A2, A2, A2, A2, F64, F64, I64, I64, I64, A2, A2, F64), cache=True)
+def sage_husa_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, gate, b, adapt_r, adapt_q, warmup,
                   r_units, q_units, floor):  # fmt: skip  # pragma: no cover - compiled
-    """(x, P, Q, R) of `SageHusaKF`: R's sample before the gain, Q's from the correction, each
-    projected in units of its starting standard deviations (`r_units`, `q_units`)."""
+    """(x, P, Q, R, gated) of `SageHusaKF`: R's sample before the gain, Q's from the
+    correction, each projected in units of its starting standard deviations (`r_units`,
+    `q_units`); a measurement outside the gate is counted, neither used nor adapted on."""
     steps, n, nw, nz = z.shape[0], x0.shape[0], Q.shape[0], R.shape[0]
     xs, Ps = np.empty((steps, n)), np.empty((steps, n, n))
     Qs, Rs = np.empty((steps, nw, nw)), np.empty((steps, nz, nz))
     x, P, Q, R = x0.copy(), P0.copy(), Q.copy(), R.copy()
     R_hat, Q_hat = R.copy(), Q.copy()
     F_prev, G_prev, P_prev = np.empty((n, n)), np.empty((n, nw)), np.empty((n, n))
+    gated = 0
     for k in range(steps):
         nu = _wrap(z[k] - h(x, k, p), angles)
         Hk = H(x, k, p)
-        if adapt_r:
-            d = 1.0 / (k + 1) if b == 1.0 else (1.0 - b) / (1.0 - b ** (k + 1))
-            R_hat = (1.0 - d) * R_hat + d * (_outer(nu, nu) - _mmt(_mm(Hk, P), Hk))
-            if k + 1 >= warmup:
-                R = _nearest_psd(R_hat / r_units, floor) * r_units
-        x_prior = x
-        x, P = _joseph(x, P, nu, Hk, R)
-        if adapt_q and k > 0:
-            dx = x - x_prior
-            G_pinv = np.linalg.pinv(G_prev)
-            sample = _outer(dx, dx) + P - _mmt(_mm(F_prev, P_prev), F_prev)
-            sample = _mmt(_mm(G_pinv, 0.5 * (sample + sample.T)), G_pinv)
-            j = k - 1
-            d = 1.0 / (j + 1) if b == 1.0 else (1.0 - b) / (1.0 - b ** (j + 1))
-            Q_hat = (1.0 - d) * Q_hat + d * _symmetric(sample)
-            if k + 1 >= warmup:
-                Q = _nearest_psd(Q_hat / q_units, floor) * q_units
+        if _outside_gate(nu, Hk, P, R, gate):
+            gated += 1
+        else:
+            if adapt_r:
+                d = 1.0 / (k + 1) if b == 1.0 else (1.0 - b) / (1.0 - b ** (k + 1))
+                R_hat = (1.0 - d) * R_hat + d * (_outer(nu, nu) - _mmt(_mm(Hk, P), Hk))
+                if k + 1 >= warmup:
+                    R = _nearest_psd(R_hat / r_units, floor) * r_units
+            x_prior = x
+            x, P = _joseph(x, P, nu, Hk, R)
+            if adapt_q and k > 0:
+                dx = x - x_prior
+                G_pinv = np.linalg.pinv(G_prev)
+                sample = _outer(dx, dx) + P - _mmt(_mm(F_prev, P_prev), F_prev)
+                sample = _mmt(_mm(G_pinv, 0.5 * (sample + sample.T)), G_pinv)
+                j = k - 1
+                d = 1.0 / (j + 1) if b == 1.0 else (1.0 - b) / (1.0 - b ** (j + 1))
+                Q_hat = (1.0 - d) * Q_hat + d * _symmetric(sample)
+                if k + 1 >= warmup:
+                    Q = _nearest_psd(Q_hat / q_units, floor) * q_units
         xs[k], Ps[k], Qs[k], Rs[k] = x, P, Q, R
         P_prev = P
         x, P, F_prev, G_prev = _predict(f, F, G, p, x, P, Q, k)
-    return xs, Ps, Qs, Rs
+    return xs, Ps, Qs, Rs, gated
 
 
-@njit((*MODEL_ARGS, A1, A2, A2, A2, A2, F64, I64, F64), cache=True)
-def vbr_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, rho, iterations,
+@njit((*MODEL_ARGS, A1, A2, A2, A2, A2, F64, F64, I64, F64), cache=True)
+def vbr_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, gate, rho, iterations,
             dof):  # fmt: skip  # pragma: no cover - compiled
-    """(x, P, R) of `VBRKF`: R ~ IW(dof, V), E[R^-1]^-1 = V / dof in the update."""
+    """(x, P, R, gated) of `VBRKF`: R ~ IW(dof, V), E[R^-1]^-1 = V / dof in the update; a
+    measurement outside the gate (with the R in force) leaves the posterior as it was."""
     steps, n, m = z.shape[0], x0.shape[0], R.shape[0]
     xs, Ps, Rs = np.empty((steps, n)), np.empty((steps, n, n)), np.empty((steps, m, m))
-    x, P = x0.copy(), P0.copy()
+    x, P, R = x0.copy(), P0.copy(), R.copy()
     V = dof * R
     x_post, P_post = x, P
+    gated = 0
     for k in range(steps):
+        if _outside_gate(_wrap(z[k] - h(x, k, p), angles), H(x, k, p), P, R, gate):
+            gated += 1
+            xs[k], Ps[k], Rs[k] = x, P, R
+            x, P, _, _ = _predict(f, F, G, p, x, P, Q, k)
+            continue
         nu_prior = rho * (dof - m - 1.0) + m + 1.0
         V_prior = rho * V
         dof = nu_prior + 1.0
@@ -307,10 +393,11 @@ def vbr_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, rho, iterations,
             Hp = H(x_post, k, p)
             Vk = V_prior + _outer(r, r) + _mmt(_mm(Hp, P_post), Hp)
         V = _symmetric(Vk)
+        R = V / dof
         x, P = x_post, P_post
-        xs[k], Ps[k], Rs[k] = x, P, V / dof
+        xs[k], Ps[k], Rs[k] = x, P, R
         x, P, _, _ = _predict(f, F, G, p, x, P, Q, k)
-    return xs, Ps, Rs
+    return xs, Ps, Rs, gated
 
 
 @njit(cache=True)
@@ -323,11 +410,13 @@ def _from_vech(theta, m):  # pragma: no cover - compiled
     return M
 
 
-@njit((*MODEL_ARGS, A1, A2, A2, A2, A2, A2, A2, A2, A2, I64, I64, I64, I64, F64, F64), cache=True)
-def als_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, Fm, Hm, K, pinv, lags, every, burn,
+@njit((*MODEL_ARGS, A1, A2, A2, A2, A2, F64, A2, A2, A2, A2, I64, I64, I64, I64, F64, F64),
+      cache=True)  # fmt: skip
+def als_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, gate, Fm, Hm, K, pinv, lags, every, burn,
             min_steps, q_floor, r_floor):  # fmt: skip  # pragma: no cover - compiled
-    """(x, P, Q, R) of `ALSKF`: the fixed-gain predictor's innovations, their autocovariances
-    so far, (Q, R) by the identifier's pseudo-inverse every `every` steps."""
+    """(x, P, Q, R, gated) of `ALSKF`: the fixed-gain predictor's innovations, their
+    autocovariances so far, (Q, R) by the identifier's pseudo-inverse every `every` steps; a
+    measurement outside the gate is counted and skipped, by the predictor too."""
     steps, n, nw, nz = z.shape[0], x0.shape[0], Q.shape[0], R.shape[0]
     nq = nw * (nw + 1) // 2
     xs, Ps = np.empty((steps, n)), np.empty((steps, n, n))
@@ -336,10 +425,15 @@ def als_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, Fm, Hm, K, pinv, lags, ev
     xp = x0.copy()
     ys = np.empty((max(steps - burn, 0), nz))
     sums, counts = np.zeros((lags, nz, nz)), np.zeros(lags)
-    used = 0
+    used, gated = 0, 0
     for k in range(steps):
         nu = _wrap(z[k] - h(x, k, p), angles)
         Hk = H(x, k, p)
+        if _outside_gate(nu, Hk, P, R, gate):
+            gated += 1
+            xs[k], Ps[k], Qs[k], Rs[k] = x, P, Q, R
+            x, P, _, _ = _predict(f, F, G, p, x, P, Q, k)
+            continue
         y = z[k] - _mv(Hm, xp)
         if k >= burn:
             ys[used] = y
@@ -365,15 +459,21 @@ def als_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, Fm, Hm, K, pinv, lags, ev
         theta = _mv(pinv, C.ravel())
         Qs[steps - 1] = _nearest_psd(_from_vech(theta[:nq], nw), q_floor)
         Rs[steps - 1] = _nearest_psd(_from_vech(theta[nq:], nz), r_floor)
-    return xs, Ps, Qs, Rs
+    return xs, Ps, Qs, Rs, gated
 
 
-def ekf_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z):
-    """(x, P) of `GenericKF.run` with fixed Q and R: Sage-Husa's loop adapting neither (one
-    compiled loop fewer; the same arithmetic)."""
-    xs, Ps, _, _ = sage_husa_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, 1.0, 0, 0, 0,
-                                 np.ones(R.shape), np.ones(Q.shape), 0.0)  # fmt: skip
-    return xs, Ps
+def ekf_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, gate):
+    """(x, P, gated) of `GenericKF.run` with fixed Q and R: Sage-Husa's loop adapting neither
+    (one compiled loop fewer; the same arithmetic)."""
+    xs, Ps, _, _, gated = sage_husa_run(f, F, G, h, H, p, angles, x0, P0, Q, R, z, gate, 1.0,
+                                        0, 0, 0, np.ones(R.shape), np.ones(Q.shape),
+                                        0.0)  # fmt: skip
+    return xs, Ps, gated
+
+
+def gate_of(problem) -> float:
+    """The problem's gate threshold as the loops take it (inf: no gate)."""
+    return np.inf if problem.gate is None else float(problem.gate)
 
 
 def as_arrays(*arrays) -> tuple:

@@ -130,13 +130,14 @@ class GenericKF:
 
     def run_compiled(self, z: np.ndarray) -> Trace:
         """`run` on the fast engine: the family's loop in `problems.fast` (here: fixed Q, R)."""
-        from .fast import as_arrays, ekf_run
+        from .fast import as_arrays, ekf_run, gate_of
 
         p = self.problem
         started = time.perf_counter()
-        xs, Ps = ekf_run(*self.model.args(), *as_arrays(p.x0, p.P0, self.Q, self.R, z))
+        xs, Ps, gated = ekf_run(*self.model.args(), *as_arrays(p.x0, p.P0, self.Q, self.R, z),
+                                gate_of(p))  # fmt: skip
         return Trace(xs, Ps, repeat(self.Q, len(z)), repeat(self.R, len(z)),
-                     time.perf_counter() - started)  # fmt: skip
+                     time.perf_counter() - started, gated)  # fmt: skip
 
 
 def repeat(M: np.ndarray, steps: int) -> np.ndarray:
@@ -225,15 +226,16 @@ class SageHusaKF(GenericKF):
             self.Q = nearest_psd(self.Q_hat / self.Q_units, PSD_FLOOR) * self.Q_units
 
     def run_compiled(self, z):
-        from .fast import as_arrays, sage_husa_run
+        from .fast import as_arrays, gate_of, sage_husa_run
 
         p, spec = self.problem, self.spec
         started = time.perf_counter()
-        out = sage_husa_run(*self.model.args(), *as_arrays(p.x0, p.P0, self.Q, self.R, z),
-                            float(spec.b), int("R" in spec.adapt), int("Q" in spec.adapt),
-                            int(spec.warmup), *as_arrays(self.R_units, self.Q_units),
-                            PSD_FLOOR)  # fmt: skip
-        return Trace(*out, time.perf_counter() - started)
+        arrays = as_arrays(p.x0, p.P0, self.Q, self.R, z)
+        *out, gated = sage_husa_run(*self.model.args(), *arrays, gate_of(p), float(spec.b),
+                                    int("R" in spec.adapt), int("Q" in spec.adapt),
+                                    int(spec.warmup), *as_arrays(self.R_units, self.Q_units),
+                                    PSD_FLOOR)  # fmt: skip
+        return Trace(*out, time.perf_counter() - started, gated)
 
 
 class VBRSpec(ProblemFilterSpec):
@@ -264,13 +266,14 @@ class VBRKF(GenericKF):
         self.V = self.nu * self.R  # so that the filter starts from the assumed R
 
     def run_compiled(self, z):
-        from .fast import as_arrays, vbr_run
+        from .fast import as_arrays, gate_of, vbr_run
 
         p, spec = self.problem, self.spec
         started = time.perf_counter()
-        xs, Ps, Rs = vbr_run(*self.model.args(), *as_arrays(p.x0, p.P0, self.Q, self.R, z),
-                             float(spec.rho), int(spec.iterations), float(self.nu))  # fmt: skip
-        return Trace(xs, Ps, repeat(self.Q, len(z)), Rs, time.perf_counter() - started)
+        arrays = as_arrays(p.x0, p.P0, self.Q, self.R, z)
+        xs, Ps, Rs, gated = vbr_run(*self.model.args(), *arrays, gate_of(p), float(spec.rho),
+                                    int(spec.iterations), float(self.nu))  # fmt: skip
+        return Trace(xs, Ps, repeat(self.Q, len(z)), Rs, time.perf_counter() - started, gated)
 
     def run(self, z):
         if self.model is not None:

@@ -221,6 +221,11 @@ class TrackingProblem(Problem):
             return self.truth_transition(k)
         return self._ncv
 
+    def compiled_model(self):
+        from .fast import tracking_model
+
+        return tracking_model(self.radar, self._ncv, self._ct, self.turn, self.angles)
+
     def f(self, x, k):
         return self.model_transition(k) @ x
 

@@ -14,13 +14,16 @@ more than the product at these sizes (measured: the loops halve the per-run time
 faster).
 
 - `linear_model`: the linear problem's functions read F, G, H from `p` (cached like the loops);
+- `tracking_model`: the tracking radar's read the radar, its transitions and the turn from `p`;
 - `compile_module_model`: a user's module's functions compiled with that signature, or
   `NotCompilable` saying which one does not compile and why;
 - `sage_husa_run`, `vbr_run`, `als_run`: the loops of `filters.SageHusaKF`, `VBRKF` and
   `als.ALSKF`, and `ekf_run`, `GenericKF`'s (Sage-Husa's adapting neither Q nor R), the same
   arithmetic in the same order (the engines' equivalence test holds them to 1e-9:
   tests/test_problems_fast.py). Three loops, not one per family: each costs 15-30 s of
-  compilation the first time.
+  compilation the first time. Each takes the problem's gate (`gate_of`: infinity, none) and
+  returns the measurements it dropped, with the Python filters' rule (`kalman.outside_gate`:
+  a dropped measurement is neither used nor adapted on).
 
 Importing this module compiles the loops (or loads them from numba's cache): only the fast
 engine imports it. Without numba importing it raises ImportError saying so.

@@ -8,6 +8,14 @@
     result.comparisons()
     api.report([result], out="results/report")
 
+A problem scenario beyond the robot (SPEC 17, docs/PROBLEMS.md: `problem: linear`, `tracking`,
+`module`) loads and runs the same way, through `anfekf run`'s code for it
+(`problems.experiment.execute_problem`); its `Result` gives its own tables: `summary()` and
+`runs()` are problem_summary.parquet and problem_runs.parquet, `noise()` and `timing()` the
+noise estimates and the seconds per run. It runs in local processes only (no `backend`), and a
+batch that cannot run (its functions do not compile on the fast engine, a foreign folder) raises
+`ProblemRunError` with the command line's line.
+
 It goes through the same plan, execute and report code as `anfekf run` and `anfekf report`, so a
 result written here is the same bytes as the command line's for the same scenario, seed and
 engine, and the same validation applies (`anfekf_bench.arguments`, shared with the command line):
@@ -30,8 +38,11 @@ import pandas as pd
 from . import arguments
 from .config import ScenarioError
 from .experiment import FolderBusy, OutputExists, Plan, PlanError, execute, make_plan
-from .report.results import LoadedResult, load_result
-from .scenarios import load_scenario, scenario_from_data
+from .problems.experiment import TABLES as PROBLEM_TABLES
+from .problems.experiment import ProblemRunError, execute_problem, is_problem_result
+from .problems.schema import ProblemScenario, is_problem_document, parse_problem_scenario
+from .report.results import PROBLEM, LoadedResult, load_result
+from .scenarios import load_scenario, read_scenario_document, scenario_from_data
 from .storage import (
     CLAIMS_FILE,
     COMPARISONS_FILE,
@@ -43,13 +54,17 @@ from .storage import (
     read_manifest,
 )
 
-__all__ = ["Experiment", "FolderBusy", "OutputExists", "PlanError", "Result", "ResultsError",
-           "ScenarioError", "load", "open_result", "report", "run"]  # fmt: skip
+__all__ = ["Experiment", "FolderBusy", "OutputExists", "PlanError", "ProblemRunError", "Result",
+           "ResultsError", "ScenarioError", "load", "open_result", "report", "run"]  # fmt: skip
+
+# A problem result's tables in place of a robot result's (`Result.summary()`, `.runs()`).
+PROBLEM_TABLE_OF = {SUMMARY_PARQUET: PROBLEM_TABLES["summary"], RUNS_FILE: PROBLEM_TABLES["runs"]}
 
 
 @dataclass(frozen=True)
 class Experiment:
-    """A validated scenario and what it runs on (its simulated world, or its recorded log)."""
+    """A validated scenario and what it runs on (its simulated world, or its recorded log; None
+    for a problem scenario, whose system is in the scenario)."""
 
     scenario: object
     world: object
@@ -66,11 +81,16 @@ def load(source: str | Path | dict, *, base: str | Path = ".") -> Experiment:
     base = arguments.path(base, "base")
     if isinstance(source, dict):
         path = base / "<dict>"
+        if is_problem_document(source):
+            return Experiment(parse_problem_scenario(source, path), None, source=path)
         return Experiment(*scenario_from_data(source, path), source=path)
     if not isinstance(source, (str, os.PathLike)):
         raise PlanError(f"source: must be a scenario file's path or a dict shaped like one (got"
                         f" {arguments.shown(source)})")  # fmt: skip
     path = arguments.path(source, "source")
+    data = read_scenario_document(path)
+    if is_problem_document(data):
+        return Experiment(parse_problem_scenario(data, path), None, source=path)
     return Experiment(*load_scenario(path), source=path)
 
 
@@ -95,19 +115,33 @@ class Result:
 
     def _table(self, name: str) -> pd.DataFrame:
         """A table of this result; ResultsError when it belongs to another batch than the
-        manifest's (the check `anfekf report` and `anfekf check` apply)."""
+        manifest's (the check `anfekf report` and `anfekf check` apply). A problem result's
+        summary and runs are its own tables (`PROBLEM_TABLE_OF`)."""
+        if name in PROBLEM_TABLE_OF and self.loaded().kind == PROBLEM:
+            name = PROBLEM_TABLE_OF[name]
         path = self.folder / name
         if not path.exists():
             raise FileNotFoundError(f"{path}: not written for this result")
         return self.loaded().read(name)
 
     def summary(self) -> pd.DataFrame:
-        """One row per filter: RMSE, ANEES, NEES in bounds, updates, divergence."""
+        """One row per filter: RMSE, ANEES, NEES in bounds, updates, divergence (a problem's:
+        RMSE over the oracle's, the noise estimate's errors, gated measurements)."""
         return self._table(SUMMARY_PARQUET)
 
     def runs(self) -> pd.DataFrame:
-        """One row per filter and run (SPEC 8's per-run metrics)."""
+        """One row per filter and run (SPEC 8's per-run metrics; a problem's, with the Q and R
+        at the last step entry by entry)."""
         return self._table(RUNS_FILE)
+
+    def noise(self) -> pd.DataFrame:
+        """A problem result's noise estimate: one row per (filter, matrix, entry), its mean and
+        spread over runs beside the true value."""
+        return self._table(PROBLEM_TABLES["noise"])
+
+    def timing(self) -> pd.DataFrame:
+        """A problem result's seconds per filter and run."""
+        return self._table(PROBLEM_TABLES["timing"])
 
     def steps(self) -> pd.DataFrame:
         """One row per filter, run and recorded step (absent with `steps_table: false`)."""
@@ -150,9 +184,27 @@ def run(
                         f" (got {arguments.shown(experiment)})")  # fmt: skip
     if not isinstance(experiment, Experiment):
         experiment = load(experiment)
+    if isinstance(experiment.scenario, ProblemScenario):
+        return _run_problem(experiment.scenario, folder, checked, on_result)
     plan: Plan = make_plan(experiment.scenario, experiment.world, **checked.plan_overrides())
     arguments.scenario_target(folder, plan.name, "out")
     _, target = execute(plan, folder, force=checked.force, on_result=on_result)
+    return Result(Path(target))
+
+
+def _run_problem(scenario: ProblemScenario, folder: Path, checked, on_result) -> Result:
+    """`run` of a problem scenario: `anfekf run`'s code for it, in local processes."""
+    if checked.backend not in (None, "local") or checked.scheduler is not None:
+        raise PlanError("backend: a problem scenario runs in local processes only")
+    if on_result is not None:
+        raise PlanError("on_result: a problem scenario reports no result per run")
+    target = arguments.scenario_target(folder, scenario.name, "out")
+    if is_problem_result(target) and not checked.force:
+        raise OutputExists(f"{target}: holds a complete result already; use force=True to"
+                           " overwrite it")  # fmt: skip
+    _, target = execute_problem(scenario, folder, runs=checked.runs, seed=checked.seed,
+                                jobs=checked.jobs, force=checked.force,
+                                engine=checked.engine)  # fmt: skip
     return Result(Path(target))
 
 

@@ -138,6 +138,6 @@ class EKFTunedSpec(FittedNoiseSpec):
 
     kind: Literal["ekf-tuned"]
     fast_family: ClassVar[str | None] = "anfekf"  # engines/families/anfekf.py
-    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking"})
+    problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking", "module"})
     criterion: ClassVar[str] = "rmse"
     fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated"})

@@ -850,24 +850,12 @@ def check(
 ) -> None:
     """Regression gate: compare results with a baseline and check the scenarios' claims (exit 1)."""
     from .analysis.gate import BaselineError, print_report, run_check
-    from .problems.experiment import problem_result_folders
+    from .problems.gate import read_problem_summaries
     from .storage import ResultsError
 
-    # Problem results (SPEC 17) have their own tables, which the gate does not read yet: said,
-    # never passed over in silence.
-    problems = problem_result_folders([results])
-    names = ", ".join(p.name for p in problems[:3]) + (", ..." if len(problems) > 3 else "")
-    unchecked = (f"{plural(len(problems), 'problem result')} ({names}) not checked: `anfekf"
-                 " check` does not read problem results (SPEC 17) yet")  # fmt: skip
     with one_line_errors(debug, (ResultsError, BaselineError)):
-        try:
-            found = run_check(results, baseline, update=update, strict=strict)
-        except ResultsError as exc:
-            if problems:
-                raise ResultsError(f"{exc}; {unchecked}") from None
-            raise
-    if problems:
-        err_console.print(f"note: {unchecked}", markup=False, highlight=False, soft_wrap=True)
+        problems = read_problem_summaries(results)
+        found = run_check(results, baseline, update=update, strict=strict, problems=problems)
     try:
         print_report(found, table_console())
         sys.stdout.flush()

@@ -4,7 +4,6 @@ as `anfekf run` writes for the same scenario and seed."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import pandas as pd
@@ -75,22 +74,3 @@ def test_tracking_and_a_module_from_python_on_the_fast_engine(tmp_path):
     module = api.run(api.load(EXAMPLE), out=tmp_path, runs=1, engine="fast")
     check_tables(module, 1, ["ekf", "oracle", "sage-husa", "vb-r"])
     assert api.open_result(module.folder).noise().equals(module.noise())
-
-
-def test_check_says_which_problem_results_it_does_not_read(tmp_path):
-    """`anfekf check` does not read problem results yet: alone they are a one-line error (exit
-    2) that names them, beside robot results a note, never silence."""
-    from .test_check import check, paper_like, write_results
-
-    api.run(LINEAR, out=tmp_path / "only")
-    alone = check(tmp_path / "only")
-    assert alone.exit_code == 2, alone.output
-    assert "1 problem result (lin) not checked" in alone.output and "Traceback" not in alone.output
-    results = write_results(tmp_path / "mixed", paper_like())
-    api.run(LINEAR, out=results)
-    baseline = tmp_path / "ci.json"
-    assert check(results, "--baseline", baseline, "--update").exit_code == 0
-    mixed = check(results, "--baseline", baseline)
-    assert mixed.exit_code == 0, mixed.output
-    assert "note: 1 problem result (lin) not checked" in mixed.output
-    assert "lin" not in json.loads(baseline.read_text())["scenarios"]

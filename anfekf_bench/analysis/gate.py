@@ -145,6 +145,10 @@ class ScenarioSummary:
     fingerprint: str | None = None
     versions: dict | None = None
     folder: Path | None = None  # where it was read from (None: from the baseline)
+    # A problem beyond the robot (SPEC 17; read by problems.gate): it guards only the metrics
+    # its summary holds, and a consistent filter's ANEES is its state dimension.
+    problem: str | None = None
+    anees_ideal: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -306,13 +310,17 @@ def _plain_names(where: Path, scenario: str, filters: list[str]) -> None:
             raise ResultsError(f"{where}: filter name {name[:40]!r} is not plain text")
 
 
-def read_results(results_dir: Path, metrics: Iterable[str]) -> dict[str, ScenarioSummary]:
+def read_results(
+    results_dir: Path, metrics: Iterable[str], problems: dict | None = None
+) -> dict[str, ScenarioSummary]:
     """Every complete scenario under `results_dir`, by scenario name; a sweep's cells count as
-    scenarios named `<sweep>/<cell>` (`results_dir` may be a sweep folder or hold some)."""
+    scenarios named `<sweep>/<cell>` (`results_dir` may be a sweep folder or hold some), and
+    `problems` (the problem results there, read by the caller) join them."""
     metrics = list(metrics)
-    out: dict[str, ScenarioSummary] = {}
+    out: dict[str, ScenarioSummary] = dict(problems or {})
     sweeps = sweep_folders(results_dir)
-    folders = scenario_dirs(results_dir) if not sweeps or _holds_results(results_dir) else []
+    alone = (sweeps or out) and not _holds_results(results_dir)
+    folders = [] if alone else scenario_dirs(results_dir)
     for folder in folders:
         scenario = read_scenario(folder, metrics)
         if scenario.name in out:
@@ -384,6 +392,11 @@ def _baseline_scenario(path: Path, name: str, doc, metrics: list[str]) -> Scenar
         raise BaselineError(
             f"{where}.fingerprint: must be text or null, found {_shown(fingerprint)}"
         )
+    problem, ideal = doc.get("problem"), doc.get("anees_ideal", 3.0)
+    if problem is not None and not isinstance(problem, str):
+        raise BaselineError(f"{where}.problem: must be text or absent, found {_shown(problem)}")
+    if isinstance(ideal, bool) or not isinstance(ideal, (int, float)) or not 0 < ideal < 1e9:
+        raise BaselineError(f"{where}.anees_ideal: must be a positive number, found {ideal!r:.40}")
     filters = doc.get("filters")
     if not isinstance(filters, dict) or not filters:
         raise BaselineError(f"{where}.filters: expected a mapping of filter name to metrics")
@@ -391,7 +404,7 @@ def _baseline_scenario(path: Path, name: str, doc, metrics: list[str]) -> Scenar
     for fname, values in filters.items():
         if not isinstance(values, dict):
             raise BaselineError(f"{where}.filters.{fname}: expected a mapping of metric to value")
-        for metric in metrics:
+        for metric in metrics if problem is None else ():  # a problem: the metrics it holds
             if metric not in values:
                 raise BaselineError(f"{where}.filters.{fname}: no value for {metric}")
         for metric, value in values.items():
@@ -413,6 +426,8 @@ def _baseline_scenario(path: Path, name: str, doc, metrics: list[str]) -> Scenar
         runs=doc["runs"],
         filters=parsed,
         fingerprint=doc.get("fingerprint"),
+        problem=problem,
+        anees_ideal=float(ideal),
     )
 
 
@@ -472,10 +487,15 @@ def baseline_document(
                     f: {m: _json_value(m, v) for m, v in metrics.items()}
                     for f, metrics in s.filters.items()
                 },
+                **_problem_keys(s),
             }
             for s in results.values()
         },
     }
+
+
+def _problem_keys(s: ScenarioSummary) -> dict:
+    return {} if s.problem is None else {"problem": s.problem, "anees_ideal": s.anees_ideal}
 
 
 def _json_value(metric: str, value: float) -> float | int | None:
@@ -489,9 +509,9 @@ def _json_value(metric: str, value: float) -> float | int | None:
 # Comparison
 
 
-def _badness(metric: str, value: float) -> float:
+def _badness(metric: str, value: float, sense=None) -> float:
     """A number that grows as `metric` gets worse (NaN: undefined, the worst)."""
-    sense = METRIC_SENSE.get(metric)
+    sense = METRIC_SENSE.get(metric) if sense is None else sense
     if math.isnan(value):
         return math.inf
     if sense == "lower":
@@ -501,15 +521,16 @@ def _badness(metric: str, value: float) -> float:
     return abs(math.log(value / sense)) if value > 0 else math.inf
 
 
-def judge(metric: str, tolerance: Tolerance, base: float, now: float) -> str:
-    """The verdict for one metric (see the module docstring)."""
+def judge(metric: str, tolerance: Tolerance, base: float, now: float, sense=None) -> str:
+    """The verdict for one metric (see the module docstring); `sense` overrides METRIC_SENSE's
+    (a problem's ANEES: its state dimension)."""
     if math.isnan(base) and math.isnan(now):
         return "ok"
     if not (math.isnan(base) or math.isnan(now)) and not tolerance.exceeded(base, now):
         return "ok"
     if METRIC_SENSE.get(metric) is None or math.isnan(base):
         return "changed"
-    before, after = _badness(metric, base), _badness(metric, now)
+    before, after = _badness(metric, base, sense), _badness(metric, now, sense)
     if math.isclose(after, before, rel_tol=1e-9):
         return "changed"
     if after > before:
@@ -566,9 +587,10 @@ def _describe(tolerance: Tolerance, metric: str) -> str:
 
 
 def compare_metric(
-    scenario: str, filt: str, metric: str, tolerance: Tolerance, base: float, now: float
-) -> Row:
-    verdict = judge(metric, tolerance, base, now)
+    scenario: str, filt: str, metric: str, tolerance: Tolerance, base: float, now: float,
+    sense=None,
+) -> Row:  # fmt: skip
+    verdict = judge(metric, tolerance, base, now, sense)
     detail = ""
     if verdict != "ok":
         before, after = (_fmt_value(_in_shown_unit(metric, x)) for x in (base, now))
@@ -634,17 +656,14 @@ def compare(baseline: Baseline, results: dict[str, ScenarioSummary]) -> list[Row
             if filt not in base.filters or filt not in now.filters:
                 rows.append(_presence_row(name, filt, in_baseline=filt in base.filters))
                 continue
+            b, n = base.filters[filt], now.filters[filt]
             for metric, tolerance in baseline.tolerances.items():
-                rows.append(
-                    compare_metric(
-                        name,
-                        filt,
-                        metric,
-                        tolerance,
-                        base.filters[filt][metric],
-                        now.filters[filt][metric],
-                    )
-                )
+                if base.problem is not None and metric not in b and metric not in n:
+                    continue  # a metric problems do not have (rmse_heading, diverged)
+                sense = now.anees_ideal if metric == "anees" else None
+                rows.append(compare_metric(name, filt, metric, tolerance,
+                                           b.get(metric, math.nan), n.get(metric, math.nan),
+                                           sense))  # fmt: skip
     return rows
 
 
@@ -810,14 +829,16 @@ def check_claims(results: dict[str, ScenarioSummary]) -> list[ClaimResult]:
 
 
 def run_check(
-    results_dir: Path, baseline_path: Path | None, *, update: bool = False, strict: bool = False
-) -> Report:
-    """Compare (and with `update`, rewrite the baseline), then check the declared claims."""
+    results_dir: Path, baseline_path: Path | None, *, update: bool = False, strict: bool = False,
+    problems: dict[str, ScenarioSummary] | None = None,
+) -> Report:  # fmt: skip
+    """Compare (and with `update`, rewrite the baseline), then check the declared claims;
+    `problems`: the problem results under `results_dir` (`problems.gate`)."""
     results_dir = Path(results_dir)
     if baseline_path is None:
         if update:
             raise BaselineError("--update needs --baseline FILE (the file to write)")
-        results = read_results(results_dir, [])
+        results = read_results(results_dir, [], problems)
         return Report(results_dir, None, [], check_claims(results), strict=strict)
     baseline_path = Path(baseline_path)
     baseline = None
@@ -829,7 +850,7 @@ def run_check(
         if baseline is not None
         else {m: Tolerance(*next(iter(s.items()))) for m, s in DEFAULT_TOLERANCES.items()}
     )
-    results = read_results(results_dir, tolerances)
+    results = read_results(results_dir, tolerances, problems)
     rows = compare(baseline, results) if baseline is not None else []
     expected = baseline.scenarios if baseline is not None else ()
     claims = check_claims(results)

@@ -211,7 +211,7 @@ def execute_problem(scenario: ProblemScenario, out: Path, *, runs: int | None = 
         write_json(target / MANIFEST_FILE, {
             "format": PROBLEM_FORMAT,
             "scenario": scenario.model_dump(mode="json"),
-            "problem": scenario.problem,
+            "problem": scenario.problem, "state_dimension": problem.n,
             "engine": scenario.engine, "engine_setup": engine_record,
             "module_sha256": module_digest(scenario),
             "runs": runs, "seed": seed, "jobs": jobs, "fingerprint": fp,

@@ -32,6 +32,8 @@ from .kalman import innovation, joseph_update, nearest_psd, outside_gate, symmet
 
 Matrix = list[list[Annotated[float, Field(allow_inf_nan=False)]]]
 
+# A filter's name: plain text (it is printed in tables and the gate's lines).
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9 _.+-]*$"
 # Floor of a projected covariance's eigenvalues, as a share of the mean variance it started at
 # (sage-husa: of each component's starting variance).
 PSD_FLOOR = 1e-6
@@ -54,7 +56,7 @@ class Trace:
 class ProblemFilterSpec(StrictModel):
     """A filter of a problem scenario: a unique `name` and a `kind` of the registry."""
 
-    name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9][A-Za-z0-9 _.+-]*$")
+    name: str = Field(min_length=1, max_length=64, pattern=NAME_PATTERN)
     kind: str
     estimates: ClassVar[frozenset[str]] = frozenset()  # "Q", "R": what it identifies
     uses_true_noise: ClassVar[bool] = False

@@ -91,7 +91,8 @@ RULES = [
     " side), 'not comparable' (other seed or runs: the metrics are not compared), 'missing' and"
     " 'new' (scenario or filter only on one side).",
     "Better is lower for rmse_pos, rmse_heading and diverged, higher for nees_in_bounds and"
-    " runs_used, closer to 3 for anees and to 2 for anis (as |log(value / ideal)|).",
+    " runs_used, closer to 3 for anees (a problem's: to its anees_ideal, the state dimension)"
+    " and to 2 for anis (as |log(value / ideal)|).",
     "A null value means undefined (every run diverged); becoming undefined counts as 'worse'.",
     "Refresh on purpose only: anfekf check RESULTS --baseline FILE --update (README, Regression"
     " gate).",

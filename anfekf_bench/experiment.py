@@ -611,6 +611,7 @@ def result_tables(plan: Plan, ordered: list[dict]) -> ResultTables:
     runs themselves.
     """
     names = plan.filter_names()
+    local_jobs = plan.jobs if plan.backend.kind == "local" else 1  # the batch's own workers
     steps = steps_frame(plan.name, names, ordered)
     pairs = plan.source.comparison_pairs(plan.scenario)
     records = summary_records(steps, update_statistics(ordered, names))
@@ -619,7 +620,7 @@ def result_tables(plan: Plan, ordered: list[dict]) -> ResultTables:
         steps=steps,
         runs=runs_frame(plan.name, names, ordered),
         summary=summary,
-        comparisons=comparisons_frame(steps, pairs, seed=plan.seed),
+        comparisons=comparisons_frame(steps, pairs, seed=plan.seed, jobs=local_jobs),
         claims=evaluate_claims(steps, plan.scenario.claims, seed=plan.seed),
         phases=phases,
     )

@@ -136,12 +136,10 @@ def comparisons_frame(
                 )  # fmt: skip
                 for chunk in chunks
             )
-        order = {pair: i for i, pair in enumerate(pairs)}
-        done = {pair: [] for pair in pairs}
-        for chunk, part in zip(chunks, parts, strict=True):
-            for row in part:
-                done[(row["filter"], row["vs"])].append(row)
-        rows = [row for pair in sorted(done, key=order.__getitem__) for row in done[pair]]
+        done: dict[tuple, list] = {pair: [] for pair in pairs}  # the pairs' order
+        for row in (row for part in parts for row in part):
+            done[(row["filter"], row["vs"])].append(row)
+        rows = [row for pair_rows in done.values() for row in pair_rows]
     return pd.DataFrame(rows, columns=COMPARISON_COLUMNS)
 
 

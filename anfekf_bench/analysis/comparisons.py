@@ -130,9 +130,12 @@ def comparisons_frame(
         with local_workers():
             parts = Parallel(n_jobs=len(chunks))(
                 delayed(_rows)(
-                    scenario, chunk,
+                    scenario,
+                    chunk,
                     {n: {c: arrays[n][c] for c in keep} for pair in chunk for n in pair},
-                    metrics, resamples, seed,
+                    metrics,
+                    resamples,
+                    seed,
                 )  # fmt: skip
                 for chunk in chunks
             )

@@ -58,8 +58,9 @@ def comparison_pairs(
     return pairs
 
 
-def _arrays(steps: pd.DataFrame, names: Iterable[str]) -> dict[str, dict[str, np.ndarray]]:
-    return {name: filter_arrays(steps, name) for name in set(names)}
+def filters_arrays(steps: pd.DataFrame, names: Iterable[str]) -> dict[str, dict[str, np.ndarray]]:
+    """`tables.filter_arrays` of each filter named (the comparisons only read them)."""
+    return {name: filter_arrays(steps, name) for name in dict.fromkeys(names)}
 
 
 def compare(
@@ -111,12 +112,16 @@ def comparisons_frame(
     resamples: int = 2000,
     seed: int = 0,
     jobs: int = 1,
+    arrays: dict[str, dict[str, np.ndarray]] | None = None,
 ) -> pd.DataFrame:
     """One row per (filter, vs, metric): ratio with its paired interval, and the paired test.
     `jobs` > 1: a large table's comparisons are shared out over that many local workers (the
-    same rows, in the same order)."""
+    same rows, in the same order). `arrays`: `filters_arrays` of the steps, when the caller
+    has them."""
     scenario = str(steps["scenario"].iloc[0])
-    arrays = _arrays(steps, [n for pair in pairs for n in pair])
+    named = [n for pair in pairs for n in pair]
+    if arrays is None or not set(named) <= set(arrays):
+        arrays = filters_arrays(steps, named)
     chunks = _chunks(pairs, jobs, sum(m not in SHARE_METRICS for m in metrics), arrays)
     if len(chunks) < 2:
         rows = _rows(scenario, pairs, arrays, metrics, resamples, seed)
@@ -189,10 +194,18 @@ def _point_verdict(value: float, at_most: float | None, at_least: float | None) 
     return "holds" if value >= at_least else "fails"
 
 
-def evaluate_claims(steps: pd.DataFrame, claims, *, resamples: int = 2000, seed: int = 0) -> list:
-    """One verdict record per claim of the scenario (SPEC 8)."""
+def evaluate_claims(
+    steps: pd.DataFrame,
+    claims,
+    *,
+    resamples: int = 2000,
+    seed: int = 0,
+    arrays: dict[str, dict[str, np.ndarray]] | None = None,
+) -> list:
+    """One verdict record per claim of the scenario (SPEC 8); `arrays` as `comparisons_frame`."""
     names = [c.filter for c in claims] + [c.vs for c in claims if c.vs is not None]
-    arrays = _arrays(steps, names)
+    if arrays is None or not set(names) <= set(arrays):
+        arrays = filters_arrays(steps, names)
     out = []
     for claim in claims:
         a = arrays[claim.filter]

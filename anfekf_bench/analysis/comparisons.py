@@ -141,7 +141,7 @@ def comparisons_frame(
                     metrics,
                     resamples,
                     seed,
-                )  # fmt: skip
+                )
                 for chunk in chunks
             )
         done: dict[tuple, list] = {pair: [] for pair in pairs}  # the pairs' order

@@ -45,11 +45,11 @@ from ..analysis.suite import LOST_LOCK_M
 from ..engines.tuning import score_setting, unicycle_terms
 from ..filters.context import recorded_p0
 from ..filters.ekf import gate_threshold
+from ..filters.fitted import sigmas_problem
 from ..models import Unicycle
 from ..outputs import PlanError, code_version
-from ..sources.recorded import DriveSet, RecordedScenario, log_digest
+from ..sources.recorded import NOISE_KEYS, DriveSet, RecordedScenario, log_digest
 from .fit import TrainingRuns, fit_specs
-from .own import own_fit_problem
 
 # The scenario fields a drive's timeline and scored truth depend on (real_experiment.segment_inputs)
 _INPUT_FIELDS = {"eval_period_s", "odometry_period_s", "max_gap_s", "misfit_detection"}
@@ -98,7 +98,9 @@ class RecordedTraining(TrainingRuns):
         """A noise fit here is a noise record (`tune`: sigma_v, sigma_w_rad, sigma_range,
         sigma_bearing_rad), as a run's own innovations give (fitting.own); a trained filter's
         fit is checked by its spec."""
-        return own_fit_problem if spec.noise_fit_request() is not None else spec.fit_problem
+        if spec.noise_fit_request() is None:
+            return spec.fit_problem
+        return lambda fitted: sigmas_problem(fitted, NOISE_KEYS, "")
 
     def grid_search(self) -> dict:
         """ekf-tuned's grid search on these runs: `tune` (segments), `tune_on_drives` (drives)."""

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Annotated, ClassVar, Literal, Union
 
 import numpy as np
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, field_serializer, field_validator, model_validator
 
 from ..config import Scenario, ScenarioError, Start, validate_as
 from ..filters.fitted import EKFMLSpec, EKFTunedSpec
@@ -278,6 +278,17 @@ class RecordedScenario(Scenario):
                     " grid search of `tuning:`"
                 )
         return filters
+
+    @field_serializer("filters", mode="wrap")
+    def _without_simulated_fields(self, filters: list, handler) -> list:
+        """The filters as written, less the fields of a simulated fit (refused above, so
+        only their defaults): the manifest and the run store's fingerprint hold what a
+        recorded log's filters use."""
+        out = handler(filters)
+        for spec, doc in zip(filters, out, strict=True):
+            for key in getattr(spec, "simulated_only", ()):
+                doc.pop(key, None)
+        return out
 
     def reference(self) -> str | None:
         """The instance every other is compared with: the ekf-tuned filter, if any."""

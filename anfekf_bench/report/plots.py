@@ -43,6 +43,7 @@ from .data import (  # noqa: E402
     OUTLIER_FACTOR,
     Band,
     FilterSeries,
+    RunSeries,
     ScenarioData,
 )
 from .document import FigureBlock  # noqa: E402
@@ -264,13 +265,22 @@ def plain_log_axis(ax: Axes, which: str = "y", minor: bool = True) -> None:
     axis.set_minor_formatter(NullFormatter())
 
 
+def draw_band(ax: Axes, t: np.ndarray, band: Band, colour, gid: str) -> None:
+    """The spread over runs of a series over time (its `RunSeries.band`), shaded."""
+    ax.fill_between(t, band.lo, band.hi, color=colour, alpha=0.12, lw=0, gid=gid)
+
+
+def draw_runs(ax: Axes, series: RunSeries, gid: str, label: str | None = None, **line) -> None:
+    """Every run of a series over time, each on its own time axis, as one line broken between
+    runs (recorded segments at their log times, drives from their cold starts)."""
+    ax.plot(*series.joined(), gid=gid, label=label, **line)
+
+
 def _band(
     ax: Axes, t: np.ndarray, band: Band, f: FilterSeries, key: str, label: str | None
 ) -> None:
     style = _style(f)
-    ax.fill_between(
-        t, band.lo, band.hi, color=style["color"], alpha=0.12, lw=0, gid=f"{key}_band/{f.name}"
-    )
+    draw_band(ax, t, band, style["color"], f"{key}_band/{f.name}")
     ax.plot(t, band.line, lw=1.2, label=label, gid=f"{key}/{f.name}", **style)
 
 
@@ -629,8 +639,7 @@ def noise_figure(sc: ScenarioData) -> Figure:
                     continue
                 style = _style(f)
                 band = f.noise[col]
-                ax.fill_between(f.t, band.lo, band.hi, color=style["color"], alpha=0.12, lw=0,
-                                gid=f"noise/{col}_band/{f.name}")  # fmt: skip
+                draw_band(ax, f.t, band, style["color"], f"noise/{col}_band/{f.name}")
                 ax.plot(f.t, band.median, lw=1.4, label=f.name,
                         gid=f"noise_median/{col}/{f.name}", **style)  # fmt: skip
                 ax.plot(f.t, band.line, lw=0.7, alpha=0.8, color=style["color"], ls=":",

@@ -59,7 +59,7 @@ class TunedEKFSpec(FilterSpec):
 
     def fit(self, training) -> dict:
         """The grid search on the training segments or a fold's training drives (fitting.fit's
-        "recorded" training runs: fitting.recorded.tune, tune_on_drives)."""
+        "recorded" training runs: fitting.recorded.tune)."""
         return training.grid_search()
 
     def fit_problem(self, fitted) -> str | None:

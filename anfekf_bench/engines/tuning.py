@@ -229,7 +229,7 @@ def score_setting(tl, x0, P0, sig, gate, T0, truth, scored, bound=math.inf, term
 @maybe_njit
 def grid_kernel(
     dt, u, lm, z, xy, record, terms, x0, truth, scored, stamps, marks, obs, recs, P0, sigmas,
-    gate, has_gate, T0, bound, branch_and_bound, out,
+    gate, has_gate, T0, bound, branch_and_bound, known, out, done,
 ):  # fmt: skip
     """`ekf_fit_kernel` (the unicycle) for every setting sigmas[g] = (sv, sw, sr, sb) over every
     run of a `GridRuns` pack, in one compiled call: out[g] = (sq_sum, max_err, n_updates,
@@ -238,7 +238,13 @@ def grid_kernel(
     Without `branch_and_bound` each run is scored whole (no bound) and the sums may be infinite
     (a run that diverged). With it, a setting stops at its first run that passes the bound (the
     best complete sum seen so far in this call, at first `bound`) or diverges, and finished is
-    0; a complete sum below the best becomes the bound of the next settings."""
+    0; a complete sum below the best becomes the bound of the next settings.
+
+    known[g, r] = (sq_sum, max_err, n_updates, n_rejected) of setting g over run r where an
+    earlier call scored that run whole (NaN where not): read instead of run again. A run's
+    partial sums only grow, so the bound stops it exactly when its whole sum passes the bound:
+    the same finished settings and sums as running it. done[g, r] receives the whole runs this
+    call scored (NaN where it stopped one or read it from `known`)."""
     n_runs = len(stamps) - 1
     longest = 0
     for r in range(n_runs):
@@ -262,12 +268,22 @@ def grid_kernel(
             a, b = stamps[r], stamps[r + 1]
             c, d = recs[r], recs[r + 1]
             lo, hi = obs[r], obs[r + 1]
-            status, sq, mx, _, nu, nr = ekf_fit_kernel(
-                MOTION_UNICYCLE, dt[a:b], u[a:b], lm[marks[r] : marks[r + 1]], z[lo:hi],
-                xy[lo:hi], record[a:b], x0[r], P0, Qu, R, gate, has_gate, T0, 0.0,
-                truth[c:d], scored[c:d], best - total if branch_and_bound else math.inf,
-                out_sq, out_nees, terms[a:b],
-            )  # fmt: skip
+            limit = best - total if branch_and_bound else math.inf
+            if known[g, r, 0] == known[g, r, 0]:
+                sq, mx = known[g, r, 0], known[g, r, 1]
+                nu, nr = int(known[g, r, 2]), int(known[g, r, 3])
+                status = STOPPED if sq > limit else FINISHED
+            else:
+                status, sq, mx, _, nu, nr = ekf_fit_kernel(
+                    MOTION_UNICYCLE, dt[a:b], u[a:b], lm[marks[r] : marks[r + 1]], z[lo:hi],
+                    xy[lo:hi], record[a:b], x0[r], P0, Qu, R, gate, has_gate, T0, 0.0,
+                    truth[c:d], scored[c:d], limit, out_sq, out_nees, terms[a:b],
+                )  # fmt: skip
+                if status != STOPPED:
+                    done[g, r, 0] = sq
+                    done[g, r, 1] = mx
+                    done[g, r, 2] = nu
+                    done[g, r, 3] = nr
             total += sq
             if mx > worst:
                 worst = mx
@@ -337,18 +353,25 @@ class GridRuns:
             recs=offsets([len(t) for t in truths]),
         )
 
-    def score(self, sigmas, P0, gate, T0, bound=math.inf, branch_and_bound=False) -> np.ndarray:
-        """(G, 5) `grid_kernel`'s sums of the settings `sigmas` (G, 4) over these runs."""
+    def score(
+        self, sigmas, P0, gate, T0, bound=math.inf, branch_and_bound=False, known=None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """`grid_kernel`'s sums (G, 5) of the settings `sigmas` (G, 4) over these runs, and the
+        runs it scored whole (G, runs, 4; NaN elsewhere). `known`: whole runs scored before
+        (G, runs, 4, NaN where not), read instead of run again."""
+        sigmas = np.ascontiguousarray(sigmas, dtype=float).reshape(-1, 4)
         g, has_gate = _gate(gate)
+        shape = (len(sigmas), len(self.stamps) - 1, 4)
         out = np.zeros((len(sigmas), 5))
+        done = np.full(shape, np.nan)
+        known = np.full(shape, np.nan) if known is None else np.ascontiguousarray(known, float)
         grid_kernel(
             self.dt, self.u, self.lm, self.z, self.xy, self.record, self.terms, self.x0,
             self.truth, self.scored, self.stamps, self.marks, self.obs, self.recs,
-            np.ascontiguousarray(P0, dtype=float).ravel(),
-            np.ascontiguousarray(sigmas, dtype=float).reshape(-1, 4), g, has_gate, float(T0),
-            float(bound), bool(branch_and_bound), out,
+            np.ascontiguousarray(P0, dtype=float).ravel(), sigmas, g, has_gate, float(T0),
+            float(bound), bool(branch_and_bound), known, out, done,
         )  # fmt: skip
-        return out
+        return out, done
 
 
 @dataclass(frozen=True, eq=False)

@@ -73,6 +73,7 @@ class RecordedTraining(TrainingRuns):
     jobs: int = 1
     progress: Any = None
     seeds: list | tuple = ()  # drives: log2 multipliers scored first (tune)
+    memo: Any = None  # drives: WholeRuns shared by the folds of one tune_drives
 
     @property
     def model(self):
@@ -87,7 +88,7 @@ class RecordedTraining(TrainingRuns):
 
     def grid_search(self) -> dict:
         """ekf-tuned's grid search on these runs (`tune`: by branch and bound on whole drives)."""
-        return tune(self.scenario, self.inputs, self.jobs, self.seeds, whole=self.drives)
+        return tune(self.scenario, self.inputs, self.jobs, self.seeds, self.drives, self.memo)
 
     def fingerprint(self, spec) -> str:
         """Hash of what a fit on these runs depends on (see the module doc); not the test
@@ -111,7 +112,7 @@ def trained_filters(scenario: RecordedScenario) -> list:
 
 def drive_fold(
     scenario: RecordedScenario, train: list, inputs: dict, jobs: int = 1, progress: Any = None,
-    seeds: list | tuple = (),
+    seeds: list | tuple = (), memo: Any = None,
 ) -> RecordedTraining:  # fmt: skip
     """The training runs of one cross-drive fold: the drives `train` (whole), their inputs."""
     label = "+".join(map(str, sorted({d.dataset for d in train})))
@@ -128,6 +129,7 @@ def drive_fold(
         jobs=jobs,
         progress=progress,
         seeds=seeds,
+        memo=memo,
     )
 
 
@@ -239,22 +241,59 @@ _BRANCH_AND_BOUND = (
 )
 
 
+class WholeRuns:
+    """The runs the grid kernel scored whole, per (training run, setting): the folds of one
+    `tune_drives` share drives (Datasets 6 and 7 tune 9 on the drives that tune 7 and 6), so a
+    fold reads what an earlier fold ran (engines.tuning.grid_kernel's `known`: the same sums and
+    winners as running them again)."""
+
+    def __init__(self) -> None:
+        self._found: dict[tuple, np.ndarray] = {}
+
+    def known(self, inputs: list, sig: np.ndarray) -> np.ndarray:
+        """(G, runs, 4): what is known of each setting of `sig` on each of `inputs`, else NaN."""
+        out = np.full((len(sig), len(inputs), 4), np.nan)
+        for g, row in enumerate(sig):
+            key = row.tobytes()
+            for r, s in enumerate(inputs):
+                found = self._found.get((s, key))  # SegmentInputs hash by identity
+                if found is not None:
+                    out[g, r] = found
+        return out
+
+    def keep(self, inputs: list, sig: np.ndarray, done: np.ndarray) -> None:
+        for g, row in enumerate(sig):
+            key = row.tobytes()
+            for r, s in enumerate(inputs):
+                if not np.isnan(done[g, r, 0]):
+                    self._found[(s, key)] = done[g, r].copy()
+
+
 def _score(runs: GridRuns, exps: np.ndarray, naive, P0, gate, T0, jobs: int, bound: float,
-           whole: bool) -> np.ndarray:  # fmt: skip
+           whole: bool, memo: WholeRuns | None = None, inputs=()) -> np.ndarray:  # fmt: skip
     """`GridRuns.score` of the settings naive * 2^exps (G, 5: sq_sum, max_err, n_updates,
     n_rejected, finished), the settings dealt round-robin to `jobs` threads, one compiled call
     each (the kernel releases the GIL: no worker processes to start, nothing to pickle). With
-    `whole` (branch and bound), each thread's call keeps its own best complete sum as bound."""
+    `whole` (branch and bound), each thread's call keeps its own best complete sum as bound.
+    `memo`: whole runs of `inputs` scored before, read instead of run, and kept."""
     sig = np.array([naive * np.exp2(e) for e in exps]).reshape(-1, 4)
+    known = memo.known(inputs, sig) if memo is not None else None
     parts = max(1, min(jobs, len(exps)))
     if parts == 1:
-        return runs.score(sig, P0, gate, T0, bound, whole)
-    found = Parallel(n_jobs=parts, backend="threading")(
-        delayed(runs.score)(sig[i::parts], P0, gate, T0, bound, whole) for i in range(parts)
-    )
-    out = np.zeros((len(exps), 5))
-    for i, f in enumerate(found):
-        out[i::parts] = f
+        out, done = runs.score(sig, P0, gate, T0, bound, whole, known)
+    else:
+        chunks = [None if known is None else known[i::parts] for i in range(parts)]
+        found = Parallel(n_jobs=parts, backend="threading")(
+            delayed(runs.score)(sig[i::parts], P0, gate, T0, bound, whole, chunks[i])
+            for i in range(parts)
+        )
+        out = np.zeros((len(exps), 5))
+        done = np.full((len(exps), len(runs.stamps) - 1, 4), np.nan)
+        for i, (o, d) in enumerate(found):
+            out[i::parts] = o
+            done[i::parts] = d
+    if memo is not None:
+        memo.keep(inputs, sig, done)
     return out
 
 
@@ -267,8 +306,9 @@ def _best(scores: np.ndarray) -> int:
 
 
 def tune(
-    scenario: RecordedScenario, inputs: list, jobs: int = 1, seeds=(), whole: bool = False
-) -> dict:
+    scenario: RecordedScenario, inputs: list, jobs: int = 1, seeds=(), whole: bool = False,
+    memo: WholeRuns | None = None,
+) -> dict:  # fmt: skip
     """The grid search of `ekf-tuned` (sources.recorded.TuningConfig) on the training runs
     `inputs` (real_experiment.SegmentInputs, each cold-started from ground truth): the coarse
     grid, then 3^4 settings around the best so far with steps 2^(1/2) and 2^(1/4). The
@@ -280,6 +320,7 @@ def tune(
     True): branch and bound, a setting stops once its partial sum passes the best complete one
     (the same winner as scoring every setting in full); `seeds` (log2 multipliers) are scored
     first, to start with a tight bound, and the coarse grid runs nearest the first seed first.
+    `memo`: the runs scored whole by earlier searches on some of `inputs` (`WholeRuns`).
 
     Returns the chosen standard deviations (sigma_v, sigma_w_rad, sigma_range,
     sigma_bearing_rad), their log2 multipliers of the naive values, the criterion there, the
@@ -291,6 +332,7 @@ def tune(
     count = int(sum(int(s.scored.sum()) for s in inputs))
     fixed = (naive, recorded_p0(scenario), gate_threshold(scenario.gate_probability),
              scenario.odometry_period_s)  # fmt: skip
+    shared = (memo, inputs)
 
     def rmse(sq: float) -> float:
         return float(math.sqrt(sq / count)) if count else math.nan
@@ -310,11 +352,11 @@ def tune(
         anchor = seeds[0] if len(seeds) else coarse.mean(axis=0)
         coarse = coarse[np.argsort(np.abs(coarse - anchor).sum(axis=1), kind="stable")]
         if len(seeds):
-            sc = _score(runs, seeds, *fixed, 1, bound, whole)
+            sc = _score(runs, seeds, *fixed, 1, bound, whole, *shared)
             all_exps.append(seeds)
             all_scores.append(sc)
             bound = float(sc[_best(sc), 0]) if np.any(sc[:, 4] > 0) else bound
-    sc = _score(runs, coarse, *fixed, jobs, bound, whole)
+    sc = _score(runs, coarse, *fixed, jobs, bound, whole, *shared)
     all_exps.append(coarse)
     all_scores.append(sc)
     coarse_scores = sc
@@ -326,7 +368,7 @@ def tune(
             i = _best(scores)
             around = exps[i] + step * offsets
             sc = _score(runs, around, *fixed, jobs, float(scores[i, 0]) if whole else bound,
-                        whole)  # fmt: skip
+                        whole, *shared)  # fmt: skip
             all_exps.append(around)
             all_scores.append(sc)
             stages.append(stage(f"refine (step {label})", sc))
@@ -381,11 +423,12 @@ def tune_drives(scenario: RecordedScenario, inputs: dict, world: DriveSet,
     keys |= {(ds,) for ds in by_dataset}
     reference = tuned_reference(scenario)
     tunings: dict[tuple, dict] = {}
+    memo = WholeRuns()  # the folds share drives
     for key in sorted(keys, key=lambda k: (len(k), k)):  # single datasets first: they seed
         drives = [d for ds in key for d in by_dataset[ds]]
         seeds = [list(tunings[(ds,)]["log2_multipliers"].values()) for ds in key
                  if (ds,) in tunings]  # fmt: skip
-        fold = drive_fold(scenario, drives, inputs, jobs, seeds=seeds)
+        fold = drive_fold(scenario, drives, inputs, jobs, seeds=seeds, memo=memo)
         tunings[key] = fit_specs([(reference, fold)], None)[0].fitted
         tunings[key]["train_drives"] = [d.id for d in drives]
     tuned_for, per_drive = {}, []

@@ -355,9 +355,10 @@ def sweep_table(axes: list[SweepAxis], cells: list[Cell], cells_dir: Path) -> pd
         summary = result.read(SUMMARY_PARQUET)
         comparisons = result.read(COMPARISONS_FILE)
         kinds = {f.name: f.kind for f in cell.scenario.filters}
+        roles = {f.name: f.role for f in cell.scenario.filters}  # the registry's, on the spec
         refs = {
-            "ekf": next((n for n, k in kinds.items() if k == "ekf"), None),
-            "oracle": next((n for n, k in kinds.items() if k == "ekf-oracle"), None),
+            "ekf": next((n for n, r in roles.items() if r == "reference"), None),
+            "oracle": next((n for n, r in roles.items() if r == "oracle"), None),
         }
         for rec in summary.to_dict("records"):
             coords = {column_of(k): v for k, v in cell.coords.items()}

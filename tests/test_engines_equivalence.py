@@ -30,11 +30,11 @@ from anfekf_bench.engines.filterpy_engine import run_filter
 from anfekf_bench.filters import FilterContext, RobotEKF
 from anfekf_bench.filters.custom import CustomFilterFailed, CustomSpec
 from anfekf_bench.filters.ekf import gate_threshold
+from anfekf_bench.filters.fitted import EKFTunedSpec
 from anfekf_bench.filters.kalmannet import KalmanNetWeights
 from anfekf_bench.filters.registry import SPEC_BY_KIND
 from anfekf_bench.models import Unicycle, h
 from anfekf_bench.runner import engine_of, run_spec
-from anfekf_bench.sources.recorded import TunedEKFSpec
 from anfekf_bench.timeline import Timeline, from_run
 
 from .conftest import small_world_noise_off
@@ -160,10 +160,10 @@ def unicycle_run():
 
 
 def test_recorded_ekf_tuned(unicycle_run):
-    """A recorded scenario's reference (`sources.recorded.TunedEKFSpec`, outside the simulated
-    registry) is the plain EKF on the fast engine too."""
+    """A recorded scenario's reference (`filters.fitted.EKFTunedSpec`, fitted by the grid
+    search there) is the plain EKF on the fast engine too."""
     ctx, tl = unicycle_run
-    spec = TunedEKFSpec(name="ekf-tuned", kind="ekf-tuned")
+    spec = EKFTunedSpec(name="ekf-tuned", kind="ekf-tuned")
     assert fast.supports(spec, ctx.model)
     ref = run_filter(spec.build(ctx), tl)
     assert_same_run(ref, fast.run_filter_fast(spec, ctx, tl), what="recorded ekf-tuned")

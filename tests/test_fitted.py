@@ -20,6 +20,7 @@ from anfekf_bench.experiment import execute, make_plan
 from anfekf_bench.filters.context import build_filter, filter_context
 from anfekf_bench.filters.ekf import RobotEKF
 from anfekf_bench.filters.fitted import EKFMLSpec, EKFTunedSpec, FilterNotFitted
+from anfekf_bench.filters.registry import SPEC_BY_KIND
 from anfekf_bench.fitting.simulated import (
     TRAINING_BRANCH,
     fit_filters,
@@ -260,12 +261,48 @@ def test_results_do_not_depend_on_the_worker_count(tmp_path):
     assert out[1] == out[2]
 
 
-def test_a_recorded_log_keeps_its_own_ekf_tuned_and_fits_ekf_ml_on_its_own_runs():
-    from anfekf_bench.sources.recorded import REAL_KINDS, TunedEKFSpec
+def test_a_recorded_log_fits_the_one_ekf_tuned_spec_by_its_grid_and_ekf_ml_on_its_own_runs():
+    from anfekf_bench.sources.recorded import REAL_KINDS, REAL_SPECS, RecordedScenario
 
-    # ekf-ml is fitted on each recorded run's own innovations (tests/test_ekf_ml_real.py)
+    # ekf-ml is fitted on each recorded run's own innovations (tests/test_ekf_ml_real.py); the
+    # one ekf-tuned spec on the recorded training runs (fitting.recorded.RecordedTraining)
     assert REAL_KINDS.count("ekf-tuned") == 1 and REAL_KINDS.count("ekf-ml") == 1
-    assert TunedEKFSpec.model_fields["kind"].annotation.__args__ == ("ekf-tuned",)
+    assert EKFTunedSpec in REAL_SPECS and EKFMLSpec in REAL_SPECS
+    assert RecordedScenario.spec_by_kind["ekf-tuned"] is SPEC_BY_KIND["ekf-tuned"]
+    assert {"simulated", "recorded"} <= EKFTunedSpec.fit_sources
+
+
+@pytest.mark.parametrize("key", ["starts", "max_evaluations"])
+def test_a_recorded_ekf_tuned_refuses_the_simulated_fits_fields(key):
+    """Nelder-Mead's starts and evaluations mean nothing to the grid search: refused, not
+    ignored (one line naming the field)."""
+    from anfekf_bench.config import ScenarioError
+    from anfekf_bench.sources.recorded import parse_real_scenario
+
+    value = [1.0] if key == "starts" else 50
+    doc = {"name": "r", "data": {"kind": "mrclam", "path": "builtin"},
+           "filters": [{"name": "ekf", "kind": "ekf"},
+                       {"name": "t", "kind": "ekf-tuned", key: value}]}  # fmt: skip
+    with pytest.raises(ScenarioError, match=rf"filters\.1\.{key}: not for a recorded log"):
+        parse_real_scenario(doc)
+    del doc["filters"][1][key]
+    assert parse_real_scenario(doc).reference() == "t"
+
+
+def test_recorded_training_runs_fit_ekf_tuned_by_their_grid_search(monkeypatch):
+    """The one spec's fit on "recorded" training runs is their grid search, whatever its
+    Nelder-Mead fields; a likelihood fit on them is refused."""
+    from anfekf_bench.fitting.recorded import RecordedTraining
+
+    training = RecordedTraining.__new__(RecordedTraining)
+    monkeypatch.setattr(RecordedTraining, "grid_search", lambda self: {"sigma_v": 1.0})
+    spec = EKFTunedSpec(name="t", kind="ekf-tuned")
+    assert spec.fit(training) == {"sigma_v": 1.0}
+    with pytest.raises(ValueError, match="fit no 'likelihood' noise"):
+        EKFMLSpec(name="m", kind="ekf-ml").fit(training)
+    check = training.fit_problem(spec)
+    assert check({"sigma_v": 1, "sigma_w_rad": 1, "sigma_range": 1, "sigma_bearing_rad": 1}) is None
+    assert "sigma_range" in check({"sigma_v": 1, "sigma_w_rad": 1, "sigma_bearing_rad": 1})
 
 
 def test_two_noise_fits_run_their_starts_in_one_batch_with_the_same_fits(monkeypatch):

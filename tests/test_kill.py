@@ -160,8 +160,6 @@ def test_workers_end_when_the_parent_is_killed(tmp_path, monkeypatch) -> None:
 
 # --- kill -9 at random instants, then resume ----------------------------------------------------
 
-TRIALS = 10
-
 
 def wait_for_batch_start(proc: subprocess.Popen) -> bool:
     """Read the command's output up to its first line (`small: new results`, printed when the
@@ -187,8 +185,13 @@ def batch_seconds(scenario, tmp_path_factory) -> float:
     return took
 
 
+# `make test` kills 4 times (one instant in each quarter of the batch, one of them SIGTERM),
+# `make test-all` (heavy) 10 times: each trial is a fresh command and its resume (about 5 s).
+@pytest.mark.parametrize(
+    "trials", [4, pytest.param(10, marks=pytest.mark.heavy)], ids=["4-instants", "10-instants"]
+)
 def test_kill_at_random_instants_then_resume_gives_the_same_result(
-    scenario, batch_seconds, tmp_path
+    scenario, batch_seconds, tmp_path, trials
 ) -> None:
     """Stratified random instants over the whole batch (runs, their saving, the final writes),
     so that every phase is hit; every third trial sends SIGTERM instead of SIGKILL. One job:
@@ -198,8 +201,8 @@ def test_kill_at_random_instants_then_resume_gives_the_same_result(
     rng = random.Random(11)
     span = 0.8 * batch_seconds  # the last fifth is the interpreter ending
     phases = []
-    for i in range(TRIALS):
-        at = (i + rng.random()) / TRIALS * span
+    for i in range(trials):
+        at = (i + rng.random()) / trials * span
         sig = signal.SIGTERM if i % 3 == 2 else signal.SIGKILL
         out = tmp_path / f"trial{i}"
         target = out / "small"

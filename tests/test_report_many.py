@@ -131,3 +131,27 @@ def test_a_ratio_of_one_has_one_colour_everywhere():
         assert tuple(image.to_rgba(image.get_array()[i, 0])) == pytest.approx(one)
     assert plots.ratio_colour(30.0) == plots.ratio_colour(300.0)  # the top end saturates
     assert plots.ratio_colour(1.5) != plots.ratio_colour(2.0)
+
+
+@pytest.mark.parametrize("rows, inches", [(2, 1.6), (6, 3.0), (30, 8.0)])
+def test_the_ratio_bars_tick_labels_never_touch(rows, inches):
+    """The ratio colour bar keeps as many ticks as its drawn height fits: on a two-row heatmap
+    (the drives' figure) the labels 1.5, 2 and 3 used to overlap."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8, inches), layout="constrained")
+    ax = fig.add_subplot()
+    values = np.exp(np.random.default_rng(0).normal(0.0, 1.0, (rows, 11)))
+    plots.ratio_colourbar(fig, plots.ratio_image(ax, values), ax, "ratio (log)")
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    bar = fig.axes[-1]
+    labels = [t for t in bar.get_yticklabels() if t.get_text()]
+    boxes = sorted((t.get_window_extent(canvas.get_renderer()) for t in labels), key=lambda b: b.y0)
+    assert all(lower.y1 <= upper.y0 for lower, upper in zip(boxes, boxes[1:], strict=False))
+    texts = {t.get_text() for t in labels}
+    assert {"1", "0.667", "30"} <= texts  # the reference and the scale's ends always
+    if inches >= 8.0:
+        assert len(texts) == len(plots.RATIO_TICK_PRIORITY)  # room for every tick
+    else:
+        assert len(texts) < len(plots.RATIO_TICK_PRIORITY)

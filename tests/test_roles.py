@@ -73,3 +73,15 @@ def test_no_module_outside_the_registry_compares_a_filter_kind_with_a_string():
         if found:
             offenders[str(path.relative_to(PACKAGE))] = found
     assert offenders == {}
+
+
+def test_comparison_rank_orders_a_group_by_role():
+    """The overview's order within a scenario: the reference first, the paper's ANFEKF next,
+    every other kind, the oracle last (registry.comparison_rank, not a list of kind strings)."""
+    from anfekf_bench.filters.registry import comparison_rank
+
+    ranks = {kind: comparison_rank(kind) for kind in SPEC_BY_KIND}
+    assert [k for k, r in ranks.items() if r == 0] == list(kinds_with_role("reference"))
+    assert [k for k, r in ranks.items() if r == 3] == list(kinds_with_role("oracle"))
+    assert [k for k, r in ranks.items() if r == 1] == ["anfekf"]
+    assert comparison_rank("no-such-kind") == 2

@@ -33,6 +33,8 @@ import sys
 
 import numpy as np
 
+from ..models import motion_terms as _motion_terms
+
 
 def _njit():
     """numba.njit, or None when numba is missing, switched off, or this is the pure copy."""
@@ -124,53 +126,20 @@ def min_nan(a, b):
 # EKF: predict, innovation, gate, Joseph update, health
 
 
-# The motion models (models.bicycle, models.unicycle), a kernel argument
-MOTION_BICYCLE = 0  # u = (V, gamma), B the wheelbase, Q = G Qu G^T (dt is the control period)
-MOTION_UNICYCLE = 1  # u = (v, w), midpoint Euler, Q = (T0 / dt) G Qu G^T (rate-consistent)
+# The motion models (models.bicycle, models.unicycle), a kernel argument, and one step of each:
+# models.motion_terms, the formulas the filterpy engine's models use, compiled here
+MOTION_BICYCLE = _motion_terms.MOTION_BICYCLE
+MOTION_UNICYCLE = _motion_terms.MOTION_UNICYCLE
+step_terms = maybe_njit(_motion_terms.step_terms)
+jacobians_at = maybe_njit(_motion_terms.jacobians_at)
 
 
 @maybe_njit
 def jacobians(x2, u0, u1, dt, motion, B):
     """F and G of one step of `motion` from heading x2 with controls (u0, u1) over dt:
     (f02, f12, G) with F = [[1, 0, f02], [0, 1, f12], [0, 0, 1]] and G = (g00, g01, g10, g11,
-    g20, g21) row-major (bicycle.jacobians, Unicycle.jacobians, their products in
-    their order). Both models' position step is (f12, -f02), bit for bit: negation is exact."""
+    g20, g21) row-major (models.motion_terms)."""
     return jacobians_at(x2, step_terms(u0, u1, dt, motion, B))
-
-
-@maybe_njit
-def step_terms(u0, u1, dt, motion, B):
-    """What `jacobians` and the predicted heading of one step share whatever the heading:
-    (turn, cf0, cf1, cg0, cg1, cg3, g20, g21, dh), computed once for a bank's M members.
-    Bicycle: a = x2 + gamma, F and G from T = dt, V = u0; unicycle: a = x2 + w dt / 2."""
-    if motion == MOTION_UNICYCLE:
-        half = 0.5 * u0 * dt * dt
-        vdt = u0 * dt
-        return 0.5 * u1 * dt, -vdt, vdt, dt, -half, half, 0.0, dt, u1 * dt
-    T, V, g = dt, u0, u1
-    TV = T * V
-    nTV = -T * V
-    return (
-        g,
-        nTV,
-        TV,
-        T,
-        nTV,
-        TV,
-        T * math.sin(g) / B,
-        TV * math.cos(g) / B,
-        (dt * u0 * math.sin(u1) / B),
-    )
-
-
-@maybe_njit
-def jacobians_at(x2, terms):
-    """`jacobians` from heading x2 and the step's `step_terms` (the same products)."""
-    turn, cf0, cf1, cg0, cg1, cg3, g20, g21, _ = terms
-    a = x2 + turn
-    ca = math.cos(a)
-    sa = math.sin(a)
-    return cf0 * sa, cf1 * ca, (cg0 * ca, cg1 * sa, cg0 * sa, cg3 * ca, g20, g21)
 
 
 @maybe_njit

@@ -1,5 +1,4 @@
-"""Filters fitted on training runs before the batch (SPEC 13): `ekf-ml` and, on simulated
-scenarios, `ekf-tuned`.
+"""Filters fitted on training runs before the batch (SPEC 13): `ekf-ml` and `ekf-tuned`.
 
 A `FittedSpec` declares `fitted_on_training`: the experiment (anfekf_bench.fitting.simulated)
 simulates the scenario's training runs, from seeds disjoint from every evaluation run, calls `fit`
@@ -9,8 +8,12 @@ once, caches what it returns, and hands every worker a copy of the spec carrying
 network and returns its weights.
 
 Both kinds here fit the four sigmas (sigma_v, sigma_gamma, sigma_range, sigma_bearing) of a
-fixed EKF (engines.tuning): `ekf-ml` maximises the innovation log-likelihood (no truth),
-`ekf-tuned` minimises the position RMSE against the truth of the training runs.
+fixed EKF: `ekf-ml` maximises the innovation log-likelihood (no truth), `ekf-tuned` minimises the
+position RMSE against the truth of the training runs. How they are fitted is chosen by the
+training runs the source supplies (their `fit_noise`, anfekf_bench.fitting): Nelder-Mead from
+`starts` on simulated training runs (engines.tuning), the grid search of the scenario's
+`tuning:` on a recorded log's training segments or other drives (fitting.recorded), Nelder-Mead
+on a recorded run's own innovations (fitting.own).
 """
 
 from __future__ import annotations
@@ -134,10 +137,15 @@ class EKFMLSpec(FittedNoiseSpec):
 
 class EKFTunedSpec(FittedNoiseSpec):
     """The EKF with the sigmas that minimise the position RMSE of the training runs (truth):
-    the fair "tuned with truth" reference of a simulated scenario."""
+    the fair "tuned with truth" reference of a simulated scenario, and of a recorded one (one
+    instance, no naive starts), where the grid search of the scenario's `tuning:` on the
+    training segments or the other datasets' drives chooses them (fitting.recorded: `starts`
+    and `max_evaluations` are Nelder-Mead's, which a recorded scenario refuses)."""
 
     kind: Literal["ekf-tuned"]
     fast_family: ClassVar[str | None] = "anfekf"  # engines/families/anfekf.py
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking"})
     criterion: ClassVar[str] = "rmse"
-    fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated"})
+    fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated", "recorded"})
+    # Fields of the simulated fit only: a recorded scenario refuses them when given
+    simulated_only: ClassVar[tuple[str, ...]] = ("starts", "max_evaluations")

@@ -78,6 +78,17 @@ def kinds_with_role(*roles: str) -> tuple[str, ...]:
     return tuple(kind for kind, cls in SPEC_BY_KIND.items() if cls.role in roles)
 
 
+def comparison_rank(kind: str) -> int:
+    """Where a filter of `kind` stands in a group of filters compared side by side: the plain
+    EKF (the reference) first, the paper's ANFEKF next, the other filters, the oracle last."""
+    cls = SPEC_BY_KIND.get(str(kind))
+    if cls is None:
+        return 2
+    if cls.role in ("reference", "oracle"):
+        return 0 if cls.role == "reference" else 3
+    return 1 if cls is ANFEKFSpec else 2
+
+
 # ---------------------------------------------------------------------------------------------
 # Capabilities: what each kind adapts, which engines run it, its doc. Every consumer (the report,
 # `anfekf kinds`, the docs) reads them here; a family declares them on its spec class (see

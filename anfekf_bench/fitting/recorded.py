@@ -3,10 +3,11 @@ segments) or, per cross-drive fold, the drives of the datasets that tune a test 
 (protocol drives), each cold-started from ground truth (`RecordedTraining`); and the fits on them,
 each through `fitting.fit.fit_specs`:
 
-- `ekf-tuned` (the recorded schema's `TunedEKFSpec`): the grid search (`tune`, one compiled call
-  per thread: engines.tuning.GridRuns) on the training segments (via `tune_segments`) or, per
-  fold, by branch and bound over whole drives (via `tune_drives`); not cached (it is the
-  batch's reference, as before);
+- `ekf-tuned` (filters.fitted.EKFTunedSpec, the simulated scenarios' spec: these runs' `fit_noise`
+  chooses the fit): the grid search (`tune`, one compiled call per thread:
+  engines.tuning.GridRuns) on the training segments (via `tune_segments`) or, per fold, by
+  branch and bound over whole drives (via `tune_drives`); not cached (it is the batch's
+  reference, as before);
 - `kalmannet` (filters.kalmannet): trained once on the training segments (`fit_on_segments`) or
   once per fold (`fit_on_drives`).
 
@@ -45,9 +46,10 @@ from ..analysis.suite import LOST_LOCK_M
 from ..engines.tuning import GridRuns, score_setting
 from ..filters.context import recorded_p0
 from ..filters.ekf import gate_threshold
+from ..filters.fitted import sigmas_problem
 from ..models import Unicycle
 from ..outputs import PlanError, code_version
-from ..sources.recorded import DriveSet, RecordedScenario, log_digest
+from ..sources.recorded import NOISE_KEYS, DriveSet, RecordedScenario, log_digest
 from .fit import TrainingRuns, fit_specs
 
 # The scenario fields a drive's timeline and scored truth depend on (real_experiment.segment_inputs)
@@ -61,7 +63,7 @@ class RecordedTraining(TrainingRuns):
     """The "recorded" training runs (fitting.fit): a log's training segments (protocol
     segments), or the drives of one cross-drive fold (protocol drives: the drives of the datasets
     that tune a test dataset, never one of its own), each cold-started from ground truth. What a
-    spec's `fit` reads: `pairs()` (kalmannet) or `grid_search()` (ekf-tuned)."""
+    spec's `fit` reads: `pairs()` (kalmannet) or `fit_noise` (ekf-tuned: `grid_search()`)."""
 
     source: ClassVar[str] = "recorded"
     scenario: RecordedScenario
@@ -85,6 +87,22 @@ class RecordedTraining(TrainingRuns):
 
     def progress_label(self, spec) -> str:
         return f"training {spec.name} on {self.what}"
+
+    def fit_noise(self, criterion: str, starts, max_evaluations: int) -> dict:
+        """A fixed EKF's noise fitted on these runs (filters.fitted.FittedNoiseSpec.fit): the
+        position RMSE (ekf-tuned) by the grid search of the scenario's `tuning:`, whatever
+        Nelder-Mead's starts and evaluations (a recorded scenario refuses them)."""
+        if criterion != "rmse":
+            raise ValueError(f"a recorded log's training runs fit no {criterion!r} noise")
+        return self.grid_search()
+
+    def fit_problem(self, spec):
+        """A noise fit here is a noise record (`tune`: sigma_v, sigma_w_rad, sigma_range,
+        sigma_bearing_rad), as a run's own innovations give (fitting.own); a trained filter's
+        fit is checked by its spec."""
+        if spec.noise_fit_request() is None:
+            return spec.fit_problem
+        return lambda fitted: sigmas_problem(fitted, NOISE_KEYS, "")
 
     def grid_search(self) -> dict:
         """ekf-tuned's grid search on these runs (`tune`: by branch and bound on whole drives)."""

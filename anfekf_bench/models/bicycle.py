@@ -6,48 +6,21 @@ arrays; equation numbers refer to the paper.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from .angles import wrap_scalar
+from .motion_terms import MOTION_BICYCLE, jacobian_arrays, next_pose, step_terms
 
 
 def f(x: np.ndarray, u: np.ndarray, T: float, B: float) -> np.ndarray:
-    """Discrete motion model, eq. (17) with zero noise: X+ = f(X, u)."""
-    V, gamma = u[0], u[1]
-    a = x[2] + gamma
-    return np.array(
-        [
-            x[0] + T * V * math.cos(a),
-            x[1] + T * V * math.sin(a),
-            wrap_scalar(x[2] + T * V * math.sin(gamma) / B),
-        ]
-    )
+    """Discrete motion model, eq. (17) with zero noise: X+ = f(X, u) (models.motion_terms:
+    the formulas the fast engine compiles)."""
+    return next_pose(x, step_terms(u[0], u[1], T, MOTION_BICYCLE, B))
 
 
 def jacobians(x: np.ndarray, u: np.ndarray, T: float, B: float) -> tuple[np.ndarray, np.ndarray]:
     """F = df/dX (3x3) and G = df/du (3x2) at (X, u), eqs. (9), (10) and (21): one call, because
     both need the same angle (and a filter always wants both)."""
-    V, gamma = u[0], u[1]
-    a = x[2] + gamma
-    ca, sa = math.cos(a), math.sin(a)
-    TV = T * V
-    F = np.array(
-        [
-            [1.0, 0.0, -TV * sa],
-            [0.0, 1.0, TV * ca],
-            [0.0, 0.0, 1.0],
-        ]
-    )
-    G = np.array(
-        [
-            [T * ca, -TV * sa],
-            [T * sa, TV * ca],
-            [T * math.sin(gamma) / B, TV * math.cos(gamma) / B],
-        ]
-    )
-    return F, G
+    return jacobian_arrays(x[2], step_terms(u[0], u[1], T, MOTION_BICYCLE, B))
 
 
 def control_covariance(sigma_v: float, sigma_gamma: float) -> np.ndarray:

@@ -34,7 +34,7 @@ import math
 
 import numpy as np
 
-from .angles import wrap_scalar
+from .motion_terms import MOTION_UNICYCLE, jacobian_arrays, next_pose, step_terms
 
 
 class Unicycle:
@@ -49,39 +49,14 @@ class Unicycle:
         self.T0 = float(T0)
 
     def f(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-        """The noise-free step, heading wrapped to (-pi, pi]."""
-        v, w = float(u[0]), float(u[1])
-        a = x[2] + 0.5 * w * dt
-        return np.array(
-            [
-                x[0] + v * dt * math.cos(a),
-                x[1] + v * dt * math.sin(a),
-                wrap_scalar(x[2] + w * dt),
-            ]
-        )
+        """The noise-free step, heading wrapped to (-pi, pi] (models.motion_terms)."""
+        return next_pose(x, step_terms(float(u[0]), float(u[1]), dt, MOTION_UNICYCLE, 0.0))
 
     def jacobians(self, x: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """F = df/dX (3x3) and G = df/du (3x2); G's w column includes the midpoint's
         d a / d w = dt / 2."""
-        v, w = float(u[0]), float(u[1])
-        a = x[2] + 0.5 * w * dt
-        ca, sa = math.cos(a), math.sin(a)
-        half = 0.5 * v * dt * dt
-        F = np.array(
-            [
-                [1.0, 0.0, -v * dt * sa],
-                [0.0, 1.0, v * dt * ca],
-                [0.0, 0.0, 1.0],
-            ]
-        )
-        G = np.array(
-            [
-                [dt * ca, -half * sa],
-                [dt * sa, half * ca],
-                [0.0, dt],
-            ]
-        )
-        return F, G
+        terms = step_terms(float(u[0]), float(u[1]), dt, MOTION_UNICYCLE, 0.0)
+        return jacobian_arrays(x[2], terms)
 
     def Q(self, G: np.ndarray, Qu: np.ndarray, dt: float) -> np.ndarray:
         """Rate-consistent step noise (T0 / dt) G Qu G^T; zero for a zero-length step."""

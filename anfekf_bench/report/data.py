@@ -7,12 +7,14 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from ..analysis.metrics import rmse_curve
 from ..analysis.statistics import too_few_runs
 from ..config import NoiseSigmas
 from ..filters.registry import adapted_noise
@@ -62,6 +64,97 @@ class Band:
     lo: np.ndarray
     hi: np.ndarray
     median: np.ndarray  # the median over runs: what a typical run does
+
+
+@dataclass(frozen=True)
+class RunSeries:
+    """One quantity of one filter over time, run by run, each run on its own time axis: the
+    series type of every figure over time, whatever the source. A simulated scenario's runs
+    share one time axis (`aligned`); a recorded result's segments and drives are ragged (of
+    different lengths, at different log times: `of_steps`). `band` gives the per-step
+    statistics over the runs present at each step; `joined` every run as one line, broken
+    between runs."""
+
+    runs: tuple[int, ...]
+    t: tuple[np.ndarray, ...]  # per run [s]
+    values: tuple[np.ndarray, ...]  # per run, the same length as its t
+    axis: np.ndarray | None = None  # the time axis the runs share (`aligned`), even with no run
+
+    @classmethod
+    def aligned(cls, t: np.ndarray, values: np.ndarray, runs=None) -> RunSeries:
+        """(runs, steps) `values` on one time axis `t` (a simulated scenario's runs)."""
+        values = np.asarray(values, dtype=float)
+        runs = range(len(values)) if runs is None else runs
+        t = np.asarray(t, dtype=float)
+        return cls(tuple(int(r) for r in runs), (t,) * len(values), tuple(values), t)
+
+    @classmethod
+    def of_steps(cls, steps: pd.DataFrame, column: str, time: str = "t") -> RunSeries:
+        """Column `column` of one filter's rows of a steps table, run by run, over its column
+        `time` (rows in step order; rows with no time left out)."""
+        runs, ts, vs = [], [], []
+        for run, g in steps.groupby("run", sort=True):
+            runs.append(int(run))
+            ts.append(g[time].to_numpy(dtype=float))
+            vs.append(g[column].to_numpy(dtype=float))
+        return cls(tuple(runs), tuple(ts), tuple(vs))
+
+    def map(self, fn) -> RunSeries:
+        """The same runs with `fn` applied to their values (a unit, a square root)."""
+        return RunSeries(self.runs, self.t, tuple(fn(v) for v in self.values), self.axis)
+
+    def run(self, run: int) -> RunSeries:
+        """Run `run` alone."""
+        i = self.runs.index(run)
+        return RunSeries((run,), (self.t[i],), (self.values[i],))
+
+    @property
+    def ragged(self) -> bool:
+        return len({len(v) for v in self.values}) > 1
+
+    def grid(self) -> tuple[np.ndarray, np.ndarray]:
+        """(t, (runs, steps) values) by step index: the longest run's time axis, shorter runs
+        padded with NaN (no value there)."""
+        if self.axis is not None:
+            t = self.axis
+        else:
+            t = max(self.t, key=len, default=np.zeros(0))
+        out = np.full((len(self.values), len(t)), np.nan)
+        for i, v in enumerate(self.values):
+            out[i, : len(v)] = v
+        return t, out
+
+    def present(self) -> np.ndarray:
+        """How many runs have a value at each step."""
+        return np.sum(~np.isnan(self.grid()[1]), axis=0)
+
+    def band(self, rms: bool = False) -> Band:
+        """Per step, over the runs present there: the mean (`rms`: the root mean square, the
+        RMSE over runs of an error) with the BAND_PERCENTILES band and the median. Runs of one
+        length: numpy's plain statistics (a NaN value stays NaN); ragged runs: the padding is
+        left out (a step's statistics are over the runs that reach it)."""
+        _, values = self.grid()
+        if len(values) == 0:
+            empty = np.full(values.shape[1], np.nan)
+            return Band(empty, empty, empty, empty)
+        if self.ragged:
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # a step no run reaches
+                lo, hi = np.nanpercentile(values, BAND_PERCENTILES, axis=0)
+                median = np.nanmedian(values, axis=0)
+                line = rmse_curve(values) if rms else np.nanmean(values, axis=0)
+            return Band(line, lo, hi, median)
+        lo, hi = np.percentile(values, BAND_PERCENTILES, axis=0)
+        line = rmse_curve(values) if rms else values.mean(axis=0)
+        return Band(line, lo, hi, np.median(values, axis=0))
+
+    def joined(self) -> tuple[np.ndarray, np.ndarray]:
+        """(t, values) of every run in order, a NaN after each run, so that a line drawn
+        through them does not join one run to the next."""
+        gap = np.full(1, np.nan)
+        t = [a for ti in self.t for a in (ti, gap)]
+        v = [a for vi in self.values for a in (vi, gap)]
+        return (np.concatenate(t), np.concatenate(v)) if t else (np.zeros(0), np.zeros(0))
 
 
 @dataclass(frozen=True)

@@ -43,6 +43,7 @@ from .data import (  # noqa: E402
     OUTLIER_FACTOR,
     Band,
     FilterSeries,
+    RunSeries,
     ScenarioData,
 )
 from .document import FigureBlock  # noqa: E402
@@ -264,13 +265,22 @@ def plain_log_axis(ax: Axes, which: str = "y", minor: bool = True) -> None:
     axis.set_minor_formatter(NullFormatter())
 
 
+def draw_band(ax: Axes, t: np.ndarray, band: Band, colour, gid: str) -> None:
+    """The spread over runs of a series over time (its `RunSeries.band`), shaded."""
+    ax.fill_between(t, band.lo, band.hi, color=colour, alpha=0.12, lw=0, gid=gid)
+
+
+def draw_runs(ax: Axes, series: RunSeries, gid: str, label: str | None = None, **line) -> None:
+    """Every run of a series over time, each on its own time axis, as one line broken between
+    runs (recorded segments at their log times, drives from their cold starts)."""
+    ax.plot(*series.joined(), gid=gid, label=label, **line)
+
+
 def _band(
     ax: Axes, t: np.ndarray, band: Band, f: FilterSeries, key: str, label: str | None
 ) -> None:
     style = _style(f)
-    ax.fill_between(
-        t, band.lo, band.hi, color=style["color"], alpha=0.12, lw=0, gid=f"{key}_band/{f.name}"
-    )
+    draw_band(ax, t, band, style["color"], f"{key}_band/{f.name}")
     ax.plot(t, band.line, lw=1.2, label=label, gid=f"{key}/{f.name}", **style)
 
 
@@ -629,8 +639,7 @@ def noise_figure(sc: ScenarioData) -> Figure:
                     continue
                 style = _style(f)
                 band = f.noise[col]
-                ax.fill_between(f.t, band.lo, band.hi, color=style["color"], alpha=0.12, lw=0,
-                                gid=f"noise/{col}_band/{f.name}")  # fmt: skip
+                draw_band(ax, f.t, band, style["color"], f"noise/{col}_band/{f.name}")
                 ax.plot(f.t, band.median, lw=1.4, label=f.name,
                         gid=f"noise_median/{col}/{f.name}", **style)  # fmt: skip
                 ax.plot(f.t, band.line, lw=0.7, alpha=0.8, color=style["color"], ls=":",
@@ -823,7 +832,6 @@ def _percentiles() -> tuple[float, float]:
 # leaderboard, the sweeps), so a ratio of 1 has one colour wherever it appears. Log scale centred
 # on 1 (white); better than the reference in blue (rare: the oracle is the best fixed EKF), worse
 # in reds up to 30 x (beyond: the darkest red).
-RATIO_TICKS = (1.0, 1.5, 2.0, 3.0, 5.0, 10.0, 30.0)
 RATIO_MIN, RATIO_MAX = 1 / 1.5, 30.0
 RATIO_CMAP = "RdBu_r"
 
@@ -864,9 +872,45 @@ def ratio_image(ax: Axes, values: np.ndarray, **kw):
     return ax.imshow(shown, cmap=ratio_cmap(), norm=ratio_norm(), **kw)
 
 
+# The ratio bar's ticks in the order they are kept when the bar is too short for all of them:
+# the reference (1) and the scale's ends first, then the round factors between.
+RATIO_TICK_PRIORITY = (1.0, RATIO_MIN, RATIO_MAX, 10.0, 3.0, 2.0, 5.0, 1.5)
+
+
+class RatioBarLocator(Locator):
+    """The ratio colour bar's ticks (log10 values): as many of RATIO_TICK_PRIORITY, in that
+    order, as fit the bar's drawn height with a label's height between neighbours, so that a
+    bar two rows tall shows 0.667, 1, 3, 10, 30 instead of labels that touch."""
+
+    def __init__(self, label_points: float) -> None:
+        self.label_points = label_points
+
+    def __call__(self):
+        axes = self.axis.axes
+        height = axes.bbox.height * 72.0 / axes.figure.dpi  # points, after the layout
+        return ratio_bar_ticks(height, self.label_points)
+
+
+def ratio_bar_ticks(height_points: float, label_points: float) -> list[float]:
+    """The log10 ticks of a ratio bar `height_points` tall whose labels are `label_points`."""
+    norm = ratio_norm()  # the bar's position of a value: two slopes, 1 in the middle
+    kept: list[float] = []
+    for tick in RATIO_TICK_PRIORITY:
+        value = math.log10(tick)
+        gaps = (abs(float(norm(value)) - float(norm(k))) * height_points for k in kept)
+        if all(gap >= 1.2 * label_points for gap in gaps):
+            kept.append(value)
+    return sorted(kept)
+
+
 def ratio_colourbar(fig: Figure, mappable, ax, label: str) -> None:
-    """A colour bar for a log10-ratio image, ticked at RATIO_TICKS in plain numbers."""
+    """A colour bar for a log10-ratio image, ticked in plain numbers at as many of
+    RATIO_TICK_PRIORITY as its height fits (RatioBarLocator)."""
     bar = fig.colorbar(mappable, ax=ax, shrink=0.9, pad=0.02)
-    bar.set_ticks([math.log10(t) for t in (RATIO_MIN, *RATIO_TICKS)])
-    bar.set_ticklabels([plain_number(t) for t in (RATIO_MIN, *RATIO_TICKS)])
+    from matplotlib.font_manager import FontProperties
+
+    points = FontProperties(size=matplotlib.rcParams["ytick.labelsize"]).get_size_in_points()
+    bar.ax.yaxis.set_major_locator(RatioBarLocator(points))
+    bar.ax.yaxis.set_major_formatter(FuncFormatter(lambda v, pos: plain_number(10.0**v)))
+    bar.ax.yaxis.set_minor_locator(NullLocator())
     bar.set_label(label)

@@ -45,11 +45,12 @@ from ..storage import (
     scenario_name_problem,
 )
 from .audit import audit_blocks, nees_per_drive_blocks
-from .data import NOISE_COLUMNS, adapts_of
+from .data import NOISE_COLUMNS, RunSeries, adapts_of
 from .document import Block, Cell, Heading, ListBlock, Paragraph, TableBlock
 from .plots import (
     FigureSaver,
     draw_paths,
+    draw_runs,
     filter_colour,
     filter_linestyle,
     filter_style,
@@ -315,13 +316,18 @@ def _mark_segments(ax, rd: RealData) -> None:
         ax.axvspan(a, b, color="0.85", lw=0)
 
 
+def series(rd: RealData, name: str, column: str) -> RunSeries:
+    """Column `column` of instance `name` over log time, segment by segment (ragged runs)."""
+    return RunSeries.of_steps(_one(rd, name), column, time="t_abs")
+
+
 def errors_figure(rd: RealData):
     fig, axes = _figure(2, 1, (9.5, 6.5))
     for name in shown_filters(rd):
-        sub = _broken(_one(rd, name), ["t_abs", "pos_err", "heading_err"])
         style = filter_style(name).line()
-        axes[0, 0].plot(sub[:, 0], sub[:, 1], lw=0.8, gid=f"pos/{name}", label=name, **style)
-        axes[1, 0].plot(sub[:, 0], np.degrees(sub[:, 2]), lw=0.8, gid=f"heading/{name}", **style)
+        draw_runs(axes[0, 0], series(rd, name, "pos_err"), f"pos/{name}", name, lw=0.8, **style)
+        heading = series(rd, name, "heading_err").map(np.degrees)
+        draw_runs(axes[1, 0], heading, f"heading/{name}", lw=0.8, **style)
     for ax, label in ((axes[0, 0], "position error [m]"), (axes[1, 0], "heading error [deg]")):
         _mark_segments(ax, rd)
         ax.set_yscale("log")
@@ -353,10 +359,9 @@ def noise_figure(rd: RealData):
         for name, (base, what) in adaptive.items():
             if col[0] not in what:  # R_rr, R_bb: "R"; Q_vv, Q_gg: "Q"
                 continue
-            sub = _broken(_one(rd, name), ["t_abs", col])
             # the report's colour and line style of the filter: thirteen filters stay apart
-            ax.plot(sub[:, 0], np.sqrt(sub[:, 1]), lw=0.9, color=filter_colour(base),
-                    ls=filter_linestyle(base), gid=f"{col}/{name}", label=name)  # fmt: skip
+            draw_runs(ax, series(rd, name, col).map(np.sqrt), f"{col}/{name}", name, lw=0.9,
+                      color=filter_colour(base), ls=filter_linestyle(base))  # fmt: skip
         if key in tuned:
             ax.axhline(tuned[key], color="k", ls="--", lw=1, gid=f"{col}/tuned", label="ekf-tuned")
         if start is not None:
@@ -691,9 +696,8 @@ def drives_errors_figure(rd: RealData):
     ids, fig, axes = _drive_grid(rd, (3.6, 2.4))
     for run, (drive, ax) in enumerate(zip(ids, axes, strict=False)):
         for name in shown_filters(rd):
-            sub = _one_run(rd, name, run)
-            ax.plot(sub["t"], sub["pos_err"], lw=0.5, gid=f"pos/{drive}/{name}", label=name,
-                    **filter_style(name).line())  # fmt: skip
+            one = RunSeries.of_steps(_one_run(rd, name, run), "pos_err")
+            draw_runs(ax, one, f"pos/{drive}/{name}", name, lw=0.5, **filter_style(name).line())
         ax.set_yscale("log")
         ax.set_title(drive, fontsize=8)
         ax.tick_params(labelsize=6)

@@ -32,7 +32,6 @@ from pydantic import ValidationError
 from ..analysis.metrics import (
     format_sig,
     nees_bounds,
-    rmse_curve,
     summarize_filter,
 )
 from ..analysis.statistics import Interval, interval_too_wide
@@ -76,6 +75,7 @@ from .data import (
     Band,
     FilterSeries,
     Ratio,
+    RunSeries,
     ScenarioData,
     SummaryRow,
     Track,
@@ -190,26 +190,6 @@ def _filter_specs(manifest: dict, path: Path) -> dict[str, dict]:
     return by_name
 
 
-def _percentiles(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    lo, hi = np.percentile(values, BAND_PERCENTILES, axis=0)
-    return lo, hi, np.median(values, axis=0)
-
-
-def _band(values: np.ndarray) -> Band:
-    """Mean over runs with the percentile band and the median, for (runs, steps) values."""
-    if len(values) == 0:
-        empty = np.full(values.shape[1], np.nan)
-        return Band(empty, empty, empty, empty)
-    return Band(values.mean(axis=0), *_percentiles(values))
-
-
-def _error_band(err: np.ndarray) -> Band:
-    """RMSE over runs (the paper's curve) with the percentile band of the per-run errors."""
-    if len(err) == 0:
-        return _band(err)
-    return Band(rmse_curve(err), *_percentiles(err))
-
-
 def outlier_runs(run_ids: np.ndarray, run_mean_nees: np.ndarray) -> tuple[int, ...]:
     """The runs whose time-mean NEES exceeds OUTLIER_FACTOR x the median run's, worst first."""
     values = np.asarray(run_mean_nees, dtype=float)
@@ -240,19 +220,24 @@ def filter_series(steps: pd.DataFrame, name: str, spec: dict) -> FilterSeries:
     drawn = outliers[:MAX_OUTLIERS_DRAWN]
     row_of = {int(r): i for i, r in enumerate(run_ids)}
     noise = {col: a[col][ok] * NOISE_COLUMNS[col][2] for col in NOISE_COLUMNS}
+    t = np.asarray(a["t"], dtype=float)
+
+    def series(values: np.ndarray) -> RunSeries:
+        return RunSeries.aligned(t, values, run_ids)
+
     return FilterSeries(
         name=name,
         kind=str(spec.get("kind", "?")),
         adapts=adapts_of(spec, noise),
         runs=len(ok),
         runs_used=n,
-        t=np.asarray(a["t"], dtype=float),
-        pos=_error_band(a["pos_err"][ok]),
-        heading=_error_band(np.degrees(a["heading_err"][ok])),
+        t=t,
+        pos=series(a["pos_err"][ok]).band(rms=True),
+        heading=series(np.degrees(a["heading_err"][ok])).band(rms=True),
         nees=avg_nees,
         nees_median=med_nees,
         bounds=nees_bounds(n) if n else (math.nan, math.nan),
-        noise={col: _band(values) for col, values in noise.items()},
+        noise={col: series(values).band() for col, values in noise.items()},
         summary=summarize_filter(a["pos_err"], a["heading_err"], a["nees"], a["diverged"]),
         run_ids=run_ids,
         run_mean_nees=run_mean,

@@ -16,7 +16,7 @@ from matplotlib.legend_handler import HandlerTuple
 from matplotlib.patches import Rectangle
 
 from ..analysis.metrics import format_sig
-from ..filters.registry import role_of
+from ..filters.registry import comparison_rank, role_of
 from .data import FEW_RUNS, Ratio, SummaryRow
 from .plots import (
     _RC,
@@ -32,9 +32,6 @@ from .plots import (
     ratio_image,
 )
 from .ranking import CONSISTENCY_NOTE, GREY_NOTE, consistent, rank, ranking_note, rmse_ratio
-
-# In every group: the plain EKF first, then the adaptive filters, the oracle (reference) last.
-_RANK = {"ekf": 0, "anfekf": 1, "ekf-oracle": 3}
 
 
 def _ratio_points(ax: Axes, groups: dict, width: float, key: str, get, labelled: set[str]) -> None:
@@ -75,7 +72,8 @@ def overview_figure(rows: Sequence[SummaryRow]) -> Figure:
     Ratios to the reference on a log axis: a filter 1 % worse than the oracle shows as 1.01, and
     one diverging filter (RMSE 20 x) cannot flatten the others into the floor."""
     scenarios = list(dict.fromkeys(r.scenario for r in rows))
-    ordered = sorted(rows, key=lambda r: _RANK.get(r.kind, 2))
+    # In every group: the plain EKF first, then the adaptive filters, the oracle last
+    ordered = sorted(rows, key=lambda r: comparison_rank(r.kind))
     groups = {s: [r for r in ordered if r.scenario == s] for s in scenarios}
     width = 0.8 / max(len(g) for g in groups.values())
     fig = Figure(figsize=(max(11.0, 3.4 * len(scenarios) + 1.5), 5.0), layout="constrained")

@@ -33,13 +33,12 @@ from pathlib import Path
 from typing import Annotated, ClassVar, Literal, Union
 
 import numpy as np
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, field_serializer, field_validator, model_validator
 
 from ..config import Scenario, ScenarioError, Start, validate_as
-from ..filters.ekf import RobotEKF
-from ..filters.fitted import EKFMLSpec, sigmas_problem
+from ..filters.fitted import EKFMLSpec, EKFTunedSpec
 from ..filters.registry import SPECS
-from ..filters.spec import FilterContext, FilterSpec, Role
+from ..filters.spec import FilterSpec
 from ..schema import PositiveFloat, StrictModel
 from . import mrclam, user_log
 
@@ -48,33 +47,12 @@ BUILTIN = "builtin"
 NOISE_KEYS = ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")
 
 
-class TunedEKFSpec(FilterSpec):
-    """The reference of a real-data scenario: the EKF with the noise the grid search on the
-    training part found (one instance, no naive starts)."""
-
-    kind: Literal["ekf-tuned"]
-    role: ClassVar[Role] = "fitted"
-    fast_family: ClassVar[str | None] = "anfekf"
-    fit_sources: ClassVar[frozenset[str]] = frozenset({"recorded"})
-
-    def fit(self, training) -> dict:
-        """The grid search on the training segments or a fold's training drives (fitting.fit's
-        "recorded" training runs: fitting.recorded.tune)."""
-        return training.grid_search()
-
-    def fit_problem(self, fitted) -> str | None:
-        return sigmas_problem(fitted, NOISE_KEYS, "")
-
-    def build(self, ctx: FilterContext) -> RobotEKF:
-        return RobotEKF(**ctx.kwargs())
-
-
-# A recorded log has no training runs of its own: the simulated scenarios' ekf-tuned gives way to
-# this grid-searched one; ekf-ml is fitted on each run's own innovations (no truth needed:
-# fitting.own.fit_on_own_innovations); the other fitted kinds are not available here.
+# The fitted kinds a recorded log can fit (fitting.fit): ekf-tuned by the grid search on the
+# training segments or other drives ("recorded"), ekf-ml on each run's own innovations ("own": no
+# truth needed, fitting.own.fit_on_own_innovations); the other fitted kinds are not available here.
 REAL_SPECS: tuple[type[FilterSpec], ...] = (
     *(s for s in SPECS if not s.fitted_on_training),
-    TunedEKFSpec,
+    EKFTunedSpec,
     EKFMLSpec,
 )
 # KalmanNet is trained on the training drives (protocol drives) or the training segments
@@ -199,7 +177,7 @@ class RecordedScenario(Scenario):
 
     # Narrowed: the kinds a recorded log can run, and other defaults (`config.Scenario`).
     filters: list[RealFilterSpec] = Field(
-        default_factory=lambda: [TunedEKFSpec(name="ekf-tuned", kind="ekf-tuned")], min_length=1
+        default_factory=lambda: [EKFTunedSpec(name="ekf-tuned", kind="ekf-tuned")], min_length=1
     )
     starts: list[Start] = Field(
         [0.25, 1.0, 4.0], min_length=1, max_length=20,
@@ -291,13 +269,30 @@ class RecordedScenario(Scenario):
     def _filters(cls, filters: list) -> list:
         if any(f.role == "oracle" for f in filters):
             raise ValueError("ekf-oracle needs the true noise, which a recorded log does not have")
-        if sum(isinstance(f, TunedEKFSpec) for f in filters) > 1:
+        if sum(isinstance(f, EKFTunedSpec) for f in filters) > 1:
             raise ValueError("at most one ekf-tuned filter (the reference)")
+        for i, f in enumerate(filters):
+            for key in sorted(set(getattr(f, "simulated_only", ())) & f.model_fields_set):
+                raise ValueError(
+                    f"filters.{i}.{key}: not for a recorded log: its {f.kind} is fitted by the"
+                    " grid search of `tuning:`"
+                )
         return filters
+
+    @field_serializer("filters", mode="wrap")
+    def _without_simulated_fields(self, filters: list, handler) -> list:
+        """The filters as written, less the fields of a simulated fit (refused above, so
+        only their defaults): the manifest and the run store's fingerprint hold what a
+        recorded log's filters use."""
+        out = handler(filters)
+        for spec, doc in zip(filters, out, strict=True):
+            for key in getattr(spec, "simulated_only", ()):
+                doc.pop(key, None)
+        return out
 
     def reference(self) -> str | None:
         """The instance every other is compared with: the ekf-tuned filter, if any."""
-        return next((f.name for f in self.filters if isinstance(f, TunedEKFSpec)), None)
+        return next((f.name for f in self.filters if isinstance(f, EKFTunedSpec)), None)
 
 
 # --------------------------------------------------------------------------------------------

@@ -36,7 +36,12 @@ from typing import Protocol
 
 from pydantic import ValidationError
 
-from .analysis.comparisons import comparison_pairs, comparisons_frame, evaluate_claims
+from .analysis.comparisons import (
+    comparison_pairs,
+    comparisons_frame,
+    evaluate_claims,
+    filters_arrays,
+)
 from .analysis.phases import phases_frame, summary_tracking
 from .analysis.tables import (
     runs_frame,
@@ -611,15 +616,17 @@ def result_tables(plan: Plan, ordered: list[dict]) -> ResultTables:
     runs themselves.
     """
     names = plan.filter_names()
+    local_jobs = plan.jobs if plan.backend.kind == "local" else 1  # the batch's own workers
     steps = steps_frame(plan.name, names, ordered)
     pairs = plan.source.comparison_pairs(plan.scenario)
-    records = summary_records(steps, update_statistics(ordered, names))
+    arrays = filters_arrays(steps, names)  # read by the summary and the comparisons
+    records = summary_records(steps, update_statistics(ordered, names), arrays)
     summary, phases = plan.source.summary(plan, records, steps, ordered)
     return ResultTables(
         steps=steps,
         runs=runs_frame(plan.name, names, ordered),
         summary=summary,
-        comparisons=comparisons_frame(steps, pairs, seed=plan.seed),
-        claims=evaluate_claims(steps, plan.scenario.claims, seed=plan.seed),
+        comparisons=comparisons_frame(steps, pairs, seed=plan.seed, jobs=local_jobs, arrays=arrays),
+        claims=evaluate_claims(steps, plan.scenario.claims, seed=plan.seed, arrays=arrays),
         phases=phases,
     )

@@ -794,7 +794,7 @@ def _checksum(fingerprint: str, tree_json: str, arrays: dict[str, np.ndarray]) -
     for key in sorted(arrays, key=lambda k: int(k[1:])):
         arr = arrays[key]
         digest.update(f"{key}:{arr.dtype.str}:{arr.shape}\0".encode())
-        digest.update(np.ascontiguousarray(arr).tobytes())
+        digest.update(np.ascontiguousarray(arr))  # its buffer: the bytes tobytes() would copy
     return digest.hexdigest()
 
 

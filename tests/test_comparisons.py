@@ -88,6 +88,30 @@ def test_a_diverged_run_is_left_out_for_both_filters(errors):
     assert row.estimate == pytest.approx(0.5, abs=1e-12), "run 4 of `half` must not count"
 
 
+@pytest.mark.slow  # starts two worker processes
+def test_a_large_table_on_workers_is_the_table_computed_here(errors, monkeypatch):
+    """The comparisons shared out over workers (each filter's pairs in one chunk) give the same
+    rows, bit for bit and in the same order, as computed in this process; a small table stays
+    here."""
+    from anfekf_bench.analysis import comparisons
+
+    rng = np.random.default_rng(11)
+    many = dict(errors)
+    for i in range(3):
+        many[f"f{i}"] = errors["ekf"] * rng.uniform(0.5, 1.5, (RUNS, STEPS))
+    steps = steps_table(many)
+    pairs = comparison_pairs([(n, "oracle" if n == "oracle" else "reference" if n == "ekf"
+                               else "adaptive") for n in many])  # fmt: skip
+    here = comparisons_frame(steps, pairs, seed=5, resamples=200)
+    arrays = {n: {"pos_err": np.zeros((RUNS, STEPS))} for n in many}
+    assert len(comparisons._chunks(pairs, 2, 2, arrays)) == 1, "a small table stays here"
+    monkeypatch.setattr(comparisons, "PARALLEL_MIN_CELLS", 0)
+    chunks = comparisons._chunks(pairs, 2, 2, arrays)
+    assert len(chunks) == 2 and sorted(sum(chunks, [])) == sorted(pairs)
+    on_workers = comparisons_frame(steps, pairs, seed=5, resamples=200, jobs=2)
+    pd.testing.assert_frame_equal(on_workers, here, check_exact=True)
+
+
 def _claims(*specs: dict) -> list[ClaimSpec]:
     return [ClaimSpec(**s) for s in specs]
 

@@ -58,8 +58,9 @@ def comparison_pairs(
     return pairs
 
 
-def _arrays(steps: pd.DataFrame, names: Iterable[str]) -> dict[str, dict[str, np.ndarray]]:
-    return {name: filter_arrays(steps, name) for name in set(names)}
+def filters_arrays(steps: pd.DataFrame, names: Iterable[str]) -> dict[str, dict[str, np.ndarray]]:
+    """`tables.filter_arrays` of each filter named (the comparisons only read them)."""
+    return {name: filter_arrays(steps, name) for name in dict.fromkeys(names)}
 
 
 def compare(
@@ -95,6 +96,14 @@ def compare(
     return record
 
 
+# A table of many comparisons is split over the batch's worker processes (`jobs`): each
+# comparison draws from `seed` alone, so it gives the same row wherever it runs. Below this many
+# (runs x recorded steps) cells of ratio comparisons (about 2 s of CPU: a zoo scenario of 50 runs
+# has 6 million) the table is computed here, where a cold start of workers would cost more than
+# it saves.
+PARALLEL_MIN_CELLS = 4_000_000
+
+
 def comparisons_frame(
     steps: pd.DataFrame,
     pairs: list[tuple[str, str]],
@@ -102,17 +111,69 @@ def comparisons_frame(
     metrics: tuple[str, ...] = ("rmse_pos", "anees"),
     resamples: int = 2000,
     seed: int = 0,
+    jobs: int = 1,
+    arrays: dict[str, dict[str, np.ndarray]] | None = None,
 ) -> pd.DataFrame:
-    """One row per (filter, vs, metric): ratio with its paired interval, and the paired test."""
+    """One row per (filter, vs, metric): ratio with its paired interval, and the paired test.
+    `jobs` > 1: a large table's comparisons are shared out over that many local workers (the
+    same rows, in the same order). `arrays`: `filters_arrays` of the steps, when the caller
+    has them."""
     scenario = str(steps["scenario"].iloc[0])
-    arrays = _arrays(steps, [n for pair in pairs for n in pair])
+    named = [n for pair in pairs for n in pair]
+    if arrays is None or not set(named) <= set(arrays):
+        arrays = filters_arrays(steps, named)
+    chunks = _chunks(pairs, jobs, sum(m not in SHARE_METRICS for m in metrics), arrays)
+    if len(chunks) < 2:
+        rows = _rows(scenario, pairs, arrays, metrics, resamples, seed)
+    else:
+        from joblib import Parallel, delayed
+
+        from ..workers import local_workers
+
+        # each chunk ships only what `compare` reads of its filters
+        keep = {"diverged", *(st.METRICS[m].column for m in metrics)}
+        with local_workers():
+            parts = Parallel(n_jobs=len(chunks))(
+                delayed(_rows)(
+                    scenario,
+                    chunk,
+                    {n: {c: arrays[n][c] for c in keep} for pair in chunk for n in pair},
+                    metrics,
+                    resamples,
+                    seed,
+                )
+                for chunk in chunks
+            )
+        done: dict[tuple, list] = {pair: [] for pair in pairs}  # the pairs' order
+        for row in (row for part in parts for row in part):
+            done[(row["filter"], row["vs"])].append(row)
+        rows = [row for pair_rows in done.values() for row in pair_rows]
+    return pd.DataFrame(rows, columns=COMPARISON_COLUMNS)
+
+
+def _chunks(pairs: list, jobs: int, ratio_metrics: int, arrays: dict) -> list[list]:
+    """`pairs` split into `jobs` chunks when the table is large enough (PARALLEL_MIN_CELLS),
+    each filter's pairs in one chunk (its resampled statistics are computed once there), the
+    filters dealt out in turn so that the chunks cost about the same; else one chunk."""
+    if jobs < 2 or len(set(pairs)) != len(pairs):
+        return [pairs]
+    cells = sum(arrays[a]["pos_err"].size for a, _ in pairs) * ratio_metrics
+    if cells < PARALLEL_MIN_CELLS:
+        return [pairs]
+    filters = list(dict.fromkeys(a for a, _ in pairs))
+    share = {a: i % jobs for i, a in enumerate(filters)}
+    chunks = [[pair for pair in pairs if share[pair[0]] == k] for k in range(jobs)]
+    return [c for c in chunks if c]
+
+
+def _rows(scenario: str, pairs, arrays, metrics, resamples: int, seed: int) -> list[dict]:
     rows = []
     for name, ref in pairs:
         for metric in metrics:
             row = {"scenario": scenario, "filter": name, "vs": ref}
             row.update(compare(arrays[name], arrays[ref], metric, resamples=resamples, seed=seed))
             rows.append(row)
-    return pd.DataFrame(rows, columns=COMPARISON_COLUMNS)
+    return rows
 
 
 def claim_text(claim) -> str:
@@ -133,10 +194,18 @@ def _point_verdict(value: float, at_most: float | None, at_least: float | None) 
     return "holds" if value >= at_least else "fails"
 
 
-def evaluate_claims(steps: pd.DataFrame, claims, *, resamples: int = 2000, seed: int = 0) -> list:
-    """One verdict record per claim of the scenario (SPEC 8)."""
+def evaluate_claims(
+    steps: pd.DataFrame,
+    claims,
+    *,
+    resamples: int = 2000,
+    seed: int = 0,
+    arrays: dict[str, dict[str, np.ndarray]] | None = None,
+) -> list:
+    """One verdict record per claim of the scenario (SPEC 8); `arrays` as `comparisons_frame`."""
     names = [c.filter for c in claims] + [c.vs for c in claims if c.vs is not None]
-    arrays = _arrays(steps, names)
+    if arrays is None or not set(names) <= set(arrays):
+        arrays = filters_arrays(steps, names)
     out = []
     for claim in claims:
         a = arrays[claim.filter]

@@ -99,13 +99,18 @@ def filter_names(steps: pd.DataFrame) -> list[str]:
     return [str(n) for n in dict.fromkeys(col)]
 
 
-def summary_records(steps: pd.DataFrame, update_stats: dict[str, dict] | None = None) -> list[dict]:
-    """One summary record per filter, computed from the steps table alone (plus NIS totals)."""
+def summary_records(
+    steps: pd.DataFrame,
+    update_stats: dict[str, dict] | None = None,
+    arrays: dict[str, dict[str, np.ndarray]] | None = None,
+) -> list[dict]:
+    """One summary record per filter, computed from the steps table alone (plus NIS totals).
+    `arrays`: `filter_arrays` of the filters, when the caller has them (read, never changed)."""
     scenario = str(steps["scenario"].iloc[0])
     names = filter_names(steps)
     records = []
     for name in names:
-        a = filter_arrays(steps, name)
+        a = arrays[name] if arrays and name in arrays else filter_arrays(steps, name)
         rec = {"scenario": scenario, "filter": name}
         rec.update(summarize_filter(a["pos_err"], a["heading_err"], a["nees"], a["diverged"]))
         if update_stats and name in update_stats:

@@ -43,6 +43,7 @@ own innovations, unicycle).
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass
@@ -498,7 +499,7 @@ class TrainingProblem:
             rmse = float(np.mean(np.sqrt(np.mean(sq, axis=0))))
             anees = np.mean(nees, axis=0)
         n = len(self.runs)
-        lo, hi = chi2.ppf(0.025, 3 * n) / n, chi2.ppf(0.975, 3 * n) / n
+        lo, hi = _anees_bounds(n)
         if diverged or not math.isfinite(rmse):
             rmse, nll, anees = math.inf, math.inf, np.full_like(anees, math.inf)
         return {
@@ -509,6 +510,13 @@ class TrainingProblem:
             "gate_rejected": n_rej / n_inn if n_inn else math.nan,
             "diverged": diverged,
         }
+
+
+@functools.lru_cache(maxsize=16)
+def _anees_bounds(n: int) -> tuple[float, float]:
+    """The 95 % bounds of an n-run average NEES (3 states), as `evaluate` compares them; cached:
+    scipy's chi2.ppf costs about as much as a tenth of an evaluation's kernels."""
+    return chi2.ppf(0.025, 3 * n) / n, chi2.ppf(0.975, 3 * n) / n
 
 
 CRITERIA = {

@@ -2,9 +2,10 @@
 
 1. **Tune** (`tune`): the `ekf-tuned` reference's noise by a grid search on the training part
    (`sources.recorded.TuningConfig`): every training segment is cold-started from ground truth
-   and the plain EKF is run for every noise setting (`engines.tuning.score_setting`, the compiled
-   tuning kernel, the settings split over `jobs` processes); the criterion is the pooled position
-   RMSE over the scorable evaluation times of all training segments.
+   and the plain EKF is run for every noise setting (fitting.recorded.tune: the compiled tuning
+   kernel over every setting and segment, `engines.tuning.grid_kernel`, the settings dealt to
+   `jobs` threads); the criterion is the pooled position RMSE over the scorable evaluation
+   times of all training segments.
 2. **Run** (`recorded_run`): each held-out segment is one Monte Carlo "run" of the one per-run
    function, `runner.run_one`: every filter instance (each filter from each naive start, and
    ekf-tuned) is cold-started from ground truth at the segment's start

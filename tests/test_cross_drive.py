@@ -15,10 +15,10 @@ import yaml
 
 from anfekf_bench.config import ScenarioError
 from anfekf_bench.engines.events import run_filter_events, timeline
-from anfekf_bench.engines.tuning import score_setting
+from anfekf_bench.engines.tuning import GridRuns, score_setting
 from anfekf_bench.filters.ekf import RobotEKF, gate_threshold
 from anfekf_bench.filters.spec import FilterContext
-from anfekf_bench.fitting.recorded import _bnb_chunk, tune_on_drives
+from anfekf_bench.fitting.recorded import WholeRuns, tune
 from anfekf_bench.models import Unicycle
 from anfekf_bench.real_experiment import SegmentInputs, segment_inputs, thin_records
 from anfekf_bench.scenarios import load_scenario
@@ -105,7 +105,7 @@ def test_kernel_stops_once_the_bound_is_passed(d6r2):
 
 
 def test_branch_and_bound_finds_the_full_grids_best(d6r2):
-    """tune_on_drives (branch and bound) picks the setting an exhaustive scoring picks."""
+    """tune on whole drives (branch and bound) picks the setting an exhaustive scoring picks."""
     parts = [span_inputs(d6r2, 50.0, 80.0, 0.12), span_inputs(d6r2, 400.0, 430.0, 0.12)]
     sc = parse_real_scenario(
         drives_doc(
@@ -118,7 +118,7 @@ def test_branch_and_bound_finds_the_full_grids_best(d6r2):
             }
         )  # fmt: skip
     )
-    found = tune_on_drives(sc, parts, jobs=1)
+    found = tune(sc, parts, jobs=1, whole=True)
     exps = np.stack(np.meshgrid(*sc.tuning.axes(), indexing="ij"), -1).reshape(-1, 4)
     sig = sc.naive.sigmas() * np.exp2(exps)
     total = np.zeros(len(exps))
@@ -135,11 +135,60 @@ def test_branch_and_bound_finds_the_full_grids_best(d6r2):
     assert found["stages"][0]["stopped_early"] > 0  # the bound did cut work
     assert json.dumps(found)
     # every setting the bound stopped is worse than the winner; the ones it let finish are exact
-    chunk = _bnb_chunk(exps, sc.naive.sigmas(), parts, P0, gate_threshold(0.999), 0.12, math.inf)
+    runs = GridRuns.of([(p.timeline, p.segment.pose, p.truth, p.scored) for p in parts])
+    chunk, _ = runs.score(sig, P0, gate_threshold(0.999), 0.12, math.inf, branch_and_bound=True)
     stopped = chunk[:, 4] == 0
     assert stopped.any() and not stopped.all()
     assert np.all(total[stopped] > total.min())
     assert np.allclose(chunk[~stopped, 0], total[~stopped], rtol=1e-9)
+
+
+def test_folds_sharing_drives_read_their_whole_runs_and_find_the_same(d6r2, monkeypatch):
+    """tune_drives' folds share drives (WholeRuns): a search that reads the runs an earlier
+    search scored whole finds the same setting, sums and stopped share as one that runs them."""
+    parts = [span_inputs(d6r2, 100.0, 130.0, 0.12), span_inputs(d6r2, 400.0, 430.0, 0.12)]
+    grid = {"sigma_v": [-2, 0], "sigma_w": [0, 2], "sigma_range": [-1, 1],
+            "sigma_bearing": [-2, -1], "refine": True}  # fmt: skip
+    sc = parse_real_scenario(drives_doc(tuning=grid))
+    ran = []
+    score = GridRuns.score
+
+    def counted(self, sig, *args):
+        out, done = score(self, sig, *args)
+        ran.append(int(np.sum(~np.isnan(done[:, :, 0]))))
+        return out, done
+
+    monkeypatch.setattr(GridRuns, "score", counted)
+    alone = tune(sc, parts, jobs=2, whole=True)
+    ran_alone = sum(ran)
+    memo = WholeRuns()
+    tune(sc, parts[1:], jobs=2, whole=True, memo=memo)  # an earlier fold on the second run
+    ran.clear()
+    shared = tune(sc, parts, jobs=2, whole=True, memo=memo)
+    for found in (alone, shared):
+        found.pop("seconds")
+    assert shared == alone
+    assert sum(ran) < ran_alone  # runs read, not run again
+
+
+def test_grid_kernel_sums_the_settings_of_one_call_as_one_by_one(d6r2):
+    """GridRuns.score (every setting over every run, one compiled call) gives the bits of
+    score_setting run by run and summed in order, a diverging setting (inf) included."""
+    parts = [span_inputs(d6r2, 100.0, 120.0, 0.12), span_inputs(d6r2, 400.0, 415.0)]
+    sig = np.array([[0.1, 0.1, 0.1, 0.05], [0.01, 0.5, 0.05, 0.005], [1e-9, 1e-9, 1e-9, 1e-9],
+                    [0.4, 0.02, 0.01, 0.002]])  # fmt: skip
+    gate = gate_threshold(0.999)
+    runs = GridRuns.of([(p.timeline, p.segment.pose, p.truth[:, :2], p.scored) for p in parts])
+    got, done = runs.score(sig, P0, gate, 0.12)
+    for s, row in zip(sig, got, strict=True):
+        total, worst, upd, rej = 0.0, 0.0, 0, 0
+        for p in parts:
+            sq, mx, nu, nr, fin = score_setting(
+                p.timeline, p.segment.pose, P0, s, gate, 0.12, p.truth, p.scored
+            )
+            total, worst, upd, rej = total + sq, max(worst, mx), upd + nu, rej + nr
+        assert row.tolist() == [total, worst, upd, rej, 1.0]
+    assert np.isinf(got[:, 0]).any() and np.isfinite(got[:, 0]).any()
 
 
 # ------------------------------------------------------------------ evaluation times

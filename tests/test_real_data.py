@@ -21,6 +21,7 @@ from anfekf_bench.analysis.tables import runs_frame
 from anfekf_bench.cli import app
 from anfekf_bench.config import ScenarioError
 from anfekf_bench.engines.events import run_filter_events, timeline
+from anfekf_bench.engines.tuning import GridRuns
 from anfekf_bench.filters.ekf import RobotEKF, gate_threshold
 from anfekf_bench.fitting.recorded import _score, tune
 from anfekf_bench.models import Unicycle, measurement_covariance, wrap_angle
@@ -151,10 +152,10 @@ def builtin() -> RobotLog:
 
 
 def test_grid_search_scores_equal_the_robot_ekf_on_real_data(builtin):
-    """The segments protocol's grid search (`_score`: the compiled tuning kernel per setting,
-    settings dealt to worker processes) computes, for every setting, what RobotEKF on filterpy
-    computes: the summed squared position error, the count, the largest error, the gate's
-    decisions (two segments, settings that gate, one that loses lock)."""
+    """The segments protocol's grid search (`_score`: the compiled grid kernel, settings dealt
+    to threads) computes, for every setting, what RobotEKF on filterpy computes: the summed
+    squared position error, the largest error, the gate's decisions (two segments, settings
+    that gate, one that loses lock)."""
     ex = m.exclusions(builtin)
     segs = []
     for t_start in (700.0, 900.0):
@@ -169,23 +170,24 @@ def test_grid_search_scores_equal_the_robot_ekf_on_real_data(builtin):
     naive = np.array([0.1, 0.1, 0.1, 0.05])
     exps = np.array([[-2.7, 2.3, 0.3, -3.8], [0.0, 0.0, 0.0, 0.0], [2.0, 2.0, 2.0, 2.0],
                      [-4.0, -4.0, -3.0, -5.0]])  # fmt: skip
-    got = {jobs: _score(exps, naive, segs, np.eye(3) * 0.05**2, gate, 0.12, jobs)
+    runs = GridRuns.of([(s.timeline, s.segment.pose, s.truth, s.scored) for s in segs])
+    got = {jobs: _score(runs, exps, naive, np.eye(3) * 0.05**2, gate, 0.12, jobs, math.inf, False)
            for jobs in (1, 2)}  # fmt: skip
     assert np.array_equal(got[1], got[2])
     for g, (sv, sw, sr, sb) in enumerate(naive * np.exp2(exps)):
-        sq, count, mx, upd, rej = 0.0, 0, 0.0, 0, 0
+        sq, mx, upd, rej = 0.0, 0.0, 0, 0
         for s in segs:
             out = run_filter_events(
                 _ekf(x0=s.segment.pose, gate=gate, sv=sv, sw=sw, sr=sr, sb=sb), s.timeline
             )
             e = np.hypot(*(out["x"][:, :2] - s.truth[:, :2]).T)[s.scored]
-            sq, count, mx = sq + np.sum(e**2), count + len(e), max(mx, e.max())
+            sq, mx = sq + np.sum(e**2), max(mx, e.max())
             upd, rej = upd + out["n_updates"], rej + out["n_rejected"]
         assert got[1][g, 0] == pytest.approx(sq, rel=1e-9)
-        assert got[1][g, 2] == pytest.approx(mx, rel=1e-9)
-        assert got[1][g, [1, 3, 4]].tolist() == [count, upd, rej]
-    assert got[1][:, 4].max() > 0  # the gate acted
-    assert got[1][:, 2].max() > 1.0  # and a setting lost lock
+        assert got[1][g, 1] == pytest.approx(mx, rel=1e-9)
+        assert got[1][g, 2:].tolist() == [upd, rej, 1.0]
+    assert got[1][:, 3].max() > 0  # the gate acted
+    assert got[1][:, 1].max() > 1.0  # and a setting lost lock
 
 
 # ------------------------------------------------------------------ scoring and metrics

@@ -363,3 +363,49 @@ def test_the_memo_of_resampled_statistics_gives_the_same_bits(monkeypatch):
     # the memo keys on the data: another array, another statistic
     other = paired_bootstrap(a * 2.0, b, rmse_statistic, resamples=300, seed=5)
     assert (other.lo, other.hi) == pytest.approx((2.0 * without[0].lo, 2.0 * without[0].hi))
+
+
+def test_the_time_mean_of_run_means_is_nanmeans_bits():
+    """statistics._time_mean_of (in place, one mask) gives nan_aware_mean's bits: rows with and
+    without NaN, a row of NaN only, arrays without NaN, one row."""
+    from anfekf_bench.analysis.metrics import nan_aware_mean
+
+    rng = np.random.default_rng(8)
+    m = rng.normal(size=(30, 997)) ** 2
+    m[rng.random(m.shape) < 0.3] = np.nan
+    m[4] = np.nan
+    for x in (m, np.abs(rng.normal(size=(7, 513))), m[5], m[4]):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            want = np.asarray(nan_aware_mean(x.copy(), axis=-1))
+        got = np.asarray(statistics._time_mean_of(x.copy()))
+        assert got.dtype == want.dtype and got.shape == want.shape
+        assert np.array_equal(got, want, equal_nan=True)
+
+
+def test_the_memo_of_scored_weights_gives_the_same_bits(monkeypatch):
+    """Steps without a score (recorded logs): the resamples' summed weights of the runs scoring
+    each step are computed once per batch for every filter with the same unscored steps
+    (statistics._SCORED_MEMO); the intervals are the bytes computed without it."""
+    rng = np.random.default_rng(4)
+    a, b, c = (np.abs(rng.normal(size=(11, 60))) * s for s in (1.0, 1.1, 0.9))
+    for x in (a, b, c):
+        x[:, 7] = np.nan
+        x[3, 40:] = np.nan
+    c[0, :5] = np.nan  # another mask: its own entries
+    pairs = [(a, b), (c, b), (a, c)]
+
+    def intervals():
+        statistics._RESAMPLED_MEMO.clear()
+        statistics._SCORED_MEMO.clear()
+        return [
+            paired_bootstrap(x, y, s, resamples=300, seed=5)
+            for x, y in pairs
+            for s in (rmse_statistic, mean_statistic)
+        ]
+
+    monkeypatch.setattr(statistics, "_SCORED_ENTRIES", 0)  # every entry dropped as it is made
+    without = intervals()
+    monkeypatch.setattr(statistics, "_SCORED_ENTRIES", 16)
+    assert intervals() == without
+    assert all(math.isfinite(i.lo) for i in without)

@@ -146,8 +146,22 @@ def in_bounds_statistic(nees: np.ndarray) -> float | np.ndarray:
 # without a score (NaN: recorded logs) leave a run out of that step's mean: the weighted sum over
 # the runs that have a value, over their summed weight (np.nanmean over the resampled runs); g's
 # time mean then leaves out the steps no resampled run scores (`nan_aware_mean`).
-rmse_statistic.run_mean_form = (np.square, lambda m: nan_aware_mean(np.sqrt(m), axis=-1))
-mean_statistic.run_mean_form = (lambda x: x, lambda m: nan_aware_mean(m, axis=-1))
+def _time_mean_of(m: np.ndarray) -> np.ndarray:
+    """nan_aware_mean(m, axis=-1), bit for bit (the same sums: np.nanmean is the sum of the
+    values with NaN set to 0 over the count of the others), for a temporary `m` it overwrites:
+    one NaN mask and no copy, where np.nanmean makes a copy and a second mask. The bootstrap's
+    (resamples, steps) run means are the largest arrays a table builds."""
+    nan = np.isnan(m)
+    if not nan.any():
+        return np.mean(m, axis=-1)
+    np.copyto(m, 0.0, where=nan)
+    count = np.sum(~nan, axis=-1, dtype=np.intp)
+    with np.errstate(invalid="ignore", divide="ignore"):  # a resample that scores no step: NaN
+        return np.divide(np.sum(m, axis=-1), count)
+
+
+rmse_statistic.run_mean_form = (np.square, lambda m: _time_mean_of(np.sqrt(m)))
+mean_statistic.run_mean_form = (lambda x: x, _time_mean_of)  # m: the products' own array
 
 
 # A comparison table bootstraps every filter against each of its references with one seed, so
@@ -204,6 +218,14 @@ def resampled_statistic(statistic: Statistic, x: np.ndarray, idx: np.ndarray) ->
     return np.array([statistic(x[i]) for i in idx], dtype=float)
 
 
+# The summed weights of the runs that score each step, per resample (the run means'
+# denominators, `_resampled_by_weights`): the same for every filter whose steps without a score
+# are the same (a recorded log's, unless a run diverged), so computed once per table and
+# resample batch. Each entry is a (resamples, steps) array: few are kept.
+_SCORED_MEMO: OrderedDict[bytes, np.ndarray] = OrderedDict()
+_SCORED_ENTRIES = 16
+
+
 def _resampled_by_weights(form: tuple, x: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """`_resampled`'s computation: the run means of every resample as one matrix product."""
     h, g = form
@@ -213,6 +235,7 @@ def _resampled_by_weights(form: tuple, x: np.ndarray) -> Callable[[np.ndarray], 
     if unscored:
         hx = np.where(scored, hx, 0.0)
         scored = scored.astype(float)
+        of_scored = _digest(scored)
     runs = x.shape[0]
 
     def of(idx: np.ndarray) -> np.ndarray:
@@ -221,8 +244,16 @@ def _resampled_by_weights(form: tuple, x: np.ndarray) -> Callable[[np.ndarray], 
         cells = (flat + runs * np.arange(rows)[:, None]).ravel()
         weights = np.bincount(cells, minlength=rows * runs).reshape(rows, runs) / flat.shape[-1]
         if unscored:
+            key = of_scored + _digest(idx)
+            den = _SCORED_MEMO.get(key)
+            if den is None:
+                den = _SCORED_MEMO[key] = weights @ scored
+                if len(_SCORED_MEMO) > _SCORED_ENTRIES:
+                    _SCORED_MEMO.popitem(last=False)
+            else:
+                _SCORED_MEMO.move_to_end(key)
             with np.errstate(invalid="ignore", divide="ignore"):  # 0 / 0: a step none scores
-                m = (weights @ hx) / (weights @ scored)
+                m = (weights @ hx) / den
         else:
             m = weights @ hx
         return g(m).reshape(idx.shape[:-1])

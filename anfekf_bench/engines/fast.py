@@ -384,10 +384,15 @@ def warm_up(jit: bool = True) -> float:
     # The fits' kernel (ekf-ml, ekf-tuned and the recorded data's grid searches): one likelihood
     # pass compiles it and its step table; without it a first fitted run compiled them.
     from ..timeline import from_run
-    from .tuning import TimelineLikelihood
+    from .tuning import GridRuns, TimelineLikelihood
 
-    likelihood = TimelineLikelihood.of(from_run(data, world, 0), ctx.x0, ctx.P0, ctx.gate, 0.0)
+    tl = from_run(data, world, 0)
+    likelihood = TimelineLikelihood.of(tl, ctx.x0, ctx.P0, ctx.gate, 0.0)
     likelihood.nll(np.array([0.3, 0.05, 0.1, 0.02]))
+    n_rec = int(tl.record.sum())  # and the recorded data's grid searches (one grid call)
+    GridRuns.of([(tl, ctx.x0, np.zeros((n_rec, 3)), np.ones(n_rec, bool))]).score(
+        np.array([[0.3, 0.05, 0.1, 0.02]]), ctx.P0, ctx.gate, world.T
+    )
     simulate_truth(dataclasses.replace(world, max_steps=10_000))  # the simulator's truth loop
     return time.perf_counter() - t0
 

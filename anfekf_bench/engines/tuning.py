@@ -227,6 +227,154 @@ def score_setting(tl, x0, P0, sig, gate, T0, truth, scored, bound=math.inf, term
     return sq, mx, nu, nr, status != STOPPED
 
 
+@maybe_njit
+def grid_kernel(
+    dt, u, lm, z, xy, record, terms, x0, truth, scored, stamps, marks, obs, recs, P0, sigmas,
+    gate, has_gate, T0, bound, branch_and_bound, known, out, done,
+):  # fmt: skip
+    """`ekf_fit_kernel` (the unicycle) for every setting sigmas[g] = (sv, sw, sr, sb) over every
+    run of a `GridRuns` pack, in one compiled call: out[g] = (sq_sum, max_err, n_updates,
+    n_rejected, finished) summed over the runs in their order.
+
+    Without `branch_and_bound` each run is scored whole (no bound) and the sums may be infinite
+    (a run that diverged). With it, a setting stops at its first run that passes the bound (the
+    best complete sum seen so far in this call, at first `bound`) or diverges, and finished is
+    0; a complete sum below the best becomes the bound of the next settings.
+
+    known[g, r] = (sq_sum, max_err, n_updates, n_rejected) of setting g over run r where an
+    earlier call scored that run whole (NaN where not): read instead of run again. A run's
+    partial sums only grow, so the bound stops it exactly when its whole sum passes the bound:
+    the same finished settings and sums as running it. done[g, r] receives the whole runs this
+    call scored (NaN where it stopped one or read it from `known`)."""
+    n_runs = len(stamps) - 1
+    longest = 0
+    for r in range(n_runs):
+        longest = max(longest, recs[r + 1] - recs[r])
+    out_sq = np.empty(longest)
+    out_nees = np.empty(longest)
+    Qu = np.zeros(4)
+    R = np.zeros(4)
+    best = bound
+    for g in range(len(sigmas)):
+        Qu[0] = sigmas[g, 0] * sigmas[g, 0]
+        Qu[3] = sigmas[g, 1] * sigmas[g, 1]
+        R[0] = sigmas[g, 2] * sigmas[g, 2]
+        R[3] = sigmas[g, 3] * sigmas[g, 3]
+        total = 0.0
+        worst = 0.0
+        upd = 0
+        rej = 0
+        finished = True
+        for r in range(n_runs):
+            a, b = stamps[r], stamps[r + 1]
+            c, d = recs[r], recs[r + 1]
+            lo, hi = obs[r], obs[r + 1]
+            limit = best - total if branch_and_bound else math.inf
+            if known[g, r, 0] == known[g, r, 0]:
+                sq, mx = known[g, r, 0], known[g, r, 1]
+                nu, nr = int(known[g, r, 2]), int(known[g, r, 3])
+                status = STOPPED if sq > limit else FINISHED
+            else:
+                status, sq, mx, _, nu, nr = ekf_fit_kernel(
+                    MOTION_UNICYCLE, dt[a:b], u[a:b], lm[marks[r] : marks[r + 1]], z[lo:hi],
+                    xy[lo:hi], record[a:b], x0[r], P0, Qu, R, gate, has_gate, T0, 0.0,
+                    truth[c:d], scored[c:d], limit, out_sq, out_nees, terms[a:b],
+                )  # fmt: skip
+                if status != STOPPED:
+                    done[g, r, 0] = sq
+                    done[g, r, 1] = mx
+                    done[g, r, 2] = nu
+                    done[g, r, 3] = nr
+            total += sq
+            if mx > worst:
+                worst = mx
+            upd += nu
+            rej += nr
+            if branch_and_bound and (status == STOPPED or not math.isfinite(total)):
+                finished = math.isfinite(total) and status != STOPPED
+                break
+        out[g, 0] = total
+        out[g, 1] = worst
+        out[g, 2] = upd
+        out[g, 3] = rej
+        out[g, 4] = 1.0 if finished else 0.0
+        if finished and total < best:
+            best = total
+
+
+@dataclass(frozen=True, eq=False)
+class GridRuns:
+    """Recorded runs packed for `grid_kernel`: each run's stamps, landmarks and record stamps
+    concatenated, with offsets (`stamps`, `marks` into `lm`, `obs` into z / xy, `recs` into
+    truth / scored), its start pose and its `step_terms_table` (the unicycle)."""
+
+    dt: np.ndarray
+    u: np.ndarray
+    lm: np.ndarray
+    z: np.ndarray
+    xy: np.ndarray
+    record: np.ndarray
+    terms: np.ndarray
+    x0: np.ndarray  # (runs, 3)
+    truth: np.ndarray  # (records, 3)
+    scored: np.ndarray  # (records,) bool
+    stamps: np.ndarray
+    marks: np.ndarray
+    obs: np.ndarray
+    recs: np.ndarray
+
+    @classmethod
+    def of(cls, runs) -> GridRuns:
+        """`runs`: (Timeline, start pose, truth (n_rec, 2 or 3), scored (n_rec,)) of each run."""
+        tls = [tl for tl, *_ in runs]
+        truths = []
+        for _, _, truth, _ in runs:
+            truth = np.asarray(truth, dtype=float)
+            if truth.shape[1] == 2:  # NEES is not asked for: any finite heading
+                truth = np.column_stack([truth, np.zeros(len(truth))])
+            truths.append(truth)
+
+        def offsets(sizes) -> np.ndarray:
+            return np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+
+        return cls(
+            dt=np.concatenate([tl.dt for tl in tls]).astype(float),
+            u=np.ascontiguousarray(np.concatenate([tl.u for tl in tls]), dtype=float),
+            lm=np.concatenate([tl.lm for tl in tls]).astype(np.int64),
+            z=np.ascontiguousarray(np.concatenate([tl.z for tl in tls]), dtype=float),
+            xy=np.ascontiguousarray(np.concatenate([tl.xy for tl in tls]), dtype=float),
+            record=np.concatenate([tl.record for tl in tls]).astype(np.bool_),
+            terms=np.concatenate([unicycle_terms(tl) for tl in tls]),
+            x0=np.array([np.asarray(x0, dtype=float).reshape(3) for _, x0, _, _ in runs]),
+            truth=np.ascontiguousarray(np.concatenate(truths)),
+            scored=np.concatenate([np.asarray(s, dtype=np.bool_) for *_, s in runs]),
+            stamps=offsets([len(tl.dt) for tl in tls]),
+            marks=offsets([len(tl.lm) for tl in tls]),
+            obs=offsets([len(tl.z) for tl in tls]),
+            recs=offsets([len(t) for t in truths]),
+        )
+
+    def score(
+        self, sigmas, P0, gate, T0, bound=math.inf, branch_and_bound=False, known=None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """`grid_kernel`'s sums (G, 5) of the settings `sigmas` (G, 4) over these runs, and the
+        runs it scored whole (G, runs, 4; NaN elsewhere). `known`: whole runs scored before
+        (G, runs, 4, NaN where not), read instead of run again."""
+        sigmas = np.ascontiguousarray(sigmas, dtype=float).reshape(-1, 4)
+        g, has_gate = _gate(gate)
+        shape = (len(sigmas), len(self.stamps) - 1, 4)
+        out = np.zeros((len(sigmas), 5))
+        done = np.full(shape, np.nan)
+        known = np.full(shape, np.nan) if known is None else np.ascontiguousarray(known, float)
+        grid_kernel(
+            self.dt, self.u, self.lm, self.z, self.xy, self.record, self.terms, self.x0,
+            self.truth, self.scored, self.stamps, self.marks, self.obs, self.recs,
+            np.ascontiguousarray(P0, dtype=float).ravel(), sigmas, g, has_gate, float(T0),
+            float(bound), bool(branch_and_bound), known, out, done,
+        )  # fmt: skip
+        return out, done
+
+
 @dataclass(frozen=True, eq=False)
 class TimelineLikelihood:
     """One recorded run's own innovations as an objective (`ekf-ml` on recorded data): the

@@ -4,9 +4,10 @@ segments) or, per cross-drive fold, the drives of the datasets that tune a test 
 each through `fitting.fit.fit_specs`:
 
 - `ekf-tuned` (filters.fitted.EKFTunedSpec, the simulated scenarios' spec: these runs' `fit_noise`
-  chooses the fit): the grid search on the training segments (`tune`, via `tune_segments`) or,
-  per fold, branch and bound over whole drives (`tune_on_drives`, via `tune_drives`); not cached
-  (it is the batch's reference, as before);
+  chooses the fit): the grid search (`tune`, one compiled call per thread:
+  engines.tuning.GridRuns) on the training segments (via `tune_segments`) or, per fold, by
+  branch and bound over whole drives (via `tune_drives`); not cached (it is the batch's
+  reference, as before);
 - `kalmannet` (filters.kalmannet): trained once on the training segments (`fit_on_segments`) or
   once per fold (`fit_on_drives`).
 
@@ -42,7 +43,7 @@ import numpy as np
 from joblib import Parallel, delayed
 
 from ..analysis.suite import LOST_LOCK_M
-from ..engines.tuning import score_setting, unicycle_terms
+from ..engines.tuning import GridRuns, score_setting
 from ..filters.context import recorded_p0
 from ..filters.ekf import gate_threshold
 from ..filters.fitted import sigmas_problem
@@ -73,7 +74,8 @@ class RecordedTraining(TrainingRuns):
     drives: bool = False  # whole drives (grid search by branch and bound) or segments
     jobs: int = 1
     progress: Any = None
-    seeds: list | tuple = ()  # drives: log2 multipliers scored first (tune_on_drives)
+    seeds: list | tuple = ()  # drives: log2 multipliers scored first (tune)
+    memo: Any = None  # drives: WholeRuns shared by the folds of one tune_drives
 
     @property
     def model(self):
@@ -103,10 +105,8 @@ class RecordedTraining(TrainingRuns):
         return lambda fitted: sigmas_problem(fitted, NOISE_KEYS, "")
 
     def grid_search(self) -> dict:
-        """ekf-tuned's grid search on these runs: `tune` (segments), `tune_on_drives` (drives)."""
-        if self.drives:
-            return tune_on_drives(self.scenario, self.inputs, self.jobs, self.seeds)
-        return tune(self.scenario, self.inputs, self.jobs)
+        """ekf-tuned's grid search on these runs (`tune`: by branch and bound on whole drives)."""
+        return tune(self.scenario, self.inputs, self.jobs, self.seeds, self.drives, self.memo)
 
     def fingerprint(self, spec) -> str:
         """Hash of what a fit on these runs depends on (see the module doc); not the test
@@ -130,7 +130,7 @@ def trained_filters(scenario: RecordedScenario) -> list:
 
 def drive_fold(
     scenario: RecordedScenario, train: list, inputs: dict, jobs: int = 1, progress: Any = None,
-    seeds: list | tuple = (),
+    seeds: list | tuple = (), memo: Any = None,
 ) -> RecordedTraining:  # fmt: skip
     """The training runs of one cross-drive fold: the drives `train` (whole), their inputs."""
     label = "+".join(map(str, sorted({d.dataset for d in train})))
@@ -147,6 +147,7 @@ def drive_fold(
         jobs=jobs,
         progress=progress,
         seeds=seeds,
+        memo=memo,
     )
 
 
@@ -244,221 +245,175 @@ def tune_segments(scenario: RecordedScenario, rec, segments: list, jobs: int = 1
 
 
 # --------------------------------------------------------------------------------------------
-# ekf-tuned: the grid search on the training segments
+# ekf-tuned: the grid search, on training segments or (protocol drives, SPEC 15) whole drives
 
 
 AXES = ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing")
+_CRITERION = {
+    False: "pooled position RMSE over the scorable evaluation times of the training segments [m]",
+    True: "pooled position RMSE over the scored evaluation times of the training drives, whole [m]",
+}
+_BRANCH_AND_BOUND = (
+    "branch and bound (engines.tuning): a setting stops once its sum of squared errors passes"
+    " the best complete one; the winner is the full grid's"
+)
 
 
-def _score_chunk(exps: np.ndarray, naive: np.ndarray, segs, P0, gate, T0) -> np.ndarray:
-    """(G, 5): sq_sum, count, max_err, n_updates, n_rejected of each setting over every training
-    segment (the tuning kernel, one setting at a time)."""
-    out = np.zeros((len(exps), 5))
-    terms = [unicycle_terms(s.timeline) for s in segs]
-    for g, e in enumerate(exps):
-        sig = naive * np.exp2(e)
-        for s, tk in zip(segs, terms, strict=True):
-            sq, mx, nu, nr, _ = score_setting(
-                s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth, s.scored, terms=tk
-            )
-            out[g] += (sq, int(s.scored.sum()), 0.0, nu, nr)
-            out[g, 2] = max(out[g, 2], mx)
-    return out
+class WholeRuns:
+    """The runs the grid kernel scored whole, per (training run, setting): the folds of one
+    `tune_drives` share drives (Datasets 6 and 7 tune 9 on the drives that tune 7 and 6), so a
+    fold reads what an earlier fold ran (engines.tuning.grid_kernel's `known`: the same sums and
+    winners as running them again)."""
+
+    def __init__(self) -> None:
+        self._found: dict[tuple, np.ndarray] = {}
+
+    def known(self, inputs: list, sig: np.ndarray) -> np.ndarray:
+        """(G, runs, 4): what is known of each setting of `sig` on each of `inputs`, else NaN."""
+        out = np.full((len(sig), len(inputs), 4), np.nan)
+        for g, row in enumerate(sig):
+            key = row.tobytes()
+            for r, s in enumerate(inputs):
+                found = self._found.get((s, key))  # SegmentInputs hash by identity
+                if found is not None:
+                    out[g, r] = found
+        return out
+
+    def keep(self, inputs: list, sig: np.ndarray, done: np.ndarray) -> None:
+        for g, row in enumerate(sig):
+            key = row.tobytes()
+            for r, s in enumerate(inputs):
+                if not np.isnan(done[g, r, 0]):
+                    self._found[(s, key)] = done[g, r].copy()
 
 
-def _score(exps: np.ndarray, naive, segs, P0, gate, T0, jobs: int) -> np.ndarray:
-    """`_score_chunk` with the settings dealt round-robin to `jobs` threads (the compiled kernel
-    releases the GIL: no worker processes to start, nothing to pickle)."""
+def _score(runs: GridRuns, exps: np.ndarray, naive, P0, gate, T0, jobs: int, bound: float,
+           whole: bool, memo: WholeRuns | None = None, inputs=()) -> np.ndarray:  # fmt: skip
+    """`GridRuns.score` of the settings naive * 2^exps (G, 5: sq_sum, max_err, n_updates,
+    n_rejected, finished), the settings dealt round-robin to `jobs` threads, one compiled call
+    each (the kernel releases the GIL: no worker processes to start, nothing to pickle). With
+    `whole` (branch and bound), each thread's call keeps its own best complete sum as bound.
+    `memo`: whole runs of `inputs` scored before, read instead of run, and kept."""
+    sig = np.array([naive * np.exp2(e) for e in exps]).reshape(-1, 4)
+    known = memo.known(inputs, sig) if memo is not None else None
     parts = max(1, min(jobs, len(exps)))
     if parts == 1:
-        return _score_chunk(exps, naive, segs, P0, gate, T0)
-    found = Parallel(n_jobs=parts, backend="threading")(
-        delayed(_score_chunk)(exps[i::parts], naive, segs, P0, gate, T0) for i in range(parts)
-    )
-    out = np.zeros((len(exps), 5))
-    for i, f in enumerate(found):
-        out[i::parts] = f
+        out, done = runs.score(sig, P0, gate, T0, bound, whole, known)
+    else:
+        chunks = [None if known is None else known[i::parts] for i in range(parts)]
+        found = Parallel(n_jobs=parts, backend="threading")(
+            delayed(runs.score)(sig[i::parts], P0, gate, T0, bound, whole, chunks[i])
+            for i in range(parts)
+        )
+        out = np.zeros((len(exps), 5))
+        done = np.full((len(exps), len(runs.stamps) - 1, 4), np.nan)
+        for i, (o, d) in enumerate(found):
+            out[i::parts] = o
+            done[i::parts] = d
+    if memo is not None:
+        memo.keep(inputs, sig, done)
     return out
 
 
-def _criterion(scores: np.ndarray) -> np.ndarray:
-    with np.errstate(all="ignore"):
-        rmse = np.sqrt(scores[:, 0] / scores[:, 1])
-    return np.where(np.isfinite(rmse), rmse, np.inf)
-
-
-def tune(scenario: RecordedScenario, segs: list, jobs: int = 1) -> dict:
-    """The grid search of `ekf-tuned` on the training segments `segs` (their
-    real_experiment.SegmentInputs, each cold-started from ground truth; see the module doc).
-
-    Returns the chosen standard deviations (sigma_v, sigma_w_rad, sigma_range,
-    sigma_bearing_rad), their log2 multipliers of the naive values, the criterion there, the
-    stages (settings and best value of each), the share of coarse settings that lost lock (a
-    position error above 1 m) and the time it took.
-    """
-    started = time.perf_counter()
-    naive = scenario.naive.sigmas()
-    P0 = recorded_p0(scenario)
-    gate = gate_threshold(scenario.gate_probability)
-    T0 = scenario.odometry_period_s
-    axes = scenario.tuning.axes()
-    coarse = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 4)
-    scores = _score(coarse, naive, segs, P0, gate, T0, jobs)
-    crit = _criterion(scores)
-    all_exps, all_scores, all_crit = [coarse], [scores], [crit]
-    best = int(np.argmin(crit))
-    stages = [{"stage": "coarse (step 2^1)", "settings": len(coarse), "best": float(crit[best])}]
-    best_exp = coarse[best]
-    if scenario.tuning.refine:
-        offsets = np.stack(np.meshgrid(*[[-1.0, 0.0, 1.0]] * 4, indexing="ij"), -1).reshape(-1, 4)
-        for step, label in ((0.5, "2^(1/2)"), (0.25, "2^(1/4)")):
-            exps = best_exp + step * offsets
-            s = _score(exps, naive, segs, P0, gate, T0, jobs)
-            c = _criterion(s)
-            all_exps.append(exps)
-            all_scores.append(s)
-            all_crit.append(c)
-            stages.append({"stage": f"refine (step {label})", "settings": len(exps),
-                           "best": float(c.min())})  # fmt: skip
-            best_exp = np.vstack(all_exps)[int(np.argmin(np.concatenate(all_crit)))]
-    exps = np.vstack(all_exps)
-    crit = np.concatenate(all_crit)
-    scores = np.vstack(all_scores)
-    i = int(np.argmin(crit))
-    best_exp = exps[i]
-    sig = naive * np.exp2(best_exp)
-    seen = scores[i, 3] + scores[i, 4]
-    return {
-        "criterion": "pooled position RMSE over the scorable evaluation times of the training"
-        " segments [m]",
-        "sigma_v": float(sig[0]),
-        "sigma_w_rad": float(sig[1]),
-        "sigma_range": float(sig[2]),
-        "sigma_bearing_rad": float(sig[3]),
-        "log2_multipliers": {a: float(e) for a, e in zip(AXES, best_exp, strict=True)},
-        "train_rmse_pos": float(crit[i]),
-        "train_max_pos_err": float(scores[i, 2]),
-        "train_gate_rejected": float(scores[i, 4] / seen) if seen else math.nan,
-        "train_segments": len(segs),
-        "settings": int(len(exps)),
-        "coarse_lost_lock_share": float(np.mean(scores[: len(coarse), 2] > LOST_LOCK_M)),
-        "stages": stages,
-        "seconds": round(time.perf_counter() - started, 3),
-    }
-
-
-# --------------------------------------------------------------------------------------------
-# ekf-tuned across drives (protocol drives, SPEC 15): the same grid and refinement as `tune`,
-# on whole drives, by branch and bound on the compiled tuning kernel (engines.tuning)
-
-
-def _bnb_chunk(exps: np.ndarray, naive, inputs, P0, gate, T0, bound: float) -> np.ndarray:
-    """(G, 5): sq_sum, max_err, n_updates, n_rejected, finished of each setting over all
-    `inputs`, stopping a setting once its sum passes the best complete sum seen (or `bound`)."""
-    out = np.zeros((len(exps), 5))
-    best = bound
-    terms = [unicycle_terms(s.timeline) for s in inputs]
-    for g, e in enumerate(exps):
-        sig = naive * np.exp2(e)
-        total, worst, upd, rej, finished = 0.0, 0.0, 0, 0, True
-        for s, tk in zip(inputs, terms, strict=True):
-            sq, mx, nu, nr, fin = score_setting(
-                s.timeline, s.segment.pose, P0, sig, gate, T0, s.truth, s.scored,
-                best - total, terms=tk,
-            )  # fmt: skip
-            total, worst, upd, rej = total + sq, max(worst, mx), upd + nu, rej + nr
-            if not fin or not math.isfinite(total):
-                finished = finished and math.isfinite(total) and fin
-                break
-        out[g] = (total, worst, upd, rej, float(finished))
-        if finished and total < best:
-            best = total
-    return out
-
-
-def _bnb(exps: np.ndarray, naive, inputs, P0, gate, T0, jobs: int, bound: float) -> np.ndarray:
-    """`_bnb_chunk` with the settings dealt round-robin to `jobs` threads (as `_score`)."""
-    parts = max(1, min(jobs, len(exps)))
-    if parts == 1:
-        return _bnb_chunk(exps, naive, inputs, P0, gate, T0, bound)
-    found = Parallel(n_jobs=parts, backend="threading")(
-        delayed(_bnb_chunk)(exps[i::parts], naive, inputs, P0, gate, T0, bound)
-        for i in range(parts)
-    )
-    out = np.zeros((len(exps), 5))
-    for i, f in enumerate(found):
-        out[i::parts] = f
-    return out
-
-
-def _bnb_best(scores: np.ndarray) -> int:
-    """The setting with the smallest complete sum (every setting is scored at the same times)."""
+def _best(scores: np.ndarray) -> int:
+    """The setting with the smallest complete sum of squared errors (every setting is scored at
+    the same times, so it has the smallest pooled RMSE); a setting that diverged scores inf."""
     crit = np.where(scores[:, 4] > 0, scores[:, 0], np.inf)
     crit = np.where(np.isfinite(crit), crit, np.inf)
     return int(np.argmin(crit))
 
 
-def tune_on_drives(scenario: RecordedScenario, inputs: list, jobs: int = 1, seeds=()) -> dict:
-    """`tune`'s grid search (coarse grid, then 3^4 around the best with steps 2^(1/2) and
-    2^(1/4)) on whole drives. The criterion, the pooled position RMSE over every scored time of
-    `inputs`, has the same denominator for every setting, so the smallest sum of squares wins
-    and a setting stops once its partial sum passes the best complete one (branch and bound:
-    the same winner as scoring every setting in full). `seeds` (log2 multipliers) are scored
-    first, to start with a tight bound; the coarse grid then runs nearest the seeds first."""
+def tune(
+    scenario: RecordedScenario, inputs: list, jobs: int = 1, seeds=(), whole: bool = False,
+    memo: WholeRuns | None = None,
+) -> dict:  # fmt: skip
+    """The grid search of `ekf-tuned` (sources.recorded.TuningConfig) on the training runs
+    `inputs` (real_experiment.SegmentInputs, each cold-started from ground truth): the coarse
+    grid, then 3^4 settings around the best so far with steps 2^(1/2) and 2^(1/4). The
+    criterion, the pooled position RMSE over every scored time of `inputs`, has the same
+    denominator for every setting, so the smallest sum of squares wins.
+
+    Training segments (`whole` False): every setting scored in full; the record says which
+    share of the coarse settings lost lock (a position error above 1 m). Whole drives (`whole`
+    True): branch and bound, a setting stops once its partial sum passes the best complete one
+    (the same winner as scoring every setting in full); `seeds` (log2 multipliers) are scored
+    first, to start with a tight bound, and the coarse grid runs nearest the first seed first.
+    `memo`: the runs scored whole by earlier searches on some of `inputs` (`WholeRuns`).
+
+    Returns the chosen standard deviations (sigma_v, sigma_w_rad, sigma_range,
+    sigma_bearing_rad), their log2 multipliers of the naive values, the criterion there, the
+    stages and the time it took.
+    """
     started = time.perf_counter()
     naive = scenario.naive.sigmas()
-    P0 = recorded_p0(scenario)
-    gate = gate_threshold(scenario.gate_probability)
-    T0 = scenario.odometry_period_s
+    runs = GridRuns.of([(s.timeline, s.segment.pose, s.truth, s.scored) for s in inputs])
     count = int(sum(int(s.scored.sum()) for s in inputs))
+    fixed = (naive, recorded_p0(scenario), gate_threshold(scenario.gate_probability),
+             scenario.odometry_period_s)  # fmt: skip
+    shared = (memo, inputs)
+
+    def rmse(sq: float) -> float:
+        return float(math.sqrt(sq / count)) if count else math.nan
+
+    def stage(label: str, sc: np.ndarray) -> dict:
+        doc = {"stage": label, "settings": len(sc)}
+        if whole:
+            doc["stopped_early"] = float(np.mean(sc[:, 4] == 0))
+        else:
+            doc["best"] = rmse(sc[_best(sc), 0])
+        return doc
+
     coarse = np.stack(np.meshgrid(*scenario.tuning.axes(), indexing="ij"), -1).reshape(-1, 4)
-    seeds = np.array(seeds, dtype=float).reshape(-1, 4)
-    anchor = seeds[0] if len(seeds) else coarse.mean(axis=0)
-    coarse = coarse[np.argsort(np.abs(coarse - anchor).sum(axis=1), kind="stable")]
-    bound = math.inf
-    all_exps, all_scores, stages = [], [], []
-    if len(seeds):
-        sc = _bnb_chunk(seeds, naive, inputs, P0, gate, T0, bound)
-        all_exps.append(seeds)
-        all_scores.append(sc)
-        bound = float(sc[_bnb_best(sc), 0]) if np.any(sc[:, 4] > 0) else bound
-    sc = _bnb(coarse, naive, inputs, P0, gate, T0, jobs, bound)
+    all_exps, all_scores, bound = [], [], math.inf
+    if whole:
+        seeds = np.array(seeds, dtype=float).reshape(-1, 4)
+        anchor = seeds[0] if len(seeds) else coarse.mean(axis=0)
+        coarse = coarse[np.argsort(np.abs(coarse - anchor).sum(axis=1), kind="stable")]
+        if len(seeds):
+            sc = _score(runs, seeds, *fixed, 1, bound, whole, *shared)
+            all_exps.append(seeds)
+            all_scores.append(sc)
+            bound = float(sc[_best(sc), 0]) if np.any(sc[:, 4] > 0) else bound
+    sc = _score(runs, coarse, *fixed, jobs, bound, whole, *shared)
     all_exps.append(coarse)
     all_scores.append(sc)
-    stopped = float(np.mean(sc[:, 4] == 0))
-    stages.append({"stage": "coarse (step 2^1)", "settings": len(coarse), "stopped_early": stopped})
+    coarse_scores = sc
+    stages = [stage("coarse (step 2^1)", sc)]
     if scenario.tuning.refine:
         offsets = np.stack(np.meshgrid(*[[-1.0, 0.0, 1.0]] * 4, indexing="ij"), -1).reshape(-1, 4)
         for step, label in ((0.5, "2^(1/2)"), (0.25, "2^(1/4)")):
             exps, scores = np.vstack(all_exps), np.vstack(all_scores)
-            i = _bnb_best(scores)
-            sc = _bnb(exps[i] + step * offsets, naive, inputs, P0, gate, T0, jobs,
-                      float(scores[i, 0]))  # fmt: skip
-            all_exps.append(exps[i] + step * offsets)
+            i = _best(scores)
+            around = exps[i] + step * offsets
+            sc = _score(runs, around, *fixed, jobs, float(scores[i, 0]) if whole else bound,
+                        whole, *shared)  # fmt: skip
+            all_exps.append(around)
             all_scores.append(sc)
-            stages.append({"stage": f"refine (step {label})", "settings": len(offsets),
-                           "stopped_early": float(np.mean(sc[:, 4] == 0))})  # fmt: skip
+            stages.append(stage(f"refine (step {label})", sc))
     exps, scores = np.vstack(all_exps), np.vstack(all_scores)
-    i = _bnb_best(scores)
+    i = _best(scores)
     sig = naive * np.exp2(exps[i])
     seen = scores[i, 2] + scores[i, 3]
-    return {
-        "criterion": "pooled position RMSE over the scored evaluation times of the training"
-        " drives, whole [m]",
+    out = {
+        "criterion": _CRITERION[whole],
         "sigma_v": float(sig[0]),
         "sigma_w_rad": float(sig[1]),
         "sigma_range": float(sig[2]),
         "sigma_bearing_rad": float(sig[3]),
         "log2_multipliers": {a: float(e) for a, e in zip(AXES, exps[i], strict=True)},
-        "train_rmse_pos": float(math.sqrt(scores[i, 0] / count)) if count else math.nan,
+        "train_rmse_pos": rmse(scores[i, 0]),
         "train_max_pos_err": float(scores[i, 1]),
         "train_gate_rejected": float(scores[i, 3] / seen) if seen else math.nan,
-        "settings": int(len(exps)),
-        "search": "branch and bound (engines.tuning): a setting stops once its sum of squared"
-        " errors passes the best complete one; the winner is the full grid's",
-        "stages": stages,
-        "seconds": round(time.perf_counter() - started, 3),
     }
+    if whole:
+        out |= {"settings": int(len(exps)), "search": _BRANCH_AND_BOUND}
+    else:
+        out |= {
+            "train_segments": len(inputs),
+            "settings": int(len(exps)),
+            "coarse_lost_lock_share": float(np.mean(coarse_scores[:, 1] > LOST_LOCK_M)),
+        }
+    return out | {"stages": stages, "seconds": round(time.perf_counter() - started, 3)}
 
 
 def drive_rmse(scenario: RecordedScenario, inputs, tuned: dict) -> float:
@@ -486,11 +441,12 @@ def tune_drives(scenario: RecordedScenario, inputs: dict, world: DriveSet,
     keys |= {(ds,) for ds in by_dataset}
     reference = tuned_reference(scenario)
     tunings: dict[tuple, dict] = {}
+    memo = WholeRuns()  # the folds share drives
     for key in sorted(keys, key=lambda k: (len(k), k)):  # single datasets first: they seed
         drives = [d for ds in key for d in by_dataset[ds]]
         seeds = [list(tunings[(ds,)]["log2_multipliers"].values()) for ds in key
                  if (ds,) in tunings]  # fmt: skip
-        fold = drive_fold(scenario, drives, inputs, jobs, seeds=seeds)
+        fold = drive_fold(scenario, drives, inputs, jobs, seeds=seeds, memo=memo)
         tunings[key] = fit_specs([(reference, fold)], None)[0].fitted
         tunings[key]["train_drives"] = [d.id for d in drives]
     tuned_for, per_drive = {}, []

@@ -115,8 +115,11 @@ class Result:
 
     def _table(self, name: str) -> pd.DataFrame:
         """A table of this result; ResultsError when it belongs to another batch than the
-        manifest's (the check `anfekf report` and `anfekf check` apply). A problem result's
-        summary and runs are its own tables (`PROBLEM_TABLE_OF`)."""
+        manifest's (the check `anfekf report` and `anfekf check` apply); FileNotFoundError when
+        the folder or the table does not exist. A problem result's summary and runs are its own
+        tables (`PROBLEM_TABLE_OF`)."""
+        if not self.folder.is_dir():
+            raise FileNotFoundError(f"{self.folder}: no such result folder")
         if name in PROBLEM_TABLE_OF and self.loaded().kind == PROBLEM:
             name = PROBLEM_TABLE_OF[name]
         path = self.folder / name

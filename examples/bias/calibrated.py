@@ -23,6 +23,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from development import pooled_ratio  # this folder's shared part (run as a script)
 
 from anfekf_bench.config import parse_scenario, read_scenario_document, resolve_world
 from anfekf_bench.engines import fast
@@ -84,10 +85,5 @@ for path in paths:
     print(f"  development runs ({DEV_RUNS}, seed + {DEV_OFFSET}): ratio to ekf-aug-known")
     for name in variants:
         e = np.array(sq[name])
-        pooled = np.sqrt(e.mean() / ref.mean())
-        boot = []
-        for _ in range(2000):
-            i = rng.integers(0, len(e), len(e))
-            boot.append(np.sqrt(e[i].mean() / ref[i].mean()))
-        lo, hi = np.percentile(boot, [2.5, 97.5])
+        pooled, lo, hi = pooled_ratio(e, ref, rng)
         print(f"  {name:11s} {pooled:6.3f} [{lo:.3f}, {hi:.3f}]")

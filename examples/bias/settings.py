@@ -16,6 +16,7 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+from development import pooled_ratio  # this folder's shared part (run as a script)
 
 from anfekf_bench.config import parse_scenario, read_scenario_document, resolve_world
 from anfekf_bench.engines import fast
@@ -83,12 +84,7 @@ for path in paths:
     print("  variant          pooled ratio [95 %]     per-run gm   by fifths of the run")
     for name in vs:
         e = np.array(sq[name])
-        pooled = np.sqrt(e.mean() / ref.mean())
-        boot = []
-        for _ in range(2000):
-            i = rng.integers(0, len(e), len(e))
-            boot.append(np.sqrt(e[i].mean() / ref[i].mean()))
-        lo, hi = np.percentile(boot, [2.5, 97.5])
+        pooled, lo, hi = pooled_ratio(e, ref, rng)
         gm = np.exp(np.mean(np.log(np.sqrt(e.mean(axis=1) / ref.mean(axis=1)))))
         fifths = [
             np.sqrt(a.mean() / b.mean())

@@ -1,5 +1,6 @@
 """Training runs for the filters fitted before the batch (filters.fitted: `ekf-ml`, `ekf-tuned`;
-filters.kalmannet: `kalmannet`, trained on them).
+filters.kalmannet: `kalmannet`, trained on them; filters.augmented: `ekf-aug-calibrated`, its error
+states chosen and started on them).
 
 1. **Seeds.** Evaluation run i draws from `SeedSequence(seed).spawn(runs)[i]`, whose spawn key is
    (i,) with i < MAX_RUNS. Training run j draws from `training_seeds(seed, n)[j]`: the children
@@ -144,6 +145,23 @@ class TrainingSet(TrainingRuns):
         )  # fmt: skip
         found["sigmas_rad"] = dict(zip(SIGMA_NAMES, found.pop("sigmas"), strict=True))
         return found
+
+    def parameter_ends(self, spec) -> np.ndarray:
+        """Each training run's error-parameter estimates at its last record by `spec` (an
+        `ekf-aug`) on the fast engine's kernel: runs x 4 (filters.augmented.PARAMETERS' order),
+        NaN for a run that lost its covariance; what `ekf-aug-calibrated` is fitted on."""
+        from ..engines.fast import augmented_run
+        from ..filters.context import filter_context
+        from ..timeline import from_run
+
+        ctx = filter_context(spec, self.scenario, self.world)
+        ends = []
+        for run in self.runs:
+            _, theta = augmented_run(
+                spec, ctx, from_run(run, self.world, self.scenario.record_every)
+            )
+            ends.append(theta[-1])
+        return np.array(ends)
 
 
 def simulate_training(

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
-from anfekf_bench.config import parse_scenario, resolve_world
+from anfekf_bench.config import ScenarioError, parse_scenario, resolve_world
 from anfekf_bench.filters.augmented import (
     PARAMETERS,
     SIGMA0_FLOOR,
@@ -85,10 +85,11 @@ def test_a_fitted_kind_run_once_on_simulated_training_runs_only():
 def small_biased(**overrides) -> dict:
     """The small world with a 0.4 m range bias and a 10 % speed scale, the filters assuming the
     true noise, 3 training runs."""
-    return small_scenario(
-        filter_noise={}, error_sources={"speed_scale": 1.1, "range_bias": 0.4},
-        training={"runs": 3}, filters=[{"name": "cal", "kind": KIND}], **overrides,
-    )  # fmt: skip
+    doc = {
+        "filter_noise": {}, "error_sources": {"speed_scale": 1.1, "range_bias": 0.4},
+        "training": {"runs": 3}, "filters": [{"name": "cal", "kind": KIND}],
+    }  # fmt: skip
+    return small_scenario(**{**doc, **overrides})
 
 
 def test_the_fit_selects_the_injected_parameters(tmp_path):
@@ -169,7 +170,7 @@ def test_too_few_training_runs_is_one_line_with_exit_2(tmp_path):
     [({"tolerance": [0.03, 0.03, -0.1, 0.05]}, "tolerance"), ({"estimate": ["wheel"]}, "estimate")],
 )
 def test_bad_fields_are_refused(entry, says):
-    with pytest.raises(ValueError, match=says):
+    with pytest.raises(ScenarioError, match=f"filters.0.{says}"):
         parse_scenario(small_scenario(filters=[{"name": "c", "kind": KIND, **entry}]))
 
 
@@ -187,5 +188,8 @@ def test_a_recorded_scenario_refuses_the_kind_in_one_line(tmp_path):
     result = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / "out")])
     lines = result.output.strip().splitlines()
     assert result.exit_code == 2 and len(lines) == 1, result.output
-    assert lines[0].startswith(f"error: {path}") and KIND in lines[0], result.output
+    assert lines[0] == (
+        f"error: {path}: filters.1: kind {KIND!r} is not available in a recorded scenario: it is"
+        " fitted on simulated training runs only"
+    ), result.output
     assert not (tmp_path / "out").exists()

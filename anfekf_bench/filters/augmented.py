@@ -166,6 +166,8 @@ class CalibratedAugmentedSpec(FittedSpec, AugmentedSpec):
     parameters of `estimate` whose training estimates differ from `start` by more than
     `tolerance` are estimated, from their training mean with the training spread as start
     standard deviation; the others are held at `start` (SPEC 18, docs/results/bias.md).
+    `start`, `sigma0` and `drift` are ekf-aug's on the training runs (`start`: the nominal
+    values too); the scored runs keep `drift`.
 
     The fit (`fit_sources`: simulated training runs only; a recorded scenario refuses the kind:
     a vehicle's constants are its own, another drive's robot has others): ekf-aug with this

@@ -36,25 +36,25 @@ from anfekf_bench.timeline import from_run
 TOLERANCE = np.array([0.03, 0.03, math.radians(0.25), 0.05])
 configs = Path(__file__).resolve().parents[2] / "configs" / "bias"
 argv = sys.argv[1:]
-family, name = None, "ekf-aug"
+family, chosen = None, "ekf-aug"
 if argv[:1] == ["--family"]:
     family, argv = argv[1], argv[2:]
 elif argv[:1] == ["--filter"]:
-    name, argv = argv[1], argv[2:]
+    chosen, argv = argv[1], argv[2:]
 paths = [Path(p) for p in argv] or sorted(configs.glob("*.yaml"))
 
 for path in paths:
     scenario = parse_scenario(read_scenario_document(path), path)
     world = resolve_world(scenario.world, path.parent)
     specs = {s.name: s for s in scenario.filters}
-    if name not in specs:
+    if chosen not in specs:
         continue
-    aug, known = specs[name], specs["ekf-aug-known"]
+    aug, known = specs[chosen], specs["ekf-aug-known"]
     if aug.fitted_on_training:  # ekf-aug-calibrated: on the training runs, never these
         training = TrainingSet(scenario=scenario, world=world, seed=scenario.seed)
         aug = aug.with_fit(fit_specs([(aug, training)], None)[0].fitted)
         print(
-            f"\n{scenario.name}: {name} fitted on {scenario.training.runs} training runs:"
+            f"\n{scenario.name}: {chosen} fitted on {scenario.training.runs} training runs:"
             f" estimates {aug.augment.estimate}, start {np.round(aug.augment.start, 4).tolist()}"
         )
     if family is not None:

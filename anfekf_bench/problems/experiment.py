@@ -199,7 +199,7 @@ def execute_problem(scenario: ProblemScenario, out: Path, *, runs: int | None = 
         names = [s.name for s in scenario.filters]
         traces = {name: [tr[name] for _, tr in results] for name in names}
         specs = {s.name: s for s in scenario.filters}
-        oracles = [s.name for s in scenario.filters if s.uses_true_noise]
+        oracles = [s.name for s in scenario.filters if s.role == "oracle"]
         problem = scenario.build_problem()
         tables = score(problem, truth, traces, specs, oracles[0] if oracles else None, seed)
         fp = fingerprint(scenario, runs, seed)

@@ -151,6 +151,7 @@ class ScenarioSummary:
     # its summary holds, and a consistent filter's ANEES is its state dimension.
     problem: str | None = None
     anees_ideal: float = 3.0
+    units: dict[str, str] | None = None  # its own unit of a metric (analysis.shown)
 
 
 @dataclass(frozen=True)
@@ -171,6 +172,7 @@ class Row:
     delta: str
     verdict: str
     detail: str = ""
+    shown: str = ""  # the metric with its unit (analysis.shown); "": the metric as it is
 
     @property
     def passed(self) -> bool:
@@ -560,19 +562,20 @@ def _describe(tolerance: Tolerance, metric: str) -> str:
 
 def compare_metric(
     scenario: str, filt: str, metric: str, tolerance: Tolerance, base: float, now: float,
-    sense=None,
+    sense=None, units: dict[str, str] | None = None,
 ) -> Row:  # fmt: skip
     verdict = judge(metric, tolerance, base, now, sense)
     detail = ""
+    shown = shown_metric(metric, units)
     if verdict != "ok":
         before, after = (fmt_value(in_shown_unit(metric, x)) for x in (base, now))
         detail = (
-            f"{scenario} / {filt} / {shown_metric(metric)}: {before} -> {after}"
+            f"{scenario} / {filt} / {shown}: {before} -> {after}"
             f" ({_fmt_delta(tolerance, base, now, metric)};"
             f" tolerance {_describe(tolerance, metric)}): {verdict}"
         )
     delta = _fmt_delta(tolerance, base, now, metric)
-    return Row(scenario, filt, metric, base, now, delta, verdict, detail)
+    return Row(scenario, filt, metric, base, now, delta, verdict, detail, shown)
 
 
 NOT_COMPARABLE = "not comparable"
@@ -635,7 +638,7 @@ def compare(baseline: Baseline, results: dict[str, ScenarioSummary]) -> list[Row
                 sense = now.anees_ideal if metric == "anees" else None
                 rows.append(compare_metric(name, filt, metric, tolerance,
                                            b.get(metric, math.nan), n.get(metric, math.nan),
-                                           sense))  # fmt: skip
+                                           sense, now.units))  # fmt: skip
     return rows
 
 
@@ -861,7 +864,7 @@ def comparison_table(rows: list[Row], title: str) -> Table:
         cells = (
             r.scenario,
             r.filter,
-            shown_metric(r.metric),
+            r.shown or shown_metric(r.metric),
             fmt_value(in_shown_unit(r.metric, r.baseline)),
             fmt_value(in_shown_unit(r.metric, r.now)),
             r.delta,

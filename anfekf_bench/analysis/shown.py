@@ -5,17 +5,22 @@ from __future__ import annotations
 
 import math
 
-# How the gate shows a metric: its name with its unit, and the factor from the stored unit. The
-# files keep radians; every table a user reads shows angles in degrees (one unit per surface).
+# How the gate shows a metric: its unit, and the factor from the stored unit. The files keep
+# radians; every table a user reads shows angles in degrees (one unit per surface). The robot's
+# units; a problem beyond the robot gives its own position unit (its manifest's
+# `position_unit`: the tracking radar's m, none for the linear system), as the `units` of its
+# `gate.ScenarioSummary`.
 SHOWN_UNITS: dict[str, tuple[str, float]] = {
-    "rmse_pos": ("rmse_pos [m]", 1.0),
-    "rmse_heading": ("rmse_heading [deg]", 180.0 / math.pi),
+    "rmse_pos": ("m", 1.0),
+    "rmse_heading": ("deg", 180.0 / math.pi),
 }
 
 
-def shown_metric(metric: str) -> str:
-    """`metric` with the unit it is shown in ('rmse_heading [deg]')."""
-    return SHOWN_UNITS.get(metric, (metric, 1.0))[0]
+def shown_metric(metric: str, units: dict[str, str] | None = None) -> str:
+    """`metric` with the unit it is shown in ('rmse_heading [deg]'; `units`: a scenario's own
+    unit of a metric, '' for none: 'rmse_pos')."""
+    unit = (units or {}).get(metric, SHOWN_UNITS.get(metric, ("", 1.0))[0])
+    return f"{metric} [{unit}]" if unit else metric
 
 
 def in_shown_unit(metric: str, x: float | None) -> float | None:

@@ -212,6 +212,7 @@ def execute_problem(scenario: ProblemScenario, out: Path, *, runs: int | None = 
             "format": PROBLEM_FORMAT,
             "scenario": scenario.model_dump(mode="json"),
             "problem": scenario.problem, "state_dimension": problem.n,
+            "position_unit": problem.position_unit,
             "engine": scenario.engine, "engine_setup": engine_record,
             "module_sha256": module_digest(scenario),
             "runs": runs, "seed": seed, "jobs": jobs, "fingerprint": fp,

@@ -88,6 +88,49 @@ def test_no_module_outside_the_registry_compares_a_filter_kind_with_a_string():
     assert offenders == {}
 
 
+def kind_tests(source: str) -> list[str]:
+    """Comparisons (`==`, `!=`, `in`) of anything with a registered kind string, and calls of a
+    function named after kinds (`first_of_kind(sc, "ekf")`) with one: the forms KIND_TEST
+    misses (`name == "ekf-oracle"`, `k == "ekf"`, `"ekf" not in timings`)."""
+    found = []
+
+    def kinds_in(node) -> list[str]:
+        items = node.elts if isinstance(node, (ast.Tuple, ast.List, ast.Set)) else [node]
+        strings = [e.value for e in items if isinstance(e, ast.Constant)]
+        return [s for s in strings if isinstance(s, str) and s in SPEC_BY_KIND]
+
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Compare):
+            found += [k for part in (node.left, *node.comparators) for k in kinds_in(part)]
+        elif isinstance(node, ast.Call) and "kind" in ast.unparse(node.func).lower():
+            found += [k for arg in node.args for k in kinds_in(arg)]
+    return found
+
+
+def test_the_comparison_finder_sees_names_and_keys_compared_with_a_kind():
+    src = (
+        'name == "ekf-oracle"\nk in ("ekf", "imm")\n"ekf" not in timings\n'
+        'first_of_kind(sc, "ekf-oracle")\nx == "dask"\nf(sc, "ekf")'
+    )
+    assert kind_tests(src) == ["ekf-oracle", "ekf", "imm", "ekf", "ekf-oracle"]
+
+
+# A value that is not a kind but spells one: vb-imm's `r_rule: sage-husa` (its members' R rule,
+# named after the family it borrows).
+KNOWN_TESTS = {"filters/vb_bank.py": ["sage-husa"]}
+
+
+def test_no_module_outside_the_registry_tests_a_name_or_key_against_a_kind():
+    found = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if path == PACKAGE / "filters" / "registry.py":
+            continue
+        tests = kind_tests(path.read_text(encoding="utf-8"))
+        if tests:
+            found[str(path.relative_to(PACKAGE))] = tests
+    assert found == KNOWN_TESTS
+
+
 def test_comparison_rank_orders_a_group_by_role():
     """The overview's order within a scenario: the reference first, the paper's ANFEKF next,
     every other kind, the oracle last (registry.comparison_rank, not a list of kind strings)."""

@@ -100,10 +100,6 @@ RULES = [
 ]
 
 
-ADAPTIVE = "anfekf"
-REFERENCE = "ekf"
-
-
 class BaselineError(Exception):
     """The baseline file cannot be used; `str()` is the one-line message for the user."""
 

@@ -4,6 +4,7 @@ asks the registry, and no module outside the registry compares a filter kind wit
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from pathlib import Path
 
@@ -88,7 +89,12 @@ def test_no_module_outside_the_registry_compares_a_filter_kind_with_a_string():
     assert offenders == {}
 
 
-def kind_tests(source: str) -> list[str]:
+def _called(func: ast.AST) -> str:
+    """The name a call calls (`first_of_kind` of `data.first_of_kind(...)`)."""
+    return getattr(func, "id", None) or getattr(func, "attr", None) or ""
+
+
+def kind_tests(nodes) -> list[str]:
     """Comparisons (`==`, `!=`, `in`) of anything with a registered kind string, and calls of a
     function named after kinds (`first_of_kind(sc, "ekf")`) with one: the forms KIND_TEST
     misses (`name == "ekf-oracle"`, `k == "ekf"`, `"ekf" not in timings`)."""
@@ -99,10 +105,10 @@ def kind_tests(source: str) -> list[str]:
         strings = [e.value for e in items if isinstance(e, ast.Constant)]
         return [s for s in strings if isinstance(s, str) and s in SPEC_BY_KIND]
 
-    for node in ast.walk(ast.parse(source)):
+    for node in ast.walk(ast.parse(nodes)) if isinstance(nodes, str) else nodes:
         if isinstance(node, ast.Compare):
             found += [k for part in (node.left, *node.comparators) for k in kinds_in(part)]
-        elif isinstance(node, ast.Call) and "kind" in ast.unparse(node.func).lower():
+        elif isinstance(node, ast.Call) and "kind" in _called(node.func).lower():
             found += [k for arg in node.args for k in kinds_in(arg)]
     return found
 
@@ -121,13 +127,7 @@ KNOWN_TESTS = {"filters/vb_bank.py": ["sage-husa"]}
 
 
 def test_no_module_outside_the_registry_tests_a_name_or_key_against_a_kind():
-    found = {}
-    for path in sorted(PACKAGE.rglob("*.py")):
-        if path == PACKAGE / "filters" / "registry.py":
-            continue
-        tests = kind_tests(path.read_text(encoding="utf-8"))
-        if tests:
-            found[str(path.relative_to(PACKAGE))] = tests
+    found = {path: tests for path, n in package_nodes().items() if (tests := kind_tests(n))}
     assert found == KNOWN_TESTS
 
 
@@ -155,11 +155,23 @@ def _subclasses(cls: type) -> set[type]:
 SPEC_NAMES = {c.__name__ for c in _subclasses(FilterSpec) | _subclasses(ProblemFilterSpec)}
 
 
-def kind_lists(source: str) -> list[list[str]]:
-    """The tuples, lists, sets and dict keys in `source` holding two or more filter kinds: spec
-    classes by name or registered kind strings (a list of kinds beside the registry's)."""
+@functools.cache
+def package_nodes() -> dict[str, list[ast.AST]]:
+    """Every module of the package but the registry (path relative to it -> its AST nodes),
+    parsed once for the scans below."""
+    return {
+        str(path.relative_to(PACKAGE)): list(ast.walk(ast.parse(path.read_text(encoding="utf-8"))))
+        for path in sorted(PACKAGE.rglob("*.py"))
+        if path != PACKAGE / "filters" / "registry.py"
+    }
+
+
+def kind_lists(nodes) -> list[list[str]]:
+    """The tuples, lists, sets and dict keys among `nodes` (a source's text, or its AST nodes)
+    holding two or more filter kinds: spec classes by name or registered kind strings (a list
+    of kinds beside the registry's)."""
     found = []
-    for node in ast.walk(ast.parse(source)):
+    for node in ast.walk(ast.parse(nodes)) if isinstance(nodes, str) else nodes:
         if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
             items = node.elts
         elif isinstance(node, ast.Dict):
@@ -196,13 +208,7 @@ def test_the_list_finder_sees_a_second_list_of_kinds():
 
 def test_no_module_outside_the_registry_keeps_a_list_of_kinds():
     """problems/ included: its schema, docs and tests derive the kinds from the registry."""
-    found = {}
-    for path in sorted(PACKAGE.rglob("*.py")):
-        if path == PACKAGE / "filters" / "registry.py":
-            continue
-        lists = kind_lists(path.read_text(encoding="utf-8"))
-        if lists:
-            found[str(path.relative_to(PACKAGE))] = len(lists)
+    found = {path: len(lists) for path, n in package_nodes().items() if (lists := kind_lists(n))}
     assert found == KNOWN_LISTS
 
 
@@ -210,8 +216,8 @@ def _declared_kinds() -> dict[str, list[str]]:
     """Registered kind -> every class in the package declaring `kind: Literal[<it>]`, as
     "<module path>:<class>"."""
     out: dict[str, list[str]] = {}
-    for path in sorted(PACKAGE.rglob("*.py")):
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+    for path, nodes in package_nodes().items():  # the registry declares no spec class
+        for node in nodes:
             if not isinstance(node, ast.ClassDef):
                 continue
             for stmt in node.body:
@@ -223,7 +229,7 @@ def _declared_kinds() -> dict[str, list[str]]:
                     and isinstance(stmt.annotation.slice, ast.Constant)
                     and stmt.annotation.slice.value in SPEC_BY_KIND
                 ):
-                    where = f"{path.relative_to(PACKAGE.parent).with_suffix('')}:{node.name}"
+                    where = f"anfekf_bench/{path.removesuffix('.py')}:{node.name}"
                     out.setdefault(stmt.annotation.slice.value, []).append(where)
     return out
 

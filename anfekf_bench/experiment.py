@@ -576,6 +576,7 @@ def write_result(
         steps_table=plan.scenario.steps_table,
         metadata={"scenario": plan.name, "seed": str(plan.seed), "fingerprint": fingerprint},
         extra=prepared.tables,
+        durable=False,  # finish_result flushes the staged files together before installing
     )
     manifest = {
         "scenario": plan.scenario.model_dump(mode="json"),
@@ -605,7 +606,7 @@ def write_result(
         "run_seconds": round(run_seconds, 3),
         "wall_time_s": round(time.time() - started, 3),
     }
-    write_json(staging / MANIFEST_FILE, manifest)
+    write_json(staging / MANIFEST_FILE, manifest, durable=False)
     finish_result(target, staging)
 
 

@@ -53,6 +53,14 @@ SWEEP_CELLS_DIR = "cells"  # a sweep's cells: <sweep>/cells/<cell>/, each a scen
 SWEEP_FILE = "sweep.parquet"  # a sweep's table: one row per cell and filter
 STAGING_DIR = "result"  # in RUNS_DIR: a finished batch's files before they replace the old ones
 RESULT_FORMAT = "anfekf-bench result v1"  # manifest.json's "format": what marks a folder as ours
+# A problem beyond the robot's result (SPEC 17, problems.experiment): its manifest's format, tables
+PROBLEM_FORMAT = "anfekf-bench problem result v1"
+PROBLEM_TABLES = {
+    "summary": "problem_summary.parquet",
+    "runs": "problem_runs.parquet",
+    "noise": "problem_noise.parquet",
+    "timing": "problem_timing.parquet",
+}
 # The drive audit's tables (drive_audit, SPEC 18): a `protocol: drives` result only
 AUDIT_FILES = {
     "drives": "audit_drives.parquet",

@@ -26,6 +26,8 @@ import pandas as pd
 from ..provenance import git_commit, package_version
 from ..storage import (
     MANIFEST_FILE,
+    PROBLEM_FORMAT,
+    PROBLEM_TABLES,
     ResultsError,
     folder_lock,
     foreign_entries,
@@ -40,13 +42,7 @@ from .module import ModuleProblemError, file_digest
 from .schema import ProblemScenario
 from .scoring import score
 
-PROBLEM_FORMAT = "anfekf-bench problem result v1"
-TABLES = {
-    "summary": "problem_summary.parquet",
-    "runs": "problem_runs.parquet",
-    "noise": "problem_noise.parquet",
-    "timing": "problem_timing.parquet",
-}
+TABLES = PROBLEM_TABLES  # the result's file names (storage: the loader reads them too)
 
 
 class ProblemRunError(Exception):

@@ -32,7 +32,12 @@ from pydantic import (
     model_validator,
 )
 
-from ..config import MAX_SEED, ScenarioError, check_unique_names
+from ..config import (  # is_problem_document: re-exported
+    MAX_SEED,
+    ScenarioError,
+    check_unique_names,
+    is_problem_document,  # noqa: F401
+)
 from ..filters.registry import supports_problem, unsupported_reason
 from ..schema import StrictModel
 from ..storage import scenario_name_problem
@@ -293,11 +298,6 @@ class ProblemScenario(StrictModel):
 
 
 SYSTEMS: dict[str, type[StrictModel]] = {"linear": LinearSystem, "tracking": TrackingSystem}
-
-
-def is_problem_document(data: object) -> bool:
-    """Whether a scenario document names a problem other than the robot."""
-    return isinstance(data, dict) and data.get("problem", "robot") != "robot"
 
 
 def parse_problem_scenario(data: dict, path: str | Path) -> ProblemScenario:

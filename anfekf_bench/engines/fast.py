@@ -469,4 +469,5 @@ if __name__ == "__main__":  # `make setup`: compile every kernel into numba's ca
             sys.exit(0)
         part = None
     seconds = warm_up(part=part)
-    print(f"fast engine: numba kernels ({part or 'all'}) compiled into the cache in {seconds:.0f} s")
+    what = f"numba kernels ({part or 'all'})"
+    print(f"fast engine: {what} compiled into the cache in {seconds:.0f} s")

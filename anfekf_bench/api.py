@@ -120,12 +120,13 @@ class Result:
         tables (`PROBLEM_TABLE_OF`)."""
         if not self.folder.is_dir():
             raise FileNotFoundError(f"{self.folder}: no such result folder")
-        if name in PROBLEM_TABLE_OF and self.loaded().kind == PROBLEM:
+        loaded = self.loaded()
+        if name in PROBLEM_TABLE_OF and loaded.kind == PROBLEM:
             name = PROBLEM_TABLE_OF[name]
         path = self.folder / name
         if not path.exists():
             raise FileNotFoundError(f"{path}: not written for this result")
-        return self.loaded().read(name)
+        return loaded.read(name)
 
     def summary(self) -> pd.DataFrame:
         """One row per filter: RMSE, ANEES, NEES in bounds, updates, divergence (a problem's:

@@ -116,12 +116,13 @@ def engine_kinds() -> dict[str, FilterSpec]:
 def default_step_cost(engine_us: dict[str, dict[str, float]]) -> float | None:
     """The default filter's per-step time over the EKF's on the fast engine (None: no such
     kind timed)."""
-    from .filters.registry import SPEC_BY_KIND
+    from .filters.registry import SPEC_BY_KIND, kinds_with_role
 
     kinds = [k for k, cls in SPEC_BY_KIND.items() if cls.default_filter and k in engine_us]
-    if not kinds or "ekf" not in engine_us:
+    (ekf,) = kinds_with_role("reference")
+    if not kinds or ekf not in engine_us:
         return None
-    return max(engine_us[k]["fast"] for k in kinds) / engine_us["ekf"]["fast"]
+    return max(engine_us[k]["fast"] for k in kinds) / engine_us[ekf]["fast"]
 
 
 def bench_kalmannet(seed: int = 0) -> FilterSpec:

@@ -387,6 +387,12 @@ class Scenario(_Strict):
         return [name for name, _, _ in self.instances()]
 
 
+def is_problem_document(data: object) -> bool:
+    """Whether a scenario document names a problem other than the robot (SPEC 17: validated by
+    `problems.schema`, which a robot's scenario never needs to import)."""
+    return isinstance(data, dict) and data.get("problem", "robot") != "robot"
+
+
 def source_of(document: dict) -> Literal["simulated", "recorded"]:
     """Which member of the source union a scenario document is: a recorded log names its
     `data:` (SPEC 9), a simulated world needs nothing (every world key has a default)."""

@@ -39,7 +39,8 @@ from . import cli
 from .config import SimulatedScenario
 from .filters.registry import SPEC_BY_KIND, adapts_line, capabilities, problems_of
 from .filters.spec import AdaptiveParams
-from .problems.schema import PROBLEM_FILTER_SPECS, ProblemScenario
+from .problems.forms import FORMS as PROBLEM_FORMS
+from .problems.schema import ProblemScenario
 from .sources.recorded import RecordedScenario
 from .storage import write_atomic
 
@@ -269,7 +270,7 @@ def filter_kinds_markdown() -> str:
         "On a problem beyond the robot (`problem: linear`, `tracking`; docs/PROBLEMS.md) these"
         " kinds have a dimension-generic implementation with full Q and R, and these parameters:",
     ]
-    for spec in PROBLEM_FILTER_SPECS:
+    for spec in PROBLEM_FORMS:
         kind = spec.model_fields["kind"].annotation.__args__[0]
         doc = " ".join((spec.__doc__ or "").strip().split("\n\n")[0].split())
         own = field_rows(spec, skip=("name", "kind"))

@@ -68,7 +68,6 @@ from .outputs import (
     survey_output,
     write_result_tables,
 )
-from .real_experiment import RecordedSource
 from .runner import Prepared, connect_dask, dispatch_runs, engine_of, fast_compiled, simulated_items
 from .sources.simulator import RouteNotCompleted, simulate_truth, world_path
 from .storage import (
@@ -183,6 +182,9 @@ def plan_source(scenario: Scenario, world, runs: int | None) -> Source:
             f"--runs {runs}: a real-data scenario's runs are its held-out segments (set"
             " segment_s in the scenario file)"
         )
+    # imported here: a simulated plan never pays for the recorded logs' readers, fits and audit
+    from .real_experiment import RecordedSource
+
     return RecordedSource(world)
 
 
@@ -576,6 +578,7 @@ def write_result(
         steps_table=plan.scenario.steps_table,
         metadata={"scenario": plan.name, "seed": str(plan.seed), "fingerprint": fingerprint},
         extra=prepared.tables,
+        durable=False,  # finish_result flushes the staged files together before installing
     )
     manifest = {
         "scenario": plan.scenario.model_dump(mode="json"),
@@ -605,7 +608,7 @@ def write_result(
         "run_seconds": round(run_seconds, 3),
         "wall_time_s": round(time.time() - started, 3),
     }
-    write_json(staging / MANIFEST_FILE, manifest)
+    write_json(staging / MANIFEST_FILE, manifest, durable=False)
     finish_result(target, staging)
 
 

@@ -444,8 +444,11 @@ def write_result_tables(
     steps_table: bool,
     metadata: dict | None = None,
     extra: dict[str, pd.DataFrame] | None = None,
+    durable: bool = True,
 ) -> None:
     """Write every table atomically; steps.parquet only when the scenario asks for it.
+    `durable=False`: without a flush per file, for a staged result (`storage.install_result`
+    flushes them all together before they replace the old result).
 
     Every Parquet file has scenario and filter as plain strings (they join across files) and
     says in its key-value metadata where it came from: `metadata` (scenario, seed,
@@ -454,15 +457,16 @@ def write_result_tables(
 
     def parquet(name: str, df: pd.DataFrame) -> None:
         df = parquet_frame(df)
-        write_parquet(target / name, df, {**(metadata or {}), "units": column_units(df)})
+        meta = {**(metadata or {}), "units": column_units(df)}
+        write_parquet(target / name, df, meta, durable=durable)
 
     if steps_table:
         parquet(STEPS_FILE, tables.steps)
     parquet(RUNS_FILE, tables.runs)
     parquet(SUMMARY_PARQUET, pd.DataFrame(tables.summary))
-    write_json(target / SUMMARY_JSON, tables.summary)
+    write_json(target / SUMMARY_JSON, tables.summary, durable=durable)
     parquet(COMPARISONS_FILE, tables.comparisons)
-    write_json(target / CLAIMS_FILE, tables.claims)
+    write_json(target / CLAIMS_FILE, tables.claims, durable=durable)
     if tables.phases is not None:
         parquet(PHASES_FILE, tables.phases)
     for name, df in (extra or {}).items():  # the source's own tables (the drive audit)

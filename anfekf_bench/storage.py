@@ -25,6 +25,7 @@ import stat
 import tempfile
 import zipfile
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
@@ -52,6 +53,14 @@ SWEEP_CELLS_DIR = "cells"  # a sweep's cells: <sweep>/cells/<cell>/, each a scen
 SWEEP_FILE = "sweep.parquet"  # a sweep's table: one row per cell and filter
 STAGING_DIR = "result"  # in RUNS_DIR: a finished batch's files before they replace the old ones
 RESULT_FORMAT = "anfekf-bench result v1"  # manifest.json's "format": what marks a folder as ours
+# A problem beyond the robot's result (SPEC 17, problems.experiment): its manifest's format, tables
+PROBLEM_FORMAT = "anfekf-bench problem result v1"
+PROBLEM_TABLES = {
+    "summary": "problem_summary.parquet",
+    "runs": "problem_runs.parquet",
+    "noise": "problem_noise.parquet",
+    "timing": "problem_timing.parquet",
+}
 # The drive audit's tables (drive_audit, SPEC 18): a `protocol: drives` result only
 AUDIT_FILES = {
     "drives": "audit_drives.parquet",
@@ -265,9 +274,11 @@ def _json_safe(obj):
     return obj
 
 
-def write_json(path: Path, obj) -> None:
+def write_json(path: Path, obj, *, durable: bool = True) -> None:
+    """`obj` as JSON, atomically; `durable=False`: no fsync (the caller flushes the file later,
+    as `install_result` does for a staged result)."""
     text = json.dumps(_json_safe(obj), indent=2, sort_keys=False) + "\n"
-    write_atomic(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+    write_atomic(path, lambda tmp: tmp.write_text(text, encoding="utf-8"), durable=durable)
 
 
 PARQUET_KEY_PREFIX = "anfekf."  # our keys in a Parquet file's key-value metadata
@@ -317,9 +328,13 @@ def parquet_provenance(path: Path) -> dict[str, str]:
     }
 
 
-def write_parquet(path: Path, df: pd.DataFrame, metadata: dict[str, object] | None = None) -> None:
+def write_parquet(
+    path: Path, df: pd.DataFrame, metadata: dict[str, object] | None = None, *,
+    durable: bool = True,
+) -> None:  # fmt: skip
     """Write `df` atomically, with `anfekf.<key>` entries in the file's key-value metadata: this
-    package's version and git commit always, then `metadata` (text, or JSON for others)."""
+    package's version and git commit always, then `metadata` (text, or JSON for others);
+    `durable=False`: no fsync (see `write_json`)."""
     pa, pq = _arrow()
     table = pa.Table.from_pandas(df, preserve_index=False)
     found = {"version": package_version(), "git_commit": git_commit() or "unknown"}
@@ -335,7 +350,9 @@ def write_parquet(path: Path, df: pd.DataFrame, metadata: dict[str, object] | No
     # distinct): trying them there took 7x the time of the whole write and gave a larger file.
     coded = [f.name for f in table.schema if not pa.types.is_floating(f.type)]
     write_atomic(
-        path, lambda tmp: pq.write_table(table, tmp, compression="zstd", use_dictionary=coded)
+        path,
+        lambda tmp: pq.write_table(table, tmp, compression="zstd", use_dictionary=coded),
+        durable=durable,
     )
 
 
@@ -549,10 +566,33 @@ def is_result_manifest(doc: object) -> bool:
     return isinstance(versions, dict) and isinstance(versions.get("anfekf-bench"), str)
 
 
+def sync_files(paths: list[Path]) -> None:
+    """fsync every file of `paths`, all at once from threads: the file system commits them
+    together (one journal commit rather than one a file: a staged result's eight flushes took
+    30-55 ms one after the other, 16-26 ms together, on this project's ext4 machine)."""
+
+    def flush(path: Path) -> None:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+    if len(paths) <= 1:
+        for path in paths:
+            flush(path)
+        return
+    with ThreadPoolExecutor(max_workers=min(len(paths), 16)) as pool:
+        list(pool.map(flush, paths))  # the first error is raised here
+
+
 def install_result(target: Path, staging: Path) -> None:
     """Replace the result in `target` by the complete one in `staging` (manifest written last).
 
-    Until this is called the old result stays whole, whatever fails during a batch. The old
+    The staged files are flushed to disk first, together (`sync_files`; they may be written
+    without a flush of their own), so that a power cut during or after the renames cannot leave
+    a manifest in place over tables whose bytes never reached the disk. Until this is called
+    the old result stays whole, whatever fails during a batch. The old
     manifest goes first, so a kill during these few renames leaves a folder that reads as
     incomplete (never a mix under an old manifest); the run store is still there, and the same
     command resumes from it (every run saved) and writes the result again.
@@ -561,6 +601,7 @@ def install_result(target: Path, staging: Path) -> None:
     new = {p.name for p in staging.iterdir()}
     if MANIFEST_FILE not in new:
         raise ResultsError(f"{staging}: incomplete staged result (no {MANIFEST_FILE})")
+    sync_files([staging / name for name in sorted(new)])  # on disk before the first rename
     manifest = target / MANIFEST_FILE
     if manifest.is_file() and not manifest.is_symlink():
         os.unlink(manifest)
@@ -696,22 +737,40 @@ def foreign_entries(folder: Path) -> list[str]:
 #
 # A run result is a nested structure of dicts (str or int keys), lists/tuples, numpy arrays and
 # scalars, and Python bool/int/float/str/None. It is stored as an uncompressed .npz (loaded with
-# allow_pickle=False): the arrays as members a0, a1, ..., and a JSON header describing the tree,
-# with the batch's fingerprint and a SHA-256 over the fingerprint, the tree and every array's
-# dtype, shape and bytes. A file whose format, fingerprint or checksum does not match is refused
-# (the run is redone); nothing in it is ever executed.
+# allow_pickle=False) of two uint8 members: a JSON header describing the tree (each array's
+# dtype, shape and memory order in its place) with the batch's fingerprint and a SHA-256 over
+# the fingerprint, the tree and the data, and the data: every array's bytes, one after the other
+# in the tree's order. A file whose format, fingerprint or checksum does not match, or whose
+# data is not exactly its arrays' bytes, is refused (the run is redone); nothing in it is ever
+# executed. (v1 stored each array as its own member: writing 30 members cost ~5 ms a run, most
+# of a fast-engine run's own time.)
 
-RUN_FORMAT = "anfekf-bench run v1"
+RUN_FORMAT = "anfekf-bench run v2"
 HEADER_KEY = "header"
+DATA_KEY = "data"
 RUN_FILE_LIMIT = 4 * 2**30
 _HEADER_LIMIT = 64 * 2**20
+# numbers, booleans, strings, dates: never objects (nor structured types)
+_DTYPE = re.compile(r"[<>|=](?:[biufc][0-9]{1,2}|[US][0-9]{1,9}|[mM]8(?:\[[0-9]*[a-zA-Z]+\])?)")
+_MAX_DIMS = 32
 
 
 class RunFileRefused(Exception):
     """A saved run cannot be used; `str()` says why (the caller redoes the run)."""
 
 
-def _encode(node, arrays: dict[str, np.ndarray], depth: int = 0):
+def _array_node(arr: np.ndarray, chunks: list[bytes]) -> list:
+    """[dtype, shape, order] of an array whose bytes go to `chunks` (F: Fortran order)."""
+    if arr.dtype.hasobject:
+        raise TypeError("run result holds an object array: only plain arrays can be stored")
+    if not _DTYPE.fullmatch(arr.dtype.str):
+        raise TypeError(f"run result holds a {arr.dtype} array, which cannot be stored")
+    order = "F" if arr.ndim > 1 and arr.flags.f_contiguous and not arr.flags.c_contiguous else "C"
+    chunks.append(arr.tobytes(order=order))
+    return [arr.dtype.str, list(arr.shape), order]
+
+
+def _encode(node, chunks: list[bytes], depth: int = 0):
     if depth > 32:
         raise TypeError("run result nested deeper than 32 levels")
     if isinstance(node, dict):
@@ -719,18 +778,14 @@ def _encode(node, arrays: dict[str, np.ndarray], depth: int = 0):
         for key, value in node.items():
             if isinstance(key, bool) or not isinstance(key, (str, int)):
                 raise TypeError(f"run result key {key!r}: only str or int keys can be stored")
-            items.append([key, _encode(value, arrays, depth + 1)])
+            items.append([key, _encode(value, chunks, depth + 1)])
         return {"dict": items}
     if isinstance(node, (list, tuple)):
         kind = "list" if isinstance(node, list) else "tuple"
-        return {kind: [_encode(v, arrays, depth + 1) for v in node]}
+        return {kind: [_encode(v, chunks, depth + 1) for v in node]}
     if isinstance(node, (np.ndarray, np.generic)):
-        arr = np.asarray(node)
-        if arr.dtype.hasobject:
-            raise TypeError("run result holds an object array: only plain arrays can be stored")
-        key = f"a{len(arrays)}"
-        arrays[key] = arr
-        return {"array" if isinstance(node, np.ndarray) else "scalar": key}
+        kind = "array" if isinstance(node, np.ndarray) else "scalar"
+        return {kind: _array_node(np.asarray(node), chunks)}
     if node is None:
         return {"none": None}
     if isinstance(node, bool):
@@ -744,7 +799,31 @@ def _encode(node, arrays: dict[str, np.ndarray], depth: int = 0):
     raise TypeError(f"run result holds a {type(node).__name__}, which cannot be stored")
 
 
-def _decode(node, arrays: dict[str, np.ndarray], used: set[str]):
+class _Data:
+    """The data member read in the tree's order: each array takes the bytes its node declares."""
+
+    def __init__(self, data: bytes):
+        self.data, self.used = data, 0
+
+    def take(self, value) -> np.ndarray:
+        if not (isinstance(value, list) and len(value) == 3):
+            raise RunFileRefused("malformed header")
+        dtype, shape, order = value
+        if not (isinstance(dtype, str) and _DTYPE.fullmatch(dtype) and order in ("C", "F")):
+            raise RunFileRefused("malformed header")
+        if not (isinstance(shape, list) and len(shape) <= _MAX_DIMS and all(
+                type(n) is int and n >= 0 for n in shape)):  # fmt: skip
+            raise RunFileRefused("malformed header")
+        dt = np.dtype(dtype)
+        size = math.prod(shape) * dt.itemsize
+        if size > len(self.data) - self.used:
+            raise RunFileRefused("its data is shorter than its header declares")
+        arr = np.frombuffer(self.data, dtype=dt, count=math.prod(shape), offset=self.used)
+        self.used += size
+        return arr.reshape(shape, order=order).copy(order="K")  # writable, owning its memory
+
+
+def _decode(node, data: _Data):
     if not isinstance(node, dict) or len(node) != 1:
         raise RunFileRefused("malformed header")
     ((kind, value),) = node.items()
@@ -756,21 +835,18 @@ def _decode(node, arrays: dict[str, np.ndarray], used: set[str]):
             key, child = item
             if isinstance(key, bool) or not isinstance(key, (str, int)):
                 raise RunFileRefused("malformed header")
-            out[key] = _decode(child, arrays, used)
+            out[key] = _decode(child, data)
         return out
     if kind in ("list", "tuple") and isinstance(value, list):
-        items = [_decode(v, arrays, used) for v in value]
+        items = [_decode(v, data) for v in value]
         return items if kind == "list" else tuple(items)
-    if kind in ("array", "scalar") and isinstance(value, str) and value in arrays:
-        if value in used:
+    if kind == "array":
+        return data.take(value)
+    if kind == "scalar":
+        arr = data.take(value)
+        if arr.ndim != 0:
             raise RunFileRefused("malformed header")
-        used.add(value)
-        arr = arrays[value]
-        if kind == "scalar":
-            if arr.ndim != 0:
-                raise RunFileRefused("malformed header")
-            return arr[()]
-        return arr
+        return arr[()]
     if kind == "none" and value is None:
         return None
     if kind == "bool" and isinstance(value, bool):
@@ -787,30 +863,28 @@ def _decode(node, arrays: dict[str, np.ndarray], used: set[str]):
     raise RunFileRefused("malformed header")
 
 
-def _checksum(fingerprint: str, tree_json: str, arrays: dict[str, np.ndarray]) -> str:
+def _checksum(fingerprint: str, tree_json: str, data: bytes | memoryview) -> str:
     digest = hashlib.sha256()
     digest.update(RUN_FORMAT.encode() + b"\0" + fingerprint.encode() + b"\0")
     digest.update(tree_json.encode() + b"\0")
-    for key in sorted(arrays, key=lambda k: int(k[1:])):
-        arr = arrays[key]
-        digest.update(f"{key}:{arr.dtype.str}:{arr.shape}\0".encode())
-        digest.update(np.ascontiguousarray(arr))  # its buffer: the bytes tobytes() would copy
+    digest.update(data)
     return digest.hexdigest()
 
 
 def run_file_bytes(result: dict, fingerprint: str) -> bytes:
     """The .npz bytes of one run result (see above)."""
-    arrays: dict[str, np.ndarray] = {}
-    tree_json = json.dumps(_encode(result, arrays), separators=(",", ":"))
+    chunks: list[bytes] = []
+    tree_json = json.dumps(_encode(result, chunks), separators=(",", ":"))
+    data = b"".join(chunks)
     header = {
         "format": RUN_FORMAT,
         "fingerprint": fingerprint,
         "tree": tree_json,
-        "sha256": _checksum(fingerprint, tree_json, arrays),
+        "sha256": _checksum(fingerprint, tree_json, data),
     }
     raw = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
     buf = io.BytesIO()
-    np.savez(buf, **{HEADER_KEY: raw}, **arrays)
+    np.savez(buf, **{HEADER_KEY: raw, DATA_KEY: np.frombuffer(data, dtype=np.uint8)})
     return buf.getvalue()
 
 
@@ -841,7 +915,9 @@ def _read_member(archive: zipfile.ZipFile, info: zipfile.ZipInfo) -> np.ndarray:
             raise RunFileRefused(f"member {info.filename}: size does not match its header")
         data = fh.read(declared)
     arr = np.frombuffer(data, dtype=dtype).reshape(shape, order="F" if fortran else "C")
-    return arr.copy()  # writable, owning its memory, as a computed result would be
+    if arr.dtype != np.uint8 or arr.ndim != 1:
+        raise RunFileRefused(f"member {info.filename}: not bytes (uint8, one dimension)")
+    return arr
 
 
 def read_run_file(path: Path, fingerprint: str) -> dict:
@@ -849,20 +925,23 @@ def read_run_file(path: Path, fingerprint: str) -> dict:
     file is not a regular file, not ours, of another batch, damaged or tampered with."""
     try:
         with open_regular(path, limit=RUN_FILE_LIMIT) as fh:
-            data = fh.read()
+            content = fh.read()
     except (FileProblem, OSError) as exc:
         raise RunFileRefused(str(exc)) from None
     try:
-        with zipfile.ZipFile(io.BytesIO(data)) as archive:
+        with zipfile.ZipFile(io.BytesIO(content)) as archive:
             infos = {info.filename: info for info in archive.infolist()}
             if len(infos) != len(archive.infolist()):
                 raise RunFileRefused("duplicate members")
             head = infos.get(f"{HEADER_KEY}.npy")
             if head is None or head.file_size > _HEADER_LIMIT:
                 raise RunFileRefused("no header")
+            unexpected = set(infos) - {f"{HEADER_KEY}.npy", f"{DATA_KEY}.npy"}
+            if unexpected:
+                raise RunFileRefused(f"unexpected member {sorted(unexpected)[0][:40]!r}")
+            if f"{DATA_KEY}.npy" not in infos:
+                raise RunFileRefused("no data")
             raw = _read_member(archive, head)
-            if raw.dtype != np.uint8 or raw.ndim != 1:
-                raise RunFileRefused("malformed header")
             header = parse_strict_json(raw.tobytes().decode("utf-8"))
             if not isinstance(header, dict) or header.get("format") != RUN_FORMAT:
                 raise RunFileRefused("not an anfekf-bench run file")
@@ -871,26 +950,19 @@ def read_run_file(path: Path, fingerprint: str) -> dict:
             tree_json = header.get("tree")
             if not isinstance(tree_json, str):
                 raise RunFileRefused("malformed header")
-            arrays = {}
-            for name, info in infos.items():
-                key = name.removesuffix(".npy")
-                if key == HEADER_KEY:
-                    continue
-                if not re.fullmatch(r"a(0|[1-9][0-9]{0,6})", key) or not name.endswith(".npy"):
-                    raise RunFileRefused(f"unexpected member {name[:40]!r}")
-                arrays[key] = _read_member(archive, info)
+            data = _read_member(archive, infos[f"{DATA_KEY}.npy"]).tobytes()
     except RunFileRefused:
         raise
     except (zipfile.BadZipFile, ValueError, EOFError, OSError, RecursionError) as exc:
         raise RunFileRefused(f"damaged ({type(exc).__name__})") from None
-    if header.get("sha256") != _checksum(fingerprint, tree_json, arrays):
+    if header.get("sha256") != _checksum(fingerprint, tree_json, data):
         raise RunFileRefused("checksum mismatch")
-    used: set[str] = set()
+    reader = _Data(data)
     try:
-        tree = _decode(json.loads(tree_json), arrays, used)
-    except (ValueError, RecursionError):
+        tree = _decode(json.loads(tree_json), reader)
+    except (ValueError, RecursionError, TypeError):
         raise RunFileRefused("malformed header") from None
-    if used != set(arrays) or not isinstance(tree, dict):
+    if reader.used != len(data) or not isinstance(tree, dict):
         raise RunFileRefused("malformed header")
     return tree
 

@@ -784,17 +784,17 @@ def _members(good: bytes) -> dict[str, bytes]:
 def _tampered(good: bytes) -> bytes:
     """One number changed, the zip rebuilt with valid CRCs: only our checksum can notice."""
     members = _members(good)
-    data = bytearray(members["a3.npy"])
+    data = bytearray(members["data.npy"])
     data[-1] ^= 0x01
-    members["a3.npy"] = bytes(data)
+    members["data.npy"] = bytes(data)
     return _npz(members)
 
 
 def _huge_shape(good: bytes) -> bytes:
-    header = b"{'descr': '<f8', 'fortran_order': False, 'shape': (1000000000000,), }"
+    header = b"{'descr': '|u1', 'fortran_order': False, 'shape': (1000000000000,), }"
     npy = b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header + b"\0" * 64
     members = _members(good)
-    members["a0.npy"] = npy
+    members["data.npy"] = npy
     return _npz(members)
 
 
@@ -917,6 +917,51 @@ def test_run_file_roundtrip_is_exact_and_generic(tmp_path) -> None:
         read_run_file(path, "0" * 16)
     with pytest.raises(TypeError, match="object"):
         write_run_file(tmp_path / "bad.npz", {"x": np.array([object()])}, "f" * 16)
+
+
+def _forged_run_file(tree: dict, data: bytes, fingerprint: str) -> bytes:
+    """A run file whose header and checksum are consistent (anyone can compute a SHA-256), so
+    that only the reader's own checks of the tree against the data can refuse it."""
+    import json
+
+    from anfekf_bench.storage import RUN_FORMAT, _checksum
+
+    tree_json = json.dumps(tree, separators=(",", ":"))
+    header = {"format": RUN_FORMAT, "fingerprint": fingerprint, "tree": tree_json,
+              "sha256": _checksum(fingerprint, tree_json, data)}  # fmt: skip
+    return _npz({"header.npy": _npy(np.frombuffer(json.dumps(header).encode(), np.uint8)),
+                 "data.npy": _npy(np.frombuffer(data, np.uint8))})  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("case", "array", "data", "why"),
+    [
+        ("data-shorter-than-declared", ["<f8", [4], "C"], bytes(24), "shorter"),
+        ("data-left-over", ["<f8", [2], "C"], bytes(24), "malformed"),
+        ("object-dtype", ["|O", [1], "C"], bytes(8), "malformed"),
+        ("negative-shape", ["<f8", [-1], "C"], bytes(8), "malformed"),
+        ("unknown-order", ["<f8", [1], "X"], bytes(8), "malformed"),
+    ],
+)
+def test_run_file_whose_tree_and_data_disagree_is_refused(tmp_path, case, array, data, why):
+    from anfekf_bench.storage import RunFileRefused, read_run_file
+
+    path = tmp_path / "run-000000.npz"
+    tree = {"dict": [["run", {"int": 0}], ["x", {"array": array}]]}
+    path.write_bytes(_forged_run_file(tree, data, "f" * 16))
+    with pytest.raises(RunFileRefused, match=why):
+        read_run_file(path, "f" * 16)
+
+
+def test_run_file_is_two_members_whatever_the_arrays(tmp_path) -> None:
+    """The header and one data member (v2): the write cost does not grow with the arrays' count."""
+    from anfekf_bench.storage import write_run_file
+
+    result = {"run": 0, "filters": {f"f{i}": {"x": np.ones((5, 3)), "P": np.eye(3)} for i in
+                                    range(8)}}  # fmt: skip
+    write_run_file(tmp_path / "run-000000.npz", result, "f" * 16)
+    with zipfile.ZipFile(tmp_path / "run-000000.npz") as archive:
+        assert sorted(archive.namelist()) == ["data.npy", "header.npy"]
 
 
 # --- Dask: dead workers and a non-Dask address end in one line, in bounded time ---------------

@@ -553,20 +553,22 @@ def _check_paper(name: str, runs: int, extra: tuple[FilterSpec, ...] = ()) -> di
     return worst
 
 
+PAPER_VARIANTS = ("anfekf-R", "anfekf-Q", "anfekf-RQ", "from-accepted")
+
+
 @pytest.mark.parametrize("name", PAPER)
 def test_paper_scenario(name):
-    """Run 0 of each paper scenario, its own filters plus the ANFEKF adapting R and Q at once."""
-    _check_paper(name, 1, extra=(VARIANTS["anfekf-RQ"],))
+    """Run 0 of each paper scenario, its own filters plus the ANFEKF's variants (adapting R, Q,
+    both; learning from accepted measurements only)."""
+    _check_paper(name, 1, extra=tuple(VARIANTS[k] for k in PAPER_VARIANTS))
 
 
-# Runs differ only in their draws: `make test` checks 3 of each paper scenario, `make test-all`
-# (heavy) 10.
-@pytest.mark.slow
-@pytest.mark.parametrize("runs", [3, pytest.param(10, marks=pytest.mark.heavy)])
+# Runs differ only in their draws: `make test` checks run 0 of each paper scenario (above),
+# `make test-all` (heavy) 10 runs.
+@pytest.mark.heavy
 @pytest.mark.parametrize("name", PAPER)
-def test_paper_scenario_many_runs(name, runs):
-    extra = tuple(VARIANTS[k] for k in ("anfekf-R", "anfekf-Q", "anfekf-RQ", "from-accepted"))
-    _check_paper(name, runs, extra=extra)
+def test_paper_scenario_many_runs(name):
+    _check_paper(name, 10, extra=tuple(VARIANTS[k] for k in PAPER_VARIANTS))
 
 
 @pytest.mark.slow
@@ -597,3 +599,43 @@ def test_make_setup_compiles_a_kernel_of_every_fast_kind():
     # one per family module: every module of engines/families is warmed
     modules = {p.stem for p in (Path(fast.__file__).parent / "families").glob("[!_]*.py")}
     assert families == modules
+
+
+def test_the_warm_up_parts_are_the_whole_warm_up_split_by_the_loop():
+    """`make setup` compiles the parts side by side: every family on the one loop in "loop"
+    (one function's cache entries from one process), every other kernel in "kernels"."""
+    from anfekf_bench.filters.spec import fast_family_of
+
+    whole = [type(s) for s in fast.warm_up_specs()]
+    loop, kernels = (tuple(type(s) for s in fast.warm_up_specs(p)) for p in fast.WARM_UP_PARTS)
+    assert sorted(map(str, loop + kernels)) == sorted(map(str, whole))
+    assert loop and all(fast_family_of(c) is not None for c in loop)
+    assert kernels and all(fast_family_of(c) is None for c in kernels)
+
+
+def test_serialised_cache_writes_keep_every_processs_entries(tmp_path, monkeypatch):
+    """Two warm-up parts may compile one callee for different signatures at once: numba reads a
+    function's cache index, adds its entry and writes it back, and numbers the data file by what
+    it read. With the writes serialised, every entry survives with its own data (without, the
+    threads below all read an empty index: one entry is left, its data another's)."""
+    import threading
+    import time
+
+    caching = pytest.importorskip("numba.core.caching")
+    monkeypatch.setattr(caching.IndexDataCacheFile, "save", caching.IndexDataCacheFile.save)
+    assert fast.serialise_cache_writes() and fast.serialise_cache_writes()  # idempotent
+    cache = caching.IndexDataCacheFile(str(tmp_path), "kernels.record-1.py311", ("stamp", 1))
+    read_index = cache._load_index
+
+    def slow_read():
+        index = read_index()
+        time.sleep(0.05)  # the window in which another process reads the same index
+        return index
+
+    monkeypatch.setattr(cache, "_load_index", slow_read)
+    threads = [threading.Thread(target=cache.save, args=(f"sig{i}", i)) for i in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert {cache.load(f"sig{i}") for i in range(6)} == set(range(6))

@@ -82,3 +82,20 @@ def test_the_kernels_compile_the_models_formulas():
             F_want, G_want = m.jacobians(x, u, dt)
             assert (f02, f12) == (F_want[0, 2], F_want[1, 2])
             np.testing.assert_array_equal(np.reshape(G, (3, 2)), G_want)
+
+
+def test_the_simulators_truth_is_the_bicycle_model_step_by_step():
+    """The truth loop (sources.simulator._drive, compiled when numba is in use) steps the pose
+    with the same motion terms: every true pose is the filterpy engine's Bicycle.f of the one
+    before and the true control, bit for bit."""
+    from anfekf_bench.config import WorldConfig, resolve_world
+    from anfekf_bench.sources import simulator
+
+    if simulator.JIT_TRUTH:
+        assert simulator._step_terms.py_func is motion_terms.step_terms
+    world = resolve_world(WorldConfig(), ".")
+    truth = simulator.simulate_truth(world)
+    model = Bicycle(world.T, world.B)
+    assert len(truth.u) > 1000
+    for k in range(len(truth.u)):
+        np.testing.assert_array_equal(model.f(truth.x[k], truth.u[k], world.T), truth.x[k + 1])

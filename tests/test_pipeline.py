@@ -21,7 +21,9 @@ from anfekf_bench.runner import place_runs, simulated_run
 from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources.simulator import simulate_run, simulate_truth
 from anfekf_bench.storage import (
+    LOCK_FILE,
     MANIFEST_FILE,
+    STEPS_FILE,
     read_json,
     read_parquet,
     read_steps,
@@ -360,6 +362,36 @@ def test_parquet_dictionary_encodes_names_and_counters_not_measured_floats(tmp_p
     pd.testing.assert_frame_equal(read_parquet(tmp_path / "x.parquet"), df)
 
 
+def test_a_finished_batch_flushes_every_staged_file_before_the_first_rename(tmp_path, monkeypatch):
+    """The staged tables and manifest are written without a flush each, then flushed together
+    (storage.sync_files) before any of them replaces the result: a power cut cannot leave the
+    manifest in place over tables that never reached the disk."""
+    from .conftest import tiny_scenario
+
+    path = write_scenario(tmp_path / "t.yaml", {"name": "t", **tiny_scenario()})
+    events: list[tuple[str, str]] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        events.append(("fsync", os.path.basename(os.readlink(f"/proc/self/fd/{fd}"))))
+        return real_fsync(fd)
+
+    def replace(src, dst, **kw):
+        events.append(("replace", str(dst)))
+        return real_replace(src, dst, **kw)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    _, target = execute(make_plan(*load_scenario(path), None, None, 1), tmp_path / "out")
+    installed = [i for i, (kind, dst) in enumerate(events)
+                 if kind == "replace" and Path(dst).parent == target]  # fmt: skip
+    files = sorted(p.name for p in target.iterdir() if p.name != LOCK_FILE)
+    assert MANIFEST_FILE in files and STEPS_FILE in files
+    flushed = [name for kind, name in events[: installed[0]] if kind == "fsync"]
+    assert sorted(set(flushed) & set(files)) == files, "every file flushed before installing"
+    assert events[installed[-1]][1] == str(target / MANIFEST_FILE), "the manifest goes last"
+
+
 def test_run_files_skip_the_disk_flush_result_files_do_not(tmp_path, monkeypatch):
     """A run file torn by a power cut fails its checksum and is redone; results must last."""
     import os
@@ -388,6 +420,25 @@ def test_worker_processes_import_no_table_libraries():
     code = (
         "import sys, anfekf_bench.runner, anfekf_bench.engines.fast;"
         "print(sorted(m for m in ('pandas', 'pyarrow', 'matplotlib') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_a_simulated_run_imports_neither_problems_nor_recorded_sources():
+    """`anfekf run` of a robot's simulated scenario loads what it runs: the modules its command
+    imports (the scenario files read, the plan, the batch, the comparisons printed through the
+    result loader) leave out the problems' pipeline and the recorded logs' readers, fits and
+    audit (about 0.2 s of imports, issue 37)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, anfekf_bench.cli, anfekf_bench.arguments, anfekf_bench.experiment,"
+        " anfekf_bench.scenarios, anfekf_bench.sweeps, anfekf_bench.report.results;"
+        "print(sorted(m for m in sys.modules if m.startswith(('anfekf_bench.problems',"
+        " 'anfekf_bench.real_experiment', 'anfekf_bench.drive_audit',"
+        " 'anfekf_bench.sources.recorded', 'anfekf_bench.sources.mrclam'))))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

@@ -20,10 +20,11 @@ from anfekf_bench.problems.als import (
 )
 from anfekf_bench.problems.base import wrap
 from anfekf_bench.problems.filters import EKFSpec, SageHusaSpec, VBRSpec
+from anfekf_bench.problems.forms import PROBLEM_KINDS
 from anfekf_bench.problems.kalman import ekf_nll, linear_nll
 from anfekf_bench.problems.linear import LinearProblem, survey_problem
 from anfekf_bench.problems.ml import cholesky_params, fit_noise, from_cholesky_params
-from anfekf_bench.problems.schema import PROBLEM_KINDS, parse_problem_scenario
+from anfekf_bench.problems.schema import parse_problem_scenario
 
 K08 = 0.8 * np.eye(2)
 

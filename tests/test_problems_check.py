@@ -30,7 +30,29 @@ def test_a_problem_result_alone_makes_a_baseline_that_then_passes_and_guards(tmp
     baseline.write_text(json.dumps(doc), encoding="utf-8")
     worse = check(tmp_path / "res", "--baseline", baseline)
     assert worse.exit_code == 1
-    assert "FAIL lin / sh / rmse_pos [m]" in worse.output and ": worse" in worse.output
+    # the linear system has no unit: its RMSE is shown without one (the robot's is in m)
+    assert "FAIL lin / sh / rmse_pos: " in worse.output and ": worse" in worse.output
+    assert "rmse_pos [m]" not in worse.output
+
+
+def test_the_gate_shows_rmse_pos_in_the_problems_unit():
+    from anfekf_bench.analysis.gate import Baseline, ScenarioSummary, compare, shown_metric
+    from anfekf_bench.problems.linear import survey_problem
+    from anfekf_bench.problems.tracking import TrackingProblem
+
+    assert TrackingProblem.position_unit == "m" and survey_problem().position_unit == ""
+    assert shown_metric("rmse_pos") == "rmse_pos [m]"  # the robot's
+    assert shown_metric("rmse_pos", {"rmse_pos": ""}) == "rmse_pos"
+    assert shown_metric("rmse_heading", {"rmse_pos": "m"}) == "rmse_heading [deg]"
+    metrics = {"f": {"rmse_pos": 1.0}}
+    tolerances = {"rmse_pos": Tolerance("relative", 0.05)}
+    for unit, shown in (("", "rmse_pos"), ("m", "rmse_pos [m]"), ("rad", "rmse_pos [rad]")):
+        base = ScenarioSummary("p", 1, 2, metrics, problem="module")
+        now = ScenarioSummary("p", 1, 2, {"f": {"rmse_pos": 2.0}}, problem="module",
+                              units={"rmse_pos": unit})  # fmt: skip
+        (row,) = [r for r in compare(Baseline(tolerances, {"p": base}), {"p": now})
+                  if r.metric == "rmse_pos"]  # fmt: skip
+        assert row.shown == shown and row.detail.startswith(f"p / f / {shown}: 1 -> 2")
 
 
 def test_a_problems_anees_is_judged_against_its_state_dimension():
@@ -65,3 +87,8 @@ def test_a_damaged_problem_result_is_one_line_with_exit_2(tmp_path):
     assert done.exit_code == 2 and "Traceback" not in done.output
     assert "not a problem result as `anfekf run` writes it" in done.output
     assert "\x1b" not in done.output
+    doc["scenario"]["name"] = "lin"
+    doc["position_unit"] = "m\x1b[31m"  # printed in the gate's metric column
+    manifest.write_text(json.dumps(doc), encoding="utf-8")
+    done = check(tmp_path)
+    assert done.exit_code == 2 and "position_unit" in done.output and "\x1b" not in done.output

@@ -135,6 +135,8 @@ def test_the_example_scenario_parses_and_its_params_and_steps_override(tmp_path)
          "module.file", "R: a covariance must be symmetric"),
         (SURVEY_MODULE.replace("x0 = np.zeros(2)", "x0 = np.zeros(3)"), "module.file",
          "P0: expected 3 x 3"),
+        (SURVEY_MODULE + "\nposition_unit = 'm\\x1b'\n", "module.file",
+         "position_unit: expected a short unit name"),
     ],
 )  # fmt: skip
 def test_a_bad_module_is_a_one_line_error_naming_file_and_field(tmp_path, text, field, words):
@@ -162,6 +164,13 @@ def test_a_module_path_must_be_a_python_file_inside_the_scenarios_folder(tmp_pat
     with pytest.raises(ScenarioError) as exc:
         parse(folder, scenario_doc(file))
     assert exc.value.field == "module.file" and words in str(exc.value)
+
+
+def test_a_modules_position_unit_is_its_own_or_none(tmp_path):
+    write_module(tmp_path, SURVEY_MODULE)
+    assert ModuleProblem(tmp_path / "model.py").position_unit == ""
+    write_module(tmp_path, SURVEY_MODULE + "\nposition_unit = 'rad'\n")
+    assert ModuleProblem(tmp_path / "model.py").position_unit == "rad"
 
 
 def test_a_module_below_the_scenarios_folder_is_accepted(tmp_path):

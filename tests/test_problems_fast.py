@@ -21,8 +21,9 @@ from anfekf_bench.filters.registry import supports_problem
 from anfekf_bench.problems.als import ALSSpec
 from anfekf_bench.problems.experiment import TABLES, read_problem_result, run_one
 from anfekf_bench.problems.filters import EKFSpec, SageHusaSpec, VBRSpec
+from anfekf_bench.problems.forms import PROBLEM_KINDS
 from anfekf_bench.problems.linear import survey_problem
-from anfekf_bench.problems.schema import PROBLEM_KINDS, PROBLEMS, parse_problem_scenario
+from anfekf_bench.problems.schema import PROBLEMS, parse_problem_scenario
 
 from .conftest import write_scenario
 

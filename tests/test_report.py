@@ -23,6 +23,7 @@ from typer.testing import CliRunner
 from anfekf_bench.analysis.metrics import format_sig
 from anfekf_bench.cli import app
 from anfekf_bench.experiment import execute, make_plan
+from anfekf_bench.filters.registry import role_of
 from anfekf_bench.report import plots, summary_figures
 from anfekf_bench.report.report import (
     BAND_PERCENTILES,
@@ -394,7 +395,9 @@ def test_diverged_runs_are_left_out_of_curves_bounds_and_table(results, tmp_path
 
 def test_a_filter_has_one_colour_in_every_figure(results):
     sc = load_scenario_data(results / "tiny_r")
-    with plots.palette([f.name for f in sc.filters]):
+    oracles = [f.name for f in sc.filters if role_of(f.kind) == "oracle"]
+    assert oracles == ["ekf-oracle"]
+    with plots.palette([f.name for f in sc.filters], oracles):
         figs = [plots.rmse_figure(sc), plots.nees_figure(sc), plots.map_figure(sc)]
         for name in ("ekf", "anfekf", "ekf-oracle"):
             colours = {
@@ -412,7 +415,13 @@ def test_colours_go_by_order_within_a_report_and_thirty_filters_are_told_apart()
         pairs = [(plots.filter_colour(n), str(plots.filter_linestyle(n))) for n in names]
         markers = [(plots.filter_colour(n), plots.filter_marker(n)) for n in names]
         assert plots.filter_colour("zoo-0") == plots.PALETTE[0]
-        assert plots.filter_colour("ekf-oracle") == plots.ORACLE_COLOUR  # the reference: grey
+        # the reference, grey: by its kind's role, whatever its name; by name where the palette
+        # lists it among the report's oracles (figures that know a filter by name only)
+        assert plots.filter_style("truth", "ekf-oracle") == plots.ORACLE_STYLE
+        assert plots.filter_colour("ekf-oracle") != plots.ORACLE_COLOUR  # a name, not a kind
+    with plots.palette(names, oracles=["truth"]):
+        assert plots.filter_colour("truth") == plots.ORACLE_COLOUR
+        assert plots.filter_style("zoo-0", "ekf").colour == plots.PALETTE[0]
     assert len(set(pairs)) == len(set(markers)) == 30
     assert plots.ORACLE_COLOUR not in plots.PALETTE
     with plots.palette(["b", "a"]):  # order, not the name, picks the colour

@@ -53,6 +53,7 @@ from ..storage import (
 from ..text import one_line
 from .comparisons import SHARE_METRICS, claim_text
 from .comparisons import _point_verdict as point_verdict
+from .shown import SHOWN_UNITS, fmt_value, in_shown_unit, shown_metric
 from .statistics import DEGENERATE_RTOL
 from .statistics import verdict as interval_verdict
 
@@ -97,10 +98,6 @@ RULES = [
     "Refresh on purpose only: anfekf check RESULTS --baseline FILE --update (README, Regression"
     " gate).",
 ]
-
-
-ADAPTIVE = "anfekf"
-REFERENCE = "ekf"
 
 
 class BaselineError(Exception):
@@ -150,6 +147,7 @@ class ScenarioSummary:
     # its summary holds, and a consistent filter's ANEES is its state dimension.
     problem: str | None = None
     anees_ideal: float = 3.0
+    units: dict[str, str] | None = None  # its own unit of a metric (analysis.shown)
 
 
 @dataclass(frozen=True)
@@ -170,6 +168,7 @@ class Row:
     delta: str
     verdict: str
     detail: str = ""
+    shown: str = ""  # the metric with its unit (analysis.shown); "": the metric as it is
 
     @property
     def passed(self) -> bool:
@@ -193,9 +192,9 @@ class ClaimResult:
 
     @property
     def detail(self) -> str:
-        shown = _fmt_value(self.estimate)
+        shown = fmt_value(self.estimate)
         if self.lo is not None and self.hi is not None:
-            shown += f" [{_fmt_value(self.lo)}, {_fmt_value(self.hi)}]"
+            shown += f" [{fmt_value(self.lo)}, {fmt_value(self.hi)}]"
         return f"claim {self.scenario}: {self.text}: {self.verdict} ({shown})"
 
 
@@ -541,67 +540,38 @@ def judge(metric: str, tolerance: Tolerance, base: float, now: float, sense=None
     return "changed"
 
 
-# How the gate shows a metric: its name with its unit, and the factor from the stored unit. The
-# files keep radians; every table a user reads shows angles in degrees (one unit per surface).
-SHOWN_UNITS: dict[str, tuple[str, float]] = {
-    "rmse_pos": ("rmse_pos [m]", 1.0),
-    "rmse_heading": ("rmse_heading [deg]", 180.0 / math.pi),
-}
-
-
-def shown_metric(metric: str) -> str:
-    """`metric` with the unit it is shown in ('rmse_heading [deg]')."""
-    return SHOWN_UNITS.get(metric, (metric, 1.0))[0]
-
-
-def _in_shown_unit(metric: str, x: float | None) -> float | None:
-    """A stored value in the unit it is shown in."""
-    if x is None or isinstance(x, int) or metric not in SHOWN_UNITS:
-        return x
-    return x * SHOWN_UNITS[metric][1]
-
-
-def _fmt_value(x: float | None) -> str:
-    if x is None:
-        return "-"
-    if isinstance(x, int):  # seed and runs
-        return str(x)
-    if math.isnan(x):
-        return "null"
-    return f"{x:.4g}"
-
-
 def _fmt_delta(tolerance: Tolerance, base: float, now: float, metric: str = "") -> str:
     if math.isnan(base) or math.isnan(now):
         return "-"
     change = tolerance.change(base, now)
     if tolerance.kind == "relative":
         return f"{100 * change:+.1f} %"
-    return f"{_in_shown_unit(metric, change):+.3g}"
+    return f"{in_shown_unit(metric, change):+.3g}"
 
 
 def _describe(tolerance: Tolerance, metric: str) -> str:
     """The tolerance as shown: an absolute one in the metric's shown unit."""
     if tolerance.kind == "relative" or metric not in SHOWN_UNITS:
         return tolerance.describe()
-    return f"±{_in_shown_unit(metric, tolerance.limit):g} absolute"
+    return f"±{in_shown_unit(metric, tolerance.limit):g} absolute"
 
 
 def compare_metric(
     scenario: str, filt: str, metric: str, tolerance: Tolerance, base: float, now: float,
-    sense=None,
+    sense=None, units: dict[str, str] | None = None,
 ) -> Row:  # fmt: skip
     verdict = judge(metric, tolerance, base, now, sense)
     detail = ""
+    shown = shown_metric(metric, units)
     if verdict != "ok":
-        before, after = (_fmt_value(_in_shown_unit(metric, x)) for x in (base, now))
+        before, after = (fmt_value(in_shown_unit(metric, x)) for x in (base, now))
         detail = (
-            f"{scenario} / {filt} / {shown_metric(metric)}: {before} -> {after}"
+            f"{scenario} / {filt} / {shown}: {before} -> {after}"
             f" ({_fmt_delta(tolerance, base, now, metric)};"
             f" tolerance {_describe(tolerance, metric)}): {verdict}"
         )
     delta = _fmt_delta(tolerance, base, now, metric)
-    return Row(scenario, filt, metric, base, now, delta, verdict, detail)
+    return Row(scenario, filt, metric, base, now, delta, verdict, detail, shown)
 
 
 NOT_COMPARABLE = "not comparable"
@@ -664,7 +634,7 @@ def compare(baseline: Baseline, results: dict[str, ScenarioSummary]) -> list[Row
                 sense = now.anees_ideal if metric == "anees" else None
                 rows.append(compare_metric(name, filt, metric, tolerance,
                                            b.get(metric, math.nan), n.get(metric, math.nan),
-                                           sense))  # fmt: skip
+                                           sense, now.units))  # fmt: skip
     return rows
 
 
@@ -686,7 +656,7 @@ def interval_problem(estimate: float, lo: float, hi: float) -> str | None:
         return "lo and hi must both be numbers or both null"
     if math.isnan(lo):
         return None  # no interval (a share, too few runs, a biased bootstrap): a point only
-    shown = f"[{_fmt_value(lo)}, {_fmt_value(hi)}]"
+    shown = f"[{fmt_value(lo)}, {fmt_value(hi)}]"
     if lo > hi:
         return f"the interval {shown} is inverted; expected lo <= hi"
     if math.isnan(estimate):
@@ -694,7 +664,7 @@ def interval_problem(estimate: float, lo: float, hi: float) -> str | None:
     slack = DEGENERATE_RTOL * abs(estimate)
     if not lo - slack <= estimate <= hi + slack:
         return (
-            f"estimate {_fmt_value(estimate)} outside its interval {shown};"
+            f"estimate {fmt_value(estimate)} outside its interval {shown};"
             " expected lo <= estimate <= hi"
         )
     return None
@@ -890,9 +860,9 @@ def comparison_table(rows: list[Row], title: str) -> Table:
         cells = (
             r.scenario,
             r.filter,
-            shown_metric(r.metric),
-            _fmt_value(_in_shown_unit(r.metric, r.baseline)),
-            _fmt_value(_in_shown_unit(r.metric, r.now)),
+            r.shown or shown_metric(r.metric),
+            fmt_value(in_shown_unit(r.metric, r.baseline)),
+            fmt_value(in_shown_unit(r.metric, r.now)),
             r.delta,
             r.verdict,
         )
@@ -907,10 +877,8 @@ def claims_table(claims: list[ClaimResult], strict: bool) -> Table:
     for col in ("scenario", "claim", "estimate", "interval", "verdict", "note"):
         table.add_column(col, justify="right" if col == "estimate" else "left")
     for c in claims:
-        interval = (
-            "" if c.lo is None or c.hi is None else f"[{_fmt_value(c.lo)}, {_fmt_value(c.hi)}]"
-        )
-        cells = (c.scenario, c.text, _fmt_value(c.estimate), interval, c.verdict, c.note)
+        interval = "" if c.lo is None or c.hi is None else f"[{fmt_value(c.lo)}, {fmt_value(c.hi)}]"
+        cells = (c.scenario, c.text, fmt_value(c.estimate), interval, c.verdict, c.note)
         table.add_row(*(Text(one_line(x)) for x in cells), style=_row_style(c.passed(strict)))
     return table
 

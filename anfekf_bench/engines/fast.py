@@ -336,18 +336,28 @@ def kernels_cached() -> bool | None:
         return None
 
 
-def warm_up_specs() -> tuple[FilterSpec, ...]:
+# `make setup` compiles the warm-up in two processes side by side (numba compiles on one core):
+# "loop", every family on the one loop (one function, `loop.run_loop`, specialised per family:
+# its cache entries must come from one process), and "kernels", the kernels of their own, the
+# fits' kernels and the simulator's truth loop.
+WARM_UP_PARTS = ("loop", "kernels")
+
+
+def warm_up_specs(part: str | None = None) -> tuple[FilterSpec, ...]:
     """One filter of every kernel: each family module on the one loop (it compiles a loop of its
     own; the first registered kind that names it, with its defaults) and each kind with a kernel
-    of its own; the kinds left out share one of these (tests/test_fast_engine.py checks)."""
+    of its own; the kinds left out share one of these (tests/test_fast_engine.py checks).
+    `part` (WARM_UP_PARTS): the loop's families only, or the kernels of their own only."""
     loop_specs: dict[str, FilterSpec] = {}
     for cls in REGISTERED_SPECS:
         name = fast_family_of(cls)
         if name is not None and name not in loop_specs and not cls.fitted_on_training:
             kind = kind_of(cls)
             loop_specs[name] = cls.model_validate({"name": kind, "kind": kind})
+    if part == "loop":
+        return tuple(loop_specs.values())
     return (
-        *loop_specs.values(),
+        *(loop_specs.values() if part is None else ()),
         SWVBSpec(name="swvb", kind="swvb"), ALSSpec(name="als", kind="als"),
         MMAESpec(name="mmae", kind="mmae"), IMMSpec(name="imm", kind="imm"),
         VBIMMSpec(name="vb-imm", kind="vb-imm"),
@@ -358,10 +368,12 @@ def warm_up_specs() -> tuple[FilterSpec, ...]:
     )  # fmt: skip
 
 
-def warm_up(jit: bool = True) -> float:
+def warm_up(jit: bool = True, part: str | None = None) -> float:
     """Compile (or load from numba's cache) every kernel signature the engine uses by running
     a tiny EKF, ANFEKF (and cm-scale: the same kernel), akhlaghi, vb-r, vbakf, swvb, Sage-Husa,
-    IAE, ALS and KalmanNet (a small random network); returns the seconds it took."""
+    IAE, ALS and KalmanNet (a small random network); returns the seconds it took. `part`
+    (WARM_UP_PARTS): the loop's families only, or the rest only (`make setup` runs both parts
+    side by side)."""
     import time
 
     from ..sources.simulator import Scan, Truth, simulate_truth
@@ -378,9 +390,11 @@ def warm_up(jit: bool = True) -> float:
         x0=np.zeros(3), P0=np.eye(3) * 1e-9, Qu=np.diag([0.09, 0.003]), R=np.diag([0.01, 3e-4]),
         model=Bicycle(world.T, world.B), dt=world.T, gate=13.8,
     )  # fmt: skip
-    for spec in warm_up_specs():
+    for spec in warm_up_specs(part):
         run_filter_fast(spec, ctx, data, world, 1, jit=jit)
     clear_cache()
+    if part == "loop":
+        return time.perf_counter() - t0
     # The fits' kernel (ekf-ml, ekf-tuned and the recorded data's grid searches): one likelihood
     # pass compiles it and its step table; without it a first fitted run compiled them.
     from ..timeline import from_run
@@ -406,12 +420,54 @@ def _tiny_world() -> World:
     )  # fmt: skip
 
 
+def serialise_cache_writes() -> bool:
+    """Make numba's cache writes in this process take an exclusive lock on the cache folder
+    (fcntl), so that warm-up processes running side by side never lose or mix up each other's
+    entries: numba reads a function's index, adds its entry and writes it back, unlocked, and
+    numbers the entry's data file by what it read (two processes compiling the same callee for
+    different signatures would both write data file 1). False when numba's cache class is not
+    the one this wraps (then the caller runs the parts one after the other)."""
+    import fcntl
+    import os
+    import tempfile
+
+    try:
+        from numba.core.caching import IndexDataCacheFile
+
+        save = IndexDataCacheFile.save
+    except (ImportError, AttributeError):
+        return False
+    if getattr(save, "serialised", False):
+        return True
+
+    def locked_save(self, key, data):
+        folder = getattr(self, "_cache_path", None) or tempfile.gettempdir()
+        with open(os.path.join(folder, ".anfekf-warm-up.lock"), "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            save(self, key, data)
+
+    locked_save.serialised = True
+    IndexDataCacheFile.save = locked_save
+    return True
+
+
 if __name__ == "__main__":  # `make setup`: compile every kernel into numba's cache, once
     import sys
 
-    if sys.argv[1:] != ["--warm-up"]:
-        sys.exit("usage: python -m anfekf_bench.engines.fast --warm-up")
+    usage = "usage: python -m anfekf_bench.engines.fast --warm-up [--part loop|kernels]"
+    args = sys.argv[1:]
+    if args[:1] != ["--warm-up"] or args[1:] not in ([], *(["--part", p] for p in WARM_UP_PARTS)):
+        sys.exit(usage)
     if not JIT:
         print("numba is not installed (or ANFEKF_FAST_JIT=0): nothing to compile")
         sys.exit(0)
-    print(f"fast engine: numba kernels compiled into the cache in {warm_up():.0f} s")
+    part = args[2] if len(args) == 3 else None
+    if part is not None and not serialise_cache_writes():
+        # numba's cache is not the one serialise_cache_writes wraps: compile every part in the
+        # "loop" process, one after the other, and nothing in the other
+        if part == "kernels":
+            sys.exit(0)
+        part = None
+    seconds = warm_up(part=part)
+    what = f"numba kernels ({part or 'all'})"
+    print(f"fast engine: {what} compiled into the cache in {seconds:.0f} s")

@@ -377,6 +377,7 @@ class ALSSpec(AdaptiveSpec):
 
     kind: Literal["als"]
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "module"})
+    problem_form: ClassVar[str | None] = "als:ALSSpec"  # problems/als.py
     robot_only_because: ClassVar[str] = (
         "beyond the robot, autocovariance least squares needs a linear time-invariant problem"
         " (constant F, G, H: the innovations' autocovariances are linear in Q and R only then;"

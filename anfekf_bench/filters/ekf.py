@@ -200,6 +200,7 @@ class EKFSpec(FilterSpec):
 
     kind: Literal["ekf"] = "ekf"
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking", "module"})
+    problem_form: ClassVar[str | None] = "filters:EKFSpec"  # problems/filters.py
     role: ClassVar[Role] = "reference"
     fast_family: ClassVar[str | None] = "anfekf"
 
@@ -231,6 +232,7 @@ class OracleSpec(FilterSpec):
 
     kind: Literal["ekf-oracle"]
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking", "module"})
+    problem_form: ClassVar[str | None] = "filters:OracleSpec"  # problems/filters.py
     uses_true_noise: ClassVar[bool] = True
     role: ClassVar[Role] = "oracle"
     fast_family: ClassVar[str | None] = "anfekf"

@@ -131,6 +131,7 @@ class EKFMLSpec(FittedNoiseSpec):
     kind: Literal["ekf-ml"]
     fast_family: ClassVar[str | None] = "anfekf"  # engines/families/anfekf.py
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking", "module"})
+    problem_form: ClassVar[str | None] = "ml:MLSpec"  # problems/ml.py
     criterion: ClassVar[str] = "likelihood"
     fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated", "own"})
 
@@ -145,6 +146,7 @@ class EKFTunedSpec(FittedNoiseSpec):
     kind: Literal["ekf-tuned"]
     fast_family: ClassVar[str | None] = "anfekf"  # engines/families/anfekf.py
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking", "module"})
+    problem_form: ClassVar[str | None] = "tuned:TunedSpec"  # problems/tuned.py
     criterion: ClassVar[str] = "rmse"
     fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated", "recorded"})
     # Fields of the simulated fit only: a recorded scenario refuses them when given

@@ -250,7 +250,17 @@ def check_starts(starts: list[float]) -> list[float]:
 
 # ---------------------------------------------------------------------------------------------
 # Problems (SPEC 17): which problems each kind runs on, declared on its spec class (`problems`,
-# `robot_only_because`); the implementations beyond the robot are in anfekf_bench.problems.
+# `robot_only_because`), and its form beyond the robot (`problem_form`: the spec class of its
+# parameters there and its implementation, in anfekf_bench.problems, which reads it by name).
+
+
+def problem_forms() -> tuple[tuple[str, str | None], ...]:
+    """(kind, its form: "<module>:<class>" in anfekf_bench.problems, or None where it names
+    none) of every kind that runs on a problem beyond the robot, in registry order; the
+    problems' schema, docs and tests derive their kinds from it (problems.forms)."""
+    return tuple(
+        (kind, cls.problem_form) for kind, cls in SPEC_BY_KIND.items() if cls.problems - {"robot"}
+    )
 
 
 def problems_of(kind: str) -> frozenset[str]:

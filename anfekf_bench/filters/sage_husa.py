@@ -85,6 +85,7 @@ class SageHusaSpec(AdaptiveSpec, Augmentable):
     kind: Literal["sage-husa"]
     fast_family: ClassVar[str | None] = "sage_husa"  # engines/families/sage_husa.py
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking", "module"})
+    problem_form: ClassVar[str | None] = "filters:SageHusaSpec"  # problems/filters.py
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     b: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = Field(
         0.97,

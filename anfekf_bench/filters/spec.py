@@ -79,7 +79,8 @@ class FilterSpec(StrictModel):
       (`registry.role_of`, `registry.kinds_with_role`), never compare a kind with a string;
     - `user_defined`: a user's class (kind `custom` and entry points), run only where it is named;
     - `problems`: the problems (SPEC 17) it runs on, and `robot_only_because`: why not the others
-      (`registry.supports_problem`, `registry.unsupported_reason`);
+      (`registry.supports_problem`, `registry.unsupported_reason`); `problem_form`: its spec
+      class on the problems beyond the robot (anfekf_bench.problems.forms reads it);
     - its fit, where it has one: `fit_sources`, the training runs it can be fitted on
       (FIT_SOURCES), and `fit(training)`, run by anfekf_bench.fitting's one entry point.
     """
@@ -97,6 +98,11 @@ class FilterSpec(StrictModel):
     robot_only_because: ClassVar[str] = (
         "not yet written for the problem interface (anfekf_bench.problems)"
     )
+    # Its form on the problems beyond the robot, where `problems` names one: the spec class of
+    # its parameters there (full Q and R instead of the robot's sigmas) and its implementation,
+    # as "<module>:<class>" in anfekf_bench.problems. Read there (problems.forms), as the fast
+    # engine reads `fast_family`: the registry lists each kind once and imports no problem.
+    problem_form: ClassVar[str | None] = None
     default_filter: ClassVar[bool] = False  # the one to use when nothing is known (SPEC 19)
     # The module under engines/families/ whose hooks run this kind on the fast engine's one loop
     # (engines/loop.py), or None. Read on the exact class (`fast_family_of`): a subclass that

@@ -178,6 +178,7 @@ class VBRSpec(AdaptiveSpec, Augmentable):
     kind: Literal["vb-r"]
     fast_family: ClassVar[str | None] = "vb_r"  # engines/families/vb_r.py
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "tracking", "module"})
+    problem_form: ClassVar[str | None] = "filters:VBRSpec"  # problems/filters.py
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R"})
     rho: float = Field(
         RHO, gt=0, le=1, allow_inf_nan=False,

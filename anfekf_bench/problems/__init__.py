@@ -9,6 +9,8 @@ the default and keeps its own pipeline. Layout:
 - `linear`: a linear time-invariant system, by default the survey's (Dunik et al. 2017);
 - `module`: a user's own problem, a Python file the scenario names (`problem: module`);
 - `schema`: the scenario file of a problem (`problem: linear`), validated strictly;
+- `forms`: the kinds on these problems, read from the filter registry (each kind's spec names
+  its form here, `problem_form`: no second list of kinds);
 - `kalman`: the generic (E)KF step and its likelihood, shared by every filter;
 - `filters`: the generic loop and the kinds ekf, ekf-oracle, sage-husa, vb-r (kinds of the
   registry, which says which problems each kind runs on); `als`: the autocovariance least

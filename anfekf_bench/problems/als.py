@@ -133,6 +133,10 @@ class ALSSpec(ProblemFilterSpec):
             return np.array(self.gain, dtype=float)
         return self.gain * np.eye(problem.n, problem.nz)
 
+    def check(self, problem):
+        # the predictor's gain and the identifier's design (a linear problem, F - K H stable)
+        self.build(problem, np.eye(problem.nw), np.eye(problem.nz))
+
     def build(self, problem, Q, R):
         return ALSKF(problem, Q, R, self)
 

@@ -49,6 +49,7 @@ class Problem(ABC):
     nz: int  # measurement dimension
     angles: tuple[int, ...] = ()  # angle-valued measurement components
     position: tuple[int, ...] = ()  # state components scored as position
+    position_unit: str = ""  # their unit, as the gate shows rmse_pos ("m"); "": none
     linear: bool = False  # f and h linear and time-invariant (F, G, H constant)
     gate: float | None = None  # nu^T S^-1 nu above which a measurement is dropped; None: none
     Q: np.ndarray  # true process-noise covariance (nw, nw)

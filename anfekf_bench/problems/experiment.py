@@ -26,6 +26,8 @@ import pandas as pd
 from ..provenance import git_commit, package_version
 from ..storage import (
     MANIFEST_FILE,
+    PROBLEM_FORMAT,
+    PROBLEM_TABLES,
     ResultsError,
     folder_lock,
     foreign_entries,
@@ -40,13 +42,7 @@ from .module import ModuleProblemError, file_digest
 from .schema import ProblemScenario
 from .scoring import score
 
-PROBLEM_FORMAT = "anfekf-bench problem result v1"
-TABLES = {
-    "summary": "problem_summary.parquet",
-    "runs": "problem_runs.parquet",
-    "noise": "problem_noise.parquet",
-    "timing": "problem_timing.parquet",
-}
+TABLES = PROBLEM_TABLES  # the result's file names (storage: the loader reads them too)
 
 
 class ProblemRunError(Exception):
@@ -199,7 +195,7 @@ def execute_problem(scenario: ProblemScenario, out: Path, *, runs: int | None = 
         names = [s.name for s in scenario.filters]
         traces = {name: [tr[name] for _, tr in results] for name in names}
         specs = {s.name: s for s in scenario.filters}
-        oracles = [s.name for s in scenario.filters if s.uses_true_noise]
+        oracles = [s.name for s in scenario.filters if s.role == "oracle"]
         problem = scenario.build_problem()
         tables = score(problem, truth, traces, specs, oracles[0] if oracles else None, seed)
         fp = fingerprint(scenario, runs, seed)
@@ -212,6 +208,7 @@ def execute_problem(scenario: ProblemScenario, out: Path, *, runs: int | None = 
             "format": PROBLEM_FORMAT,
             "scenario": scenario.model_dump(mode="json"),
             "problem": scenario.problem, "state_dimension": problem.n,
+            "position_unit": problem.position_unit,
             "engine": scenario.engine, "engine_setup": engine_record,
             "module_sha256": module_digest(scenario),
             "runs": runs, "seed": seed, "jobs": jobs, "fingerprint": fp,

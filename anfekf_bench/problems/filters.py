@@ -25,6 +25,7 @@ from typing import Annotated, ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
+from ..filters.registry import SPEC_BY_KIND, role_of
 from ..filters.sage_husa import fading_weight, q_sample
 from ..schema import StrictModel
 from .base import Problem
@@ -54,12 +55,26 @@ class Trace:
 
 
 class ProblemFilterSpec(StrictModel):
-    """A filter of a problem scenario: a unique `name` and a `kind` of the registry."""
+    """A filter of a problem scenario: a unique `name` and a `kind` of the registry, whose spec
+    there names this class as its form on the problems (`problem_form`; problems.forms). What
+    the kind is (its role, whether it is given the true noise) is the registry's."""
 
     name: str = Field(min_length=1, max_length=64, pattern=NAME_PATTERN)
     kind: str
     estimates: ClassVar[frozenset[str]] = frozenset()  # "Q", "R": what it identifies
-    uses_true_noise: ClassVar[bool] = False
+
+    @property
+    def role(self) -> str | None:
+        """What it is in a comparison (filters.spec.ROLES), as the registry says of its kind."""
+        return role_of(self.kind)
+
+    @property
+    def uses_true_noise(self) -> bool:
+        """Whether it is given the true Q and R (the oracle), as its kind's spec declares."""
+        return SPEC_BY_KIND[self.kind].uses_true_noise
+
+    def check(self, problem: Problem) -> None:
+        """ValueError saying why it cannot run on `problem` (checked with the scenario)."""
 
     def fits_on_training(self) -> bool:
         """Whether it is fitted once on the scenario's training runs before the batch."""
@@ -162,7 +177,6 @@ class OracleSpec(ProblemFilterSpec):
     """The (E)KF given the true Q and R: the reference every ratio is taken against."""
 
     kind: Literal["ekf-oracle"]
-    uses_true_noise: ClassVar[bool] = True
 
     def build(self, problem, Q, R):
         return GenericKF(problem, Q, R)

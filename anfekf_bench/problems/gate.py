@@ -2,7 +2,8 @@
 
 A problem result joins the robot's scenarios as a `gate.ScenarioSummary` of the metrics its
 summary shares with them: `rmse_pos`, `anees` (judged against the problem's state dimension,
-what a consistent filter's ANEES is, as the robot's is against 3) and `nees_in_bounds`. A
+what a consistent filter's ANEES is, as the robot's is against 3) and `nees_in_bounds`; its
+`rmse_pos` is shown in the problem's unit (the manifest's `position_unit`: none for `linear`). A
 baseline guards whichever of them its tolerances list; the robot's others (`rmse_heading`,
 `diverged`) do not exist here and are not asked for.
 """
@@ -17,6 +18,7 @@ from ..analysis.gate import ScenarioSummary
 from ..storage import ResultsError, scenario_name_problem
 from .experiment import problem_result_folders, read_problem_result
 from .filters import NAME_PATTERN
+from .module import UNIT
 
 METRICS = ("rmse_pos", "anees", "nees_in_bounds")
 PLAIN_NAME = re.compile(NAME_PATTERN)  # as the scenario schema allows a filter's name
@@ -36,6 +38,15 @@ def state_dimension(manifest: dict, folder: Path) -> int:
     except Exception:  # any failure means the same: the dimension cannot be known
         raise ResultsError(f"{folder}: manifest.json has no state_dimension (written by an"
                            " older version); run it again with `anfekf run`") from None  # fmt: skip
+
+
+def position_unit(manifest: dict) -> str:
+    """The unit of the problem's position components as the manifest records it (since the
+    gate shows it); none where it does not (an older result: no unit is shown)."""
+    unit = manifest.get("position_unit", "")
+    if not (isinstance(unit, str) and UNIT.fullmatch(unit)):
+        raise ValueError(f"position_unit {str(unit)[:20]!r} is not a unit name")
+    return unit
 
 
 def read_problem_summaries(results_dir: Path) -> dict[str, ScenarioSummary]:
@@ -74,6 +85,7 @@ def read_summary(folder: Path) -> ScenarioSummary:
             name=name, seed=int(manifest["seed"]), runs=int(manifest["runs"]), filters=filters,
             fingerprint=manifest.get("fingerprint"), folder=folder,
             problem=str(manifest["problem"]), anees_ideal=float(state_dimension(manifest, folder)),
+            units={"rmse_pos": position_unit(manifest)},
         )  # fmt: skip
     except (KeyError, TypeError, ValueError) as exc:
         raise ResultsError(f"{folder}: not a problem result as `anfekf run` writes it ({exc})"

@@ -8,6 +8,7 @@ The file defines, at module level (docs/CUSTOM_PROBLEMS.md):
 - `Q` (nw x nw), `R` (nz x nz): the true noise; `x0` (n,), `P0` (n x n): the start; `steps`;
 - optionally `params` (a float vector, default empty), `angles` (angle-valued measurement
   components), `position` (state components scored as position, default all),
+  `position_unit` (their unit as the regression gate shows it, e.g. "m"; default none),
   `linear = True` (f = F x, h = H x with constant matrices: what ALS needs), and
   `simulate(rng, steps, p) -> (x, z)`, its own simulator (default `Problem.simulate`).
 
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import re
 import sys
 from functools import lru_cache
 from pathlib import Path
@@ -32,6 +34,7 @@ from .base import Problem, Trajectory, wrap
 FUNCTIONS = ("f", "F", "G", "h", "H")
 REQUIRED = FUNCTIONS + ("Q", "R", "x0", "P0", "steps")
 MAX_DIM = 50
+UNIT = re.compile(r"[A-Za-z0-9/^]{0,16}")  # a position unit: printed in the gate's tables
 
 
 class ModuleProblemError(ValueError):
@@ -150,6 +153,10 @@ class ModuleProblem(Problem):
             )
         self.angles = _indices(getattr(mod, "angles", ()), self.nz, "angles")
         self.position = _indices(getattr(mod, "position", range(self.n)), self.n, "position")
+        self.position_unit = getattr(mod, "position_unit", "")
+        if not (isinstance(self.position_unit, str) and UNIT.fullmatch(self.position_unit)):
+            raise ModuleProblemError("position_unit: expected a short unit name such as 'm'"
+                                     " (letters, digits, '/', '^', at most 16)")  # fmt: skip
         self.user_simulate = getattr(mod, "simulate", None)
         self._check_functions()
         # `linear = True`: the module promises f = F x, h = H x with constant F, G, H (ALS and

@@ -20,7 +20,7 @@ A user's own problem (`problem: module`) names its Python file instead of `syste
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Literal, Union
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import (
@@ -32,22 +32,22 @@ from pydantic import (
     model_validator,
 )
 
-from ..config import MAX_SEED, ScenarioError, check_unique_names
+from ..config import (  # is_problem_document: re-exported
+    MAX_SEED,
+    ScenarioError,
+    check_unique_names,
+    is_problem_document,  # noqa: F401
+)
 from ..filters.registry import supports_problem, unsupported_reason
 from ..schema import StrictModel
 from ..storage import scenario_name_problem
-from .als import ALSSpec
 from .base import Problem
-from .filters import EKFSpec, Matrix, OracleSpec, SageHusaSpec, VBRSpec
+from .filters import Matrix
+from .forms import PROBLEM_KINDS, AnyProblemFilter
 from .linear import SURVEY_F, SURVEY_H, SURVEY_Q, SURVEY_R, SURVEY_STEPS, LinearProblem
-from .ml import MLSpec
 from .module import ModuleProblem, ModuleProblemError
 from .tracking_schema import TrackingSystem
-from .tuned import TunedSpec
 
-PROBLEM_FILTER_SPECS = (EKFSpec, OracleSpec, SageHusaSpec, VBRSpec, ALSSpec, MLSpec, TunedSpec)
-PROBLEM_KINDS = tuple(s.model_fields["kind"].annotation.__args__[0] for s in PROBLEM_FILTER_SPECS)
-AnyProblemFilter = Annotated[Union[PROBLEM_FILTER_SPECS], Field(discriminator="kind")]
 # Problems a scenario may name besides the robot (the default, `problem: robot` or absent).
 PROBLEMS = ("linear", "tracking", "module")
 MAX_DIM = 50
@@ -273,11 +273,10 @@ class ProblemScenario(StrictModel):
                 value = getattr(spec, key, None)
                 if value is not None:
                     check_covariance(as_matrix(value, m, m, f"filters.{i}.{key}"), key)
-            if isinstance(spec, ALSSpec):
-                try:
-                    spec.build(problem, np.eye(problem.nw), np.eye(problem.nz))
-                except ValueError as exc:
-                    raise ValueError(f"filters.{i} ({spec.name}): {exc}") from None
+            try:
+                spec.check(problem)
+            except ValueError as exc:
+                raise ValueError(f"filters.{i} ({spec.name}): {exc}") from None
         return self
 
     def build_problem(self, steps: int | None = None) -> Problem:
@@ -299,11 +298,6 @@ class ProblemScenario(StrictModel):
 
 
 SYSTEMS: dict[str, type[StrictModel]] = {"linear": LinearSystem, "tracking": TrackingSystem}
-
-
-def is_problem_document(data: object) -> bool:
-    """Whether a scenario document names a problem other than the robot."""
-    return isinstance(data, dict) and data.get("problem", "robot") != "robot"
 
 
 def parse_problem_scenario(data: dict, path: str | Path) -> ProblemScenario:

@@ -177,6 +177,7 @@ class TrackingProblem(Problem):
     n, nw, nz = 4, 4, 2
     angles = (1,)
     position = (0, 2)
+    position_unit = "m"
 
     def __init__(self, *, T: float, q: float, sigma_range: float, sigma_bearing: float,
                  radar, x0, P0, steps: int, gate: float | None = None,

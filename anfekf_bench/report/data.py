@@ -17,7 +17,7 @@ import pandas as pd
 from ..analysis.metrics import rmse_curve
 from ..analysis.statistics import too_few_runs
 from ..config import NoiseSigmas
-from ..filters.registry import adapted_noise
+from ..filters.registry import adapted_noise, role_of
 from ..schedule import NoiseSchedule
 
 BAND_PERCENTILES = (10.0, 90.0)  # the shaded band: this spread of the per-run values over runs
@@ -244,7 +244,7 @@ class ScenarioData:
 
     def reference(self) -> FilterSeries | None:
         """The filter ratios are taken against: the oracle EKF, else the plain EKF."""
-        return first_of_kind(self, "ekf-oracle") or first_of_kind(self, "ekf")
+        return first_with_role(self, "oracle") or first_with_role(self, "reference")
 
     def ratio(self, name: str, ref: FilterSeries | None, metric: str = "rmse_pos") -> Ratio | None:
         """filter `name` / `ref` on `metric`: the saved paired comparison (with its interval),
@@ -296,9 +296,10 @@ class SummaryRow:
     oracle_name: str = "ekf-oracle"
 
 
-def first_of_kind(sc: ScenarioData, kind: str) -> FilterSeries | None:
-    """The scenario's first filter of `kind` (the reference of that kind), or None."""
-    return next((f for f in sc.filters if f.kind == kind), None)
+def first_with_role(sc: ScenarioData, role: str) -> FilterSeries | None:
+    """The scenario's first filter whose kind has `role` (registry.role_of: "reference", the
+    plain EKF; "oracle"), or None."""
+    return next((f for f in sc.filters if role_of(f.kind) == role), None)
 
 
 def adapts_of(spec: dict, noise=None) -> frozenset[str]:

@@ -64,25 +64,30 @@ PALETTE = (
 LINE_STYLES = ("-", (0, (5, 1.5)), (0, (3, 1, 1, 1)), (0, (1, 1)))
 ORACLE_COLOUR = "#4d4d4d"  # dark grey, dashed: the reference, in every figure
 _ORDER: dict[str, int] = {}  # filter name -> its place in the report being drawn
+_ORACLES: frozenset[str] = frozenset()  # the names of its filters whose kind is the oracle
 
 
 @contextmanager
-def palette(names: Sequence[str]):
+def palette(names: Sequence[str], oracles: Sequence[str] = ()):
     """Within this block, filter `names` (in this order, duplicates ignored) take the palette's
-    entries one after another; a name outside the list is appended as it is first drawn."""
-    global _ORDER
-    saved = _ORDER
+    entries one after another; a name outside the list is appended as it is first drawn.
+    `oracles`: the names among them of a kind whose role is the oracle (registry.role_of), drawn
+    in the oracle's style also where a figure knows a filter by its name only."""
+    global _ORDER, _ORACLES
+    saved = _ORDER, _ORACLES
     _ORDER = {n: i for i, n in enumerate(dict.fromkeys(names))}
+    _ORACLES = frozenset(oracles)
     try:
         yield
     finally:
-        _ORDER = saved
+        _ORDER, _ORACLES = saved
 
 
-def palette_names() -> list[str]:
-    """The filter names in their palette order now (`palette(palette_names())` restores it, in
-    a worker process that draws part of a report)."""
-    return list(_ORDER)
+def palette_state() -> tuple[list[str], list[str]]:
+    """The filter names in their palette order now, and the oracles' names
+    (`palette(*palette_state())` restores it, in a worker process that draws part of a
+    report)."""
+    return list(_ORDER), sorted(_ORACLES)
 
 
 def _place(name: str) -> int:
@@ -125,9 +130,10 @@ ORACLE_STYLE = FilterStyle(ORACLE_COLOUR, "--", "o", "")
 
 def filter_style(name: str, kind: str | None = None) -> FilterStyle:
     """THE style map of a report: filter `name`'s colour, line style, marker and hatch, from its
-    place in the report (see `palette`); the oracle (by name or `kind`) grey and dashed, the
-    reference, in every figure. Every figure draws filters through this function only."""
-    if name == "ekf-oracle" or role_of(kind) == "oracle":
+    place in the report (see `palette`); the oracle (by its `kind`'s role, or its name among the
+    palette's oracles) grey and dashed, the reference, in every figure. Every figure draws
+    filters through this function only."""
+    if role_of(kind) == "oracle" or name in _ORACLES:
         return ORACLE_STYLE
     place = _place(name)
     turn = (place // len(PALETTE)) % len(LINE_STYLES)

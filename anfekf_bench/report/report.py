@@ -80,7 +80,7 @@ from .data import (
     SummaryRow,
     Track,
     adapts_of,
-    first_of_kind,
+    first_with_role,
 )
 from .document import (
     Block,
@@ -503,7 +503,7 @@ def mismatch_sentence(sc: ScenarioData) -> str:
                 f"{what} {format_sig(assumed)} {unit} for a true {format_sig(true)} {unit}"
                 f" ({format_sig(assumed / true)} x)"
             )
-    oracle = first_of_kind(sc, "ekf-oracle")
+    oracle = first_with_role(sc, "oracle")
     given = f" `{oracle.name}` is given the true noise." if oracle else ""
     if not wrong:
         return "**Noise:** the filters assume the true noise (no mismatch)." + given
@@ -785,9 +785,10 @@ def _scenario_sections_in_workers(
     `build_document` draws every section itself). Each worker draws with this process's
     palette order (every scenario's filters are in it), so the files are the same bytes."""
     todo = [i for i, sc in enumerate(scenarios) if sc.has_steps]
-    names = plots.palette_names()
+    names, oracles = plots.palette_state()
     calls = [
-        (_draw_section, scenarios[i], names, save.fmt, save.dpi, save.html, out_dir) for i in todo
+        (_draw_section, scenarios[i], names, oracles, save.fmt, save.dpi, save.html, out_dir)
+        for i in todo
     ]
     large = sum(_series(scenarios[i]) for i in todo) >= PARALLEL_MIN_SERIES
     drawn = _in_workers(calls, large, len(todo))
@@ -795,11 +796,17 @@ def _scenario_sections_in_workers(
 
 
 def _draw_section(
-    sc: ScenarioData, names: list[str], fmt: str, dpi: int, html: bool, out_dir: Path
+    sc: ScenarioData,
+    names: list[str],
+    oracles: list[str],
+    fmt: str,
+    dpi: int,
+    html: bool,
+    out_dir: Path,
 ) -> tuple[list[Block], list[Path]]:
     """A worker's part of `_scenario_sections_in_workers`: one scenario's section and files."""
     save = plots.FigureSaver(out_dir, fmt, dpi, html)
-    with plots.palette(names):
+    with plots.palette(names, oracles):
         blocks = scenario_section(sc, save, out_dir)
     return blocks, save.files
 
@@ -842,9 +849,12 @@ def write_report(
     # (a recorded result's instances by the filter they were made from).
     names = [f.name for sc in scenarios for f in sc.filters]
     names += [f["base"] for rd in recorded for f in rd.instances()]
+    oracles = [f.name for sc in scenarios for f in sc.filters if role_of(f.kind) == "oracle"]
+    oracles += [f["base"] for rd in recorded for f in rd.instances()
+                if role_of(f.get("kind")) == "oracle"]  # fmt: skip
     worst = suite_report.worst_case(scenarios, recorded)
     worst_blocks = () if worst is None else suite_report.blocks(worst, len(scenarios))
-    with plots.palette(names):  # a sweep's filters in the scenarios' colours, by name
+    with plots.palette(names, oracles):  # a sweep's filters in the scenarios' colours, by name
         doc = build_document(scenarios, rows, [*recorded, *swept], save, out_dir, worst_blocks)
     doc.add(*problem_blocks(problem_results, save, fmt.value))
     result.problems = len(problem_results)

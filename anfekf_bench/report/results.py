@@ -23,14 +23,14 @@ from pathlib import Path
 import pandas as pd
 
 from ..filters.registry import role_of
-from ..problems.experiment import PROBLEM_FORMAT, problem_result_folders
-from ..problems.experiment import TABLES as PROBLEM_TABLES
 from ..storage import (
     AUDIT_FILES,
     CLAIMS_FILE,
     COMPARISONS_FILE,
     MANIFEST_FILE,
     PHASES_FILE,
+    PROBLEM_FORMAT,
+    PROBLEM_TABLES,
     RUNS_FILE,
     STEPS_FILE,
     SUMMARY_JSON,
@@ -241,6 +241,10 @@ def find_results(
     none; folders of sweeps or of problem results alone are results too."""
     results_dirs = [Path(d) for d in results_dirs]
     sweeps = find_sweeps(results_dirs) if sweeps is None else [Path(s) for s in sweeps]
+    # imported here: loading a robot's result (`anfekf run` prints its comparisons through this
+    # module) never pays for the problems' pipeline and schema
+    from ..problems.experiment import problem_result_folders
+
     problems = problem_result_folders(results_dirs)
     try:
         found = (

@@ -107,7 +107,7 @@ def overview_figure(rows: Sequence[SummaryRow]) -> Figure:
         ax.grid(axis="x", visible=False)
     oracle = next((r.oracle_name for r in rows if role_of(r.kind) == "oracle"), "ekf-oracle")
     for ax, what in ((ax_rmse, "position RMSE"), (ax_anees, "ANEES")):
-        ax.axhline(1.0, color=filter_colour(oracle), lw=1.0, ls="--",
+        ax.axhline(1.0, color=ORACLE_COLOUR, lw=1.0, ls="--",
                    label=f"{oracle} (= 1)" if oracle not in labelled else None)  # fmt: skip
         labelled.add(oracle)
         plain_log_axis(ax)

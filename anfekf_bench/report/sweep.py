@@ -117,7 +117,8 @@ def line_figure(data: SweepData, axis: str, rows: pd.DataFrame, title: str) -> F
         for name, sub in rows.groupby("filter", observed=True, sort=False):
             sub = sub.sort_values(axis)
             x, y = sub[axis].to_numpy(float), sub[column].to_numpy(float)
-            style = filter_style(str(name))
+            kind = str(sub["kind"].iloc[0]) if "kind" in sub else None
+            style = filter_style(str(name), kind)
             colour = style.colour
             ax.plot(x, y, marker=style.marker, label=str(name), gid=f"{column}/{name}", ms=3,
                     **style.line())  # fmt: skip

@@ -14,7 +14,7 @@ from rich.table import Table
 from rich.text import Text
 
 from ..analysis.metrics import format_share, format_sig
-from .data import FilterSeries, Ratio, ScenarioData, SummaryRow, first_of_kind
+from .data import FilterSeries, Ratio, ScenarioData, SummaryRow, first_with_role
 from .document import Cell, Document, TableBlock, to_markdown
 from .ranking import CONSISTENCY_NOTE, consistent, rank, ranking_note, rmse_ratio
 
@@ -30,7 +30,7 @@ def summary_rows(scenarios: Sequence[ScenarioData]) -> list[SummaryRow]:
     """One row per filter and scenario, with the RMSE ratios against the EKF and the oracle."""
     rows = []
     for sc in scenarios:
-        ekf, oracle = first_of_kind(sc, "ekf"), first_of_kind(sc, "ekf-oracle")
+        ekf, oracle = first_with_role(sc, "reference"), first_with_role(sc, "oracle")
         for f in sc.filters:
             s = f.summary
             rows.append(

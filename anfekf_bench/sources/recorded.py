@@ -36,7 +36,7 @@ import numpy as np
 from pydantic import Field, field_serializer, field_validator, model_validator
 
 from ..config import Scenario, ScenarioError, Start, validate_as
-from ..filters.fitted import EKFMLSpec, EKFTunedSpec
+from ..filters.fitted import EKFTunedSpec
 from ..filters.registry import SPECS
 from ..filters.spec import FilterSpec
 from ..schema import PositiveFloat, StrictModel
@@ -47,17 +47,15 @@ BUILTIN = "builtin"
 NOISE_KEYS = ("sigma_v", "sigma_w_rad", "sigma_range", "sigma_bearing_rad")
 
 
-# The fitted kinds a recorded log can fit (fitting.fit): ekf-tuned by the grid search on the
-# training segments or other drives ("recorded"), ekf-ml on each run's own innovations ("own": no
-# truth needed, fitting.own.fit_on_own_innovations); the other fitted kinds are not available here.
-REAL_SPECS: tuple[type[FilterSpec], ...] = (
-    *(s for s in SPECS if not s.fitted_on_training),
-    EKFTunedSpec,
-    EKFMLSpec,
+# The kinds a recorded log can run: every kind not fitted before the batch, and the fitted and
+# trained kinds whose spec declares a fit on recorded runs (fitting.fit): ekf-tuned by the grid
+# search on the training segments or other drives ("recorded"), ekf-ml on each run's own
+# innovations ("own": no truth needed, fitting.own.fit_on_own_innovations), KalmanNet trained on
+# the training drives or segments ("recorded", fitting.recorded).
+RECORDED_FITS = frozenset({"recorded", "own"})
+REAL_SPECS: tuple[type[FilterSpec], ...] = tuple(
+    s for s in SPECS if not s.fitted_on_training or s.fit_sources & RECORDED_FITS
 )
-# KalmanNet is trained on the training drives (protocol drives) or the training segments
-# (protocol segments) by anfekf_bench.fitting.recorded.
-REAL_SPECS += tuple(s for s in SPECS if s.role == "trained")
 REAL_KINDS = tuple(s.model_fields["kind"].annotation.__args__[0] for s in REAL_SPECS)
 RealFilterSpec = Annotated[Union[REAL_SPECS], Field(discriminator="kind")]  # noqa: UP007
 

@@ -13,6 +13,8 @@ import numpy as np
 from ..config import World
 from ..error_sources import ErrorSources
 from ..models import wrap_angle
+from ..models.angles import wrap_scalar
+from ..models.motion_terms import MOTION_BICYCLE, jacobians_at, step_terms
 from ..schedule import CHANNELS, NoiseSchedule
 
 
@@ -95,18 +97,23 @@ class RunData:
 def _maybe_njit(fn):
     """`numba.njit(cache=True)` when numba is installed and not switched off (ANFEKF_FAST_JIT=0,
     as for the fast engine's kernels), else the function itself: the same scalar arithmetic
-    either way (libm's sin, cos, atan2 and Python's float %), so the same bytes."""
+    either way (libm's sin, cos, atan2 and Python's float %), so the same bytes. The options are
+    the fast engine's (engines.kernels.maybe_njit): numba's cache keeps one entry per function
+    and signature, whatever the options, and the kernels compile the same motion terms."""
     if os.environ.get("ANFEKF_FAST_JIT", "1") == "0":
         return fn
     try:
         import numba
     except ImportError:
         return fn
-    return numba.njit(cache=True, nogil=True)(fn)
+    return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
 
 
-_TWO_PI = 2.0 * math.pi
 _STEPS_PER_CALL = 1 << 16  # the truth loop's buffer: routes longer than this resume
+# The bicycle's step as the filters' models take it (models.motion_terms, written once)
+_step_terms, _jacobians_at, _wrap = (
+    _maybe_njit(step_terms), _maybe_njit(jacobians_at), _maybe_njit(wrap_scalar),
+)  # fmt: skip
 
 
 @_maybe_njit
@@ -128,14 +135,12 @@ def _drive(wp, state, params, xs, us):
                     done = True
                     break
                 iwp = 0
-        a = math.atan2(wp[iwp, 1] - y, wp[iwp, 0] - x) - phi - gamma
-        delta = -((-a + math.pi) % _TWO_PI - math.pi)  # models.wrap_scalar
+        delta = _wrap(math.atan2(wp[iwp, 1] - y, wp[iwp, 0] - x) - phi - gamma)
         delta = min(max(delta, -max_delta), max_delta)
         gamma = min(max(gamma + delta, -max_steer), max_steer)
-        x += T * V * math.cos(phi + gamma)
-        y += T * V * math.sin(phi + gamma)
-        a = phi + T * V * math.sin(gamma) / B
-        phi = -((-a + math.pi) % _TWO_PI - math.pi)
+        terms = _step_terms(V, gamma, T, MOTION_BICYCLE, B)
+        f02, f12, _ = _jacobians_at(phi, terms)
+        x, y, phi = x + f12, y - f02, _wrap(phi + terms[8])
         n += 1
         xs[n, 0], xs[n, 1], xs[n, 2] = x, y, phi
         us[n - 1, 0], us[n - 1, 1] = V, gamma

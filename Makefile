@@ -116,6 +116,7 @@ bias: setup
 	$(ANFEKF) run configs/bias-drives --out $(OUT)/bias --force
 	$(ANFEKF) report $(OUT)/bias --out $(OUT)/bias/report
 	$(PY) examples/bias/estimates.py
+	$(PY) examples/bias/estimates.py --filter ekf-aug-calibrated
 	$(PY) examples/bias/drives.py $(OUT)/bias/mrclam-drives-aug
 
 ## KalmanNet (docs/DESIGN.md): configs/learned, the four paper scenarios and the zoo's two mirrors

@@ -628,7 +628,14 @@ def _error_field_message(err: dict, model: type[Scenario]) -> tuple[str, str]:
             shown = shown[:57] + "..."
         msg += f" (got {shown})"
     if err["type"] == "union_tag_invalid":
-        msg += _did_you_mean(str(err.get("ctx", {}).get("tag", "")), KINDS)
+        tag = str(err.get("ctx", {}).get("tag", ""))
+        if tag in SPEC_BY_KIND and tag not in model.spec_by_kind:  # a kind of the other source
+            msg = f"kind {tag!r} is not available in a {model.source} scenario"
+            sources = SPEC_BY_KIND[tag].fit_sources
+            if sources:
+                msg += f": it is fitted on {' or '.join(sorted(sources))} training runs only"
+        else:
+            msg += _did_you_mean(tag, model.spec_by_kind)
     return field, msg
 
 

@@ -232,12 +232,19 @@ def test_warmed_workers_are_the_ones_a_batch_uses():
 def test_every_built_in_kind_is_timed_on_both_engines():
     """`anfekf bench` times every built-in kind (issue 22), `kalmannet` with a network of the
     default size and seeded random weights (no PyTorch needed); the fitted EKFs and the oracle
-    are the EKF's kernel with other noise (timed as `ekf`), a user's class has no fast kernel."""
+    are the EKF's kernel with other noise (timed as `ekf`; `ekf-aug-calibrated`: `ekf-aug`'s), a
+    user's class has no fast kernel."""
     from anfekf_bench.filters.kalmannet import KalmanNetSpec
     from anfekf_bench.filters.registry import SPEC_BY_KIND
 
     timed = {spec.kind for spec in bench.ENGINE_KINDS.values()}
-    assert timed == set(SPEC_BY_KIND) - {"custom", "ekf-oracle", "ekf-ml", "ekf-tuned"}
+    assert timed == set(SPEC_BY_KIND) - {
+        "custom",
+        "ekf-oracle",
+        "ekf-ml",
+        "ekf-tuned",
+        "ekf-aug-calibrated",
+    }
     weights = bench.ENGINE_KINDS["kalmannet"].trained_weights
     assert weights.hidden_size == KalmanNetSpec.model_fields["hidden_size"].default
     again = bench.bench_kalmannet().trained_weights

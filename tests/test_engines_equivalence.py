@@ -46,6 +46,16 @@ NOT_FAST = {"custom"}
 # schema check; kalmannet gets its network below)
 CONSTRUCTED = {"kalmannet", "custom"}
 
+# Fitted kinds that build no filter without their fit: the fit given here (the kind's own tests
+# fit it: tests/test_augmented_calibrated.py)
+FITS = {
+    "ekf-aug-calibrated": {
+        "estimate": ["speed_scale", "turn_bias", "range_bias"],
+        "start": [1.05, 1.0, 0.01, 0.1],
+        "sigma0": [0.05, 0.0, 0.02, 0.1],
+    },
+}
+
 # Per kind: the variants run (the default, and what else the family adapts)
 EXTRA = {
     "anfekf": [{"adapt": "RQ"}],
@@ -85,6 +95,8 @@ def _spec(kind: str, params: dict):
         return spec.with_weights(KalmanNetWeights.random(hidden_size=spec.hidden_size, seed=7))
     if kind in CONSTRUCTED:
         return cls.model_construct(name=kind, kind=kind, **params)
+    if kind in FITS:
+        return cls(name=kind, kind=kind, **params).with_fit(FITS[kind])
     return cls(name=kind, kind=kind, **params)
 
 

@@ -591,7 +591,10 @@ def test_make_setup_compiles_a_kernel_of_every_fast_kind():
     warmed = {type(spec) for spec in specs}
     families = {fast_family_of(spec) for spec in specs} - {None}
     for cls in SUPPORTED_SPECS:
-        assert cls in warmed or fast_family_of(cls) in families, cls.__name__
+        # a subclass of a warmed kind with a kernel of its own runs that kernel (the fitted
+        # ekf-aug-calibrated: ekf-aug's)
+        shares = any(issubclass(cls, w) for w in warmed if fast_family_of(w) is None)
+        assert cls in warmed or shares or fast_family_of(cls) in families, cls.__name__
     assert len(warmed) == len(specs)  # one of each
     # one per family module: every module of engines/families is warmed
     modules = {p.stem for p in (Path(fast.__file__).parent / "families").glob("[!_]*.py")}

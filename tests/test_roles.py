@@ -39,7 +39,7 @@ def test_every_kind_declares_a_known_role():
 def test_the_references_and_the_fitted_and_trained_kinds():
     assert kinds_with_role("reference") == ("ekf",)
     assert kinds_with_role("oracle") == ("ekf-oracle",)
-    assert set(kinds_with_role("fitted")) == {"ekf-ml", "ekf-tuned"}
+    assert set(kinds_with_role("fitted")) == {"ekf-ml", "ekf-tuned", "ekf-aug-calibrated"}
     assert kinds_with_role("trained") == ("kalmannet",)
     assert role_of("anfekf") == "adaptive" and role_of("custom") == "adaptive"
     assert role_of("no-such-kind") is None

@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 
 from ..filters.als import ALSSpec
-from ..filters.augmented import AugmentedSpec
+from ..filters.augmented import AugmentedSpec, CalibratedAugmentedSpec
 from ..filters.bank import IMMSpec, MMAESpec
 from ..filters.kalmannet import KalmanNetSpec
 from ..filters.registry import SPECS, register_engine
@@ -22,7 +22,8 @@ from ..filters.vb_bank import VBIMMSpec
 # (`FilterSpec.fast_family`: the EKF and its fitted and oracle forms, a recorded scenario's
 # ekf-tuned, the adaptive families of engines/families).
 OWN_KERNEL_SPECS: tuple[type[FilterSpec], ...] = (
-    MMAESpec, IMMSpec, SWVBSpec, ALSSpec, KalmanNetSpec, AugmentedSpec, VBIMMSpec,
+    MMAESpec, IMMSpec, SWVBSpec, ALSSpec, KalmanNetSpec, AugmentedSpec, CalibratedAugmentedSpec,
+    VBIMMSpec,
 )  # fmt: skip
 # Every registered spec class the fast engine runs (for tests and docs; `supported_type` decides).
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = tuple(

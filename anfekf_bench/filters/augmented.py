@@ -23,6 +23,11 @@ the NEES are the pose block's.
 Jacobians of one step: F = [[F_pose, G dU], [0, I]], dU = d u_true / d theta: -u0_true / k_v
 for k_v, -u1_true / k_w for k_w, -1 / k_w for b_w; H = [H_pose, (1, 0) for b_r].
 
+`ekf-aug-calibrated` (`CalibratedAugmentedSpec`, a fitted kind): which parameters to estimate,
+and from what start and spread, learnt on the scenario's simulated training runs (ekf-aug from
+a fixed grid of scale starts, the one of least training RMSE read by `calibrate`); the same
+filter and kernels.
+
 Combining with the adaptive families (`augment:` on `sage-husa` and `vb-r`, `Augmentable`):
 their filter class runs on this state (`augmented_class`: this predict and innovation, then the
 family's hooks). R-adapting rules read only nu, H P- H^T and H, so they apply unchanged; the VB
@@ -34,15 +39,17 @@ project their estimates through the 3-state pose model and are not combined.
 from __future__ import annotations
 
 import functools
-from typing import Annotated, ClassVar, Literal
+import math
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 from ..models import h
 from ..models.range_bearing import H_jacobian, residual_z
 from ..schema import StrictModel
 from .ekf import Innovation, RobotEKF
+from .fitted import FittedSpec
 from .spec import FilterContext, FilterSpec, Role
 
 PARAMETERS: tuple[str, ...] = ("speed_scale", "turn_scale", "turn_bias", "range_bias")
@@ -111,6 +118,186 @@ class AugmentedSpec(FilterSpec, AugmentParams):
 
     def build(self, ctx: FilterContext) -> AugmentedEKF:
         return AugmentedEKF(**ctx.kwargs(), params=self, augment=self)
+
+
+# The convergence tolerances docs/results/bias.md states (fixed before any scored run): 0.03 on a
+# scale factor, 0.25 deg on the turn bias (a steering angle on the bicycle), 0.05 m on the range
+# bias. `ekf-aug-calibrated` counts a parameter as present beyond them.
+TOLERANCE: tuple[float, float, float, float] = (0.03, 0.03, math.radians(0.25), 0.05)
+SIGMA0_FLOOR = 1e-9  # a present parameter's start standard deviation: at least this
+
+
+def calibrate(ends, estimate, start, tolerance) -> dict:
+    """`ekf-aug-calibrated`'s rule (fixed on training and development seeds before any scored
+    run was looked at: examples/bias/calibrated.py, docs/results/bias.md). From each training
+    run's parameter estimates at its end, `ends` (runs x 4, PARAMETERS' order; a row with a NaN,
+    a run that lost its covariance, is left out): their mean m and between-run standard
+    deviation s; a parameter of `estimate` is present when |m - start| > tolerance; the present
+    ones are estimated from m with start standard deviation s (at least SIGMA0_FLOOR), the
+    others held at `start`. ValueError when fewer than 2 runs are left."""
+    ends = np.asarray(ends, dtype=float).reshape(-1, len(PARAMETERS))
+    kept = ends[np.all(np.isfinite(ends), axis=1)]
+    if len(kept) < 2:
+        raise ValueError(
+            f"{len(kept)} of {len(ends)} training runs ended with finite estimates: the"
+            " calibration needs 2 or more (training.runs)"
+        )
+    m, s = kept.mean(axis=0), kept.std(axis=0, ddof=1)
+    present = [
+        p for i, p in enumerate(PARAMETERS)
+        if p in estimate and abs(m[i] - start[i]) > tolerance[i]
+    ]  # fmt: skip
+    return {
+        "estimate": present,
+        "start": [
+            float(m[i]) if p in present else float(start[i]) for i, p in enumerate(PARAMETERS)
+        ],
+        "sigma0": [
+            max(float(s[i]), SIGMA0_FLOOR) if p in present else 0.0
+            for i, p in enumerate(PARAMETERS)
+        ],  # fmt: skip
+        "training_mean": [float(v) for v in m],
+        "training_sd": [float(v) for v in s],
+        "training_runs_used": len(kept),
+    }
+
+
+# The candidate starts of a scale factor on the training runs, as multiples of its nominal start
+# (fixed before any run with them was looked at). ekf-aug started at nominal loses lock when a
+# scale is far off (a 1.6x steering scale; a 1.3x one it finds): from the nearest of these
+# starts a scale within 0.4-2.5x is at most about 15 % off (neighbours 1.2-1.33x apart), well
+# inside what it finds. Symmetric in log scale about 1, which it includes (the start that
+# `calibrate` alone would use).
+SCALE_STARTS: tuple[float, ...] = (0.5, 0.67, 0.8, 1.0, 1.25, 1.5, 2.0)
+SCALE_INDICES = (0, 1)  # speed_scale, turn_scale in PARAMETERS
+
+
+def start_candidates(estimate, start, factors) -> list[tuple[float, float, float, float]]:
+    """The training runs' candidate starts: every combination of `factors` x `start` for the
+    scale factors in `estimate` (speed outer, turn inner), the other parameters at `start`."""
+    axes = [
+        [start[i] * f for f in factors] if PARAMETERS[i] in estimate else [start[i]]
+        for i in SCALE_INDICES
+    ]
+    return [(v, w, float(start[2]), float(start[3])) for v in axes[0] for w in axes[1]]
+
+
+def choose_candidate(candidates, scores, start) -> int:
+    """The index of the candidate of least training score (mean position RMSE over the
+    training runs; NaN: a run lost its covariance, never chosen while another is finite); equal
+    scores go to the candidate nearest `start` (sum over the scales of |log(candidate /
+    start)|), then to the first."""
+    scores = np.where(np.isfinite(scores), np.asarray(scores, dtype=float), np.inf)
+
+    def distance(c):
+        return sum(abs(math.log(c[i] / start[i])) for i in SCALE_INDICES)
+
+    return min(range(len(candidates)), key=lambda k: (scores[k], distance(candidates[k]), k))
+
+
+class CalibratedAugmentedSpec(FittedSpec, AugmentedSpec):
+    """ekf-aug whose error states are chosen and started on the scenario's training runs: the
+    parameters of `estimate` whose training estimates differ from `start` by more than
+    `tolerance` are estimated, from their training mean with the training spread as start
+    standard deviation; the others are held at `start` (SPEC 18, docs/results/bias.md).
+    `start`, `sigma0` and `drift` are ekf-aug's on the training runs (`start`: the nominal
+    values too); the scored runs keep `drift`.
+
+    The fit (`fit_sources`: simulated training runs only; a recorded scenario refuses the kind:
+    a vehicle's constants are its own, another drive's robot has others): ekf-aug with this
+    spec's `estimate`, `sigma0` and `drift` on each training run (the fast engine's kernel)
+    from each candidate start (`start_candidates`: the estimated scale factors at
+    `scale_starts` x `start`, SCALE_STARTS by default; ekf-aug from the nominal start loses
+    lock on a large scale error and would teach the rule a wrong one); the candidate of least
+    mean position RMSE over the training runs (their truth; `choose_candidate`) gives the four
+    estimates at each run's last record, and `calibrate` reads them against `start`. The
+    manifest records which parameters are present, their start and spread, the training
+    means, the chosen candidate start and every candidate's training RMSE."""
+
+    kind: Literal["ekf-aug-calibrated"]
+    role: ClassVar[Role] = "fitted"
+    fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated"})
+    estimate: list[Parameter] = Field(
+        list(PARAMETERS),
+        max_length=4,
+        description="the candidates: the parameters estimated on the training runs, of which"
+        " those found present are estimated in the scored runs (the others held at their start)",
+    )
+    tolerance: FourPositive = Field(
+        TOLERANCE,
+        description="a parameter is present when its training mean differs from its start by"
+        " more than this: scales, turn bias [rad on the bicycle, rad/s on the unicycle], range"
+        " bias [m] (default: the stated convergence tolerances, 0.03, 0.03, 0.25 deg, 0.05 m)",
+    )
+    scale_starts: list[Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)]] = Field(
+        list(SCALE_STARTS),
+        min_length=1,
+        max_length=12,
+        description="the training runs' candidate starts of each scale factor estimated, as"
+        " multiples of its start: ekf-aug runs from every combination, and the one of least"
+        " training RMSE gives the end estimates the rule reads ([1]: from the start only)",
+    )
+
+    def training_spec(self) -> AugmentedSpec:
+        """The `ekf-aug` the training runs are filtered with: this spec's candidates, start,
+        spreads and drift."""
+        fields = self.model_dump(include=set(AugmentParams.model_fields))
+        return AugmentedSpec(name=self.name, kind="ekf-aug", **fields)
+
+    def training_problem(self, training_runs: int) -> str | None:
+        if training_runs < 2:
+            return (
+                f"kind: {self.kind} needs training.runs of 2 or more (got {training_runs}): the"
+                " training runs' spread is its start standard deviation"
+            )
+        return None
+
+    def fit(self, training: Any) -> dict:
+        # The training runs filter with ekf-aug from each candidate start
+        # (fitting.simulated.TrainingSet.augmented_runs): a spec never imports an engine.
+        base = self.training_spec()
+        candidates = start_candidates(self.estimate, self.start, self.scale_starts)
+        runs = [training.augmented_runs(base.model_copy(update={"start": c})) for c in candidates]
+        scores = [float(np.mean(rmse)) for _, rmse in runs]
+        best = choose_candidate(candidates, scores, self.start)
+        fitted = calibrate(runs[best][0], self.estimate, self.start, self.tolerance)
+        fitted["training_start"] = [float(v) for v in candidates[best]]
+        fitted["candidates"] = [
+            {"start": [float(v) for v in c[:2]],
+             "training_rmse": s if math.isfinite(s) else None}
+            for c, s in zip(candidates, scores, strict=True)
+        ]  # fmt: skip
+        problem = self.fit_problem(fitted)
+        if problem:
+            raise ValueError(f"the training runs give no usable calibration: {problem}")
+        return fitted
+
+    def fit_problem(self, fitted: Any) -> str | None:
+        problem = super().fit_problem(fitted)
+        if problem:
+            return problem
+        if not set(fitted.get("estimate") or []) <= set(self.estimate):
+            return "estimate: a parameter that is not one of the candidates"
+        try:
+            self._params(fitted)
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            return f"{'.'.join(map(str, err['loc']))}: {err['msg']}"
+        return None
+
+    def _params(self, fitted: dict) -> AugmentParams:
+        return AugmentParams(
+            estimate=fitted.get("estimate"), start=fitted.get("start"),
+            sigma0=fitted.get("sigma0"), drift=self.drift,
+        )  # fmt: skip
+
+    @property
+    def augment(self) -> AugmentParams:
+        """The fitted error states: those present, their start and spread."""
+        return self._params(self.fitted)
+
+    def build(self, ctx: FilterContext) -> AugmentedEKF:
+        return AugmentedEKF(**ctx.kwargs(), params=self, augment=self.augment)
 
 
 class Augmentable(StrictModel):

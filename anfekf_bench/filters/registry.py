@@ -15,7 +15,7 @@ from pydantic import Field
 from .akhlaghi import AkhlaghiSpec
 from .als import ALSSpec
 from .anfekf import ANFEKFSpec
-from .augmented import AugmentedSpec
+from .augmented import AugmentedSpec, CalibratedAugmentedSpec
 from .bank import IMMSpec, MMAESpec
 from .cm_scale import CMScaleSpec
 from .custom import CustomSpec, entry_point_kinds
@@ -49,6 +49,7 @@ SPECS: tuple[type[FilterSpec], ...] = (
     EKFMLSpec,
     EKFTunedSpec,
     AugmentedSpec,
+    CalibratedAugmentedSpec,
     KalmanNetSpec,
     CustomSpec,
 )

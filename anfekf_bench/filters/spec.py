@@ -25,7 +25,8 @@ Bounds = Annotated[
 # What a filter is in a comparison, declared on its spec class (`FilterSpec.role`):
 # "reference": the plain EKF on the assumed noise, that every filter is compared with;
 # "oracle": the EKF told the true noise, the other reference;
-# "fitted": a fixed-noise EKF whose noise is fitted on training runs or drives (ekf-ml, ekf-tuned);
+# "fitted": an EKF whose fixed settings are fitted on training runs or drives: its noise (ekf-ml,
+# ekf-tuned), or which error states it estimates and from where (ekf-aug-calibrated);
 # "trained": a learned filter trained on training runs or drives (no assumed noise to start from);
 # "adaptive": a filter that adapts online from the assumed noise (a user's class included).
 Role = Literal["reference", "oracle", "fitted", "trained", "adaptive"]

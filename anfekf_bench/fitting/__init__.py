@@ -8,7 +8,7 @@ fingerprint and manifest record. Each source supplies its training runs through 
 
 - "simulated" (`simulated.TrainingSet`): `training.runs` runs of the scenario's world, from seeds
   of a branch no evaluation run draws from; declared by ekf-ml and ekf-tuned (Nelder-Mead on the
-  tuning kernel) and kalmannet;
+  tuning kernel), kalmannet and ekf-aug-calibrated (ekf-aug's estimates at each run's end);
 - "recorded" (`recorded.RecordedTraining`): a log's training segments, or a fold's drives of the
   other datasets; declared by a recorded scenario's ekf-tuned (grid search) and kalmannet;
 - "own" (`own.OwnInnovations`): one recorded run's own innovations, never its truth; declared

@@ -1,5 +1,6 @@
 """Training runs for the filters fitted before the batch (filters.fitted: `ekf-ml`, `ekf-tuned`;
-filters.kalmannet: `kalmannet`, trained on them).
+filters.kalmannet: `kalmannet`, trained on them; filters.augmented: `ekf-aug-calibrated`, its error
+states chosen and started on them).
 
 1. **Seeds.** Evaluation run i draws from `SeedSequence(seed).spawn(runs)[i]`, whose spawn key is
    (i,) with i < MAX_RUNS. Training run j draws from `training_seeds(seed, n)[j]`: the children
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -30,6 +32,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from ..analysis.metrics import recorded_steps
 from ..config import SimulatedScenario, World
 from ..engines.tuning import SIGMA_NAMES, TrainingProblem, fit_noise, start_results
 from ..filters.ekf import gate_threshold
@@ -144,6 +147,27 @@ class TrainingSet(TrainingRuns):
         )  # fmt: skip
         found["sigmas_rad"] = dict(zip(SIGMA_NAMES, found.pop("sigmas"), strict=True))
         return found
+
+    def augmented_runs(self, spec) -> tuple[np.ndarray, np.ndarray]:
+        """Each training run by `spec` (an `ekf-aug`) on the fast engine's kernel: its
+        error-parameter estimates at its last record, runs x 4 (filters.augmented.PARAMETERS'
+        order), and its position RMSE against the truth at the recorded steps (as the scorer
+        takes it); NaN for a run that lost its covariance. What `ekf-aug-calibrated` is fitted
+        on."""
+        from ..engines.fast import augmented_run
+        from ..filters.context import filter_context
+        from ..timeline import from_run
+
+        ctx = filter_context(spec, self.scenario, self.world)
+        every = self.scenario.record_every
+        ends, rmse = [], []
+        for run in self.runs:
+            out, theta = augmented_run(spec, ctx, from_run(run, self.world, every))
+            truth = run.truth.x[recorded_steps(len(run.u_odo), every)]
+            err = out["x"][:, :2] - truth[:, :2]
+            ends.append(theta[-1])
+            rmse.append(math.sqrt(np.mean(np.sum(err**2, axis=1))) if len(err) else math.nan)
+        return np.array(ends), np.array(rmse)
 
 
 def simulate_training(

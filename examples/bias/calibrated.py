@@ -16,6 +16,15 @@ docs/results/bias.md). Development and training seeds only, never the scored run
   ekf-aug-known with a 95 % bootstrap interval over runs, as examples/bias/settings.py.
 
     python examples/bias/calibrated.py [configs/bias/steering_bias.yaml ...]
+
+The rule is now a filter kind, `ekf-aug-calibrated` (filters/augmented.py: `calibrate`, fitted
+through anfekf_bench.fitting on the scenario's own training runs, the training branch of its
+seed, `training.runs` of them: 8 in configs/bias), scored by `anfekf run configs/bias`
+(docs/results/bias.md). This script stays as the record of how the rule was chosen: its
+training (seed + 8000) and development (seed + 7000) runs and the figures it printed. The
+kind adds one step this script does not take: its training runs run ekf-aug from each start of
+a fixed grid of scale factors (`SCALE_STARTS`) and read the end estimates of the one of least
+training RMSE, so that a large scale error (1.6x steering) does not teach the rule a wrong one.
 """
 
 import math

@@ -13,13 +13,13 @@ $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e ".[dev,dask,fast]"
-	@# numba compiles on one core: two processes side by side, the robot's one loop (every family
-	@# on it) in one, the robot's other kernels and then the problems' loops (SPEC 17) in the
-	@# other (their cache writes take a lock: engines.fast.serialise_cache_writes).
-	$(PY) -m anfekf_bench.engines.fast --warm-up --part loop & loop=$$!; \
-	    $(PY) -m anfekf_bench.engines.fast --warm-up --part kernels \
+	@# numba compiles on one core: two processes side by side (CPU measured: 137 + 84 s, 169 s),
+	@# the robot's one loop (every family on it) and then the problems' loops (SPEC 17) in one,
+	@# the robot's other kernels in the other (cache writes locked: fast.serialise_cache_writes).
+	$(PY) -m anfekf_bench.engines.fast --warm-up --part kernels & kernels=$$!; \
+	    $(PY) -m anfekf_bench.engines.fast --warm-up --part loop \
 	    && $(PY) -c "import anfekf_bench.problems.fast"; rest=$$?; \
-	    wait $$loop && exit $$rest
+	    wait $$kernels && exit $$rest
 	touch $@
 
 ## The paper's four experiments at 50 runs each, then the report (after the runs, even with -j).

@@ -317,7 +317,7 @@ WARM_UP_KERNELS = (
     (_jit_kernels_bank, "run_bank_kernel"),
     (_jit_kernels_default, "run_vb_imm_kernel"),
 )  # fmt: skip
-COMPILE_ESTIMATE = "about 1-2 min"  # results/bench.json: fast_compile_s 47 s on 2 free cores
+COMPILE_ESTIMATE = "a few minutes"  # one process: about 4 min of CPU (lead, 2026-11-27, load 12)
 
 
 def kernels_cached() -> bool | None:

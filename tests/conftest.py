@@ -185,6 +185,7 @@ SLOW_TESTS: dict[str, set[str]] = {
     },
     "test_mrclam": {"test_conversion_reproduces_the_shipped_tables"},
     "test_pipeline": {
+        "test_a_simulated_run_imports_neither_problems_nor_recorded_sources",
         "test_cli_runs_every_scenario_in_a_folder",
         "test_ekf_consistency_acceptance",
         "test_output_files_and_columns",
@@ -195,6 +196,7 @@ SLOW_TESTS: dict[str, set[str]] = {
         "test_worker_processes_import_no_table_libraries",
     },
     "test_problems_custom": {"test_the_example_runs_through_the_command_line"},
+    "test_problems_fast": {"test_the_compiled_loop_equals_the_python_filter"},
     "test_readme": {"test_the_json_schemas_accept_every_shipped_scenario"},
     "test_real_data": {
         "test_a_users_log_runs_end_to_end",
@@ -239,7 +241,8 @@ SLOW_MODULES = {
 def pytest_collection_modifyitems(config, items) -> None:
     for item in items:
         module = item.module.__name__.rsplit(".", 1)[-1] if item.module else ""
-        if module in SLOW_MODULES or item.originalname in SLOW_TESTS.get(module, ()):
+        heavy = item.get_closest_marker("heavy") is not None  # the longest: slow as well
+        if heavy or module in SLOW_MODULES or item.originalname in SLOW_TESTS.get(module, ()):
             item.add_marker(pytest.mark.slow)
 
 

@@ -565,6 +565,7 @@ def test_paper_scenario(name):
 
 # Runs differ only in their draws: `make test` checks run 0 of each paper scenario (above),
 # `make test-all` (heavy) 10 runs.
+@pytest.mark.slow
 @pytest.mark.heavy
 @pytest.mark.parametrize("name", PAPER)
 def test_paper_scenario_many_runs(name):

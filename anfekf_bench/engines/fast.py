@@ -425,13 +425,14 @@ def serialise_cache_writes() -> bool:
     (fcntl), so that warm-up processes running side by side never lose or mix up each other's
     entries: numba reads a function's index, adds its entry and writes it back, unlocked, and
     numbers the entry's data file by what it read (two processes compiling the same callee for
-    different signatures would both write data file 1). False when numba's cache class is not
-    the one this wraps (then the caller runs the parts one after the other)."""
-    import fcntl
+    different signatures would both write data file 1). False without fcntl (not POSIX) or when
+    numba's cache class is not the one this wraps (then the parts run one after the other)."""
     import os
     import tempfile
 
     try:
+        import fcntl  # POSIX only: elsewhere the parts run one after the other
+
         from numba.core.caching import IndexDataCacheFile
 
         save = IndexDataCacheFile.save

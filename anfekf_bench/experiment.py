@@ -30,10 +30,12 @@ import json
 import os
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
+import pandas as pd
 from pydantic import ValidationError
 
 from .analysis.comparisons import (
@@ -66,14 +68,24 @@ from .outputs import (
     save_run,
     scenario_folder,
     survey_output,
+    write_result_table,
     write_result_tables,
 )
-from .runner import Prepared, connect_dask, dispatch_runs, engine_of, fast_compiled, simulated_items
+from .runner import (
+    Prepared,
+    connect_dask,
+    dispatch_runs,
+    engine_of,
+    fast_compiled,
+    runs_in_threads,
+    simulated_items,
+)
 from .sources.simulator import RouteNotCompleted, simulate_truth, world_path
 from .storage import (
     MANIFEST_FILE,
     RESULT_FORMAT,
     RUNS_DIR,
+    STEPS_FILE,
     FolderBusy,
     folder_lock,
     scenario_name_problem,
@@ -259,30 +271,20 @@ def memory_estimate(plan: Plan, control_steps: int) -> int:
     return parent + workers * per_worker
 
 
-# A fitted filter's training set in this process, per training run and control step [bytes]:
-# the simulated run (truth, odometry, scans) and the tuning kernel's copy of it, which every
-# worker of a parallel fit holds too (measured: 62 and 115 bytes on the builtin map)
+# A fitted filter's training set, per training run and control step [bytes]: the simulated run
+# (truth, odometry, scans) and the tuning kernel's copy of it (measured: 62 and 115 bytes on the
+# builtin map); a parallel fit's threads share them
 TRAINING_RUN_BYTES_PER_STEP = 64
 TRAINING_PROBLEM_BYTES_PER_STEP = 128
 
 
-def training_workers(plan: Plan) -> int:
-    """Worker processes a parallel noise fit starts (each with its copy of the training set):
-    one per Nelder-Mead start of every noise fit, at most `jobs`; 0 when the fits run here."""
-    starts = sum(len(spec.noise_fit_request()[1]) for spec in fitted_filters(plan.scenario)
-                 if spec.noise_fit_request() is not None)  # fmt: skip
-    return min(plan.jobs, starts) if plan.jobs > 1 and starts > 1 else 0
-
-
 def training_memory_estimate(plan: Plan, control_steps: int) -> int:
     """Bytes the fitted filters' training needs at its peak (0 without fitted filters): the
-    `training.runs` simulated runs held in this process, the tuning kernel's copy here and in
-    each fitting worker (`training_workers`), and a process's base."""
+    `training.runs` simulated runs held in this process, the tuning kernel's copy of them, and a
+    process's base."""
     if not fitted_filters(plan.scenario):
         return 0
-    per_run = control_steps * (
-        TRAINING_RUN_BYTES_PER_STEP + TRAINING_PROBLEM_BYTES_PER_STEP * (1 + training_workers(plan))
-    )
+    per_run = control_steps * (TRAINING_RUN_BYTES_PER_STEP + TRAINING_PROBLEM_BYTES_PER_STEP)
     return WORKER_BASE_BYTES + plan.scenario.training.runs * per_run
 
 
@@ -435,10 +437,9 @@ class SimulatedSource:
             )
         need = training_memory_estimate(plan, control_steps)
         if have is not None and need > MEMORY_SHARE * have:
-            workers = training_workers(plan)
             raise PlanError(
                 f"training.runs: {plan.scenario.training.runs} training runs of {control_steps}"
-                f" control steps (fitted filters, {1 + workers} processes fitting) need about"
+                f" control steps (fitted filters) need about"
                 f" {_bytes(need)} of memory, more than {MEMORY_SHARE:.0%} of this machine's"
                 f" {_bytes(have)}; use fewer training runs or jobs, or a shorter route"
             )
@@ -548,13 +549,17 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result, 
         engine=plan.engine,
         client=client,
         placement=placement,
+        in_threads=runs_in_threads(plan.engine, plan.source.engines(plan)),
     )
     for result in batch:
         results[result["run"]] = result
     run_seconds = time.perf_counter() - run_started
     ordered = [results[i] for i in range(plan.runs)]
-    tables = result_tables(plan, ordered)
-    write_result(plan, target, tables, prepared, sorted(done), started, run_seconds, placement)
+    tables, steps_written = tables_writing_steps(plan, ordered, result_staging(target))
+    write_result(
+        plan, target, tables, prepared, sorted(done), started, run_seconds, placement,
+        steps_written=steps_written,
+    )  # fmt: skip
     return tables.summary, target
 
 
@@ -567,18 +572,21 @@ def write_result(
     started: float,
     run_seconds: float,
     placement: dict | None = None,
+    steps_written: bool = False,
 ) -> None:
     """The batch's tables and manifest, staged and then swapped in whole (finish_result).
-    `placement`: where the runs ran and why (`runner.place_runs`; empty when none was run)."""
+    `placement`: where the runs ran and why (`runner.place_runs`; empty when none was run).
+    `steps_written`: steps.parquet is staged already."""
     fingerprint = plan.fingerprint()
     staging = result_staging(target)
     write_result_tables(
         staging,
         tables,
         steps_table=plan.scenario.steps_table,
-        metadata={"scenario": plan.name, "seed": str(plan.seed), "fingerprint": fingerprint},
+        metadata=result_metadata(plan),
         extra=prepared.tables,
         durable=False,  # finish_result flushes the staged files together before installing
+        steps_written=steps_written,
     )
     manifest = {
         "scenario": plan.scenario.model_dump(mode="json"),
@@ -612,8 +620,36 @@ def write_result(
     finish_result(target, staging)
 
 
-def result_tables(plan: Plan, ordered: list[dict]) -> ResultTables:
+def tables_writing_steps(
+    plan: Plan, ordered: list[dict], staging: Path
+) -> tuple[ResultTables, bool]:
+    """`result_tables`, with steps.parquet (the largest file: 355 MB on the drives) written to
+    `staging` and flushed on a thread while the other tables are computed (pyarrow releases the
+    GIL as it encodes). Returns the tables and whether steps.parquet was written."""
+    with ThreadPoolExecutor(max_workers=1) as writer:
+        written: list[Future] = []
+
+        def write_steps(steps: pd.DataFrame) -> None:
+            if plan.scenario.steps_table:
+                path, meta = staging / STEPS_FILE, result_metadata(plan)
+                written.append(writer.submit(write_result_table, path, steps, meta))
+
+        tables = result_tables(plan, ordered, on_steps=write_steps)
+        for future in written:
+            future.result()  # the writer's error, if any, is raised here
+    return tables, bool(written)
+
+
+def result_metadata(plan: Plan) -> dict[str, str]:
+    """What every result table of `plan` says of where it came from (write_result_tables)."""
+    return {"scenario": plan.name, "seed": str(plan.seed), "fingerprint": plan.fingerprint()}
+
+
+def result_tables(
+    plan: Plan, ordered: list[dict], on_steps: Callable[[pd.DataFrame], None] | None = None
+) -> ResultTables:
     """The steps, per-run, summary, comparison and claim tables of a batch (runs in order).
+    `on_steps` gets the steps table as soon as it is built (the others take longer).
 
     Bootstrap intervals draw from the scenario's root seed, so they are as reproducible as the
     runs themselves.
@@ -621,6 +657,8 @@ def result_tables(plan: Plan, ordered: list[dict]) -> ResultTables:
     names = plan.filter_names()
     local_jobs = plan.jobs if plan.backend.kind == "local" else 1  # the batch's own workers
     steps = steps_frame(plan.name, names, ordered)
+    if on_steps is not None:
+        on_steps(steps)
     pairs = plan.source.comparison_pairs(plan.scenario)
     arrays = filters_arrays(steps, names)  # read by the summary and the comparisons
     records = summary_records(steps, update_statistics(ordered, names), arrays)

@@ -437,6 +437,15 @@ class ResultTables:
     phases: pd.DataFrame | None = None  # a scenario with a noise schedule (SPEC 14)
 
 
+def write_result_table(
+    path: Path, df: pd.DataFrame, metadata: dict | None = None, *, durable: bool = True
+) -> None:
+    """One result table as `write_result_tables` writes it: the key columns as plain strings,
+    `metadata` and the columns' units in the file's key-value metadata, written atomically."""
+    df = parquet_frame(df)
+    write_parquet(path, df, {**(metadata or {}), "units": column_units(df)}, durable=durable)
+
+
 def write_result_tables(
     target: Path,
     tables: ResultTables,
@@ -445,10 +454,12 @@ def write_result_tables(
     metadata: dict | None = None,
     extra: dict[str, pd.DataFrame] | None = None,
     durable: bool = True,
+    steps_written: bool = False,
 ) -> None:
-    """Write every table atomically; steps.parquet only when the scenario asks for it.
-    `durable=False`: without a flush per file, for a staged result (`storage.install_result`
-    flushes them all together before they replace the old result).
+    """Write every table atomically; steps.parquet only when the scenario asks for it and
+    `steps_written` does not say it is there already (`write_result_table`, while the other
+    tables were computed). `durable=False`: without a flush per file, for a staged result
+    (`storage.install_result` flushes them all together before they replace the old result).
 
     Every Parquet file has scenario and filter as plain strings (they join across files) and
     says in its key-value metadata where it came from: `metadata` (scenario, seed,
@@ -456,11 +467,9 @@ def write_result_tables(
     """
 
     def parquet(name: str, df: pd.DataFrame) -> None:
-        df = parquet_frame(df)
-        meta = {**(metadata or {}), "units": column_units(df)}
-        write_parquet(target / name, df, meta, durable=durable)
+        write_result_table(target / name, df, metadata, durable=durable)
 
-    if steps_table:
+    if steps_table and not steps_written:
         parquet(STEPS_FILE, tables.steps)
     parquet(RUNS_FILE, tables.runs)
     parquet(SUMMARY_PARQUET, pd.DataFrame(tables.summary))

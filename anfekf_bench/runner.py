@@ -109,6 +109,14 @@ def engine_of(engine: Engine, spec: FilterSpec, scenario=None, model=None) -> En
     return "filterpy"
 
 
+def runs_in_threads(engine: Engine, engines: dict[str, str]) -> bool:
+    """Whether a batch's local runs go on threads: every instance runs on the fast engine
+    (`engines`: instance -> the engine that runs it) and its kernels are compiled. Those
+    release the GIL (threads took 1.8-2x the runs of one thread on two cores, recorded drives
+    and simulated batches alike); filterpy's Python holds it, so its runs go to processes."""
+    return engine == "fast" and set(engines.values()) <= {"fast"} and bool(fast_compiled(engine))
+
+
 def fast_compiled(engine: Engine) -> bool | None:
     """For the manifest: whether the fast engine's kernels are numba-compiled (False: plain
     Python, much slower: numba is missing); None when the fast engine is not asked for."""
@@ -287,6 +295,7 @@ def dispatch_runs(
     engine: Engine = "filterpy",
     client=None,
     placement: dict | None = None,
+    in_threads: bool = False,
 ) -> Iterator[dict]:
     """Run results as they finish (any order), whatever the source: `items` are picklable
     calls, one run each (simulated: `simulated_items`; recorded: real_experiment's segments or
@@ -295,7 +304,9 @@ def dispatch_runs(
     backend "local" runs the first two runs in this process, timing the second, then the rest
     here or on up to `jobs` local processes, whichever `place_runs` estimates to be faster (a
     fast-engine batch of a few seconds does not pay for starting workers); `placement`, when
-    given, is filled with that decision. "dask" runs on the existing Dask cluster whose
+    given, is filled with that decision. `in_threads` (`runs_in_threads`: every instance on
+    the compiled fast engine): the local runs on `jobs` threads of this process instead.
+    "dask" runs on the existing Dask cluster whose
     scheduler listens at `scheduler` (all its worker threads; `jobs` is not used there). The
     cluster is reached here (unless `client`, from `connect_dask`, is given: the caller reached
     it before touching its output), before the first result is asked for, so a scheduler that
@@ -311,15 +322,29 @@ def dispatch_runs(
         if placement is not None:
             placement.update(where="dask", workers=None)
         return _announce(_run_on_dask(client, calls, scheduler, connect_timeout_s), on_result)
-    return _announce(_run_local(items, jobs, engine, placement), on_result)
+    return _announce(_run_local(items, jobs, engine, placement, in_threads), on_result)
 
 
 def _run_local(
-    items: list[Callable[[], dict]], jobs: int, engine: Engine, placement: dict | None
+    items: list[Callable[[], dict]],
+    jobs: int,
+    engine: Engine,
+    placement: dict | None,
+    in_threads: bool = False,
 ) -> Iterator[list[dict]]:
-    """`dispatch_runs`'s local batches: two runs here, the second timed (the first pays this
-    process's one-time costs: loading the compiled kernels, first calls), then the rest where
-    `place_runs` says it pays."""
+    """`dispatch_runs`'s local batches. `in_threads`: every run on `jobs` threads of this
+    process (the compiled kernels release the GIL, so threads share the cores without starting
+    processes, importing in them or shipping data to them). Otherwise two runs here, the
+    second timed (the first pays this process's one-time costs: loading the compiled kernels,
+    first calls), then the rest where `place_runs` says it pays."""
+    threads = min(jobs, len(items))
+    if in_threads and threads > 1:
+        if placement is not None:
+            placement.update(where="threads", workers=threads)
+        yield from Parallel(n_jobs=threads, backend="threading", return_as="generator_unordered")(
+            delayed(run_chunk)([item]) for item in items
+        )
+        return
     yield run_chunk(items[:1])
     t0 = time.perf_counter()
     yield run_chunk(items[1:2])

@@ -108,8 +108,8 @@ def test_a_large_table_on_workers_is_the_table_computed_here(errors, monkeypatch
     monkeypatch.setattr(comparisons, "PARALLEL_MIN_CELLS", 0)
     chunks = comparisons._chunks(pairs, 2, 2, arrays)
     assert len(chunks) == 2 and sorted(sum(chunks, [])) == sorted(pairs)
-    on_workers = comparisons_frame(steps, pairs, seed=5, resamples=200, jobs=2)
-    pd.testing.assert_frame_equal(on_workers, here, check_exact=True)
+    on_threads = comparisons_frame(steps, pairs, seed=5, resamples=200, jobs=2)
+    pd.testing.assert_frame_equal(on_threads, here, check_exact=True)
 
 
 def _claims(*specs: dict) -> list[ClaimSpec]:

@@ -184,6 +184,21 @@ def test_each_source_preparation_fits_through_the_entry_point(through, spans, tm
     assert sorted(noise) == [0, 1]
 
 
+def test_own_fits_on_threads_are_the_fits_of_one_thread(spans):
+    """Each run's own-innovation fit runs on a thread of `jobs` (fits_in_threads): the same
+    values, in the same order, as one after the other."""
+    recorded = recorded_scenario()
+    one = fit_on_own_innovations(recorded, spans, ["a", "b"], None, 1)
+    two = fit_on_own_innovations(recorded, spans, ["a", "b"], None, 2)
+
+    def timeless(doc):  # what a fit found, without what it took
+        if isinstance(doc, dict):
+            return {k: timeless(v) for k, v in doc.items() if k != "seconds"}
+        return [timeless(v) for v in doc] if isinstance(doc, (list, tuple)) else doc
+
+    assert timeless(one) == timeless(two) and len(one[0]) == 2
+
+
 def test_a_spec_fitted_on_simulated_training_runs_declares_that_source():
     """`fitted_on_training` (a spec the simulated path fits and hands out with `with_fit`) and
     the declared "simulated" source say the same for every kind."""

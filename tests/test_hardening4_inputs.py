@@ -571,14 +571,15 @@ def test_training_runs_beyond_the_memory_are_refused_before_any_work(tmp_path, m
     check_plan(_training_plan(tmp_path, 20)[1])
 
 
-def test_the_training_estimate_counts_each_fitting_worker(tmp_path):
-    from anfekf_bench.experiment import training_memory_estimate, training_workers
+def test_the_training_estimate_counts_one_training_set_whatever_the_jobs(tmp_path):
+    """A parallel noise fit's starts run on threads that share the training set: more jobs
+    need no more memory for it."""
+    from anfekf_bench.experiment import training_memory_estimate
 
     _, alone = _training_plan(tmp_path, 1000, jobs=1)
-    _, three = _training_plan(tmp_path, 1000, jobs=8)  # ekf-tuned: 3 starts, 3 workers
-    assert training_workers(alone) == 0 and training_workers(three) == 3
+    _, three = _training_plan(tmp_path, 1000, jobs=8)  # ekf-tuned: 3 starts on 3 threads
     steps = check_plan(alone)
-    assert training_memory_estimate(three, steps) > 1.5 * training_memory_estimate(alone, steps)
+    assert training_memory_estimate(three, steps) == training_memory_estimate(alone, steps) > 0
     _, untrained = _training_plan(tmp_path, 1000, filters=[{"name": "ekf", "kind": "ekf"}])
     assert training_memory_estimate(untrained, steps) == 0
 

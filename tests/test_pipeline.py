@@ -17,7 +17,7 @@ from anfekf_bench.cli import app
 from anfekf_bench.config import parse_scenario, resolve_world
 from anfekf_bench.experiment import execute, make_plan
 from anfekf_bench.models import f
-from anfekf_bench.runner import place_runs, simulated_run
+from anfekf_bench.runner import place_runs, runs_in_threads, simulated_run
 from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources.simulator import simulate_run, simulate_truth
 from anfekf_bench.storage import (
@@ -89,6 +89,23 @@ def test_results_do_not_depend_on_worker_count(tmp_path, monkeypatch):
     assert not np.allclose(read_steps(one)["x_est"], read_steps(other)["x_est"])
     assert read_json(one / MANIFEST_FILE)["placement"]["where"] == "in-process"
     assert read_json(two / MANIFEST_FILE)["placement"]["where"] == "workers"
+
+
+def test_fast_engine_runs_on_threads_with_the_same_bytes(tmp_path):
+    """The fast engine's compiled runs go on `jobs` threads (no probe, no processes), with the
+    same tables as on one job; a batch with one instance on filterpy keeps processes."""
+    from anfekf_bench.engines import fast
+
+    if not fast.JIT:
+        pytest.skip("numba missing: the fast engine's kernels are plain Python")
+    _, one = _execute(tmp_path, "one", jobs=1, runs=4, engine="fast")
+    _, two = _execute(tmp_path, "two", jobs=2, runs=4, engine="fast")
+    assert (one / "steps.parquet").read_bytes() == (two / "steps.parquet").read_bytes()
+    assert read_json(two / MANIFEST_FILE)["placement"] == {"where": "threads", "workers": 2}
+    assert read_json(one / MANIFEST_FILE)["placement"]["where"] == "in-process"
+    assert runs_in_threads("fast", {"ekf": "fast", "anfekf": "fast"})
+    assert not runs_in_threads("fast", {"ekf": "fast", "oracle": "filterpy"})
+    assert not runs_in_threads("filterpy", {"ekf": "filterpy"})
 
 
 def test_placement_from_measured_costs():

@@ -96,12 +96,11 @@ def compare(
     return record
 
 
-# A table of many comparisons is split over the batch's worker processes (`jobs`): each
-# comparison draws from `seed` alone, so it gives the same row wherever it runs. Below this many
-# (runs x recorded steps) cells of ratio comparisons (about 2 s of CPU: a zoo scenario of 50 runs
-# has 6 million) the table is computed here, where a cold start of workers would cost more than
-# it saves.
-PARALLEL_MIN_CELLS = 4_000_000
+# A table of many comparisons is split over `jobs` threads: each comparison draws from `seed`
+# alone, so it gives the same row on whichever thread it runs. Below this many (runs x recorded
+# steps) cells of ratio comparisons (a tenth of a second or so; a zoo scenario of 50 runs has 6
+# million) the table is computed on this thread alone.
+PARALLEL_MIN_CELLS = 100_000
 
 
 def comparisons_frame(
@@ -115,7 +114,7 @@ def comparisons_frame(
     arrays: dict[str, dict[str, np.ndarray]] | None = None,
 ) -> pd.DataFrame:
     """One row per (filter, vs, metric): ratio with its paired interval, and the paired test.
-    `jobs` > 1: a large table's comparisons are shared out over that many local workers (the
+    `jobs` > 1: a large table's comparisons are shared out over that many threads (the
     same rows, in the same order). `arrays`: `filters_arrays` of the steps, when the caller
     has them."""
     scenario = str(steps["scenario"].iloc[0])
@@ -128,20 +127,10 @@ def comparisons_frame(
     else:
         from joblib import Parallel, delayed
 
-        from ..workers import local_workers
-
-        # each chunk ships only what `compare` reads of its filters
-        keep = {"diverged", *(st.METRICS[m].column for m in metrics)}
-        with local_workers():
-            parts = Parallel(n_jobs=len(chunks))(
-                delayed(_rows)(
-                    scenario,
-                    chunk,
-                    {n: {c: arrays[n][c] for c in keep} for pair in chunk for n in pair},
-                    metrics,
-                    resamples,
-                    seed,
-                )
+        # threads: the bootstrap's matrix products release the GIL, and nothing is shipped
+        with st.one_blas_thread():
+            parts = Parallel(n_jobs=len(chunks), backend="threading")(
+                delayed(_rows)(scenario, chunk, arrays, metrics, resamples, seed)
                 for chunk in chunks
             )
         done: dict[tuple, list] = {pair: [] for pair in pairs}  # the pairs' order

@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import inspect
 import math
+import threading
 import warnings
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
@@ -170,6 +171,26 @@ mean_statistic.run_mean_form = (lambda x: x, _time_mean_of)  # m: the products' 
 # the data and the indices: the same product on the same arrays, so the same bits, computed once.
 _RESAMPLED_MEMO: OrderedDict[bytes, np.ndarray] = OrderedDict()
 _MEMO_ENTRIES = 1024
+# One lock for both memos: a comparison table's chunks run on threads (comparisons_frame), and
+# an entry read by one may be evicted by another. What is computed is not locked: two threads
+# that compute the same entry compute the same bits.
+_MEMO_LOCK = threading.Lock()
+
+
+def _memo_get(memo: OrderedDict, key: bytes) -> np.ndarray | None:
+    with _MEMO_LOCK:
+        found = memo.get(key)
+        if found is not None:
+            memo.move_to_end(key)
+        return found
+
+
+def _memo_put(memo: OrderedDict, key: bytes, value: np.ndarray, entries: int) -> np.ndarray:
+    with _MEMO_LOCK:
+        memo[key] = value
+        if len(memo) > entries:
+            memo.popitem(last=False)
+    return value
 
 
 def _digest(*parts: np.ndarray | str) -> bytes:
@@ -198,14 +219,9 @@ def _resampled(statistic: Statistic, x: np.ndarray) -> Callable[[np.ndarray], np
 
     def of(idx: np.ndarray) -> np.ndarray:
         key = of_x + _digest(idx)
-        found = _RESAMPLED_MEMO.get(key)
+        found = _memo_get(_RESAMPLED_MEMO, key)
         if found is None:
-            found = compute(idx)
-            _RESAMPLED_MEMO[key] = found
-            if len(_RESAMPLED_MEMO) > _MEMO_ENTRIES:
-                _RESAMPLED_MEMO.popitem(last=False)
-        else:
-            _RESAMPLED_MEMO.move_to_end(key)
+            found = _memo_put(_RESAMPLED_MEMO, key, compute(idx), _MEMO_ENTRIES)
         return found.copy()
 
     return of
@@ -247,13 +263,9 @@ def _resampled_by_weights(form: tuple, x: np.ndarray) -> Callable[[np.ndarray], 
         weights = np.bincount(cells, minlength=rows * runs).reshape(rows, runs) / flat.shape[-1]
         if unscored:
             key = of_scored + _digest(idx)
-            den = _SCORED_MEMO.get(key)
+            den = _memo_get(_SCORED_MEMO, key)
             if den is None:
-                den = _SCORED_MEMO[key] = weights @ scored
-                if len(_SCORED_MEMO) > _SCORED_ENTRIES:
-                    _SCORED_MEMO.popitem(last=False)
-            else:
-                _SCORED_MEMO.move_to_end(key)
+                den = _memo_put(_SCORED_MEMO, key, weights @ scored, _SCORED_ENTRIES)
             with np.errstate(invalid="ignore", divide="ignore"):  # 0 / 0: a step none scores
                 m = (weights @ hx) / den
         else:
@@ -347,9 +359,16 @@ def _bootstrap(
         batch=max(1, _BATCH_CELLS // max(cells, 1)),
     )
     rng = np.random.default_rng(seed)
-    # Small products: BLAS threads cost more than they give (40x slower on a busy machine).
-    with _threadpools().limit(limits=1, user_api="blas"):
+    with one_blas_thread():
         return _bootstrap_interval(data, common, rng, resamples, estimate, interval)
+
+
+def one_blas_thread():
+    """A context with BLAS on one thread. The bootstrap's products are small: BLAS threads cost
+    more than they give (40x slower on a busy machine). The limit is the process's: code that
+    bootstraps on several threads at once holds it around them all, so that one thread's exit
+    does not lift it under another (comparisons_frame)."""
+    return _threadpools().limit(limits=1, user_api="blas")
 
 
 _CONTROLLER: list[ThreadpoolController] = []

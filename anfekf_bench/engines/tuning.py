@@ -36,7 +36,7 @@ What it returns serves three searches:
 `fit_noise` minimises the likelihood or the RMSE over the LOG sigmas with scipy's Nelder-Mead
 from several starts (the likelihood has a ridge between Q and R and local optima), each start's
 simplex spanning a factor of 2 along each axis; a setting whose filter diverges scores +inf. The
-starts run one per worker process (`jobs`). A problem is anything with `evaluate(sigmas)`:
+starts run one per thread (`jobs`). A problem is anything with `evaluate(sigmas)`:
 `TrainingProblem` (simulated training runs, bicycle) or `TimelineLikelihood` (one recorded run's
 own innovations, unicycle).
 """
@@ -571,21 +571,19 @@ def _consistent_scale(problem: TrainingProblem, sigmas: np.ndarray, at_fit: dict
 
 def start_results(problem, fits: list[tuple], jobs: int = 1) -> list[list[dict]]:
     """The Nelder-Mead result of every start of every fit (criterion, start_sigmas, starts,
-    max_evaluations) over `problem`, per fit: all the fits' starts in one batch of `jobs`
-    workers, so that two fits of one scenario keep both cores busy where each alone would
-    leave one idle (3 starts on 2 workers). Each start is computed as alone: the same numbers."""
+    max_evaluations) over `problem`, per fit: all the fits' starts in one batch on `jobs`
+    threads (each evaluation's time is in the compiled kernel, which releases the GIL), so that
+    two fits of one scenario keep both cores busy where each alone would leave one idle (3
+    starts on 2 threads). Each start is computed as alone: the same numbers."""
     tasks = [
         (i, criterion, np.log(np.asarray(start_sigmas, float) * m), max_evaluations)
         for i, (criterion, start_sigmas, starts, max_evaluations) in enumerate(fits)
         for m in starts
     ]
     if jobs > 1 and len(tasks) > 1:
-        from ..workers import local_workers
-
-        with local_workers():
-            done = Parallel(n_jobs=min(jobs, len(tasks)))(
-                delayed(_one_start)(problem, c, t, n) for _, c, t, n in tasks
-            )
+        done = Parallel(n_jobs=min(jobs, len(tasks)), backend="threading")(
+            delayed(_one_start)(problem, c, t, n) for _, c, t, n in tasks
+        )
     else:
         done = [_one_start(problem, c, t, n) for _, c, t, n in tasks]
     out: list[list[dict]] = [[] for _ in fits]

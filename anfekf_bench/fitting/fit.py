@@ -14,8 +14,8 @@ supplies its training runs as `TrainingRuns`, one object per set of runs a fit r
 
 `fit_specs` then does the same for every (spec, training runs) pair: refuse a source the spec
 does not declare, read the fit from the run store's cache by the training runs' fingerprint of
-the spec (when given a cache folder), fit what is not cached (`spec.fit(training)`; in worker
-processes where the training runs say their fits are independent, `fits_in_workers`), write it
+the spec (when given a cache folder), fit what is not cached (`spec.fit(training)`; on threads
+where the training runs say their fits are independent, `fits_in_threads`), write it
 to the cache, and return each fit with its fingerprint and whether it came from the cache. How
 the fitted values reach the runs stays with the source (`with_fit` copies of the specs, or a
 noise record per run).
@@ -31,7 +31,6 @@ from joblib import Parallel, delayed
 
 from ..filters.spec import FIT_SOURCES
 from ..outputs import FIT_FILE, PlanError, read_cached_fit, write_fit
-from ..workers import local_workers
 
 
 class TrainingRuns:
@@ -41,9 +40,9 @@ class TrainingRuns:
     `grid_search`, the runs themselves)."""
 
     source: ClassVar[str]  # one of FIT_SOURCES
-    # True: each fit reads only this set, small and picklable: fits of several sets may run in
-    # worker processes at once (a recorded run's own innovations)
-    fits_in_workers: ClassVar[bool] = False
+    # True: each fit reads only this set and spends its time in compiled kernels that release
+    # the GIL: fits of several sets may run at once on threads (a recorded run's own innovations)
+    fits_in_threads: ClassVar[bool] = False
 
     def fingerprint(self, spec) -> str:
         """Hash of everything `spec`'s fit on these runs depends on (its cache key)."""
@@ -96,8 +95,8 @@ def fit_specs(
     requests: list[tuple[Any, TrainingRuns]], cache_dir: Path | None, jobs: int = 1
 ) -> list[FitResult]:
     """Fit each (spec, training runs) pair of `requests`, or read its fit from `cache_dir` (None:
-    no cache), in order (see the module doc). `jobs`: the worker processes the fits of
-    `fits_in_workers` training runs may use. FitNotDeclared when a spec does not declare the
+    no cache), in order (see the module doc). `jobs`: the threads the fits of
+    `fits_in_threads` training runs may use. FitNotDeclared when a spec does not declare the
     source of its training runs; PlanError (one line) when the runs cannot fit it."""
     found: list[FitResult | None] = []
     todo: list[tuple[int, str, Path | None]] = []  # (request, fingerprint, cache file)
@@ -116,13 +115,12 @@ def fit_specs(
         if cached is None:
             todo.append((i, fingerprint, path))
     computed: dict[int, dict] = {}
-    in_workers = [i for i, _, _ in todo if requests[i][1].fits_in_workers]
-    if len(in_workers) > 1 and jobs > 1:
-        with local_workers():
-            fits = Parallel(n_jobs=min(jobs, len(in_workers)))(
-                delayed(_fit)(*requests[i]) for i in in_workers
-            )
-        computed.update(zip(in_workers, fits, strict=True))
+    in_threads = [i for i, _, _ in todo if requests[i][1].fits_in_threads]
+    if len(in_threads) > 1 and jobs > 1:
+        fits = Parallel(n_jobs=min(jobs, len(in_threads)), backend="threading")(
+            delayed(_fit)(*requests[i]) for i in in_threads
+        )
+        computed.update(zip(in_threads, fits, strict=True))
     prepared: set[int] = set()
     for i, fingerprint, path in todo:
         spec, training = requests[i]

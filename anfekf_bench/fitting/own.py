@@ -29,11 +29,11 @@ class OwnInnovations(TrainingRuns):
     """The "own" training runs (fitting.fit): what `EKFMLSpec.fit` gets on recorded data (in
     place of the simulated training runs): one run's landmark innovations under the unicycle EKF
     (`engines.tuning.TimelineLikelihood`, which holds no ground truth) and the naive sigmas its
-    Nelder-Mead starts multiply. Small and independent of the other runs' fits: the fits of
-    several runs share the worker processes (`fits_in_workers`)."""
+    Nelder-Mead starts multiply. Independent of the other runs' fits, and spent in the compiled
+    kernel: the fits of several runs share threads (`fits_in_threads`)."""
 
     source: ClassVar[str] = "own"
-    fits_in_workers: ClassVar[bool] = True
+    fits_in_threads: ClassVar[bool] = True
     problem: TimelineLikelihood
     naive: np.ndarray
 

@@ -365,6 +365,25 @@ def test_the_memo_of_resampled_statistics_gives_the_same_bits(monkeypatch):
     assert (other.lo, other.hi) == pytest.approx((2.0 * without[0].lo, 2.0 * without[0].hi))
 
 
+@pytest.mark.parametrize("statistic", [rmse_statistic, mean_statistic])
+def test_resampled_statistics_in_cache_sized_blocks_keep_their_bits(statistic, monkeypatch):
+    """`_resampled_by_weights` applies g to blocks of resamples (`_BLOCK_ROWS`): the same bits
+    as on the whole (resamples, steps) array at once, blocks with and without unscored steps
+    and a last, partial block; and each resample's value is the statistic of its runs."""
+    rng = np.random.default_rng(12)
+    x = np.abs(rng.normal(size=(9, 301)))
+    x[2, 40:90] = np.nan  # steps one run does not score
+    x[:, 200:203] = np.nan  # steps no run scores
+    idx = rng.integers(0, 9, size=(150, 9))
+    statistics._RESAMPLED_MEMO.clear()
+    monkeypatch.setattr(statistics, "_BLOCK_ROWS", 10_000)
+    whole = statistics._resampled_by_weights(statistic.run_mean_form, x)(idx)
+    monkeypatch.setattr(statistics, "_BLOCK_ROWS", 64)  # blocks of 64, 64 and 22
+    blocks = statistics._resampled_by_weights(statistic.run_mean_form, x)(idx)
+    assert blocks.shape == (150,) and blocks.tobytes() == whole.tobytes()
+    np.testing.assert_allclose(blocks, [statistic(x[i]) for i in idx], rtol=1e-12)
+
+
 def test_the_time_mean_of_run_means_is_nanmeans_bits():
     """statistics._time_mean_of (in place, one mask) gives nan_aware_mean's bits: rows with and
     without NaN, a row of NaN only, arrays without NaN, one row."""

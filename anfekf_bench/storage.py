@@ -873,8 +873,7 @@ def _checksum(fingerprint: str, tree_json: str, data: bytes | memoryview) -> str
 
 
 def run_file_members(result: dict, fingerprint: str) -> dict[str, np.ndarray]:
-    """The two uint8 members of one run result's .npz (see above): the arrays' bytes are copied
-    once, into the data member (a drive's run is 54 MB: copies cost more than the run)."""
+    """The two uint8 members of a run's .npz (see above); the arrays' bytes copied just once."""
     chunks: list[np.ndarray] = []
     tree_json = json.dumps(_encode(result, chunks), separators=(",", ":"))
     data = np.concatenate(chunks) if chunks else np.zeros(0, np.uint8)
@@ -889,10 +888,11 @@ def run_file_members(result: dict, fingerprint: str) -> dict[str, np.ndarray]:
 
 
 def write_run_file(path: Path, result: dict, fingerprint: str) -> None:
-    """Save one finished run atomically (the file appears whole or not at all)."""
+    """Save one finished run atomically (the file appears whole or not at all). No fsync: a run
+    file torn by a power cut fails its checksum on resume and the run is done again, so
+    durability would buy nothing but a disk flush per run (a fifth of a fast batch)."""
     members = run_file_members(result, fingerprint)
-    # No fsync: a run file torn by a power cut fails its checksum on resume and the run is done
-    # again, so durability would buy nothing but a disk flush per run (a fifth of a fast batch).
+
     def write(tmp: Path) -> None:
         with open(tmp, "wb") as fh:  # a file object: np.savez would add .npz to a path's name
             np.savez(fh, **members)

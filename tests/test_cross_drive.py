@@ -15,7 +15,7 @@ import yaml
 
 from anfekf_bench.config import ScenarioError
 from anfekf_bench.engines.events import run_filter_events, timeline
-from anfekf_bench.engines.tuning import GridRuns, score_setting
+from anfekf_bench.engines.tuning import RESUME_SIZE, GridRuns, score_setting
 from anfekf_bench.filters.ekf import RobotEKF, gate_threshold
 from anfekf_bench.filters.spec import FilterContext
 from anfekf_bench.fitting.recorded import WholeRuns, tune
@@ -189,6 +189,34 @@ def test_grid_kernel_sums_the_settings_of_one_call_as_one_by_one(d6r2):
             total, worst, upd, rej = total + sq, max(worst, mx), upd + nu, rej + nr
         assert row.tolist() == [total, worst, upd, rej, 1.0]
     assert np.isinf(got[:, 0]).any() and np.isfinite(got[:, 0]).any()
+
+
+def test_a_run_the_bound_stopped_goes_on_from_there_with_the_same_bits(d6r2):
+    """grid_kernel's `partial`: a run stopped by the bound keeps its state (stamp, x, P, sums),
+    and a later call goes on from there: the sums of scoring every run from its start, bit for
+    bit, and the same settings stopped under a bound in between."""
+    parts = [span_inputs(d6r2, 100.0, 130.0, 0.12), span_inputs(d6r2, 400.0, 430.0, 0.12)]
+    sig = np.array([[0.1, 0.1, 0.1, 0.05], [0.01, 0.5, 0.05, 0.005], [0.4, 0.02, 0.01, 0.002],
+                    [0.05, 0.2, 0.2, 0.01]])  # fmt: skip
+    gate = gate_threshold(0.999)
+    runs = GridRuns.of([(p.timeline, p.segment.pose, p.truth, p.scored) for p in parts])
+    fresh, fresh_done = runs.score(sig, P0, gate, 0.12)
+    low = 0.2 * np.min(fresh[:, 0])
+    partial = np.full((len(sig), len(parts), RESUME_SIZE), np.nan)
+    stopped, _ = runs.score(sig, P0, gate, 0.12, low, True, None, partial)
+    kept = ~np.isnan(partial[:, :, 0])
+    assert np.all(stopped[:, 4] == 0) and kept.sum(axis=1).tolist() == [1] * len(sig)
+    middle = float(np.median(fresh[:, 0]))
+    again = partial.copy()
+    resumed_mid, _ = runs.score(sig, P0, gate, 0.12, middle, True, None, again)
+    alone_mid, _ = runs.score(sig, P0, gate, 0.12, middle, True)
+    assert resumed_mid[:, 4].tolist() == alone_mid[:, 4].tolist()
+    finished = resumed_mid[:, 4] == 1
+    assert finished.any() and not finished.all()
+    assert resumed_mid[finished].tolist() == alone_mid[finished].tolist()
+    resumed, done = runs.score(sig, P0, gate, 0.12, math.inf, False, None, partial)
+    assert resumed.tolist() == fresh.tolist()
+    assert np.array_equal(done, fresh_done, equal_nan=True) and np.isnan(partial[:, :, 0]).all()
 
 
 # ------------------------------------------------------------------ evaluation times

@@ -78,6 +78,10 @@ SIGMA_NAMES = ("sigma_v", "sigma_gamma", "sigma_range", "sigma_bearing")
 FINISHED = 0
 STOPPED = 1  # the summed squared error passed `bound`
 DIVERGED = 2  # the estimate or its covariance stopped being finite and positive definite
+# A run stopped by `bound`, to go on from: next stamp, next record index, x (3), P (9), the
+# squared-error sum, the largest squared error, nll, updates, rejections
+RESUME_SIZE = 19
+NO_STATE = np.zeros(0)  # `resume` / `stopped` of a call that neither resumes nor keeps its stop
 
 
 @maybe_njit
@@ -98,9 +102,14 @@ def step_terms_table(u, dt, motion, B):
 @maybe_njit
 def ekf_fit_kernel(
     motion, dt, u, lm, z, xy, record, x0, P0, Qu, R, gate, has_gate, T0, B, truth, scored,
-    bound, out_sq, out_nees, terms,
+    bound, out_sq, out_nees, terms, resume, stopped,
 ):  # fmt: skip
     """The plain EKF with one noise setting over one run (see the module doc).
+
+    resume: empty, or a `stopped` state (RESUME_SIZE,) of an earlier call on this run with this
+    setting: the run goes on from there (its stamp, record index, x, P and sums), so that it
+    gives the bits of running it from the start. stopped: empty, or (RESUME_SIZE,) filled with
+    that state when the sum passes `bound`.
 
     terms: the run's `step_terms_table`. x0 (3,), P0 (9,) row-major, Qu and R (4,) row-major
     (the unicycle reads Qu's diagonal); T0:
@@ -122,7 +131,17 @@ def ekf_fit_kernel(
     n_upd = 0
     n_rej = 0
     j = 0
-    for k in range(len(dt)):
+    first_k = 0
+    if len(resume) > 0:
+        first_k, j = int(resume[0]), int(resume[1])
+        x = (resume[2], resume[3], resume[4])
+        P = (
+            resume[5], resume[6], resume[7], resume[8], resume[9], resume[10], resume[11],
+            resume[12], resume[13],
+        )  # fmt: skip
+        sq_sum, max_sq, nll = resume[14], resume[15], resume[16]
+        n_upd, n_rej = int(resume[17]), int(resume[18])
+    for k in range(first_k, len(dt)):
         # kernels.predict, its heading-free terms read from the table
         tk = (
             terms[k, 0], terms[k, 1], terms[k, 2], terms[k, 3], terms[k, 4], terms[k, 5],
@@ -180,6 +199,18 @@ def ekf_fit_kernel(
                 if sq > max_sq:
                     max_sq = sq
                 if sq_sum > bound:
+                    if len(stopped) > 0:
+                        stopped[0] = k + 1
+                        stopped[1] = j + 1
+                        for c in range(3):
+                            stopped[2 + c] = x[c]
+                        for c in range(9):
+                            stopped[5 + c] = P[c]
+                        stopped[14] = sq_sum
+                        stopped[15] = max_sq
+                        stopped[16] = nll
+                        stopped[17] = n_upd
+                        stopped[18] = n_rej
                     return STOPPED, sq_sum, math.sqrt(max_sq), nll, n_upd, n_rej
             j += 1
     return FINISHED, sq_sum, math.sqrt(max_sq), nll, n_upd, n_rej
@@ -222,7 +253,7 @@ def score_setting(tl, x0, P0, sig, gate, T0, truth, scored, bound=math.inf, term
         np.ascontiguousarray(P0, dtype=float).ravel(), Qu, R, g, has_gate, float(T0), 0.0,
         np.ascontiguousarray(truth), np.ascontiguousarray(scored, dtype=np.bool_),
         float(bound), np.empty(n_rec), np.empty(n_rec),
-        unicycle_terms(tl) if terms is None else terms,
+        unicycle_terms(tl) if terms is None else terms, NO_STATE, NO_STATE,
     )  # fmt: skip
     return sq, mx, nu, nr, status != STOPPED
 
@@ -230,7 +261,7 @@ def score_setting(tl, x0, P0, sig, gate, T0, truth, scored, bound=math.inf, term
 @maybe_njit
 def grid_kernel(
     dt, u, lm, z, xy, record, terms, x0, truth, scored, stamps, marks, obs, recs, P0, sigmas,
-    gate, has_gate, T0, bound, branch_and_bound, known, out, done,
+    gate, has_gate, T0, bound, branch_and_bound, known, out, done, partial,
 ):  # fmt: skip
     """`ekf_fit_kernel` (the unicycle) for every setting sigmas[g] = (sv, sw, sr, sb) over every
     run of a `GridRuns` pack, in one compiled call: out[g] = (sq_sum, max_err, n_updates,
@@ -245,7 +276,11 @@ def grid_kernel(
     earlier call scored that run whole (NaN where not): read instead of run again. A run's
     partial sums only grow, so the bound stops it exactly when its whole sum passes the bound:
     the same finished settings and sums as running it. done[g, r] receives the whole runs this
-    call scored (NaN where it stopped one or read it from `known`)."""
+    call scored (NaN where it stopped one or read it from `known`).
+
+    partial[g, r] (RESUME_SIZE,): where an earlier call's bound stopped setting g on run r (NaN
+    where none), kept up to date: a run is resumed from there (its partial sum alone may stop
+    it at once: sums only grow), and a run the bound stops leaves its state there."""
     n_runs = len(stamps) - 1
     longest = 0
     for r in range(n_runs):
@@ -270,17 +305,25 @@ def grid_kernel(
             c, d = recs[r], recs[r + 1]
             lo, hi = obs[r], obs[r + 1]
             limit = best - total if branch_and_bound else math.inf
+            resume = partial[g, r, :0]
+            if partial[g, r, 0] == partial[g, r, 0]:
+                resume = partial[g, r]
             if known[g, r, 0] == known[g, r, 0]:
                 sq, mx = known[g, r, 0], known[g, r, 1]
                 nu, nr = int(known[g, r, 2]), int(known[g, r, 3])
                 status = STOPPED if sq > limit else FINISHED
+            elif len(resume) > 0 and resume[14] > limit:
+                status, sq, mx = STOPPED, resume[14], math.sqrt(resume[15])
+                nu, nr = int(resume[17]), int(resume[18])
             else:
                 status, sq, mx, _, nu, nr = ekf_fit_kernel(
                     MOTION_UNICYCLE, dt[a:b], u[a:b], lm[marks[r] : marks[r + 1]], z[lo:hi],
                     xy[lo:hi], record[a:b], x0[r], P0, Qu, R, gate, has_gate, T0, 0.0,
-                    truth[c:d], scored[c:d], limit, out_sq, out_nees, terms[a:b],
+                    truth[c:d], scored[c:d], limit, out_sq, out_nees, terms[a:b], resume.copy(),
+                    partial[g, r],
                 )  # fmt: skip
                 if status != STOPPED:
+                    partial[g, r, 0] = math.nan
                     done[g, r, 0] = sq
                     done[g, r, 1] = mx
                     done[g, r, 2] = nu
@@ -355,22 +398,27 @@ class GridRuns:
         )
 
     def score(
-        self, sigmas, P0, gate, T0, bound=math.inf, branch_and_bound=False, known=None
-    ) -> tuple[np.ndarray, np.ndarray]:
+        self, sigmas, P0, gate, T0, bound=math.inf, branch_and_bound=False, known=None,
+        partial=None,
+    ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
         """`grid_kernel`'s sums (G, 5) of the settings `sigmas` (G, 4) over these runs, and the
         runs it scored whole (G, runs, 4; NaN elsewhere). `known`: whole runs scored before
-        (G, runs, 4, NaN where not), read instead of run again."""
+        (G, runs, 4, NaN where not), read instead of run again. `partial`: (G, runs,
+        RESUME_SIZE), where earlier calls stopped runs (NaN where none), resumed from there and
+        updated in place (C-ordered float64)."""
         sigmas = np.ascontiguousarray(sigmas, dtype=float).reshape(-1, 4)
         g, has_gate = _gate(gate)
         shape = (len(sigmas), len(self.stamps) - 1, 4)
         out = np.zeros((len(sigmas), 5))
         done = np.full(shape, np.nan)
         known = np.full(shape, np.nan) if known is None else np.ascontiguousarray(known, float)
+        if partial is None:
+            partial = np.full((*shape[:2], RESUME_SIZE), np.nan)
         grid_kernel(
             self.dt, self.u, self.lm, self.z, self.xy, self.record, self.terms, self.x0,
             self.truth, self.scored, self.stamps, self.marks, self.obs, self.recs,
             np.ascontiguousarray(P0, dtype=float).ravel(), sigmas, g, has_gate, float(T0),
-            float(bound), bool(branch_and_bound), known, out, done,
+            float(bound), bool(branch_and_bound), known, out, done, partial,
         )  # fmt: skip
         return out, done
 
@@ -409,7 +457,7 @@ class TimelineLikelihood:
         status, _, _, nll, nu, nr = ekf_fit_kernel(
             MOTION_UNICYCLE, self.dt, self.u, self.lm, self.z, self.xy, none, self.x0, self.P0,
             Qu, R, g, has_gate, self.T0, 0.0, np.zeros((0, 3)), np.zeros(0, np.bool_),
-            math.inf, np.zeros(0), np.zeros(0), self.terms,
+            math.inf, np.zeros(0), np.zeros(0), self.terms, NO_STATE, NO_STATE,
         )  # fmt: skip
         return status, nll, nu, nr
 
@@ -486,7 +534,8 @@ class TrainingProblem:
             out_nees = np.full(len(self.steps), np.nan)
             status, _, _, ll, nu, nr = ekf_fit_kernel(
                 MOTION_BICYCLE, dt, u, lm, z, xy, record, self.x0, self.P0, Qu, R, g, has_gate,
-                0.0, self.B, truth, scored, math.inf, out_sq, out_nees, terms,
+                0.0, self.B, truth, scored, math.inf, out_sq, out_nees, terms, NO_STATE,
+                NO_STATE,
             )  # fmt: skip
             diverged |= status == DIVERGED
             nll += ll

@@ -43,7 +43,7 @@ import numpy as np
 from joblib import Parallel, delayed
 
 from ..analysis.suite import LOST_LOCK_M
-from ..engines.tuning import GridRuns, score_setting
+from ..engines.tuning import RESUME_SIZE, GridRuns, score_setting
 from ..filters.context import recorded_p0
 from ..filters.ekf import gate_threshold
 from ..filters.fitted import sigmas_problem
@@ -260,31 +260,40 @@ _BRANCH_AND_BOUND = (
 
 
 class WholeRuns:
-    """The runs the grid kernel scored whole, per (training run, setting): the folds of one
+    """The runs the grid kernel scored, per (training run, setting): the folds of one
     `tune_drives` share drives (Datasets 6 and 7 tune 9 on the drives that tune 7 and 6), so a
-    fold reads what an earlier fold ran (engines.tuning.grid_kernel's `known`: the same sums and
-    winners as running them again)."""
+    fold reads what an earlier fold ran whole (engines.tuning.grid_kernel's `known`) and goes on
+    from where an earlier fold's bound stopped a run (its `partial`): the same sums and winners
+    as running them again."""
 
     def __init__(self) -> None:
         self._found: dict[tuple, np.ndarray] = {}
+        self._stopped: dict[tuple, np.ndarray] = {}
 
-    def known(self, inputs: list, sig: np.ndarray) -> np.ndarray:
-        """(G, runs, 4): what is known of each setting of `sig` on each of `inputs`, else NaN."""
+    def known(self, inputs: list, sig: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What is known of each setting of `sig` on each of `inputs`: (G, runs, 4) whole runs
+        and (G, runs, RESUME_SIZE) stopped ones, NaN where nothing is."""
         out = np.full((len(sig), len(inputs), 4), np.nan)
+        partial = np.full((len(sig), len(inputs), RESUME_SIZE), np.nan)
         for g, row in enumerate(sig):
             key = row.tobytes()
             for r, s in enumerate(inputs):
                 found = self._found.get((s, key))  # SegmentInputs hash by identity
                 if found is not None:
                     out[g, r] = found
-        return out
+                elif (stopped := self._stopped.get((s, key))) is not None:
+                    partial[g, r] = stopped
+        return out, partial
 
-    def keep(self, inputs: list, sig: np.ndarray, done: np.ndarray) -> None:
+    def keep(self, inputs: list, sig: np.ndarray, done: np.ndarray, partial: np.ndarray) -> None:
         for g, row in enumerate(sig):
             key = row.tobytes()
             for r, s in enumerate(inputs):
                 if not np.isnan(done[g, r, 0]):
                     self._found[(s, key)] = done[g, r].copy()
+                    self._stopped.pop((s, key), None)
+                elif not np.isnan(partial[g, r, 0]):
+                    self._stopped[(s, key)] = partial[g, r].copy()
 
 
 def _score(runs: GridRuns, exps: np.ndarray, naive, P0, gate, T0, jobs: int, bound: float,
@@ -295,14 +304,16 @@ def _score(runs: GridRuns, exps: np.ndarray, naive, P0, gate, T0, jobs: int, bou
     `whole` (branch and bound), each thread's call keeps its own best complete sum as bound.
     `memo`: whole runs of `inputs` scored before, read instead of run, and kept."""
     sig = np.array([naive * np.exp2(e) for e in exps]).reshape(-1, 4)
-    known = memo.known(inputs, sig) if memo is not None else None
+    known, partial = memo.known(inputs, sig) if memo is not None else (None, None)
     parts = max(1, min(jobs, len(exps)))
     if parts == 1:
-        out, done = runs.score(sig, P0, gate, T0, bound, whole, known)
+        out, done = runs.score(sig, P0, gate, T0, bound, whole, known, partial)
     else:
-        chunks = [None if known is None else known[i::parts] for i in range(parts)]
+        chunks = [(None, None) if known is None else
+                  (known[i::parts], np.ascontiguousarray(partial[i::parts]))
+                  for i in range(parts)]  # fmt: skip
         found = Parallel(n_jobs=parts, backend="threading")(
-            delayed(runs.score)(sig[i::parts], P0, gate, T0, bound, whole, chunks[i])
+            delayed(runs.score)(sig[i::parts], P0, gate, T0, bound, whole, *chunks[i])
             for i in range(parts)
         )
         out = np.zeros((len(exps), 5))
@@ -310,8 +321,10 @@ def _score(runs: GridRuns, exps: np.ndarray, naive, P0, gate, T0, jobs: int, bou
         for i, (o, d) in enumerate(found):
             out[i::parts] = o
             done[i::parts] = d
+            if partial is not None:
+                partial[i::parts] = chunks[i][1]  # updated by the call
     if memo is not None:
-        memo.keep(inputs, sig, done)
+        memo.keep(inputs, sig, done, partial)
     return out
 
 

@@ -367,9 +367,10 @@ def test_the_memo_of_resampled_statistics_gives_the_same_bits(monkeypatch):
 
 @pytest.mark.parametrize("statistic", [rmse_statistic, mean_statistic])
 def test_resampled_statistics_in_cache_sized_blocks_keep_their_bits(statistic, monkeypatch):
-    """`_resampled_by_weights` applies g to blocks of resamples (`_BLOCK_ROWS`): the same bits
-    as on the whole (resamples, steps) array at once, blocks with and without unscored steps
-    and a last, partial block; and each resample's value is the statistic of its runs."""
+    """`_resampled_by_weights` computes the run means and g in blocks of resamples
+    (`_BLOCK_ROWS`): the same bits as on the whole (resamples, steps) array at once, blocks
+    with and without unscored steps and a last, partial block; and each resample's value is
+    the statistic of its runs."""
     rng = np.random.default_rng(12)
     x = np.abs(rng.normal(size=(9, 301)))
     x[2, 40:90] = np.nan  # steps one run does not score

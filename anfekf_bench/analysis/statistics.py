@@ -242,7 +242,7 @@ def resampled_statistic(statistic: Statistic, x: np.ndarray, idx: np.ndarray) ->
 # resample batch. Each entry is a (resamples, steps) array: few are kept.
 _SCORED_MEMO: OrderedDict[bytes, np.ndarray] = OrderedDict()
 _SCORED_ENTRIES = 16
-_BLOCK_ROWS = 64  # resamples a block of `_resampled_by_weights`'s g takes at once
+_BLOCK_ROWS = 64  # resamples `_resampled_by_weights` takes at once
 
 
 def _resampled_by_weights(form: tuple, x: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
@@ -268,12 +268,11 @@ def _resampled_by_weights(form: tuple, x: np.ndarray) -> Callable[[np.ndarray], 
             den = _memo_get(_SCORED_MEMO, key)
             if den is None:
                 den = _memo_put(_SCORED_MEMO, key, weights @ scored, _SCORED_ENTRIES)
-        m = weights @ hx
         out = np.empty(rows)
-        # g row by row in blocks that stay in the cache: each step of g on the whole
-        # (resamples, steps) array (33 MB to 130 MB on the drives) went to memory and back
+        # the run means and g in blocks of resamples that stay in the cache: each step on the
+        # whole (resamples, steps) array (33 MB to 130 MB on the drives) went to memory and back
         for lo in range(0, rows, _BLOCK_ROWS):
-            block = m[lo : lo + _BLOCK_ROWS]
+            block = weights[lo : lo + _BLOCK_ROWS] @ hx
             if den is not None:
                 with np.errstate(invalid="ignore", divide="ignore"):  # 0 / 0: no run scores it
                     np.divide(block, den[lo : lo + _BLOCK_ROWS], out=block)

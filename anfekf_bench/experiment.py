@@ -441,7 +441,7 @@ class SimulatedSource:
                 f"training.runs: {plan.scenario.training.runs} training runs of {control_steps}"
                 f" control steps (fitted filters) need about"
                 f" {_bytes(need)} of memory, more than {MEMORY_SHARE:.0%} of this machine's"
-                f" {_bytes(have)}; use fewer training runs or jobs, or a shorter route"
+                f" {_bytes(have)}; use fewer training runs or a shorter route"
             )
         return control_steps
 

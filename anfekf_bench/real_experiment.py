@@ -348,13 +348,15 @@ def _prepare_drives(plan, world: DriveSet, store: Path, progress) -> Prepared:
     for name, folds in trained.items():
         how = "read from the cache" if all(r["cached"] for r in folds.values()) else "trained"
         action += f"; {name} {how} per fold (on dataset(s) {', '.join(folds)})"
-    # ekf-ml's fits need nothing of the tuning: they run beside it (both on threads, in
-    # compiled kernels), so that either fills the cores the other leaves idle between its stages
+    # ekf-ml's fits need nothing of the tuning: with jobs > 1 they run beside it (both on
+    # threads, in compiled kernels), so that either fills the cores the other leaves idle
+    # between its stages
+    fit_own = partial(
+        fit_on_own_innovations, scenario, [inputs[d.id] for d in world.drives],
+        [d.id for d in world.drives], store, plan.jobs,
+    )  # fmt: skip
     with ThreadPoolExecutor(max_workers=1) as beside:
-        own = beside.submit(
-            fit_on_own_innovations, scenario, [inputs[d.id] for d in world.drives],
-            [d.id for d in world.drives], store, plan.jobs,
-        )  # fmt: skip
+        own = beside.submit(fit_own) if plan.jobs > 1 else None
         tuned_for, tuning = {}, None
         if scenario.reference() is not None:
             tuned_for, tuning = tune_drives(scenario, inputs, world, plan.jobs)
@@ -365,7 +367,7 @@ def _prepare_drives(plan, world: DriveSet, store: Path, progress) -> Prepared:
         started = time.perf_counter()
         audit = audit_tables(scenario, world.drives, inputs, tuned_for, plan.seed)
         action += f"; drives audited against Vicon ({time.perf_counter() - started:.1f} s)"
-        fitted, fits = own.result()
+        fitted, fits = own.result() if own is not None else fit_own()
     n_steps = max(len(i.t) for i in inputs.values())
     items = {
         d.segment.index: partial(

@@ -864,7 +864,7 @@ def _decode(node, data: _Data):
     raise RunFileRefused("malformed header")
 
 
-def _checksum(fingerprint: str, tree_json: str, data: bytes | memoryview) -> str:
+def _checksum(fingerprint: str, tree_json: str, data: bytes | np.ndarray) -> str:
     digest = hashlib.sha256()
     digest.update(RUN_FORMAT.encode() + b"\0" + fingerprint.encode() + b"\0")
     digest.update(tree_json.encode() + b"\0")

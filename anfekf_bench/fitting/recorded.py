@@ -302,7 +302,8 @@ def _score(runs: GridRuns, exps: np.ndarray, naive, P0, gate, T0, jobs: int, bou
     n_rejected, finished), the settings dealt round-robin to `jobs` threads, one compiled call
     each (the kernel releases the GIL: no worker processes to start, nothing to pickle). With
     `whole` (branch and bound), each thread's call keeps its own best complete sum as bound.
-    `memo`: whole runs of `inputs` scored before, read instead of run, and kept."""
+    `memo`: the runs of `inputs` scored before, read instead of run where whole, gone on with
+    from where a bound stopped them otherwise, and kept."""
     sig = np.array([naive * np.exp2(e) for e in exps]).reshape(-1, 4)
     known, partial = memo.known(inputs, sig) if memo is not None else (None, None)
     parts = max(1, min(jobs, len(exps)))
@@ -351,7 +352,8 @@ def tune(
     True): branch and bound, a setting stops once its partial sum passes the best complete one
     (the same winner as scoring every setting in full); `seeds` (log2 multipliers) are scored
     first, to start with a tight bound, and the coarse grid runs nearest the first seed first.
-    `memo`: the runs scored whole by earlier searches on some of `inputs` (`WholeRuns`).
+    `memo`: the runs earlier searches scored on some of `inputs`, whole or up to where their
+    bound stopped them (`WholeRuns`).
 
     Returns the chosen standard deviations (sigma_v, sigma_w_rad, sigma_range,
     sigma_bearing_rad), their log2 multipliers of the naive values, the criterion there, the

@@ -86,7 +86,7 @@ def fit_on_own_innovations(
 ) -> tuple[dict[int, dict[str, dict]], dict]:  # fmt: skip
     """Every filter of the scenario that declares a fit on its "own" innovations (`ekf-ml`)
     fitted on each run's (`inputs`, in run order; `labels` name them: drive ids or segment
-    numbers) through `fitting.fit.fit_specs`: the fits spread over `jobs` processes, each cached
+    numbers) through `fitting.fit.fit_specs`: the fits spread over `jobs` threads, each cached
     in `cache_dir` by its fingerprint (a resumed batch does not refit). Returns, per run index,
     the noise of each such instance (instance name -> the sigma keys of `noise_sigmas`), and the
     manifest's account of every fit and its cost."""

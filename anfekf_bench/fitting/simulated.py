@@ -57,7 +57,8 @@ def training_seeds(seed: int, runs: int) -> list[np.random.SeedSequence]:
 class TrainingSet(TrainingRuns):
     """The "simulated" training runs (fitting.fit): what a fitted filter's `fit` gets: the
     scenario, its world, the training runs (simulated when first read), their seeds, the
-    filters' start covariance and gate, and the worker processes it may use."""
+    filters' start covariance and gate, and the jobs it may use (threads for the noise fits'
+    starts)."""
 
     source: ClassVar[str] = "simulated"
     scenario: SimulatedScenario
@@ -106,7 +107,7 @@ class TrainingSet(TrainingRuns):
         }
 
     def prepare(self, specs: list) -> None:
-        """With workers, the noise fits about to run start together (`prepare_noise_fits`)."""
+        """With jobs > 1, the noise fits about to run start together (`prepare_noise_fits`)."""
         requests = [r for spec in specs if (r := spec.noise_fit_request()) is not None]
         if self.jobs > 1 and len(requests) > 1:
             self.prepare_noise_fits(requests)

@@ -3,10 +3,10 @@
 `dispatch_runs` is the one way runs are dispatched, for every source: a batch is a list of
 picklable calls, one run each (a simulated run: `simulated_run`; a recorded segment or drive:
 real_experiment's `recorded_run`; both end in the one per-run function, `run_one`), grouped
-into worker tasks (`run_chunk`) on local processes or a Dask
-cluster. The calls are top-level functions taking plain data and returning plain data; they
-mutate nothing shared. The truth path and the scans' landmark geometry are computed once per
-batch and shipped with the tasks.
+into worker tasks (`run_chunk`) on local threads (a batch wholly on the compiled fast engine),
+local processes or a Dask cluster. The calls are top-level functions taking plain data and
+returning plain data; they mutate nothing shared. The truth path and the scans' landmark
+geometry are computed once per batch and shipped with the tasks.
 Run i draws from `SeedSequence(seed).spawn(runs)[i]` only (SPEC 6), so results do not depend on
 the number of workers or on the order in which runs finish. The same holds on a Dask
 cluster (`backend="dask"`): the same calls are submitted to the cluster's workers, one Dask task

@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 import pytest
 
-from anfekf_bench.analysis import statistics
+from anfekf_bench.analysis import run_means, statistics
 from anfekf_bench.analysis.metrics import summarize_filter
 from anfekf_bench.analysis.statistics import (
     METRICS,
@@ -383,6 +383,77 @@ def test_resampled_statistics_in_cache_sized_blocks_keep_their_bits(statistic, m
     blocks = statistics._resampled_by_weights(statistic.run_mean_form, x)(idx)
     assert blocks.shape == (150,) and blocks.tobytes() == whole.tobytes()
     np.testing.assert_allclose(blocks, [statistic(x[i]) for i in idx], rtol=1e-12)
+
+
+# Row lengths where numpy's pairwise summation changes shape: below 8, eight running sums up to
+# 128, halves at multiples of 8 above (and the drives' 8,245 steps).
+_SUM_LENGTHS = [*range(0, 140), 255, 256, 257, 1000, 4097, 8192, 8245, 20_003]
+
+
+def test_the_compiled_pairwise_sum_is_numpys():
+    """run_means.pairwise_sum adds in numpy's order: the same bits as np.sum, from any start."""
+    rng = np.random.default_rng(21)
+    for n in _SUM_LENGTHS:
+        a = rng.random(n + 5) * rng.choice([1e-6, 1.0, 1e6])
+        assert run_means.pairwise_sum(a, 3, n) == np.sum(a[3 : 3 + n]), n
+        if n < 300:  # the plain-Python function numba compiled
+            assert run_means.pairwise_sum.py_func(a, 3, n) == np.sum(a[3 : 3 + n]), n
+
+
+@pytest.mark.parametrize("divide", [False, True])
+@pytest.mark.parametrize("root", [False, True])
+def test_the_compiled_time_means_are_the_numpy_paths_bits(divide, root):
+    """run_means.time_means (one pass per row) gives the numpy path's bits: divided by the
+    summed weights or not, square root or not, rows with a few unscored steps (0 / 0), rows
+    with none, a row with no scored step (NaN), every row length numpy sums differently."""
+    rng = np.random.default_rng(22)
+    for n in _SUM_LENGTHS:
+        block = rng.random((5, n)) * rng.choice([1e-3, 1.0, 1e3])
+        den = rng.random((5, n)) + 0.5
+        if divide and n:
+            unscored = rng.random((5, n)) < 0.1
+            block[unscored], den[unscored] = 0.0, 0.0
+            block[2], den[2] = 0.0, 0.0
+            block[3], den[3] = rng.random(n), rng.random(n) + 0.5  # all scored
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            want = block / den if divide else block.copy()
+            want = statistics._time_mean_of(np.sqrt(want) if root else want)
+        got = run_means.time_means(block, den, divide, root, np.empty(5))
+        assert np.array_equal(got, want, equal_nan=True), n
+        if n < 40:  # the plain-Python function numba compiled
+            with np.errstate(invalid="ignore"):  # numpy scalars' 0 / 0
+                py = run_means.time_means.py_func(block, den, divide, root, np.empty(5))
+            assert np.array_equal(py, want, equal_nan=True), n
+
+
+@pytest.mark.parametrize("statistic", [rmse_statistic, mean_statistic])
+def test_resampled_statistics_compiled_or_not_keep_their_bits(statistic, monkeypatch):
+    """`_resampled_by_weights` with the compiled time means and with numpy's passes (numba
+    missing or switched off): the same bits."""
+    if not run_means.COMPILED:
+        pytest.skip("numba is not in use: only the numpy path runs")
+    rng = np.random.default_rng(23)
+    x = np.abs(rng.normal(size=(9, 8245)))
+    x[2, 40:900] = np.nan
+    x[:, 8000:] = np.nan
+    idx = rng.integers(0, 9, size=(150, 9))
+    compiled = statistics._resampled_by_weights(statistic.run_mean_form, x)(idx)
+    monkeypatch.setattr(statistics, "COMPILED", False)
+    numpy_path = statistics._resampled_by_weights(statistic.run_mean_form, x)(idx)
+    assert compiled.tobytes() == numpy_path.tobytes()
+
+
+def test_resample_blocks_cover_every_row_and_none_has_one_row_but_a_single_resample():
+    """statistics._blocks: consecutive [lo, hi) blocks of at most 2 x _BLOCK_ROWS rows that
+    cover every resample, none of a single row (BLAS takes a one-row product as a matrix-vector
+    product, which may round otherwise) unless there is one resample in all."""
+    size = statistics._BLOCK_ROWS
+    for rows in [1, 2, size - 1, size, size + 1, size + 2, 2 * size + 1, 2000, 2001]:
+        blocks = statistics._blocks(rows)
+        assert blocks[0][0] == 0 and blocks[-1][1] == rows
+        assert all(a[1] == b[0] for a, b in zip(blocks, blocks[1:]))
+        assert all(1 < hi - lo <= 2 * size for lo, hi in blocks) or rows == 1
 
 
 def test_the_time_mean_of_run_means_is_nanmeans_bits():

@@ -37,6 +37,7 @@ from .metrics import (
     share_inside,
     share_inside_bounds,
 )
+from .run_means import COMPILED, time_means
 
 Statistic = Callable[[np.ndarray], "float | np.ndarray"]
 Kind = Literal["ratio", "difference"]
@@ -161,8 +162,9 @@ def _time_mean_of(m: np.ndarray) -> np.ndarray:
         return np.divide(np.sum(m, axis=-1), count)
 
 
-rmse_statistic.run_mean_form = (np.square, lambda m: _time_mean_of(np.sqrt(m)))
-mean_statistic.run_mean_form = (lambda x: x, _time_mean_of)  # m: the products' own array
+# (h, root): g is the time mean of the run means (`_time_mean_of`), of their square root where root
+rmse_statistic.run_mean_form = (np.square, True)
+mean_statistic.run_mean_form = (lambda x: x, False)
 
 
 # A comparison table bootstraps every filter against each of its references with one seed, so
@@ -242,12 +244,22 @@ def resampled_statistic(statistic: Statistic, x: np.ndarray, idx: np.ndarray) ->
 # resample batch. Each entry is a (resamples, steps) array: few are kept.
 _SCORED_MEMO: OrderedDict[bytes, np.ndarray] = OrderedDict()
 _SCORED_ENTRIES = 16
-_BLOCK_ROWS = 64  # resamples `_resampled_by_weights` takes at once
+_BLOCK_ROWS = 32  # resamples `_resampled_by_weights` takes at once (a block stays in the cache)
+
+
+def _blocks(rows: int) -> list[tuple[int, int]]:
+    """[lo, hi) blocks of `_BLOCK_ROWS` resamples, the last one longer rather than of one row:
+    BLAS computes a one-row product as a matrix-vector product, whose sums may round
+    differently from the same row's in a matrix product."""
+    bounds = list(range(0, rows, _BLOCK_ROWS)) + [rows]
+    if len(bounds) > 2 and bounds[-1] - bounds[-2] == 1:
+        del bounds[-2]
+    return list(zip(bounds[:-1], bounds[1:]))
 
 
 def _resampled_by_weights(form: tuple, x: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """`_resampled`'s computation: the run means of every resample as one matrix product."""
-    h, g = form
+    h, root = form
     hx = h(x)
     scored = ~np.isnan(hx)
     unscored = not scored.all()
@@ -271,12 +283,19 @@ def _resampled_by_weights(form: tuple, x: np.ndarray) -> Callable[[np.ndarray], 
         out = np.empty(rows)
         # the run means and g in blocks of resamples that stay in the cache: each step on the
         # whole (resamples, steps) array (33 MB to 130 MB on the drives) went to memory and back
-        for lo in range(0, rows, _BLOCK_ROWS):
-            block = weights[lo : lo + _BLOCK_ROWS] @ hx
+        buffer = np.empty((min(rows, 2 * _BLOCK_ROWS), hx.shape[-1]))
+        for lo, hi in _blocks(rows):
+            block = np.matmul(weights[lo:hi], hx, out=buffer[: hi - lo])
+            if COMPILED:  # g(block / den) in one pass (run_means), the same bits
+                time_means(block, block if den is None else den[lo:hi], den is not None, root,
+                           out[lo:hi])  # fmt: skip
+                continue
             if den is not None:
                 with np.errstate(invalid="ignore", divide="ignore"):  # 0 / 0: no run scores it
-                    np.divide(block, den[lo : lo + _BLOCK_ROWS], out=block)
-            out[lo : lo + _BLOCK_ROWS] = g(block)
+                    np.divide(block, den[lo:hi], out=block)
+            if root:
+                np.sqrt(block, out=block)
+            out[lo:hi] = _time_mean_of(block)
         return out.reshape(idx.shape[:-1])
 
     return of

@@ -30,6 +30,7 @@ import math
 
 import numpy as np
 
+from ..analysis import run_means as _run_means
 from ..config import World
 from ..filters.als import ALSSpec
 from ..filters.augmented import PARAMETERS, AugmentedSpec, augment_of
@@ -316,6 +317,7 @@ WARM_UP_KERNELS = (
     (_jit_kernels_augmented, "run_augmented_kernel"),
     (_jit_kernels_bank, "run_bank_kernel"),
     (_jit_kernels_default, "run_vb_imm_kernel"),
+    (_run_means, "time_means"),
 )  # fmt: skip
 COMPILE_ESTIMATE = "a few minutes"  # one process: about 4 min of CPU (lead, 2026-11-27, load 12)
 
@@ -408,6 +410,8 @@ def warm_up(jit: bool = True, part: str | None = None) -> float:
         np.array([[0.3, 0.05, 0.1, 0.02]]), ctx.P0, ctx.gate, world.T
     )
     simulate_truth(dataclasses.replace(world, max_steps=10_000))  # the simulator's truth loop
+    block = np.ones((1, 2))  # the tables' bootstrap (statistics._resampled_by_weights)
+    _run_means.time_means(block, block, True, True, np.empty(1))
     return time.perf_counter() - t0
 
 

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from ..compiled import is_compiled, maybe_njit
 from ..config import World
 from ..error_sources import ErrorSources
 from ..models import wrap_angle
@@ -94,29 +94,16 @@ class RunData:
     scans: tuple[Scan, ...] | Scans
 
 
-def _maybe_njit(fn):
-    """`numba.njit(cache=True)` when numba is installed and not switched off (ANFEKF_FAST_JIT=0,
-    as for the fast engine's kernels), else the function itself: the same scalar arithmetic
-    either way (libm's sin, cos, atan2 and Python's float %), so the same bytes. The options are
-    the fast engine's (engines.kernels.maybe_njit): numba's cache keeps one entry per function
-    and signature, whatever the options, and the kernels compile the same motion terms."""
-    if os.environ.get("ANFEKF_FAST_JIT", "1") == "0":
-        return fn
-    try:
-        import numba
-    except ImportError:
-        return fn
-    return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
-
-
 _STEPS_PER_CALL = 1 << 16  # the truth loop's buffer: routes longer than this resume
-# The bicycle's step as the filters' models take it (models.motion_terms, written once)
+# The bicycle's step as the filters' models take it (models.motion_terms, written once; the
+# kernels compile the same terms). Compiled or not, the same scalar arithmetic (libm's sin, cos,
+# atan2 and Python's float %), so the same bytes.
 _step_terms, _jacobians_at, _wrap = (
-    _maybe_njit(step_terms), _maybe_njit(jacobians_at), _maybe_njit(wrap_scalar),
+    maybe_njit(step_terms), maybe_njit(jacobians_at), maybe_njit(wrap_scalar),
 )  # fmt: skip
 
 
-@_maybe_njit
+@maybe_njit
 def _drive(wp, state, params, xs, us):
     """Bailey's steering controller from `state` = (x, y, phi, gamma, iwp, loops_left) until the
     route is done or the buffers xs (n + 1, 3) / us (n, 2) are full (xs[0] is the start pose);
@@ -149,7 +136,7 @@ def _drive(wp, state, params, xs, us):
     return n, done
 
 
-JIT_TRUTH: bool = hasattr(_drive, "py_func")  # whether the truth loop is numba-compiled
+JIT_TRUTH: bool = is_compiled(_drive)  # whether the truth loop is numba-compiled
 
 
 def simulate_truth(world: World) -> Truth:

@@ -70,15 +70,22 @@ def filter_arrays(steps: pd.DataFrame, name: str) -> dict[str, np.ndarray]:
     """(runs, steps) arrays of one filter's pos_err, heading_err, nees, R/Q and run ids."""
     # The columns it needs, picked by one mask and one stable (run, step) order: what
     # `steps[mask].sort_values(["run", "step"])` gives, without copying the other columns (the
-    # comparisons and the summary call this once per filter).
+    # comparisons and the summary call this once per filter). As steps_frame writes the table
+    # (a filter's rows in one block, in order), the arrays are read-only views of its columns.
     mask = (steps["filter"] == name).to_numpy(dtype=bool)
-    run, step = steps["run"].to_numpy()[mask], steps["step"].to_numpy()[mask]
-    order = np.lexsort((step, run))
-    if np.array_equal(order, np.arange(len(order))):
-        order = slice(None)  # already in order (as steps_frame writes it): no copy
+    found = np.flatnonzero(mask)
+    rows = mask
+    if len(found) and found[-1] - found[0] + 1 == len(found):
+        rows = slice(int(found[0]), int(found[-1]) + 1)
+    run, step = steps["run"].to_numpy()[rows], steps["step"].to_numpy()[rows]
+    later = run[1:] > run[:-1]
+    in_order = np.all(later | ((run[1:] == run[:-1]) & (step[1:] >= step[:-1])))
+    order = slice(None) if in_order else np.lexsort((step, run))  # in order: no copy
 
     def col(c: str) -> np.ndarray:
-        return steps[c].to_numpy()[mask][order]
+        view = steps[c].to_numpy()[rows][order]
+        view.flags.writeable = False  # a view of the table where nothing was copied
+        return view
 
     run = run[order]
     runs = pd.unique(run)

@@ -656,7 +656,7 @@ def result_tables(
     """
     names = plan.filter_names()
     local_jobs = plan.jobs if plan.backend.kind == "local" else 1  # the batch's own workers
-    steps = steps_frame(plan.name, names, ordered)
+    steps = steps_frame(plan.name, names, ordered, jobs=local_jobs)
     if on_steps is not None:
         on_steps(steps)
     pairs = plan.source.comparison_pairs(plan.scenario)

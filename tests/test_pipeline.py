@@ -294,6 +294,19 @@ def test_tables_do_not_depend_on_the_order_runs_finish():
     assert update_statistics(results, names) == update_statistics(shuffled, names)
 
 
+def test_the_steps_table_built_on_threads_is_the_one_built_on_one(monkeypatch):
+    """steps_frame builds its columns on `jobs` threads (a large table): the same table."""
+    from anfekf_bench.analysis import tables
+
+    scenario = parse_scenario(small_scenario(runs=3))
+    world = resolve_world(scenario.world, Path("x.yaml"))
+    results = [simulated_run(scenario, world, i, s) for i, s in enumerate(run_seeds(scenario))]
+    names = [f.name for f in scenario.filters]
+    one = steps_frame("s", names, results)
+    monkeypatch.setattr(tables, "_THREADED_CELLS", 0)  # this small table on threads too
+    pd.testing.assert_frame_equal(steps_frame("s", names, results, jobs=2), one, check_exact=True)
+
+
 def run_seeds(scenario):
     return np.random.SeedSequence(scenario.seed).spawn(scenario.runs)
 

@@ -452,7 +452,7 @@ def test_resample_blocks_cover_every_row_and_none_has_one_row_but_a_single_resam
     for rows in [1, 2, size - 1, size, size + 1, size + 2, 2 * size + 1, 2000, 2001]:
         blocks = statistics._blocks(rows)
         assert blocks[0][0] == 0 and blocks[-1][1] == rows
-        assert all(a[1] == b[0] for a, b in zip(blocks, blocks[1:]))
+        assert all(a[1] == b[0] for a, b in zip(blocks[:-1], blocks[1:], strict=True))
         assert all(1 < hi - lo <= 2 * size for lo, hi in blocks) or rows == 1
 
 

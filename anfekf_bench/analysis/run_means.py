@@ -3,10 +3,10 @@
 On numpy, g(block / den) is six passes over a (resamples, steps) block: the division, the square
 root, the NaN mask, zeroing the NaN, counting the others, the sum. `time_means` does them in one
 pass per row, with the same bits: division and square root are correctly rounded on either path,
-and the sum is numpy's
-pairwise summation written out (`pairwise_sum`, numpy's `pairwise_sum_DOUBLE`), added to the
-reduction's identity 0.0 as numpy's add.reduce does. tests/test_statistics.py checks the bits
-against the numpy path on rows of every length numpy's summation splits differently.
+and the sum is numpy's pairwise summation written out (`pairwise_sum`, numpy's
+`pairwise_sum_DOUBLE`), added to the reduction's identity 0.0 as numpy's add.reduce does.
+tests/test_statistics.py checks the bits against the numpy path on rows of every length numpy's
+summation splits differently. The matrix product before it stays BLAS's.
 """
 
 from __future__ import annotations
@@ -99,7 +99,7 @@ def time_means(block, den, divide, root, out):
     for i in range(rows):
         b, d = block[i], den[i]
         count = 0
-        # one loop per case, without branches: the compiler vectorises each
+        # one loop per case, without a branch inside, so that the compiler can vectorise it
         if divide and root:
             for j in range(n):
                 m = math.sqrt(b[j] / d[j])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -30,11 +31,13 @@ def steps_frame(
     results = sorted(results, key=lambda r: r["run"])
     lengths = [len(res["step"]) for res in results]
 
-    def per_run(get) -> np.ndarray:  # one array per run, the same for every filter
-        return np.tile(np.concatenate([get(res) for res in results]), len(filter_names))
+    # Each column is a build, called below on one thread or several: per_run's, one array per
+    # run (the same for every filter); per_trace's, one per (filter, run), filters outermost.
+    def per_run(get) -> Callable[[], np.ndarray]:
+        return lambda: np.tile(np.concatenate([get(res) for res in results]), len(filter_names))
 
-    def per_trace(get) -> np.ndarray:  # one array per (filter, run), filters outermost
-        return np.concatenate(
+    def per_trace(get) -> Callable[[], np.ndarray]:
+        return lambda: np.concatenate(
             [get(res["filters"][name], len(res["step"])) for name in filter_names
              for res in results]
         )  # fmt: skip
@@ -47,28 +50,28 @@ def steps_frame(
         "filter": lambda: pd.Categorical.from_codes(
             np.repeat(np.arange(len(filter_names), dtype=np.int16), sum(lengths)), filter_names
         ),
-        "run": lambda: per_run(lambda r: np.full(len(r["step"]), r["run"], dtype=np.int32)),
-        "step": lambda: per_run(lambda r: r["step"].astype(np.int32)),
-        "t": lambda: per_run(lambda r: r["t"]),
-        "x_true": lambda: per_run(lambda r: r["x_true"][:, 0]),
-        "y_true": lambda: per_run(lambda r: r["x_true"][:, 1]),
-        "phi_true": lambda: per_run(lambda r: r["x_true"][:, 2]),
-        "x_est": lambda: per_trace(lambda tr, n: tr["x"][:, 0]),
-        "y_est": lambda: per_trace(lambda tr, n: tr["x"][:, 1]),
-        "phi_est": lambda: per_trace(lambda tr, n: tr["x"][:, 2]),
+        "run": per_run(lambda r: np.full(len(r["step"]), r["run"], dtype=np.int32)),
+        "step": per_run(lambda r: r["step"].astype(np.int32)),
+        "t": per_run(lambda r: r["t"]),
+        "x_true": per_run(lambda r: r["x_true"][:, 0]),
+        "y_true": per_run(lambda r: r["x_true"][:, 1]),
+        "phi_true": per_run(lambda r: r["x_true"][:, 2]),
+        "x_est": per_trace(lambda tr, n: tr["x"][:, 0]),
+        "y_est": per_trace(lambda tr, n: tr["x"][:, 1]),
+        "phi_est": per_trace(lambda tr, n: tr["x"][:, 2]),
     }
     for (i, j), col in zip(_P_INDEX, STEP_COLUMNS[11:17], strict=True):
-        builds[col] = lambda i=i, j=j: per_trace(lambda tr, n: tr["P"][:, i, j])
+        builds[col] = per_trace(lambda tr, n, i=i, j=j: tr["P"][:, i, j])
     builds.update(
-        pos_err=lambda: per_trace(lambda tr, n: tr["pos_err"]),
-        heading_err=lambda: per_trace(lambda tr, n: tr["heading_err"]),
-        nees=lambda: per_trace(lambda tr, n: tr["nees"]),
-        R_rr=lambda: per_trace(lambda tr, n: tr["R_diag"][:, 0]),
-        R_bb=lambda: per_trace(lambda tr, n: tr["R_diag"][:, 1]),
-        Q_vv=lambda: per_trace(lambda tr, n: tr["Q_diag"][:, 0]),
-        Q_gg=lambda: per_trace(lambda tr, n: tr["Q_diag"][:, 1]),
-        P_infl=lambda: per_trace(lambda tr, n: tr["P_infl"]),
-        diverged=lambda: per_trace(lambda tr, n: np.full(n, bool(tr["diverged"]))),
+        pos_err=per_trace(lambda tr, n: tr["pos_err"]),
+        heading_err=per_trace(lambda tr, n: tr["heading_err"]),
+        nees=per_trace(lambda tr, n: tr["nees"]),
+        R_rr=per_trace(lambda tr, n: tr["R_diag"][:, 0]),
+        R_bb=per_trace(lambda tr, n: tr["R_diag"][:, 1]),
+        Q_vv=per_trace(lambda tr, n: tr["Q_diag"][:, 0]),
+        Q_gg=per_trace(lambda tr, n: tr["Q_diag"][:, 1]),
+        P_infl=per_trace(lambda tr, n: tr["P_infl"]),
+        diverged=per_trace(lambda tr, n: np.full(n, bool(tr["diverged"]))),
     )
     if jobs > 1 and total * len(builds) >= _THREADED_CELLS:
         with ThreadPoolExecutor(max_workers=jobs) as pool:

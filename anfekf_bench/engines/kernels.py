@@ -28,34 +28,24 @@ from __future__ import annotations
 
 import importlib.util
 import math
-import os
 import sys
 
 import numpy as np
 
+from ..compiled import NJIT_OPTIONS, numba_njit
 from ..models import motion_terms as _motion_terms
 
-
-def _njit():
-    """numba.njit, or None when numba is missing, switched off, or this is the pure copy."""
-    if globals().get("_PURE", False) or os.environ.get("ANFEKF_FAST_JIT", "1") == "0":
-        return None
-    try:
-        import numba
-    except ImportError:
-        return None
-    return numba.njit
-
-
-_NJIT = _njit()
+# numba.njit, or None when numba is missing, switched off (compiled.numba_njit) or this is the
+# pure copy
+_NJIT = None if globals().get("_PURE", False) else numba_njit()
 JIT: bool = _NJIT is not None  # True: the kernels below are numba-compiled
 
 
 def maybe_njit(fn):
-    """`numba.njit(cache=True)` when numba is in use, else the function itself."""
+    """`fn` compiled with compiled.NJIT_OPTIONS when numba is in use, else the function itself."""
     if _NJIT is None:
         return fn
-    return _NJIT(cache=True, nogil=True, error_model="numpy")(fn)
+    return _NJIT(**NJIT_OPTIONS)(fn)
 
 
 def pure_copy(name: str, path: str):
@@ -66,7 +56,7 @@ def pure_copy(name: str, path: str):
         return sys.modules[pure]
     spec = importlib.util.spec_from_file_location(pure, path)
     mod = importlib.util.module_from_spec(spec)
-    mod._PURE = True  # read by `_njit` (and kernels_als) while the copy executes
+    mod._PURE = True  # read (for `_NJIT`, and by kernels_als) while the copy executes
     spec.loader.exec_module(mod)
     sys.modules[pure] = mod
     return mod

@@ -7,7 +7,6 @@ One colour per filter in every figure (`filter_colour`).
 
 from __future__ import annotations
 
-import io
 import math
 import textwrap
 from collections.abc import Iterable, Sequence
@@ -26,9 +25,7 @@ from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.patches import Ellipse, Rectangle  # noqa: E402
 from matplotlib.ticker import (  # noqa: E402
     FuncFormatter,
-    Locator,
     LogLocator,
-    MaxNLocator,
     NullFormatter,  # noqa: E402
     NullLocator,
 )
@@ -50,8 +47,22 @@ from .document import FigureBlock  # noqa: E402
 from .ranking import (  # noqa: E402
     CONSISTENT_SHARE,  # noqa: F401  (the tables read it here)
 )
+from .render import (  # noqa: E402, F401  (the figures' modules read these here)
+    DPI,
+    RATIO_MAX,
+    RATIO_MIN,
+    RATIO_TICK_PRIORITY,
+    RC,
+    PlainLogLocator,
+    RatioBarLocator,
+    figure_bytes,
+    figure_files,
+    plain_number,
+    plain_power_of_ten,
+    ratio_bar_ticks,
+    ratio_norm,
+)
 
-DPI = 110
 ELLIPSE_SIGMA = 3.0
 # Filters get colours by their order within a report (`palette`), not from their names: names
 # hashed onto colours collide, and a zoo of 30 filters needs every pairing told apart. A
@@ -92,17 +103,6 @@ def palette_state() -> tuple[list[str], list[str]]:
 
 def _place(name: str) -> int:
     return _ORDER.setdefault(name, len(_ORDER))
-
-
-_RC = {
-    "font.size": 9,
-    "axes.titlesize": 10,
-    "legend.fontsize": 8,
-    "axes.grid": True,
-    "grid.alpha": 0.3,
-    "svg.hashsalt": "anfekf-report",  # reproducible SVG ids
-}
-_METADATA = {"png": {}, "svg": {"Date": None}, "pdf": {"CreationDate": None}}
 
 
 MARKERS = ("o", "s", "^", "D")
@@ -167,16 +167,13 @@ def _style(f: FilterSeries) -> dict:
 
 
 def save_figure(fig: Figure, path: Path | BinaryIO, fmt: str = "png", dpi: int = DPI) -> None:
-    """Write `fig` in format png, svg or pdf (no timestamps: reproducible files): to a path
-    atomically, or into an open binary file."""
-    metadata = _METADATA.get(fmt, {})
-    with matplotlib.rc_context(_RC):
-        if not isinstance(path, (str, Path)):
-            fig.savefig(path, format=fmt, dpi=dpi, metadata=metadata)
-            return
-        write_atomic(
-            Path(path), lambda tmp: fig.savefig(tmp, format=fmt, dpi=dpi, metadata=metadata)
-        )
+    """Write `fig` in format png, svg or pdf (no timestamps: reproducible files,
+    `render.figure_bytes`): to a path atomically, or into an open binary file."""
+    data = figure_bytes(fig, fmt, dpi)
+    if isinstance(path, (str, Path)):
+        write_atomic(Path(path), lambda tmp: tmp.write_bytes(data))
+    else:
+        path.write(data)
 
 
 @dataclass
@@ -194,16 +191,15 @@ class FigureSaver:
 
     def __call__(self, fig: Figure, name: str, caption: str) -> FigureBlock:
         path = Path(self.out_dir) / name
-        save_figure(fig, path, self.fmt, dpi=self.dpi)
         self.files.append(path)
+        data, png = figure_files(fig, self.fmt, self.dpi, self.html and self.fmt == "pdf")
+        write_atomic(path, lambda tmp: tmp.write_bytes(data))
         if not self.html:
             image, mime = b"", "image/png"
         elif self.fmt == "pdf":
-            buf = io.BytesIO()
-            save_figure(fig, buf, "png", dpi=self.dpi)
-            image, mime = buf.getvalue(), "image/png"
+            image, mime = png, "image/png"
         else:
-            image = path.read_bytes()
+            image = data
             mime = "image/svg+xml" if self.fmt == "svg" else "image/png"
         return FigureBlock(name, caption, image, mime, link_only=self.fmt == "pdf")
 
@@ -218,43 +214,6 @@ def legend_entries(axes: Iterable[Axes]) -> tuple[list, list[str]]:
                 handles.append(h)
                 labels.append(lab)
     return handles, labels
-
-
-def plain_number(x: float, pos=None) -> str:
-    """A tick label in plain notation: 2, 3, 0.05, 1000 (never 2x10^0 or 1e-05)."""
-    if not math.isfinite(x) or x <= 0:
-        return ""
-    return np.format_float_positional(float(f"{x:.3g}"), trim="-")
-
-
-class PlainLogLocator(Locator):
-    """Ticks for a log axis that are worth labelling in plain numbers, chosen by the view's span:
-    under a factor 4, evenly spaced ticks (0.9, 1, 1.1, 1.2); up to 30, 1-2-3-4-6 in each decade;
-    up to 1000, 1-2-5; beyond, the powers of ten (every n-th when there are many)."""
-
-    def __call__(self):
-        vmin, vmax = self.axis.get_view_interval()
-        return self.tick_values(vmin, vmax)
-
-    def tick_values(self, vmin: float, vmax: float) -> np.ndarray:
-        vmin, vmax = sorted((vmin, vmax))
-        if not (math.isfinite(vmin) and math.isfinite(vmax)) or vmax <= 0:
-            return np.array([1.0])
-        vmin = vmin if vmin > 0 else vmax / 1e3
-        span = vmax / vmin
-        if span < 4:
-            ticks = MaxNLocator(nbins=5, steps=[1, 2, 2.5, 5, 10]).tick_values(vmin, vmax)
-            return ticks[ticks > 0]
-        if span <= 30:
-            subs = (1, 2, 3, 4, 6)
-        elif span <= 1000:
-            subs = (1, 2, 5)
-        else:
-            subs = (1,)
-        lo, hi = math.floor(math.log10(vmin)), math.ceil(math.log10(vmax))
-        every = max(1, math.ceil((hi - lo) / 8)) if subs == (1,) else 1
-        ticks = [m * 10.0**k for k in range(lo, hi + 1, every) for m in subs]
-        return np.array([t for t in ticks if vmin / 1.001 <= t <= vmax * 1.001] or [10.0**lo])
 
 
 def plain_log_axis(ax: Axes, which: str = "y", minor: bool = True) -> None:
@@ -380,7 +339,7 @@ def _ratio_heatmap(fig: Figure, ax: Axes, sc: ScenarioData, ref: FilterSeries, o
                  " ratio beside its name), best first", fontsize=8)  # fmt: skip
 
 
-@matplotlib.rc_context(_RC)
+@matplotlib.rc_context(RC)
 def rmse_figure(sc: ScenarioData) -> Figure:
     """Position and heading RMSE over time per filter, with the spread over runs shaded, and
     (log scale) each filter's position RMSE divided by the reference's, where lines that
@@ -555,7 +514,7 @@ def _nees_small_multiples(sc: ScenarioData) -> Figure:
     return fig
 
 
-@matplotlib.rc_context(_RC)
+@matplotlib.rc_context(RC)
 def nees_figure(sc: ScenarioData) -> Figure:
     """Run-averaged NEES per filter (log scale) with the two-sided 95 % chi-square bounds, the
     median over runs (dotted) and the outlier runs (thin) that pull the average up. More than
@@ -617,7 +576,7 @@ def noise_groups(sc: ScenarioData) -> list[list[FilterSeries]]:
     return [[f for f in adaptive if f.kind == k] for k in kinds]
 
 
-@matplotlib.rc_context(_RC)
+@matplotlib.rc_context(RC)
 def noise_figure(sc: ScenarioData) -> Figure:
     """The adapted R/Q diagonal over time of every filter that adapts it (the registry says
     which, or its recorded values vary): the median over runs with the spread over runs and
@@ -775,7 +734,7 @@ def draw_paths(
     ax.set_ylabel("y [m]")
 
 
-@matplotlib.rc_context(_RC)
+@matplotlib.rc_context(RC)
 def map_figure(sc: ScenarioData) -> Figure:
     """Landmarks, waypoints, the true path, one run's estimates and 3-sigma ellipses, a zoom."""
     fig = Figure(figsize=(12, 5.6), layout="constrained")
@@ -834,19 +793,7 @@ def _percentiles() -> tuple[float, float]:
 
 
 # ---------------------------------------------------------------------------------------------
-# RMSE over the oracle's as a colour: one fixed scale for every heatmap of every report (the
-# leaderboard, the sweeps), so a ratio of 1 has one colour wherever it appears. Log scale centred
-# on 1 (white); better than the reference in blue (rare: the oracle is the best fixed EKF), worse
-# in reds up to 30 x (beyond: the darkest red).
-RATIO_MIN, RATIO_MAX = 1 / 1.5, 30.0
 RATIO_CMAP = "RdBu_r"
-
-
-def ratio_norm():
-    """The colour norm of a ratio's log10: white at 1, fixed ends (never from the data)."""
-    from matplotlib.colors import TwoSlopeNorm
-
-    return TwoSlopeNorm(vmin=math.log10(RATIO_MIN), vcenter=0.0, vmax=math.log10(RATIO_MAX))
 
 
 NO_RATIO_COLOUR = (0.85, 0.85, 0.85, 1.0)  # light grey: no value (all runs diverged, no oracle)
@@ -878,37 +825,6 @@ def ratio_image(ax: Axes, values: np.ndarray, **kw):
     return ax.imshow(shown, cmap=ratio_cmap(), norm=ratio_norm(), **kw)
 
 
-# The ratio bar's ticks in the order they are kept when the bar is too short for all of them:
-# the reference (1) and the scale's ends first, then the round factors between.
-RATIO_TICK_PRIORITY = (1.0, RATIO_MIN, RATIO_MAX, 10.0, 3.0, 2.0, 5.0, 1.5)
-
-
-class RatioBarLocator(Locator):
-    """The ratio colour bar's ticks (log10 values): as many of RATIO_TICK_PRIORITY, in that
-    order, as fit the bar's drawn height with a label's height between neighbours, so that a
-    bar two rows tall shows 0.667, 1, 3, 10, 30 instead of labels that touch."""
-
-    def __init__(self, label_points: float) -> None:
-        self.label_points = label_points
-
-    def __call__(self):
-        axes = self.axis.axes
-        height = axes.bbox.height * 72.0 / axes.figure.dpi  # points, after the layout
-        return ratio_bar_ticks(height, self.label_points)
-
-
-def ratio_bar_ticks(height_points: float, label_points: float) -> list[float]:
-    """The log10 ticks of a ratio bar `height_points` tall whose labels are `label_points`."""
-    norm = ratio_norm()  # the bar's position of a value: two slopes, 1 in the middle
-    kept: list[float] = []
-    for tick in RATIO_TICK_PRIORITY:
-        value = math.log10(tick)
-        gaps = (abs(float(norm(value)) - float(norm(k))) * height_points for k in kept)
-        if all(gap >= 1.2 * label_points for gap in gaps):
-            kept.append(value)
-    return sorted(kept)
-
-
 def ratio_colourbar(fig: Figure, mappable, ax, label: str) -> None:
     """A colour bar for a log10-ratio image, ticked in plain numbers at as many of
     RATIO_TICK_PRIORITY as its height fits (RatioBarLocator)."""
@@ -917,6 +833,6 @@ def ratio_colourbar(fig: Figure, mappable, ax, label: str) -> None:
 
     points = FontProperties(size=matplotlib.rcParams["ytick.labelsize"]).get_size_in_points()
     bar.ax.yaxis.set_major_locator(RatioBarLocator(points))
-    bar.ax.yaxis.set_major_formatter(FuncFormatter(lambda v, pos: plain_number(10.0**v)))
+    bar.ax.yaxis.set_major_formatter(FuncFormatter(plain_power_of_ten))
     bar.ax.yaxis.set_minor_locator(NullLocator())
     bar.set_label(label)

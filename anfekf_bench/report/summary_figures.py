@@ -19,9 +19,9 @@ from ..analysis.metrics import format_sig
 from ..filters.registry import comparison_rank, role_of
 from .data import FEW_RUNS, Ratio, SummaryRow
 from .plots import (
-    _RC,
     MAX_LABELLED_GROUP,
     ORACLE_COLOUR,
+    RC,
     filter_colour,
     filter_marker,
     filter_style,
@@ -64,7 +64,7 @@ def _ratio_points(ax: Axes, groups: dict, width: float, key: str, get, labelled:
                         ha="center", va="bottom", fontsize=6.5)  # fmt: skip
 
 
-@matplotlib.rc_context(_RC)
+@matplotlib.rc_context(RC)
 def overview_figure(rows: Sequence[SummaryRow]) -> Figure:
     """Per scenario and filter: position RMSE and ANEES divided by the oracle EKF's (log scale,
     95 % paired bootstrap intervals as error bars), and the share of steps with NEES in bounds.
@@ -145,7 +145,7 @@ def _text_colour(rgba) -> str:
     return "black" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "white"
 
 
-@matplotlib.rc_context(_RC)
+@matplotlib.rc_context(RC)
 def leaderboard_figure(rows: Sequence[SummaryRow]) -> Figure:
     """Filters x scenarios: each cell the filter's position RMSE over the oracle's in that
     scenario (colour on the fixed ratio scale, the value written in), with a frame where the 95 %

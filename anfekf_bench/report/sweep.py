@@ -35,6 +35,7 @@ from .plots import (
     ratio_image,
     ratio_norm,
 )
+from .render import general_number
 
 # (column, its interval's columns or None, title, log scale, the value marking "as good as" the
 # reference, or None)
@@ -90,14 +91,9 @@ def read_sweep(folder: Path) -> SweepData:
     return SweepData(folder, name, axes, factor_axes, table, runs)
 
 
-def _plain(value: float, _pos=None) -> str:
-    """Tick labels like 0.1, 2, 10 on log axes (not 10^-1)."""
-    return f"{value:g}"
-
-
 def _log_axis(axis) -> None:
     axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
-    axis.set_major_formatter(FuncFormatter(_plain))
+    axis.set_major_formatter(FuncFormatter(general_number))
     axis.set_minor_formatter(NullFormatter())
 
 

@@ -1,0 +1,141 @@
+"""A report figure turned into its file's bytes.
+
+A figure is saved with the report's rc settings and without timestamps (`figure_bytes`), so
+its file is the same bytes wherever it is drawn. Everything a figure holds by reference (the
+tick locators and formatters below) is defined here, at module level, in a module that imports
+only matplotlib and numpy, so that a figure pickles and loads without the package's scenarios,
+filters or tables.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only; never open a window
+
+import numpy as np  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.ticker import Locator, MaxNLocator  # noqa: E402
+
+DPI = 110
+RC = {
+    "font.size": 9,
+    "axes.titlesize": 10,
+    "legend.fontsize": 8,
+    "axes.grid": True,
+    "grid.alpha": 0.3,
+    "svg.hashsalt": "anfekf-report",  # reproducible SVG ids
+}
+METADATA = {"png": {}, "svg": {"Date": None}, "pdf": {"CreationDate": None}}
+
+
+def figure_bytes(fig: Figure, fmt: str = "png", dpi: int = DPI) -> bytes:
+    """`fig` saved in format png, svg or pdf, with the report's rc settings and no timestamps."""
+    buf = io.BytesIO()
+    with matplotlib.rc_context(RC):
+        fig.savefig(buf, format=fmt, dpi=dpi, metadata=METADATA.get(fmt, {}))
+    return buf.getvalue()
+
+
+def figure_files(fig: Figure, fmt: str, dpi: int, png_copy: bool) -> tuple[bytes, bytes]:
+    """The bytes of `fig`'s file in `fmt`, and a PNG copy where `png_copy` (the HTML shows a PDF
+    figure as a PNG), else b""."""
+    data = figure_bytes(fig, fmt, dpi)
+    return data, (figure_bytes(fig, "png", dpi) if png_copy else b"")
+
+
+# ---------------------------------------------------------------------------------------------
+# What figures hold by reference: tick locators and formatters (module level: they pickle)
+
+
+def plain_number(x: float, pos=None) -> str:
+    """A tick label in plain notation: 2, 3, 0.05, 1000 (never 2x10^0 or 1e-05)."""
+    if not math.isfinite(x) or x <= 0:
+        return ""
+    return np.format_float_positional(float(f"{x:.3g}"), trim="-")
+
+
+def plain_power_of_ten(v: float, pos=None) -> str:
+    """The tick label of a log10 value: `plain_number` of 10^v (a ratio bar's ticks)."""
+    return plain_number(10.0**v)
+
+
+def general_number(value: float, pos=None) -> str:
+    """Tick labels like 0.1, 2, 10 on log axes (not 10^-1)."""
+    return f"{value:g}"
+
+
+class PlainLogLocator(Locator):
+    """Ticks for a log axis that are worth labelling in plain numbers, chosen by the view's span:
+    under a factor 4, evenly spaced ticks (0.9, 1, 1.1, 1.2); up to 30, 1-2-3-4-6 in each decade;
+    up to 1000, 1-2-5; beyond, the powers of ten (every n-th when there are many)."""
+
+    def __call__(self):
+        vmin, vmax = self.axis.get_view_interval()
+        return self.tick_values(vmin, vmax)
+
+    def tick_values(self, vmin: float, vmax: float) -> np.ndarray:
+        vmin, vmax = sorted((vmin, vmax))
+        if not (math.isfinite(vmin) and math.isfinite(vmax)) or vmax <= 0:
+            return np.array([1.0])
+        vmin = vmin if vmin > 0 else vmax / 1e3
+        span = vmax / vmin
+        if span < 4:
+            ticks = MaxNLocator(nbins=5, steps=[1, 2, 2.5, 5, 10]).tick_values(vmin, vmax)
+            return ticks[ticks > 0]
+        if span <= 30:
+            subs = (1, 2, 3, 4, 6)
+        elif span <= 1000:
+            subs = (1, 2, 5)
+        else:
+            subs = (1,)
+        lo, hi = math.floor(math.log10(vmin)), math.ceil(math.log10(vmax))
+        every = max(1, math.ceil((hi - lo) / 8)) if subs == (1,) else 1
+        ticks = [m * 10.0**k for k in range(lo, hi + 1, every) for m in subs]
+        return np.array([t for t in ticks if vmin / 1.001 <= t <= vmax * 1.001] or [10.0**lo])
+
+
+# RMSE over the oracle's as a colour: one fixed scale for every heatmap of every report (the
+# leaderboard, the sweeps), so a ratio of 1 has one colour wherever it appears. Log scale centred
+# on 1 (white); better than the reference in blue (rare: the oracle is the best fixed EKF), worse
+# in reds up to 30 x (beyond: the darkest red).
+RATIO_MIN, RATIO_MAX = 1 / 1.5, 30.0
+# The ratio bar's ticks in the order they are kept when the bar is too short for all of them:
+# the reference (1) and the scale's ends first, then the round factors between.
+RATIO_TICK_PRIORITY = (1.0, RATIO_MIN, RATIO_MAX, 10.0, 3.0, 2.0, 5.0, 1.5)
+
+
+def ratio_norm():
+    """The colour norm of a ratio's log10: white at 1, fixed ends (never from the data)."""
+    from matplotlib.colors import TwoSlopeNorm
+
+    return TwoSlopeNorm(vmin=math.log10(RATIO_MIN), vcenter=0.0, vmax=math.log10(RATIO_MAX))
+
+
+class RatioBarLocator(Locator):
+    """The ratio colour bar's ticks (log10 values): as many of RATIO_TICK_PRIORITY, in that
+    order, as fit the bar's drawn height with a label's height between neighbours, so that a
+    bar two rows tall shows 0.667, 1, 3, 10, 30 instead of labels that touch."""
+
+    def __init__(self, label_points: float) -> None:
+        self.label_points = label_points
+
+    def __call__(self):
+        axes = self.axis.axes
+        height = axes.bbox.height * 72.0 / axes.figure.dpi  # points, after the layout
+        return ratio_bar_ticks(height, self.label_points)
+
+
+def ratio_bar_ticks(height_points: float, label_points: float) -> list[float]:
+    """The log10 ticks of a ratio bar `height_points` tall whose labels are `label_points`."""
+    norm = ratio_norm()  # the bar's position of a value: two slopes, 1 in the middle
+    kept: list[float] = []
+    for tick in RATIO_TICK_PRIORITY:
+        value = math.log10(tick)
+        gaps = (abs(float(norm(value)) - float(norm(k))) * height_points for k in kept)
+        if all(gap >= 1.2 * label_points for gap in gaps):
+            kept.append(value)
+    return sorted(kept)

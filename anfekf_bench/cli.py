@@ -781,12 +781,27 @@ def report(
         int,
         typer.Option(metavar="N", help="Resolution of PNG figures (and of the HTML's images)."),
     ] = 110,
+    jobs: Annotated[
+        int,
+        typer.Option(
+            metavar="N",
+            help="Worker processes that draw the figures while the report is built, at most one"
+            " per CPU (1: all in this process). The files are the same.",
+        ),
+    ] = 2,
     debug: Annotated[
         bool, typer.Option("--debug", help="Show tracebacks instead of one-line errors.")
     ] = False,
 ) -> None:
     """Draw figures and tables of saved results: report.md and report.html (never re-runs)."""
-    # Imported here so that `anfekf run` does not pay for matplotlib.
+    if not 1 <= jobs <= 64:
+        fail(f"--jobs: must be an integer from 1 to 64 (got {jobs})")
+    # Imported here so that `anfekf run` does not pay for matplotlib. The figure workers start
+    # first: they are ready by the time this process has imported the report and read results.
+    from .report.render import figure_workers, render_pool
+
+    if workers := figure_workers(jobs):
+        render_pool(workers)
     from .report import HTML_FILE, REPORT_FILE, ImageFormat, rich_table, write_report
     from .report.results import find_sweeps
     from .storage import ResultsError
@@ -802,7 +817,9 @@ def report(
     with one_line_errors(debug, (ResultsError,), os_error=f"{out}: cannot write the report"):
         sweep_folders = find_sweeps(folders)
         # One report of everything: scenarios, real data and sweeps.
-        done = write_report(folders, out, ImageFormat(image_format), dpi=dpi, sweeps=sweep_folders)
+        done = write_report(
+            folders, out, ImageFormat(image_format), dpi=dpi, sweeps=sweep_folders, jobs=jobs
+        )
     if done.rows:
         table_console().print(rich_table(done.rows))
     for warning in done.warnings:
@@ -816,9 +833,12 @@ def report(
         parts.append(plural(done.problems, "problem result"))
     if sweep_folders:
         parts.append(plural(len(sweep_folders), "sweep"))
+    drawn = (
+        f"; figures drawn in {done.figure_workers} worker processes" if done.figure_workers else ""
+    )
     console.print(
         f"report of {' and '.join(parts)} ({plural(figures, 'figure')}) written to"
-        f" {' and '.join(pages)}",
+        f" {' and '.join(pages)}{drawn}",
         markup=False,
         highlight=False,
         soft_wrap=True,

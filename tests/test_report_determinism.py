@@ -1,6 +1,7 @@
 """The report's files are the same bytes however often they are drawn: two `anfekf report` runs
 in fresh processes (other hash seeds, so other set orders) over the same saved results write
-identical report.md, report.html and figures. `make reproduce` left results/report/ dirty (one
+identical report.md, report.html and figures, drawn in the report's process or in worker
+processes. `make reproduce` left results/report/ dirty (one
 PNG a pixel off): the committed report came from older code; the runs themselves are bit for bit
 the same with one or two workers (tests/test_pipeline.py), so the report must be too."""
 
@@ -28,12 +29,13 @@ def test_two_reports_of_the_same_results_are_the_same_bytes(tmp_path):
     execute(make_plan(scenario, world, None, None, 1), tmp_path / "results")
     root = Path(__file__).resolve().parents[1]
     outs = []
-    for seed in ("1", "2"):
+    # the second draws its figures in two worker processes (report.render)
+    for seed, jobs in (("1", "1"), ("2", "2")):
         out = tmp_path / f"report-{seed}"
         env = {**os.environ, "PYTHONHASHSEED": seed, "PYTHONPATH": str(root)}
         done = subprocess.run(
             [sys.executable, "-m", "anfekf_bench.entry", "report", str(tmp_path / "results"),
-             "--out", str(out)],
+             "--out", str(out), "--jobs", jobs],
             env=env, capture_output=True, text=True, timeout=300,
         )  # fmt: skip
         assert done.returncode == 0, done.stderr

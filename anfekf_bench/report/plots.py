@@ -43,7 +43,7 @@ from .data import (  # noqa: E402
     RunSeries,
     ScenarioData,
 )
-from .document import FigureBlock  # noqa: E402
+from .document import Block, FigureBlock  # noqa: E402
 from .ranking import (  # noqa: E402
     CONSISTENT_SHARE,  # noqa: F401  (the tables read it here)
 )
@@ -55,6 +55,8 @@ from .render import (  # noqa: E402, F401  (the figures' modules read these here
     RC,
     PlainLogLocator,
     RatioBarLocator,
+    Rendering,
+    RenderPool,
     figure_bytes,
     figure_files,
     plain_number,
@@ -181,19 +183,63 @@ class FigureSaver:
     """The one place a report's figures are written: each section builder hands it a figure,
     its file name and its caption; it saves the file into `out_dir` (remembered in `files`) and
     returns the document's block, with the image report.html embeds (a PDF gets a PNG copy: a
-    browser does not show a PDF in <img>)."""
+    browser does not show a PDF in <img>).
+
+    With a `pool` (render.RenderPool) a figure is drawn in a worker process while the report
+    builds the next one: its block comes back without its image, and `finish` waits for the
+    drawings, writes their files and puts the images into the document's blocks. The files are
+    the same bytes either way."""
 
     out_dir: Path
     fmt: str = "png"
     dpi: int = DPI
     html: bool = True
     files: list[Path] = field(default_factory=list)
+    pool: RenderPool | None = None
+    _drawing: dict[str, Rendering] = field(default_factory=dict, repr=False)
 
     def __call__(self, fig: Figure, name: str, caption: str) -> FigureBlock:
         path = Path(self.out_dir) / name
         self.files.append(path)
-        data, png = figure_files(fig, self.fmt, self.dpi, self.html and self.fmt == "pdf")
+        png_copy = self.html and self.fmt == "pdf"
+        drawing = None if self.pool is None else self.pool.submit(fig, self.fmt, self.dpi, png_copy)
+        if drawing is not None:
+            self._drawing[name] = drawing
+            return self._block(name, caption, b"", b"")
+        data, png = figure_files(fig, self.fmt, self.dpi, png_copy)
         write_atomic(path, lambda tmp: tmp.write_bytes(data))
+        return self._block(name, caption, data, png)
+
+    def finish(self, blocks: Sequence[Block]) -> list[Block]:
+        """`blocks` with the images of the figures the pool drew, once their files are written
+        (every block as it is without a pool)."""
+        # While the workers draw from the first, this process draws from the last, one at a
+        # time, each only if no worker has started it: it would otherwise wait idle.
+        drawn: dict[str, tuple[bytes, bytes]] = {}
+        for name, drawing in reversed(self._drawing.items()):
+            if not drawing.take_back():
+                break
+            drawn[name] = drawing.result()
+        for name, drawing in self._drawing.items():
+            if name not in drawn:
+                drawn[name] = drawing.result()
+            data = drawn[name][0]
+            write_atomic(Path(self.out_dir) / name, lambda tmp, data=data: tmp.write_bytes(data))
+        self._drawing.clear()
+        return [
+            self._block(b.file, b.caption, *drawn[b.file])
+            if isinstance(b, FigureBlock) and b.file in drawn else b
+            for b in blocks
+        ]  # fmt: skip
+
+    def cancel(self) -> None:
+        """Drop the drawings the pool has not started (the report failed or was interrupted:
+        its process would otherwise wait for them on its way out)."""
+        for drawing in self._drawing.values():
+            drawing.cancel()
+        self._drawing.clear()
+
+    def _block(self, name: str, caption: str, data: bytes, png: bytes) -> FigureBlock:
         if not self.html:
             image, mime = b"", "image/png"
         elif self.fmt == "pdf":

@@ -1,16 +1,29 @@
-"""A report figure turned into its file's bytes.
+"""A report figure turned into its file's bytes, in this process or in worker processes.
 
 A figure is saved with the report's rc settings and without timestamps (`figure_bytes`), so
-its file is the same bytes wherever it is drawn. Everything a figure holds by reference (the
-tick locators and formatters below) is defined here, at module level, in a module that imports
-only matplotlib and numpy, so that a figure pickles and loads without the package's scenarios,
-filters or tables.
+its file is the same bytes wherever it is drawn. `RenderPool` draws pickled figures in worker
+processes while the report builds the next ones: about two thirds of a report's time is
+matplotlib's drawing at save time (the layout, the ticks, the PNG), and the figures are
+independent.
+
+A worker imports only this module (and matplotlib and numpy): everything a figure holds by
+reference (the tick locators and formatters below) is defined here, at module level, so that a
+figure pickles and a worker starts in about a second without the package's scenarios, filters
+or tables.
 """
 
 from __future__ import annotations
 
+import contextlib
 import io
 import math
+import multiprocessing
+import os
+import pickle
+import signal
+import threading
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 
 import matplotlib
 
@@ -45,6 +58,135 @@ def figure_files(fig: Figure, fmt: str, dpi: int, png_copy: bool) -> tuple[bytes
     figure as a PNG), else b""."""
     data = figure_bytes(fig, fmt, dpi)
     return data, (figure_bytes(fig, "png", dpi) if png_copy else b"")
+
+
+def _render_pickled(blob: bytes, fmt: str, dpi: int, png_copy: bool) -> tuple[bytes, bytes]:
+    return figure_files(pickle.loads(blob), fmt, dpi, png_copy)
+
+
+def _ready() -> None:
+    """A task that only starts a worker (its imports run while the report reads its results)."""
+
+
+def _start_worker(parent: int) -> None:
+    """A render worker's start: Ctrl-C at the terminal reaches every process of the command;
+    the report's own process answers it (exit 130, one line), so a worker ignores it rather
+    than print a traceback, and ends with that process (`workers._watch_parent`)."""
+    from ..workers import _watch_parent
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _watch_parent(parent)
+
+
+class Rendering:
+    """One figure being drawn by a `RenderPool`: `result()` gives `figure_files`'s bytes, drawn
+    in this process if the pool broke (a worker killed), so a figure is never lost."""
+
+    def __init__(self, future: Future, blob: bytes, fmt: str, dpi: int, png_copy: bool):
+        self._future = future
+        self._args = (blob, fmt, dpi, png_copy)
+
+    def cancel(self) -> None:
+        """Not to be drawn: a worker that has not started it never will."""
+        self._future.cancel()
+
+    def take_back(self) -> bool:
+        """Whether no worker has started this drawing and none will (`result` draws it here)."""
+        return self._future.cancel()
+
+    def result(self) -> tuple[bytes, bytes]:
+        if self._future.cancelled():
+            return _render_pickled(*self._args)
+        try:
+            return self._future.result()
+        except BrokenProcessPool:
+            return _render_pickled(*self._args)
+
+
+@contextlib.contextmanager
+def _sigint_held():
+    """Within the block, SIGINT is ignored by the processes started here and held for this one
+    (blocked: Linux keeps a blocked signal pending even while it is ignored, and delivers it
+    to the handler restored at the end). Only in the main thread, where handlers are set."""
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not (
+        threading.main_thread()
+    ):
+        yield
+        return
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            yield
+        finally:
+            signal.signal(signal.SIGINT, handler)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
+class RenderPool:
+    """`workers` processes that save pickled figures (`submit`), started at once so that their
+    imports overlap the caller's work. Each worker ignores Ctrl-C and ends with this process
+    (`_start_worker`)."""
+
+    def __init__(self, workers: int) -> None:
+        self.workers = workers
+        self.broken = False
+        # The workers start with Ctrl-C ignored (an ignored signal stays ignored through fork
+        # and exec, and Python then installs no handler of its own): one that arrives while a
+        # worker imports must not print its traceback. Here it waits, blocked, meanwhile.
+        with _sigint_held():
+            self._executor = ProcessPoolExecutor(
+                max_workers=workers,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_start_worker,
+                initargs=(os.getpid(),),
+            )
+            for _ in range(workers):  # spawns them (not forked: pyarrow's threads)
+                self._executor.submit(_ready)
+
+    def submit(self, fig: Figure, fmt: str, dpi: int, png_copy: bool) -> Rendering | None:
+        """`figure_files` of `fig` in a worker; None where `fig` does not pickle (the caller then
+        draws it itself)."""
+        try:
+            blob = pickle.dumps(fig, protocol=pickle.HIGHEST_PROTOCOL)
+        except (pickle.PicklingError, TypeError, AttributeError):
+            return None
+        try:
+            future = self._executor.submit(_render_pickled, blob, fmt, dpi, png_copy)
+        except BrokenProcessPool:  # a worker was killed: `render_pool` starts new ones
+            self.broken = True
+            return None
+        return Rendering(future, blob, fmt, dpi, png_copy)
+
+    def stop(self) -> None:
+        """End the workers now, drawing or not (Ctrl-C: the command is on its way out and
+        would otherwise wait for the drawings they hold)."""
+        self.broken = True
+        processes = list(getattr(self._executor, "_processes", {}).values())
+        self._executor.shutdown(wait=False, cancel_futures=True)
+        for process in processes:
+            process.terminate()
+
+
+_POOLS: dict[int, RenderPool] = {}
+
+
+def figure_workers(jobs: int) -> int:
+    """How many worker processes draw a report's figures for `jobs`: min(`jobs`, the CPUs), or
+    0 (this process draws them) where that is 1."""
+    workers = min(jobs, os.cpu_count() or 1)
+    return workers if workers > 1 else 0
+
+
+def render_pool(workers: int) -> RenderPool:
+    """The process's pool of `workers` render workers, started on first use and kept for the
+    next report (a Python session or a test run draws many; each start costs about a second
+    of CPU per worker), replaced if a worker was killed; they end with the process."""
+    pool = _POOLS.get(workers)
+    if pool is None or pool.broken:
+        pool = _POOLS[workers] = RenderPool(workers)
+    return pool
 
 
 # ---------------------------------------------------------------------------------------------

@@ -57,7 +57,7 @@ from ..storage import (
     write_atomic,
 )
 from ..workers import local_workers
-from . import changing, plots, real, summary_figures
+from . import changing, plots, real, render, summary_figures
 from . import suite as suite_report
 from . import sweep as sweep_report
 from .consistency import check_saved_result
@@ -138,6 +138,7 @@ class ReportResult:
     files: list[Path] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     problems: int = 0  # problem results (SPEC 17) in the report
+    figure_workers: int = 0  # processes that drew the figures beside this one (0: none)
 
 
 # --------------------------------------------------------------------------- series
@@ -822,16 +823,20 @@ def write_report(
     dpi: int = plots.DPI,
     html: bool = True,
     sweeps: Sequence[Path] = (),
+    jobs: int = 1,
 ) -> ReportResult:
     """Read every result under `results_dirs` (scenarios, real data) and the `sweeps` folders,
     write their figures, and one report.md and report.html to `out_dir` covering all of them,
     with a table of contents.
 
     Everything is read (and checked) before anything is written, so bad input leaves no partial
-    report behind.
+    report behind. `jobs` > 1: the figures are drawn in up to that many worker processes
+    (`render.figure_workers`), the same files.
     """
     out_dir = Path(out_dir)
     fmt = ImageFormat(fmt)
+    workers = render.figure_workers(jobs)
+    pool = render.render_pool(workers) if workers else None  # starts while the results load
     # Every result read (and checked) before anything is written: one loader for every kind.
     loaded = find_results(results_dirs, out_dir, sweeps)
     swept = [sweep_report.read_sweep(r.folder) for r in loaded if r.kind == SWEEP]
@@ -841,10 +846,10 @@ def write_report(
     scenarios = load_scenarios(folders)
     _check_unique_names([*scenarios, *recorded])
     rows = summary_rows(scenarios)
-    result = ReportResult(out_dir=out_dir, scenarios=scenarios, rows=rows)
+    result = ReportResult(out_dir=out_dir, scenarios=scenarios, rows=rows, figure_workers=workers)
     result.warnings = [w for sc in scenarios for w in scenario_warnings(sc)]
     out_dir.mkdir(parents=True, exist_ok=True)
-    save = plots.FigureSaver(out_dir, fmt.value, dpi, html)
+    save = plots.FigureSaver(out_dir, fmt.value, dpi, html, pool=pool)
     # Colours by the filters' order in this report: the same filter, the same colour throughout
     # (a recorded result's instances by the filter they were made from).
     names = [f.name for sc in scenarios for f in sc.filters]
@@ -854,9 +859,18 @@ def write_report(
                 if role_of(f.get("kind")) == "oracle"]  # fmt: skip
     worst = suite_report.worst_case(scenarios, recorded)
     worst_blocks = () if worst is None else suite_report.blocks(worst, len(scenarios))
-    with plots.palette(names, oracles):  # a sweep's filters in the scenarios' colours, by name
-        doc = build_document(scenarios, rows, [*recorded, *swept], save, out_dir, worst_blocks)
-    doc.add(*problem_blocks(problem_results, save, fmt.value))
+    try:
+        with plots.palette(names, oracles):  # a sweep's filters in the scenarios' colours
+            doc = build_document(scenarios, rows, [*recorded, *swept], save, out_dir, worst_blocks)
+        doc.add(*problem_blocks(problem_results, save, fmt.value))
+        doc.blocks = save.finish(doc.blocks)
+    except KeyboardInterrupt:
+        if pool is not None:
+            pool.stop()  # the command ends: so do its workers, now
+        raise
+    except BaseException:
+        save.cancel()  # the workers drop this report's figures
+        raise
     result.problems = len(problem_results)
     result.files += save.files
     if worst is not None:

@@ -207,3 +207,18 @@ def test_ctrl_c_while_workers_draw_is_one_line_and_leaves_no_process(results, tm
         assert not (out / "report.html").exists()
     else:  # the report was done before the signal came
         assert proc.returncode == 0, stderr
+
+
+def test_where_no_worker_can_start_the_report_draws_every_figure(results, tmp_path, monkeypatch):  # noqa: F811
+    """No semaphores or no executable to spawn (a sandbox): one report, drawn in-process."""
+
+    def cannot_start(workers):
+        raise OSError("[Errno 38] Function not implemented")
+
+    monkeypatch.setattr(render.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(render, "RenderPool", cannot_start)
+    monkeypatch.setattr(render, "_POOLS", {})
+    done = write_report([results / "tiny_q"], tmp_path / "r", dpi=20, jobs=2)
+    assert done.figure_workers == 0
+    assert len([f for f in done.files if f.suffix == ".png"]) >= 4
+    assert all(f.stat().st_size > 0 for f in done.files)

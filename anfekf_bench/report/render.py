@@ -179,13 +179,20 @@ def figure_workers(jobs: int) -> int:
     return workers if workers > 1 else 0
 
 
-def render_pool(workers: int) -> RenderPool:
+def render_pool(workers: int) -> RenderPool | None:
     """The process's pool of `workers` render workers, started on first use and kept for the
     next report (a Python session or a test run draws many; each start costs about a second
-    of CPU per worker), replaced if a worker was killed; they end with the process."""
+    of CPU per worker), replaced if a worker was killed; they end with the process. None where
+    no process can be started here (no semaphores, no executable to spawn): the report then
+    draws every figure itself."""
     pool = _POOLS.get(workers)
     if pool is None or pool.broken:
-        pool = _POOLS[workers] = RenderPool(workers)
+        try:
+            pool = RenderPool(workers)
+        except (OSError, ImportError, NotImplementedError, BrokenProcessPool):
+            _POOLS.pop(workers, None)
+            return None
+        _POOLS[workers] = pool
     return pool
 
 

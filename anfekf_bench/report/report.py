@@ -831,12 +831,14 @@ def write_report(
 
     Everything is read (and checked) before anything is written, so bad input leaves no partial
     report behind. `jobs` > 1: the figures are drawn in up to that many worker processes
-    (`render.figure_workers`), the same files.
+    (`render.figure_workers`), the same files; they are spawned, so a script that asks for
+    them runs its work under `if __name__ == "__main__":`, as multiprocessing requires.
     """
     out_dir = Path(out_dir)
     fmt = ImageFormat(fmt)
     workers = render.figure_workers(jobs)
     pool = render.render_pool(workers) if workers else None  # starts while the results load
+    workers = 0 if pool is None else workers  # none could be started: drawn here
     # Every result read (and checked) before anything is written: one loader for every kind.
     loaded = find_results(results_dirs, out_dir, sweeps)
     swept = [sweep_report.read_sweep(r.folder) for r in loaded if r.kind == SWEEP]

@@ -800,26 +800,15 @@ def report(
     # first: they are ready by the time this process has imported the report and read results.
     from .report.render import figure_workers, render_pool
 
-    if workers := figure_workers(jobs):
-        render_pool(workers)
-    from .report import HTML_FILE, REPORT_FILE, ImageFormat, rich_table, write_report
-    from .report.results import find_sweeps
-    from .storage import ResultsError
+    pool = render_pool(workers) if (workers := figure_workers(jobs)) else None
+    try:
+        done, sweep_folders = _write_report(results, out, image_format, dpi, jobs, debug)
+    except BaseException:
+        if pool is not None:
+            pool.stop()  # a command that fails ends now, not once its workers have started
+        raise
+    from .report import HTML_FILE, REPORT_FILE, rich_table
 
-    warnings.showwarning = _one_line_warning  # a library's warning may quote a name
-    formats = [f.value for f in ImageFormat]
-    if image_format not in formats:
-        fail(f"--format: {image_format!r} is not one of {', '.join(formats)}")
-    if not 10 <= dpi <= 1200:
-        fail(f"--dpi: must be an integer from 10 to 1200 (got {dpi})")
-    _check_out_dir(out)
-    folders = results or [Path("results")]
-    with one_line_errors(debug, (ResultsError,), os_error=f"{out}: cannot write the report"):
-        sweep_folders = find_sweeps(folders)
-        # One report of everything: scenarios, real data and sweeps.
-        done = write_report(
-            folders, out, ImageFormat(image_format), dpi=dpi, sweeps=sweep_folders, jobs=jobs
-        )
     if done.rows:
         table_console().print(rich_table(done.rows))
     for warning in done.warnings:
@@ -843,6 +832,29 @@ def report(
         highlight=False,
         soft_wrap=True,
     )
+
+
+def _write_report(results, out: Path, image_format: str, dpi: int, jobs: int, debug: bool):
+    """`anfekf report`'s checks and its `write_report`: (what it wrote, the sweep folders)."""
+    from .report import ImageFormat, write_report
+    from .report.results import find_sweeps
+    from .storage import ResultsError
+
+    warnings.showwarning = _one_line_warning  # a library's warning may quote a name
+    formats = [f.value for f in ImageFormat]
+    if image_format not in formats:
+        fail(f"--format: {image_format!r} is not one of {', '.join(formats)}")
+    if not 10 <= dpi <= 1200:
+        fail(f"--dpi: must be an integer from 10 to 1200 (got {dpi})")
+    _check_out_dir(out)
+    folders = results or [Path("results")]
+    with one_line_errors(debug, (ResultsError,), os_error=f"{out}: cannot write the report"):
+        sweep_folders = find_sweeps(folders)
+        # One report of everything: scenarios, real data and sweeps.
+        done = write_report(
+            folders, out, ImageFormat(image_format), dpi=dpi, sweeps=sweep_folders, jobs=jobs
+        )
+    return done, sweep_folders
 
 
 @app.command()

@@ -839,6 +839,8 @@ def _percentiles() -> tuple[float, float]:
 
 
 # ---------------------------------------------------------------------------------------------
+# The ratio scale's colours (its norm, its ends and the bar's ticks are in render: figures hold
+# them by reference)
 RATIO_CMAP = "RdBu_r"
 
 

@@ -202,7 +202,9 @@ def test_ctrl_c_while_workers_draw_is_one_line_and_leaves_no_process(results, tm
         time.sleep(0.05)
     assert live_group_members(proc.pid) == [], "figure workers outlived the command"
     assert "Traceback" not in stderr
-    if proc.returncode == 130:
+    # 130, or ended by the SIGINT itself once its line is written (seen once on the loaded CI
+    # machine, not reproduced in 14 tries idle): a shell reports both as 130
+    if proc.returncode in (130, -signal.SIGINT):
         assert len(stderr.splitlines()) == 1 and "interrupted" in stderr
         assert not (out / "report.html").exists()
     else:  # the report was done before the signal came

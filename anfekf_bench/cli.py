@@ -800,7 +800,7 @@ def report(
     # first: they are ready by the time this process has imported the report and read results.
     from .report.render import figure_workers, render_pool
 
-    pool = render_pool(workers) if (workers := figure_workers(jobs)) else None
+    pool = render_pool(figure_workers(jobs))
     try:
         done, sweep_folders = _write_report(results, out, image_format, dpi, jobs, debug)
     except BaseException:

@@ -55,6 +55,7 @@ class RecordingPool:
 
     def __init__(self, pool) -> None:
         self.pool = pool
+        self.workers = pool.workers
         self.blobs: list[bytes] = []
 
     def submit(self, fig, fmt, dpi, png_copy):
@@ -69,7 +70,7 @@ def test_figures_drawn_in_workers_are_the_same_files(results, tmp_path, monkeypa
     modules but report.render (a worker imports nothing else of it)."""
     monkeypatch.setattr(render.os, "cpu_count", lambda: 2)
     recording = RecordingPool(render.render_pool(2))
-    monkeypatch.setattr(render, "render_pool", lambda workers: recording)
+    monkeypatch.setattr(render, "render_pool", lambda workers: recording if workers else None)
     alone = write_report([results / "tiny_q"], tmp_path / "alone", dpi=30, jobs=1)
     pooled = write_report([results / "tiny_q"], tmp_path / "pooled", dpi=30, jobs=2)
     assert (alone.figure_workers, pooled.figure_workers) == (0, 2)

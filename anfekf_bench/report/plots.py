@@ -236,7 +236,7 @@ class FigureSaver:
         """Drop the drawings the pool has not started (the report failed or was interrupted:
         its process would otherwise wait for them on its way out)."""
         for drawing in self._drawing.values():
-            drawing.cancel()
+            drawing.take_back()
         self._drawing.clear()
 
     def _block(self, name: str, caption: str, data: bytes, png: bytes) -> FigureBlock:

@@ -86,10 +86,6 @@ class Rendering:
         self._future = future
         self._args = (blob, fmt, dpi, png_copy)
 
-    def cancel(self) -> None:
-        """Not to be drawn: a worker that has not started it never will."""
-        self._future.cancel()
-
     def take_back(self) -> bool:
         """Whether no worker has started this drawing and none will (`result` draws it here)."""
         return self._future.cancel()
@@ -182,9 +178,11 @@ def figure_workers(jobs: int) -> int:
 def render_pool(workers: int) -> RenderPool | None:
     """The process's pool of `workers` render workers, started on first use and kept for the
     next report (a Python session or a test run draws many; each start costs about a second
-    of CPU per worker), replaced if a worker was killed; they end with the process. None where
-    no process can be started here (no semaphores, no executable to spawn): the report then
-    draws every figure itself."""
+    of CPU per worker), replaced if a worker was killed; they end with the process. None for
+    no workers, or where no process can be started here (no semaphores, no executable to
+    spawn): the report then draws every figure itself."""
+    if workers < 1:
+        return None
     pool = _POOLS.get(workers)
     if pool is None or pool.broken:
         try:

@@ -836,9 +836,8 @@ def write_report(
     """
     out_dir = Path(out_dir)
     fmt = ImageFormat(fmt)
-    workers = render.figure_workers(jobs)
-    pool = render.render_pool(workers) if workers else None  # starts while the results load
-    workers = 0 if pool is None else workers  # none could be started: drawn here
+    pool = render.render_pool(render.figure_workers(jobs))  # starts while the results load
+    workers = 0 if pool is None else pool.workers  # none: every figure drawn here
     # Every result read (and checked) before anything is written: one loader for every kind.
     loaded = find_results(results_dirs, out_dir, sweeps)
     swept = [sweep_report.read_sweep(r.folder) for r in loaded if r.kind == SWEEP]

@@ -9,6 +9,11 @@ A Ctrl-C that lands while a compiled extension initialises does not always arriv
 KeyboardInterrupt: pybind11 modules (scipy's HiGHS among them) turn it into
 `ImportError: initialization failed` raised from it, so the interruption is looked for along the
 exception's chain too.
+
+A Ctrl-C can also land inside a callback the interpreter runs for itself (a weak reference's, as
+the import system's module locks use): Python then prints "Exception ignored in ..." with a
+traceback and drops the interruption, so the command would go on. `_redeliver_interrupts` makes
+such a KeyboardInterrupt arrive again in the main thread, where it is reported as any other.
 """
 
 from __future__ import annotations
@@ -39,7 +44,35 @@ def _report_interrupt() -> None:
     sys.exit(EXIT_INTERRUPTED)
 
 
+def _redeliver_interrupts() -> None:
+    """Install an unraisable-exception hook that hands a swallowed Ctrl-C back to the main thread.
+
+    The hook itself must not be interrupted: a KeyboardInterrupt raised there is "ignored" again.
+    So a bare thread (which the hook need not wait for) sends SIGINT to the main thread a moment
+    after the hook has returned; a real signal also wakes a main thread blocked in a system call.
+    """
+    import _thread
+    import signal
+    import time
+
+    main_thread = _thread.get_ident()
+    previous = sys.unraisablehook
+
+    def send_sigint() -> None:
+        time.sleep(0.02)
+        signal.pthread_kill(main_thread, signal.SIGINT)
+
+    def hook(unraisable) -> None:
+        if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
+            _thread.start_new_thread(send_sigint, ())
+            return
+        previous(unraisable)
+
+    sys.unraisablehook = hook
+
+
 def main() -> None:  # pragma: no cover - exercised through a subprocess in the tests
+    _redeliver_interrupts()
     try:
         from .cli import main as cli_main
 

@@ -690,6 +690,41 @@ def test_an_import_error_raised_from_a_ctrl_c_counts_as_the_ctrl_c() -> None:
     assert not caused_by_interrupt(looped)
 
 
+# A command whose work is a weak reference's callback raising KeyboardInterrupt, as a Ctrl-C that
+# lands in the import system's module-lock callback does (CI saw "Exception ignored in
+# <function _get_module_lock.<locals>.cb>"); then it would go on working for ten seconds.
+SWALLOWED_CTRL_C = """
+import sys, time, types, weakref
+from anfekf_bench import entry
+
+class Held:
+    pass
+
+def interrupt(_):
+    raise KeyboardInterrupt
+
+def main():
+    held = Held()
+    ref = weakref.ref(held, interrupt)
+    del held
+    time.sleep(10)
+    print("went on")
+
+sys.modules["anfekf_bench.cli"] = types.SimpleNamespace(main=main)
+entry.main()
+"""
+
+
+def test_a_ctrl_c_swallowed_by_an_interpreter_callback_still_ends_the_command() -> None:
+    start = time.monotonic()
+    proc = subprocess.run([sys.executable, "-c", SWALLOWED_CTRL_C],
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert time.monotonic() - start < 8, (proc.stdout, proc.stderr)
+    assert proc.returncode == 130, (proc.returncode, proc.stdout, proc.stderr)
+    assert proc.stderr == "error: interrupted\n"
+    assert "went on" not in proc.stdout
+
+
 @pytest.mark.parametrize("n_axes", [1, 2])
 def test_a_sweep_without_the_oracle_is_reported(sandbox: Sandbox, n_axes: int) -> None:
     axes = [{"scale": "R", "values": [1.0, 4.0]}, {"scale": "Qu", "values": [1.0, 4.0]}]

@@ -652,7 +652,10 @@ ENTRY = [sys.executable, "-c", "from anfekf_bench.entry import main; main()"]
 def test_ctrl_c_in_the_first_second_is_one_line(tmp_path, after_s: float) -> None:
     """SIGINT while the command's modules are still loading (or just after)."""
     path = write_scenario(tmp_path / "s.yaml", small_scenario(**SMALL))
+    from .test_interrupt import as_from_a_terminal
+
     proc = subprocess.Popen([*ENTRY, "run", str(path), "--out", str(tmp_path / "o")],
+                            preexec_fn=as_from_a_terminal,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
     time.sleep(after_s)
     proc.send_signal(signal.SIGINT)
@@ -717,7 +720,9 @@ entry.main()
 
 def test_a_ctrl_c_swallowed_by_an_interpreter_callback_still_ends_the_command() -> None:
     start = time.monotonic()
-    proc = subprocess.run([sys.executable, "-c", SWALLOWED_CTRL_C],
+    from .test_interrupt import as_from_a_terminal
+
+    proc = subprocess.run([sys.executable, "-c", SWALLOWED_CTRL_C], preexec_fn=as_from_a_terminal,
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert time.monotonic() - start < 8, (proc.stdout, proc.stderr)
     assert proc.returncode == 130, (proc.returncode, proc.stdout, proc.stderr)

@@ -76,6 +76,60 @@ def predict_members(X, Pm, Qu_m, terms, q_scale):
 
 
 @maybe_njit
+def imm_scratch(M):
+    """The scratch arrays of `end_scan`'s IMM interaction for M members: the mixed starts
+    X0 (M, 3) and P0 (M, 9), then imm_mix's w, c, mu, x_tmp, P_tmp, heavy and members."""
+    return (
+        np.empty((M, 3)), np.empty((M, 9)), np.empty(M), np.empty(M), np.empty(M), np.empty(3),
+        np.empty(9), np.empty(M, np.int64), np.empty(M, np.int64),
+    )  # fmt: skip
+
+
+@maybe_njit
+def mixture(logw, threshold, X, Pm, R_m, Qu_m, w, active, Rw, Qw, xm, Pmix):
+    """From the log weights: the mixture weights `w`, their members `active` (weight not 0),
+    the weighted R and Qu diagonals (Rw, Qw) and the mixture (xm, Pmix) of the members' states
+    X, Pm. R_m (M, 2): the R each member holds. Returns how many members are in the mixture."""
+    mixture_weights(logw, threshold, w)
+    n_active = active_members(w, active)
+    weighted_noise(w, R_m, Rw)
+    weighted_noise(w, Qu_m, Qw)
+    mix_moments_at(w, active, n_active, X, Pm, X[most_probable(logw), 2], xm, Pmix)
+    return n_active
+
+
+@maybe_njit
+def end_scan(logw, log_floor, threshold, interact, p_stay, X, Pm, R_m, Qu_m, w, active, Rw, Qw,
+             xm, Pmix, scratch):  # fmt: skip
+    """A bank after a scan's landmarks (filters.bank.BankEKF.end_scan): the log weights
+    normalised and floored, the `mixture`; then, where the members `interact`, the IMM's mixed
+    starts in X, Pm, and the weights and the weighted noise again (the mixture recorded is the
+    one before the interaction, as filterpy's). Returns (members in the mixture, whether the
+    mixture and its noise are healthy)."""
+    normalise_log_weights(logw, log_floor)
+    n_active = mixture(logw, threshold, X, Pm, R_m, Qu_m, w, active, Rw, Qw, xm, Pmix)
+    if interact:
+        X0, P0m, s_w, s_c, s_mu, s_x, s_P, s_heavy, s_members = scratch
+        imm_mix(logw, p_stay, threshold, X, Pm, X0, P0m, s_w, s_c, s_mu, s_x, s_P, s_heavy,
+                s_members)  # fmt: skip
+        for i in range(X.shape[0]):
+            for c in range(3):
+                X[i, c] = X0[i, c]
+            for c in range(9):
+                Pm[i, c] = P0m[i, c]
+        mixture_weights(logw, threshold, w)
+        n_active = active_members(w, active)
+        weighted_noise(w, R_m, Rw)
+        weighted_noise(w, Qu_m, Qw)
+    ok = healthy(
+        (xm[0], xm[1], xm[2]),
+        (Pmix[0], Pmix[1], Pmix[2], Pmix[3], Pmix[4], Pmix[5], Pmix[6], Pmix[7], Pmix[8]),
+        (Rw[0], 0.0, 0.0, Rw[1]), (Qw[0], 0.0, 0.0, Qw[1]),
+    )  # fmt: skip
+    return n_active, ok
+
+
+@maybe_njit
 def run_bank_kernel(
     u_odo, dt, scan_start, scan_lm, scan_z,
     motion, B, T0, x0, P0, Qu_m, R_m, gate, has_gate,
@@ -106,21 +160,9 @@ def run_bank_kernel(
     n_upd = np.zeros(M, np.int64)
     n_rej = np.zeros(M, np.int64)
     nis_m = np.zeros(M)
-    X0 = np.empty((M, 3))
-    P0m = np.empty((M, 9))
-    s_c = np.empty(M)
-    s_mu = np.empty(M)
-    s_w = np.empty(M)
-    s_x = np.empty(3)
-    s_P = np.empty(9)
-    s_heavy = np.empty(M, np.int64)
-    s_members = np.empty(M, np.int64)
+    scratch = imm_scratch(M)
     active = np.empty(M, np.int64)  # the members in the mixture (weight not 0): n_active
-    mixture_weights(logw, threshold, w)
-    n_active = active_members(w, active)
-    weighted_noise(w, R_m, Rw)
-    weighted_noise(w, Qu_m, Qw)
-    mix_moments_at(w, active, n_active, X, Pm, X[most_probable(logw), 2], xm, Pmix)
+    n_active = mixture(logw, threshold, X, Pm, R_m, Qu_m, w, active, Rw, Qw, xm, Pmix)
     nis_sum = 0.0
     n_updates = 0
     n_rejected = 0
@@ -179,32 +221,11 @@ def run_bank_kernel(
             nis_sum += nis_m[best] - before_nis
             n_updates += n_upd[best] - before_upd
             n_rejected += n_rej[best] - before_rej
-            normalise_log_weights(logw, log_floor)
-            mixture_weights(logw, threshold, w)
-            n_active = active_members(w, active)
-            weighted_noise(w, R_m, Rw)
-            weighted_noise(w, Qu_m, Qw)
-            mix_moments_at(w, active, n_active, X, Pm, X[most_probable(logw), 2], xm, Pmix)
-            if imm:
-                imm_mix(
-                    logw, p_stay, threshold, X, Pm, X0, P0m, s_w, s_c, s_mu, s_x, s_P, s_heavy,
-                    s_members,
-                )  # fmt: skip
-                for i in range(M):
-                    for c in range(3):
-                        X[i, c] = X0[i, c]
-                    for c in range(9):
-                        Pm[i, c] = P0m[i, c]
-                mixture_weights(logw, threshold, w)
-                n_active = active_members(w, active)
-                weighted_noise(w, R_m, Rw)
-                weighted_noise(w, Qu_m, Qw)
-            if not healthy(
-                (xm[0], xm[1], xm[2]),
-                (Pmix[0], Pmix[1], Pmix[2], Pmix[3], Pmix[4], Pmix[5], Pmix[6], Pmix[7],
-                 Pmix[8]),
-                (Rw[0], 0.0, 0.0, Rw[1]), (Qw[0], 0.0, 0.0, Qw[1]),
-            ):  # fmt: skip
+            n_active, ok = end_scan(
+                logw, log_floor, threshold, imm, p_stay, X, Pm, R_m, Qu_m, w, active, Rw, Qw, xm,
+                Pmix, scratch,
+            )  # fmt: skip
+            if not ok:
                 return True, j, nis_sum, n_updates, n_rejected
         if record_at[k] and j < n_rows:
             R4 = (Rw[0], 0.0, 0.0, Rw[1])

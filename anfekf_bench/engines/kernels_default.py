@@ -28,18 +28,16 @@ maybe_njit = _k.maybe_njit
 step_terms, jacobians_at, noise_scale, predict_from = (
     _k.step_terms, _k.jacobians_at, _k.noise_scale, _k.predict_from,
 )  # fmt: skip
-innovation, nis, correct, healthy, hph_diag = (
-    _k.innovation, _k.nis, _k.correct, _k.healthy, _k.hph_diag,
+innovation, nis, correct, record, hph_diag = (
+    _k.innovation, _k.nis, _k.correct, _k.record, _k.hph_diag,
 )  # fmt: skip
 clip_to_bounds = _k.clip_to_bounds
 vb_r_predict, vb_r_beta, vb_r_bounded_beta = _k.vb_r_predict, _k.vb_r_beta, _k.vb_r_bounded_beta
 next_beta, fading_mean, r_sample = _k.next_beta, _k.fading_mean, _k.r_sample
-innovation_loglik, normalise_log_weights = _b.innovation_loglik, _b.normalise_log_weights
-most_probable, mixture_weights, active_members = (
-    _b.most_probable, _b.mixture_weights, _b.active_members,
+most_probable, mix_moments_at = _b.most_probable, _b.mix_moments_at
+predict_members, imm_scratch, mixture, end_scan = (
+    _b.predict_members, _b.imm_scratch, _b.mixture, _b.end_scan,
 )  # fmt: skip
-mix_moments_at, weighted_noise, imm_mix = _b.mix_moments_at, _b.weighted_noise, _b.imm_mix
-predict_members = _b.predict_members
 MOTION_UNICYCLE = _k.MOTION_UNICYCLE
 
 if JIT and not _PURE_COPY:
@@ -107,22 +105,10 @@ def run_vb_imm_kernel(
     n_upd = np.zeros(M, np.int64)
     n_rej = np.zeros(M, np.int64)
     nis_m = np.zeros(M)
-    X0 = np.empty((M, 3))
-    P0m = np.empty((M, 9))
-    s_c = np.empty(M)
-    s_mu = np.empty(M)
-    s_w = np.empty(M)
-    s_x = np.empty(3)
-    s_P = np.empty(9)
-    s_heavy = np.empty(M, np.int64)
-    s_members = np.empty(M, np.int64)
+    scratch = imm_scratch(M)
     active = np.empty(M, np.int64)
     interact = p_stay < 1.0 and M > 1
-    mixture_weights(logw, threshold, w)
-    n_active = active_members(w, active)
-    weighted_noise(w, Rm, Rw)
-    weighted_noise(w, Qu_m, Qw)
-    mix_moments_at(w, active, n_active, X, Pm, X[most_probable(logw), 2], xm, Pmix)
+    n_active = mixture(logw, threshold, X, Pm, Rm, Qu_m, w, active, Rw, Qw, xm, Pmix)
     nis_sum = 0.0
     n_updates = 0
     n_rejected = 0
@@ -249,45 +235,14 @@ def run_vb_imm_kernel(
             nis_sum += nis_m[best] - before_nis
             n_updates += n_upd[best] - before_upd
             n_rejected += n_rej[best] - before_rej
-            normalise_log_weights(logw, log_floor)
-            mixture_weights(logw, threshold, w)
-            n_active = active_members(w, active)
-            weighted_noise(w, Rm, Rw)
-            weighted_noise(w, Qu_m, Qw)
-            mix_moments_at(w, active, n_active, X, Pm, X[most_probable(logw), 2], xm, Pmix)
-            if interact:
-                imm_mix(
-                    logw, p_stay, threshold, X, Pm, X0, P0m, s_w, s_c, s_mu, s_x, s_P, s_heavy,
-                    s_members,
-                )  # fmt: skip
-                for i in range(M):
-                    for c in range(3):
-                        X[i, c] = X0[i, c]
-                    for c in range(9):
-                        Pm[i, c] = P0m[i, c]
-                mixture_weights(logw, threshold, w)
-                n_active = active_members(w, active)
-                weighted_noise(w, Rm, Rw)
-                weighted_noise(w, Qu_m, Qw)
-            if not healthy(
-                (xm[0], xm[1], xm[2]),
-                (Pmix[0], Pmix[1], Pmix[2], Pmix[3], Pmix[4], Pmix[5], Pmix[6], Pmix[7],
-                 Pmix[8]),
-                (Rw[0], 0.0, 0.0, Rw[1]), (Qw[0], 0.0, 0.0, Qw[1]),
-            ):  # fmt: skip
+            n_active, ok = end_scan(
+                logw, log_floor, threshold, interact, p_stay, X, Pm, Rm, Qu_m, w, active, Rw, Qw,
+                xm, Pmix, scratch,
+            )  # fmt: skip
+            if not ok:
                 return True, j, nis_sum, n_updates, n_rejected
         if record_at[k] and j < n_rows:
-            for c in range(3):
-                out_x[j, c] = xm[c]
-                if not math.isfinite(xm[c]):
-                    bad_record = True
-            for c in range(9):
-                out_P[j, c // 3, c % 3] = Pmix[c]
-                if not math.isfinite(Pmix[c]):
-                    bad_record = True
-            out_R[j, 0] = Rw[0]
-            out_R[j, 1] = Rw[1]
-            out_Q[j, 0] = Qw[0]
-            out_Q[j, 1] = Qw[1]
-            j += 1
+            R4 = (Rw[0], 0.0, 0.0, Rw[1])
+            j, bad = record(j, xm, Pmix, R4, (Qw[0], 0.0, 0.0, Qw[1]), out_x, out_P, out_R, out_Q)
+            bad_record = bad_record or bad
     return bad_record, j, nis_sum, n_updates, n_rejected

@@ -64,7 +64,10 @@ def _redeliver_interrupts() -> None:
 
     def hook(unraisable) -> None:
         if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
-            _thread.start_new_thread(send_sigint, ())
+            try:
+                _thread.start_new_thread(send_sigint, ())
+            except RuntimeError:  # the interpreter is shutting down: nothing left to stop
+                pass
             return
         previous(unraisable)
 

@@ -719,9 +719,9 @@ entry.main()
 
 
 def test_a_ctrl_c_swallowed_by_an_interpreter_callback_still_ends_the_command() -> None:
-    start = time.monotonic()
     from .test_interrupt import as_from_a_terminal
 
+    start = time.monotonic()
     proc = subprocess.run([sys.executable, "-c", SWALLOWED_CTRL_C], preexec_fn=as_from_a_terminal,
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert time.monotonic() - start < 8, (proc.stdout, proc.stderr)

@@ -695,7 +695,7 @@ def test_an_import_error_raised_from_a_ctrl_c_counts_as_the_ctrl_c() -> None:
 
 # A command whose work is a weak reference's callback raising KeyboardInterrupt, as a Ctrl-C that
 # lands in the import system's module-lock callback does (CI saw "Exception ignored in
-# <function _get_module_lock.<locals>.cb>"); then it would go on working for ten seconds.
+# <function _get_module_lock.<locals>.cb>"); then it would go on working for a minute.
 SWALLOWED_CTRL_C = """
 import sys, time, types, weakref
 from anfekf_bench import entry
@@ -710,7 +710,7 @@ def main():
     held = Held()
     ref = weakref.ref(held, interrupt)
     del held
-    time.sleep(10)
+    time.sleep(60)
     print("went on")
 
 sys.modules["anfekf_bench.cli"] = types.SimpleNamespace(main=main)
@@ -723,8 +723,8 @@ def test_a_ctrl_c_swallowed_by_an_interpreter_callback_still_ends_the_command() 
 
     start = time.monotonic()
     proc = subprocess.run([sys.executable, "-c", SWALLOWED_CTRL_C], preexec_fn=as_from_a_terminal,
-                          capture_output=True, text=True, timeout=60)  # fmt: skip
-    assert time.monotonic() - start < 8, (proc.stdout, proc.stderr)
+                          capture_output=True, text=True, timeout=90)  # fmt: skip
+    assert time.monotonic() - start < 30, (proc.stdout, proc.stderr)  # a loaded machine's start
     assert proc.returncode == 130, (proc.returncode, proc.stdout, proc.stderr)
     assert proc.stderr == "error: interrupted\n"
     assert "went on" not in proc.stdout

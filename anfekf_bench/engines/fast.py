@@ -5,18 +5,16 @@ dtypes and meaning, divergence included), so metrics, storage and the report are
 kernels (`kernels.py`) are compiled by numba when it is installed (the `fast` extra) and run as
 plain Python otherwise; `JIT` says which.
 
-What it runs (`supports`): the EKF, the oracle EKF, ekf-ml and ekf-tuned (fitted noise), the
-ANFEKF with any of its parameters (adapt R, Q or RQ, adaptation and learning on or off,
-adapt_from, bounds, window, rates, ...), `cm-scale` (the ANFEKF's kernel with its proportional
-rule), the multiple-model banks `mmae` and `imm` with any of theirs (`kernels.run_bank_kernel`),
-the fading-factor EKF (`kernels.run_fading_kernel`), and `akhlaghi`, `vb-r`, `vbakf`, `swvb`,
-`sage-husa` and `iae` in every mode (`kernels.run_akhlaghi_kernel`, `run_vbr_kernel`,
-`run_vbakf_kernel`, `run_swvb_kernel`, `run_sage_husa_kernel`, `run_iae_kernel`), `als`
-in every mode (`kernels_als.run_als_kernel`) and the trained `kalmannet`
-(`kernels_kalmannet.run_kalmannet_kernel`, its weights passed as arrays); each family's rules
-are the plain functions of its filter module, called by both engines; on both motion models
-(the bicycle of the simulated scenarios, the unicycle of recorded logs: a kernel argument).
-Anything else (a user's own filter) is not implemented here: the caller runs it on filterpy.
+What it runs (`supports`): every built-in kind (fast_support.py), on both motion models (the
+bicycle of the simulated scenarios, the unicycle of recorded logs: a kernel argument). A family
+that runs as one EKF (the EKF and its fitted and oracle forms, the ANFEKF, cm-scale, sage-husa,
+iae, akhlaghi, vb-r, vbakf, fading) runs on the one loop (`loop.run_loop`, its steps in
+`engines/families/`); the banks `mmae`, `imm` and `vb-imm` on one bank kernel
+(`kernels_bank.run_bank_kernel`); `swvb`, `als`, the augmented EKFs and the trained `kalmannet`
+on kernels of their own (`kernels_swvb`, `kernels_als`, `kernels_augmented`,
+`kernels_kalmannet`, its weights passed as arrays). Each family's rules are the plain functions
+of its filter module, called by both engines. Anything else (a user's own filter) is not
+implemented here: the caller runs it on filterpy.
 
 Its input is the one contract of a run, a `timeline.Timeline` (a simulated run through
 `timeline.from_run`, a recorded span through `timeline.timeline`): every kernel loops over its
@@ -51,7 +49,6 @@ from . import kernels as _jit_kernels
 from . import kernels_als as _jit_kernels_als
 from . import kernels_augmented as _jit_kernels_augmented
 from . import kernels_bank as _jit_kernels_bank
-from . import kernels_default as _jit_kernels_default
 from . import kernels_kalmannet as _jit_kernels_kalmannet
 from . import kernels_swvb as _jit_kernels_swvb
 from . import loop as _loop
@@ -146,13 +143,16 @@ def run_filter_fast(
             record, x, P, R, Qu,
         )  # fmt: skip
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
-    if isinstance(spec, VBIMMSpec):
-        kd = _jit_kernels_default.pure_module() if (JIT and not jit) else _jit_kernels_default
-        diverged, j, nis_sum, n_updates, n_rejected = _run_vb_imm(kd, spec, ctx, run, x, P, R, Qu)
-        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
-    if isinstance(spec, MMAESpec):
+    bank_args = (
+        _vb_imm_args if isinstance(spec, VBIMMSpec)
+        else _bank_args if isinstance(spec, MMAESpec)
+        else None
+    )  # fmt: skip
+    if bank_args is not None:  # every bank on the one bank kernel
         kb = _jit_kernels_bank.pure_module() if (JIT and not jit) else _jit_kernels_bank
-        diverged, j, nis_sum, n_updates, n_rejected = _run_bank(kb, spec, ctx, run, x, P, R, Qu)
+        diverged, j, nis_sum, n_updates, n_rejected = kb.run_bank_kernel(
+            *run[:8], *bank_args(kb, spec, ctx), run[8], x, P, R, Qu
+        )
         return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
     if isinstance(spec, SWVBSpec):
         ks = _jit_kernels_swvb.pure_module() if (JIT and not jit) else _jit_kernels_swvb
@@ -270,41 +270,41 @@ def augmented_run(spec: FilterSpec, ctx: FilterContext, tl: Timeline, *, jit: bo
     return run_augmented(spec, ctx, run, x, P, R, Qu, n, jit)
 
 
-def _run_bank(k, spec: MMAESpec, ctx: FilterContext, run: tuple, x, P, R, Qu):
-    """filters.bank.BankEKF on `kernels.run_bank_kernel`."""
+def _bank_args(kb, spec: MMAESpec, ctx: FilterContext) -> tuple:
+    """`kernels_bank.run_bank_kernel`'s arguments between the run's and the records' for
+    filters.bank.BankEKF: members that hold their R hypothesis, the Gaussian likelihood."""
     factors = hypotheses(spec)
     Qu_m = np.ascontiguousarray(factors[:, :2] * np.diag(ctx.Qu))
     R_m = np.ascontiguousarray(factors[:, 2:] * np.diag(ctx.R))
     has_gate = ctx.gate is not None
     censor_at = ctx.gate if (spec.adapt_from == "accepted" and has_gate) else math.inf
     imm = isinstance(spec, IMMSpec)
-    return k.run_bank_kernel(
-        *run[:8],
+    return (
         np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
-        Qu_m, R_m, float(ctx.gate) if has_gate else math.inf, has_gate,
-        float(censor_at), math.log(spec.weight_floor), float(spec.mixture_threshold), imm,
-        float(spec.p_stay) if imm else 1.0,
-        run[8], x, P, R, Qu,
+        Qu_m, R_m, _matrix(ctx.R, 2), float(ctx.gate) if has_gate else math.inf, has_gate,
+        kb.RULE_GRID, False, 1.0, 1.0, 1.0, 0, 1.0, 1.0,  # no R rule: its settings unused
+        float(censor_at), math.inf, math.log(spec.weight_floor), float(spec.mixture_threshold),
+        imm, float(spec.p_stay) if imm else 1.0,
     )  # fmt: skip
 
 
-def _run_vb_imm(kd, spec: VBIMMSpec, ctx: FilterContext, run: tuple, x, P, R, Qu):
-    """filters.vb_bank.VBIMMEKF on `kernels_default.run_vb_imm_kernel`."""
+def _vb_imm_args(kb, spec: VBIMMSpec, ctx: FilterContext) -> tuple:
+    """`kernels_bank.run_bank_kernel`'s arguments between the run's and the records' for
+    filters.vb_bank.VBIMMEKF: members that adapt R by `spec.r_rule` (or hold it: grid)."""
     factors = member_factors(spec)
     Qu_m = np.ascontiguousarray(np.outer(factors[:, 0], np.diag(ctx.Qu)))
     R_m = np.ascontiguousarray(factors[:, 1:] * np.diag(ctx.R))
     has_gate = ctx.gate is not None
     censor_at = ctx.gate if (spec.adapt_from == "accepted" and has_gate) else math.inf
     rule = R_RULE_CODE[spec.r_rule] if spec.adaptation else R_RULE_CODE["grid"]
-    return kd.run_vb_imm_kernel(
-        *run[:8],
+    p_stay = float(spec.p_stay) if spec.adaptation else 1.0
+    return (
         np.ascontiguousarray(ctx.x0, dtype=float).reshape(3), _matrix(ctx.P0, 3),
         Qu_m, R_m, _matrix(ctx.R, 2), float(ctx.gate) if has_gate else math.inf, has_gate,
         rule, spec.adapt_from == "all", float(spec.bounds[0]), float(spec.bounds[1]),
         float(spec.rho), int(spec.iterations), float(spec.alpha0), float(spec.b),
         float(censor_at), float(spec.likelihood_dof), math.log(spec.weight_floor),
-        float(spec.mixture_threshold), float(spec.p_stay) if spec.adaptation else 1.0,
-        run[8], x, P, R, Qu,
+        float(spec.mixture_threshold), p_stay < 1.0 and len(factors) > 1, p_stay,
     )  # fmt: skip
 
 
@@ -316,7 +316,6 @@ WARM_UP_KERNELS = (
     (_jit_kernels_kalmannet, "run_kalmannet_kernel"),
     (_jit_kernels_augmented, "run_augmented_kernel"),
     (_jit_kernels_bank, "run_bank_kernel"),
-    (_jit_kernels_default, "run_vb_imm_kernel"),
     (_run_means, "time_means"),
 )  # fmt: skip
 COMPILE_ESTIMATE = "a few minutes"  # one process: about 4 min of CPU (lead, 2026-11-27, load 12)

@@ -1,11 +1,17 @@
-"""The fast engine's kernel of the multiple-model banks `mmae` and `imm` (filters/bank.py): M EKFs
-on kernels.py's primitives, the bank's rules as written in filters/bank.py (registered with numba
-so that compiled code calls them). Not on the one loop (`engines/loop.py`): the loop runs one
-EKF, the bank M of them and their mixture.
+"""The fast engine's kernel of the multiple-model banks, `mmae`, `imm` (filters/bank.py) and
+`vb-imm` (filters/vb_bank.py): M EKFs on kernels.py's primitives, the banks' rules as written in
+filters/bank.py and filters/vb_bank.py (registered with numba so that compiled code calls them).
+Not on the one loop (`engines/loop.py`): the loop runs one EKF, a bank M of them and their
+mixture.
+
+One kernel runs every bank: members that hold their R hypothesis (`RULE_GRID`: mmae, imm and
+vb-imm's grid rule) or adapt it (`RULE_VB`, `RULE_SAGE_HUSA`: vb-imm's members), weighted by the
+Gaussian (`dof` inf) or Student-t predictive likelihood, interacting once per scan or not.
 
 `pure_module()` gives a never-compiled copy (plain Python, kernels.py's pure copy underneath).
-numba's disk cache is keyed on THIS file's contents: after editing a rule in filters/bank.py,
-delete __pycache__/kernels_bank.*.nbi (tests/test_fast_bank.py fails on a stale cache).
+numba's disk cache is keyed on THIS file's contents: after editing a rule in filters/bank.py or
+filters/vb_bank.py, delete __pycache__/kernels_bank.*.nbi (tests/test_fast_bank.py fails on a
+stale cache).
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ import math
 import numpy as np
 
 from ..filters import bank as _bank
+from ..filters import vb_bank as _vb_bank
 from . import kernels as _kernels
 
 _PURE_COPY: bool = globals().get("_PURE", False)
@@ -24,10 +31,17 @@ maybe_njit = _k.maybe_njit
 step_terms, jacobians_at, noise_scale, predict_from = (
     _k.step_terms, _k.jacobians_at, _k.noise_scale, _k.predict_from,
 )  # fmt: skip
-innovation, nis, correct, healthy, record = (
-    _k.innovation, _k.nis, _k.correct, _k.healthy, _k.record,
+innovation, nis, correct, healthy, record, hph_diag = (
+    _k.innovation, _k.nis, _k.correct, _k.healthy, _k.record, _k.hph_diag,
 )  # fmt: skip
+clip_to_bounds = _k.clip_to_bounds
+vb_r_predict, vb_r_beta, vb_r_bounded_beta = _k.vb_r_predict, _k.vb_r_beta, _k.vb_r_bounded_beta
+next_beta, fading_mean, r_sample = _k.next_beta, _k.fading_mean, _k.r_sample
 MOTION_UNICYCLE = _k.MOTION_UNICYCLE
+# The members' R rule (filters.vb_bank.R_RULE_CODE): adapted by VB or Sage-Husa, or held
+RULE_VB = _vb_bank.R_RULE_CODE["vb"]
+RULE_SAGE_HUSA = _vb_bank.R_RULE_CODE["sage-husa"]
+RULE_GRID = _vb_bank.R_RULE_CODE["grid"]
 
 
 def pure_module():
@@ -41,7 +55,7 @@ if JIT and not _PURE_COPY:
     for _rule in (
         _bank._wrap, _bank.innovation_loglik, _bank.log_sum_exp, _bank.normalise_log_weights,
         _bank.most_probable, _bank.mixture_weights, _bank.mix_moments, _bank.weighted_noise,
-        _bank.imm_mix, _bank.active_members, _bank.mix_moments_at,
+        _bank.imm_mix, _bank.active_members, _bank.mix_moments_at, _vb_bank.predictive_loglik,
     ):  # fmt: skip
         register_jitable(_rule)
 
@@ -54,6 +68,7 @@ mix_moments_at = _bank.mix_moments_at
 active_members = _bank.active_members
 weighted_noise = _bank.weighted_noise
 imm_mix = _bank.imm_mix
+predictive_loglik = _vb_bank.predictive_loglik
 
 
 @maybe_njit
@@ -132,25 +147,50 @@ def end_scan(logw, log_floor, threshold, interact, p_stay, X, Pm, R_m, Qu_m, w, 
 @maybe_njit
 def run_bank_kernel(
     u_odo, dt, scan_start, scan_lm, scan_z,
-    motion, B, T0, x0, P0, Qu_m, R_m, gate, has_gate,
-    censor_at, log_floor, threshold, imm, p_stay,
+    motion, B, T0, x0, P0, Qu_m, R_m, R0, gate, has_gate,
+    rule, from_all, floor, ceiling, rho, iterations, alpha0, b_fade,
+    censor_at, dof, log_floor, threshold, interact, p_stay,
     record_at, out_x, out_P, out_R, out_Q,
 ):  # fmt: skip
-    """A bank of M EKFs over one run (filterpy_engine.run_filter with filters.bank.BankEKF).
+    """A bank of M EKFs over one run (filterpy_engine.run_filter with filters.bank.BankEKF or
+    filters.vb_bank.VBIMMEKF), as the filterpy engine runs it: every member's begin_scan, then
+    per landmark every member's adaptation, gate and update, weighted by the predictive
+    likelihood (D.1) from the R it held before the landmark, then every member's end_scan and
+    the bank's `end_scan` (weights, mixture, the IMM interaction where the members `interact`).
 
-    Qu_m, R_m (M, 2): the members' noise diagonals; the rest as `run_kernel`. Records the
-    mixture (x, P) and the weighted R and Qu. Returns (diverged, rows written, nis_sum,
-    n_updates, n_rejected): the counts are the most probable member's at each scan's start.
-    """
+    Qu_m (M, 2): the members' Qu diagonals; R_m (M, 2): their starting R diagonals; R0 (4,):
+    the assumed R (the bounds' reference); rule: RULE_*; dof: the likelihood's degrees of
+    freedom (inf: Gaussian); the rest as `kernels.run_kernel`. Records the mixture (x, P) and the
+    weighted R and Qu. Returns (diverged, rows written, nis_sum, n_updates, n_rejected): the
+    counts are the most probable member's at each scan's start."""
     K = u_odo.shape[0]
     M = Qu_m.shape[0]
     X = np.empty((M, 3))
     Pm = np.empty((M, 9))
+    Rm = np.empty((M, 2))  # the R each member holds now
+    Ra = np.empty((M, 2))  # VB: inverse-gamma shapes and scales per channel
+    Rb = np.empty((M, 2))
+    sh_beta = np.ones(M)  # Sage-Husa: d_k of the next event, and the scan's pooled samples
+    sh_d = np.empty(M)
+    R_start = np.empty((M, 2))
+    rho_sum = np.zeros((M, 2))
+    n_fed = np.zeros(M, np.int64)
     for i in range(M):
         for c in range(3):
             X[i, c] = x0[c]
         for c in range(9):
             Pm[i, c] = P0[c]
+        Rm[i, 0] = R_m[i, 0]
+        Rm[i, 1] = R_m[i, 1]
+        Ra[i, 0] = alpha0
+        Ra[i, 1] = alpha0
+        Rb[i, 0] = alpha0 * R_m[i, 0]
+        Rb[i, 1] = alpha0 * R_m[i, 1]
+    bounds = (floor, ceiling)
+    R_min0 = floor * R0[0]
+    R_min1 = floor * R0[3]
+    R_max0 = ceiling * R0[0]
+    R_max1 = ceiling * R0[3]
     logw = np.full(M, -math.log(M))
     w = np.empty(M)
     Rw = np.empty(2)
@@ -161,8 +201,8 @@ def run_bank_kernel(
     n_rej = np.zeros(M, np.int64)
     nis_m = np.zeros(M)
     scratch = imm_scratch(M)
-    active = np.empty(M, np.int64)  # the members in the mixture (weight not 0): n_active
-    n_active = mixture(logw, threshold, X, Pm, R_m, Qu_m, w, active, Rw, Qw, xm, Pmix)
+    active = np.empty(M, np.int64)
+    n_active = mixture(logw, threshold, X, Pm, Rm, Qu_m, w, active, Rw, Qw, xm, Pmix)
     nis_sum = 0.0
     n_updates = 0
     n_rejected = 0
@@ -173,32 +213,91 @@ def run_bank_kernel(
         u0 = u_odo[k, 0]
         u1 = u_odo[k, 1]
         dt_k = dt[k]
-        # `predict` of every member, what does not depend on its heading computed once
         terms = step_terms(u0, u1, dt_k, motion, B)
         q_scale = noise_scale(dt_k, motion, T0) if motion == MOTION_UNICYCLE else 1.0
-        predict_members(X, Pm, Qu_m, terms, q_scale)
-        first = scan_start[k]  # this stamp's landmarks first .. last - 1: one scan
+        predict_members(X, Pm, Qu_m, terms, q_scale)  # the bank's, member by member
+        first = scan_start[k]
         last = scan_start[k + 1]
         if last == first and record_at[k] and j < n_rows:
-            # the predicted mixture is read only by a record without a scan (a scan mixes
-            # again, before its health check and its record)
             mix_moments_at(w, active, n_active, X, Pm, X[most_probable(logw), 2], xm, Pmix)
         if last > first:
             best = most_probable(logw)
             before_nis = nis_m[best]
             before_upd = n_upd[best]
             before_rej = n_rej[best]
+            for i in range(M):  # the members' begin_scan
+                if rule == RULE_VB:
+                    Ra[i, 0], Rb[i, 0] = vb_r_predict(Ra[i, 0], Rb[i, 0], rho)
+                    Ra[i, 1], Rb[i, 1] = vb_r_predict(Ra[i, 1], Rb[i, 1], rho)
+                elif rule == RULE_SAGE_HUSA:
+                    sh_d[i] = sh_beta[i]
+                    R_start[i, 0] = Rm[i, 0]
+                    R_start[i, 1] = Rm[i, 1]
+                    rho_sum[i, 0] = 0.0
+                    rho_sum[i, 1] = 0.0
+                    n_fed[i] = 0
             for m in range(first, last):
                 z0 = scan_z[m, 0]
                 z1 = scan_z[m, 1]
+                lx = scan_lm[m, 0]
+                ly = scan_lm[m, 1]
                 for i in range(M):
                     x = (X[i, 0], X[i, 1], X[i, 2])
                     P = (
                         Pm[i, 0], Pm[i, 1], Pm[i, 2], Pm[i, 3], Pm[i, 4], Pm[i, 5], Pm[i, 6],
                         Pm[i, 7], Pm[i, 8],
                     )  # fmt: skip
-                    R = (R_m[i, 0], 0.0, 0.0, R_m[i, 1])
-                    H, zh, nu, HPHt = innovation(x, P, scan_lm[m, 0], scan_lm[m, 1], z0, z1)
+                    H, zh, nu, HPHt = innovation(x, P, lx, ly, z0, z1)
+                    if rule == RULE_VB:
+                        R_prior = (Rb[i, 0] / Ra[i, 0], 0.0, 0.0, Rb[i, 1] / Ra[i, 1])
+                    else:
+                        R_prior = (Rm[i, 0], 0.0, 0.0, Rm[i, 1])
+                    R = R_prior
+                    if rule != RULE_GRID:
+                        feeds = True
+                        if not from_all and has_gate:
+                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
+                            if not ok:
+                                return True, j, nis_sum, n_updates, n_rejected
+                            feeds = nis_a <= gate
+                        if feeds and rule == RULE_VB:  # VBREKF.before_gain
+                            a0 = Ra[i, 0]
+                            a1 = Ra[i, 1]
+                            b0 = Rb[i, 0]
+                            b1 = Rb[i, 1]
+                            ap0 = a0 + 0.5
+                            ap1 = a1 + 0.5
+                            bn0 = b0
+                            bn1 = b1
+                            for _ in range(iterations):
+                                R = (
+                                    clip_to_bounds(bn0 / ap0, R0[0], bounds), 0.0,
+                                    0.0, clip_to_bounds(bn1 / ap1, R0[3], bounds),
+                                )  # fmt: skip
+                                ok, xn, Pn = correct(x, P, H, zh, z0, z1, R)
+                                if not ok:
+                                    return True, j, nis_sum, n_updates, n_rejected
+                                _, _, e, _ = innovation(xn, Pn, lx, ly, z0, z1)
+                                hph0, hph1 = hph_diag(H, Pn)
+                                bn0 = vb_r_beta(b0, e[0], hph0)
+                                bn1 = vb_r_beta(b1, e[1], hph1)
+                            Ra[i, 0] = ap0
+                            Ra[i, 1] = ap1
+                            Rb[i, 0], Rb[i, 1] = vb_r_bounded_beta(
+                                ap0, ap1, bn0, bn1, R0[0], R0[3], floor, ceiling
+                            )
+                        elif feeds:  # SageHusaEKF.before_gain
+                            rho_sum[i, 0] = rho_sum[i, 0] + r_sample(nu[0], HPHt[0], R_min0, R_max0)
+                            rho_sum[i, 1] = rho_sum[i, 1] + r_sample(nu[1], HPHt[3], R_min1, R_max1)
+                            n_fed[i] += 1
+                            rh0 = fading_mean(sh_d[i], R_start[i, 0], rho_sum[i, 0], n_fed[i])
+                            rh1 = fading_mean(sh_d[i], R_start[i, 1], rho_sum[i, 1], n_fed[i])
+                            R = (
+                                clip_to_bounds(rh0, R0[0], bounds), 0.0,
+                                0.0, clip_to_bounds(rh1, R0[3], bounds),
+                            )  # fmt: skip
+                    Rm[i, 0] = R[0]
+                    Rm[i, 1] = R[3]
                     ok, v = nis(HPHt, R, nu[0], nu[1])
                     if not ok or not math.isfinite(v):
                         return True, j, nis_sum, n_updates, n_rejected
@@ -214,16 +313,27 @@ def run_bank_kernel(
                             X[i, c] = x[c]
                         for c in range(9):
                             Pm[i, c] = P[c]
-                    logw[i] += innovation_loglik(
-                        v, HPHt[0] + R[0], HPHt[1] + R[1], HPHt[2] + R[2], HPHt[3] + R[3],
-                        censor_at,
+                    vp = v  # a held R: the NIS above (R_prior is R)
+                    if rule != RULE_GRID:
+                        ok, vp = nis(HPHt, R_prior, nu[0], nu[1])
+                        if not ok or not math.isfinite(vp):
+                            return True, j, nis_sum, n_updates, n_rejected
+                    logw[i] += predictive_loglik(
+                        vp, HPHt[0] + R_prior[0], HPHt[1] + R_prior[1], HPHt[2] + R_prior[2],
+                        HPHt[3] + R_prior[3], censor_at, dof,
                     )  # fmt: skip
+            for i in range(M):  # the members' end_scan
+                if rule == RULE_VB:
+                    Rm[i, 0] = Rb[i, 0] / Ra[i, 0]
+                    Rm[i, 1] = Rb[i, 1] / Ra[i, 1]
+                elif rule == RULE_SAGE_HUSA and n_fed[i] > 0:
+                    sh_beta[i] = next_beta(sh_beta[i], b_fade)
             nis_sum += nis_m[best] - before_nis
             n_updates += n_upd[best] - before_upd
             n_rejected += n_rej[best] - before_rej
             n_active, ok = end_scan(
-                logw, log_floor, threshold, imm, p_stay, X, Pm, R_m, Qu_m, w, active, Rw, Qw, xm,
-                Pmix, scratch,
+                logw, log_floor, threshold, interact, p_stay, X, Pm, Rm, Qu_m, w, active, Rw, Qw,
+                xm, Pmix, scratch,
             )  # fmt: skip
             if not ok:
                 return True, j, nis_sum, n_updates, n_rejected

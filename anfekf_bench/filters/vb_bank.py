@@ -26,7 +26,7 @@ Member R rules (`r_rule`), the designs compared in the research note:
 - "grid": no adaptation in a member; R hypotheses as a grid (range_factors x bearing_factors)
   crossed with the Qu factors: the plain IMM with a pruned mixture, the zoo's `imm`.
 With p_stay = 1 the bank is static (MMAE). The rules are the zoo's own functions; the fast
-engine's kernel is engines/kernels_default.py.
+engine's kernel is engines/kernels_bank.py.
 """
 
 from __future__ import annotations

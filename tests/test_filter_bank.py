@@ -19,6 +19,7 @@ from anfekf_bench.filters.bank import (
     MMAESpec,
     hypotheses,
     imm_mix,
+    imm_mix_by_sums,
     innovation_loglik,
     mix_moments,
     mixture_weights,
@@ -146,6 +147,64 @@ def test_imm_mix_with_a_threshold_equals_the_dense_rule():
         np.testing.assert_allclose(X0[j], xj, atol=1e-12)
         np.testing.assert_allclose(P0[j].reshape(3, 3), Pj, atol=1e-12)
     assert M < kept < M * M  # some starts mix several members, none mixes all
+
+
+def _both_interactions(logw, p_stay, threshold, X, P):
+    """(logw, X0, P0) of `imm_mix` (the dense rule) and of `imm_mix_by_sums`."""
+    M = len(logw)
+    out = []
+    for by_sums in (False, True):
+        lw, X0, P0 = logw.copy(), np.empty((M, 3)), np.empty((M, 9))
+        scratch = [*(np.empty(M) for _ in range(3)), np.empty(3), np.empty(9),
+                   np.empty(M, np.int64), np.empty(M, np.int64)]  # fmt: skip
+        if by_sums:
+            scratch += [np.empty(M, np.int64), np.empty(M + 1), np.empty((M + 1, 3)),
+                        np.empty((M + 1, 9)), np.empty(M + 1)]  # fmt: skip
+        (imm_mix_by_sums if by_sums else imm_mix)(lw, p_stay, threshold, X, P, X0, P0, *scratch)
+        out.append((lw, X0, P0))
+    return out
+
+
+def _members(M, heading, spread):
+    X = np.column_stack([rng.normal(10, 0.05, M), rng.normal(-5, 0.05, M),
+                         wrap_angle(rng.normal(heading, spread, M))])  # fmt: skip
+    A = rng.normal(0, 0.01, (M, 3, 3))
+    return X, (A @ A.transpose(0, 2, 1) + 1e-4 * np.eye(3)).reshape(M, 9)
+
+
+@pytest.mark.parametrize(
+    "p_stay, threshold", [(0.98, 1e-4), (0.6, 0.0), (0.999, 1e-2), (1.0, 1e-4)]
+)
+@pytest.mark.parametrize("heading, spread", [(0.3, 0.01), (3.13, 0.02), (-1.0, 0.8), (0.0, 2.5)])
+def test_the_interaction_by_running_sums_equals_the_dense_rule(p_stay, threshold, heading, spread):
+    """imm_mix_by_sums (the fast engine's) against imm_mix (the reference): the same predicted
+    weights to the bit, the same starts to 1e-12 of their scale; headings about the cut at
+    +-pi (3.13) and spread past SUMS_HEADING_SPREAD (2.5: those members take the dense rule);
+    weights from one dominant member to many near the threshold, and floored ones."""
+    for M in (1, 2, 7, 125):
+        for weights in ("dominant", "spread", "floored"):
+            scale = {"dominant": 40.0, "spread": 1.0, "floored": 3.0}[weights]
+            logw = rng.normal(0.0, scale, M)
+            if weights == "floored":
+                logw[rng.integers(0, M, size=max(1, M // 2))] = -69.0  # weight 1e-30
+            logw -= logsumexp(logw)
+            X, P = _members(M, heading, spread)
+            (l1, x1, p1), (l2, x2, p2) = _both_interactions(logw, p_stay, threshold, X, P)
+            np.testing.assert_array_equal(l2, l1)
+            np.testing.assert_allclose(x2[:, :2], x1[:, :2], rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(wrap_angle(x2[:, 2] - x1[:, 2]), 0.0, atol=1e-12)
+            np.testing.assert_allclose(p2, p1, rtol=0, atol=1e-12 * np.abs(p1).max())
+
+
+def test_the_interaction_by_running_sums_takes_the_dense_rule_for_weights_not_finite():
+    M = 9
+    logw = np.log(np.full(M, 1.0 / M))
+    logw[4] = np.nan
+    X, P = _members(M, 0.0, 0.01)
+    (l1, x1, p1), (l2, x2, p2) = _both_interactions(logw, 0.98, 1e-4, X, P)
+    np.testing.assert_array_equal(l2, l1)
+    np.testing.assert_array_equal(x2, x1)
+    np.testing.assert_array_equal(p2, p1)
 
 
 def test_grid_of_hypotheses_and_validation():

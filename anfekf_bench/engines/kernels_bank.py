@@ -55,7 +55,8 @@ if JIT and not _PURE_COPY:
     for _rule in (
         _bank._wrap, _bank.innovation_loglik, _bank.log_sum_exp, _bank.normalise_log_weights,
         _bank.most_probable, _bank.mixture_weights, _bank.mix_moments, _bank.weighted_noise,
-        _bank.imm_mix, _bank.active_members, _bank.mix_moments_at, _vb_bank.predictive_loglik,
+        _bank.imm_mix, _bank.mixed_start, _bank.imm_mix_by_sums, _bank.active_members,
+        _bank.mix_moments_at, _vb_bank.predictive_loglik,
     ):  # fmt: skip
         register_jitable(_rule)
 
@@ -67,7 +68,7 @@ mix_moments = _bank.mix_moments
 mix_moments_at = _bank.mix_moments_at
 active_members = _bank.active_members
 weighted_noise = _bank.weighted_noise
-imm_mix = _bank.imm_mix
+imm_mix_by_sums = _bank.imm_mix_by_sums
 predictive_loglik = _vb_bank.predictive_loglik
 
 
@@ -93,10 +94,12 @@ def predict_members(X, Pm, Qu_m, terms, q_scale):
 @maybe_njit
 def imm_scratch(M):
     """The scratch arrays of `end_scan`'s IMM interaction for M members: the mixed starts
-    X0 (M, 3) and P0 (M, 9), then imm_mix's w, c, mu, x_tmp, P_tmp, heavy and members."""
+    X0 (M, 3) and P0 (M, 9), then imm_mix_by_sums's w, c, mu, x_tmp, P_tmp, heavy, members,
+    order, W, E, Q and spread."""
     return (
         np.empty((M, 3)), np.empty((M, 9)), np.empty(M), np.empty(M), np.empty(M), np.empty(3),
-        np.empty(9), np.empty(M, np.int64), np.empty(M, np.int64),
+        np.empty(9), np.empty(M, np.int64), np.empty(M, np.int64), np.empty(M, np.int64),
+        np.empty(M + 1), np.empty((M + 1, 3)), np.empty((M + 1, 9)), np.empty(M + 1),
     )  # fmt: skip
 
 
@@ -124,9 +127,11 @@ def end_scan(logw, log_floor, threshold, interact, p_stay, X, Pm, R_m, Qu_m, w, 
     normalise_log_weights(logw, log_floor)
     n_active = mixture(logw, threshold, X, Pm, R_m, Qu_m, w, active, Rw, Qw, xm, Pmix)
     if interact:
-        X0, P0m, s_w, s_c, s_mu, s_x, s_P, s_heavy, s_members = scratch
-        imm_mix(logw, p_stay, threshold, X, Pm, X0, P0m, s_w, s_c, s_mu, s_x, s_P, s_heavy,
-                s_members)  # fmt: skip
+        X0, P0m, s_w, s_c, s_mu, s_x, s_P, s_heavy, s_members, s_order, s_W, s_E, s_Q, s_spread = (
+            scratch
+        )
+        imm_mix_by_sums(logw, p_stay, threshold, X, Pm, X0, P0m, s_w, s_c, s_mu, s_x, s_P, s_heavy,
+                        s_members, s_order, s_W, s_E, s_Q, s_spread)  # fmt: skip
         for i in range(X.shape[0]):
             for c in range(3):
                 X[i, c] = X0[i, c]

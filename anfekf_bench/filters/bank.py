@@ -219,38 +219,170 @@ def imm_mix(logw, p_stay, threshold, X, P, X0, P0, w, c, mu, x_tmp, P_tmp, heavy
             heavy[n_heavy] = i
             n_heavy += 1
     for j in range(M):
+        mixed_start(j, p_stay, p_off, threshold, X, P, X0, P0, w, c[j], mu, x_tmp, P_tmp, heavy,
+                     n_heavy, members)  # fmt: skip
+    for j in range(M):
+        logw[j] = math.log(c[j])
+
+
+def mixed_start(j, p_stay, p_off, threshold, X, P, X0, P0, w, cj, mu, x_tmp, P_tmp, heavy,
+                 n_heavy, members):  # fmt: skip
+    """Member j's mixed start (imm_mix) into X0[j], P0[j], over its candidates: the heavy
+    members heavy[:n_heavy] (increasing indices) and j itself."""
+    n = 0
+    own = False
+    for k in range(n_heavy):
+        i = heavy[k]
+        if not own and j <= i:
+            own = True
+            if j < i:
+                members[n] = j
+                n += 1
+        members[n] = i
+        n += 1
+    if not own:
+        members[n] = j
+        n += 1
+    s = 0.0
+    for k in range(n):
+        i = members[k]
+        m = (p_stay if i == j else p_off) * w[i] / cj
+        if m < threshold and i != j:
+            m = 0.0
+        mu[i] = m
+        s += m
+    for k in range(n):
+        i = members[k]
+        mu[i] = mu[i] / s
+    mix_moments_at(mu, members, n, X, P, X[j, 2], x_tmp, P_tmp)
+    for k in range(3):
+        X0[j, k] = x_tmp[k]
+    for k in range(9):
+        P0[j, k] = P_tmp[k]
+
+
+# The heading spread (rad) within which the running sums of `imm_mix_by_sums` wrap every heading
+# difference as the dense rule does (about member j's own heading, then about the mixed mean's):
+# a member further from the heaviest one gets the dense rule.
+SUMS_HEADING_SPREAD = 1.0
+
+
+def imm_mix_by_sums(logw, p_stay, threshold, X, P, X0, P0, w, c, mu, x_tmp, P_tmp, heavy,
+                    members, order, W, E, Q, spread):  # fmt: skip
+    """`imm_mix` (the same starts, logw replaced the same way) in O(M log h + h), h the members
+    that can reach the threshold, where the dense rule takes O(M h). The members i != j in
+    member j's start (p_off w_i / c_j at the threshold or above) are the heaviest ones: a
+    prefix of the heavy members sorted by weight. So j's start comes from running sums over that
+    order (weights W, first moments E, second moments Q about the heaviest member's state,
+    heading differences wrapped), less j's own terms where j is in the prefix, plus j's own
+    term p_stay w_j.
+
+    Exact in real arithmetic; in floating point the sums are added in another order, so the
+    starts differ from `imm_mix`'s by rounding (tests/test_filter_bank.py bounds it at 1e-12 of
+    their scale). Taking j's terms out of the sums loses no precision that counts: where w_j is
+    most of the prefix's weight, the rest enters j's start with the factor p_off / p_stay. The
+    dense rule is the reference: the filterpy engine runs it, and the fast engine, which runs
+    this one, equals it to 1e-9 over whole runs (tests/test_fast_bank.py). A member more than
+    SUMS_HEADING_SPREAD in heading from the heaviest one, or a prefix that spreads more, takes
+    the dense rule (the wraps could differ), as do weights that are not finite. Scratch as
+    imm_mix's, and order (M,) int, W (M + 1,), E (M + 1, 3), Q (M + 1, 9), spread (M + 1,)."""
+    M = logw.shape[0]
+    p_off = (1.0 - p_stay) / (M - 1) if M > 1 else 0.0
+    total = 0.0
+    for i in range(M):
+        w[i] = math.exp(logw[i])
+        total += w[i]
+    c_min = math.inf
+    for j in range(M):
+        c[j] = p_off * (total - w[j]) + p_stay * w[j]
+        if c[j] < c_min:
+            c_min = c[j]
+    cut = 0.5 * threshold * c_min
+    n_heavy = 0
+    if cut >= 0.0 and cut < math.inf and total < math.inf:
+        for i in range(M):
+            if not p_off * w[i] < cut:
+                heavy[n_heavy] = i
+                n_heavy += 1
+    if n_heavy == 0:  # weights not finite, or no member in another's start (p_stay 1)
+        imm_mix(logw, p_stay, threshold, X, P, X0, P0, w, c, mu, x_tmp, P_tmp, heavy, members)
+        return
+    # the heavy members by weight, heaviest first (a prefix never splits equal weights: the
+    # threshold test gives them the same answer), and their running sums
+    for k in range(n_heavy):
+        mu[k] = -w[heavy[k]]
+    sorted_at = np.argsort(mu[:n_heavy], kind="mergesort")
+    for k in range(n_heavy):
+        order[k] = heavy[sorted_at[k]]
+    a = order[0]
+    a0 = X[a, 0]
+    a1 = X[a, 1]
+    a2 = X[a, 2]
+    W[0] = 0.0
+    spread[0] = 0.0
+    for r in range(3):
+        E[0, r] = 0.0
+    for r in range(9):
+        Q[0, r] = 0.0
+    for k in range(n_heavy):
+        i = order[k]
+        wi = w[i]
+        e = (X[i, 0] - a0, X[i, 1] - a1, _wrap(X[i, 2] - a2))
+        W[k + 1] = W[k] + wi
+        spread[k + 1] = max(spread[k], abs(e[2]))
+        for r in range(3):
+            E[k + 1, r] = E[k, r] + wi * e[r]
+            for q in range(3):
+                Q[k + 1, 3 * r + q] = Q[k, 3 * r + q] + wi * (P[i, 3 * r + q] + e[r] * e[q])
+    n_dense = 0
+    for j in range(M):
         cj = c[j]
-        # member j's candidates: the heavy members and j itself, in increasing order
-        n = 0
-        own = False
-        for k in range(n_heavy):
-            i = heavy[k]
-            if not own and j <= i:
-                own = True
-                if j < i:
-                    members[n] = j
-                    n += 1
-            members[n] = i
-            n += 1
-        if not own:
-            members[n] = j
-            n += 1
-        s = 0.0
-        for k in range(n):
-            i = members[k]
-            m = (p_stay if i == j else p_off) * w[i] / cj
-            if m < threshold and i != j:
-                m = 0.0
-            mu[i] = m
-            s += m
-        for k in range(n):
-            i = members[k]
-            mu[i] = mu[i] / s
-        mix_moments_at(mu, members, n, X, P, X[j, 2], x_tmp, P_tmp)
-        for k in range(3):
-            X0[j, k] = x_tmp[k]
-        for k in range(9):
-            P0[j, k] = P_tmp[k]
+        wj = w[j]
+        e = (X[j, 0] - a0, X[j, 1] - a1, _wrap(X[j, 2] - a2))
+        # t: how many of the heaviest have p_off w_i / c_j at the threshold or above
+        lo = 0
+        hi = n_heavy
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if p_off * w[order[mid]] / cj < threshold:
+                hi = mid
+            else:
+                lo = mid + 1
+        t = lo
+        if abs(e[2]) > SUMS_HEADING_SPREAD or spread[t] > SUMS_HEADING_SPREAD:
+            members[n_dense] = j  # the dense rule, below
+            n_dense += 1
+            continue
+        inside = 0.0 if p_off * wj / cj < threshold else wj  # j among the t: its terms out
+        own = p_stay * wj
+        A = p_off * (W[t] - inside) + own
+        m = (
+            (p_off * (E[t, 0] - inside * e[0]) + own * e[0]) / A,
+            (p_off * (E[t, 1] - inside * e[1]) + own * e[1]) / A,
+            (p_off * (E[t, 2] - inside * e[2]) + own * e[2]) / A,
+        )
+        X0[j, 0] = a0 + m[0]
+        X0[j, 1] = a1 + m[1]
+        X0[j, 2] = _wrap(a2 + m[2])
+        for r in range(3):
+            for q in range(3):
+                rq = 3 * r + q
+                Pj = P[j, rq] + e[r] * e[q]
+                P0[j, rq] = (p_off * (Q[t, rq] - inside * Pj) + own * Pj) / A - m[r] * m[q]
+    if n_dense:
+        # the dense rule's candidates: the heavy members in index order (`order` holds the
+        # members listed for it from here)
+        for k in range(n_dense):
+            order[k] = members[k]
+        n_heavy = 0
+        for i in range(M):
+            if not p_off * w[i] < cut:
+                heavy[n_heavy] = i
+                n_heavy += 1
+        for k in range(n_dense):
+            j = order[k]
+            mixed_start(j, p_stay, p_off, threshold, X, P, X0, P0, w, c[j], mu, x_tmp, P_tmp,
+                        heavy, n_heavy, members)  # fmt: skip
     for j in range(M):
         logw[j] = math.log(c[j])
 

@@ -602,6 +602,20 @@ def test_make_setup_compiles_a_kernel_of_every_fast_kind():
     assert families == modules
 
 
+def test_every_kernel_a_spec_names_has_its_runner_and_no_kind_names_two_ways():
+    """A kind on the fast engine names its family module on the one loop (`fast_family`) or its
+    kernel of its own (`fast_kernel`), never both; every kernel named is in KERNEL_RUNNERS, and
+    every runner there serves a registered kind."""
+    from anfekf_bench.filters.registry import SPECS
+    from anfekf_bench.filters.spec import fast_family_of, fast_kernel_of
+
+    named = {fast_kernel_of(cls) for cls in SPECS} - {None}
+    assert named == set(fast.KERNEL_RUNNERS)
+    for cls in SPECS:
+        assert fast_family_of(cls) is None or fast_kernel_of(cls) is None, cls.__name__
+        assert fast.supports(cls.model_construct()) == (cls in fast.SUPPORTED_SPECS)
+
+
 def test_the_warm_up_parts_are_the_whole_warm_up_split_by_the_loop():
     """`make setup` compiles the parts side by side: every family on the one loop in "loop"
     (one function's cache entries from one process), every other kernel in "kernels"."""

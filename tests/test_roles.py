@@ -188,10 +188,7 @@ def kind_lists(nodes) -> list[list[str]]:
 
 # Lists of kinds still kept elsewhere, each with why (issue 33 counts them); nothing else may
 # add one. bench.py's are its timing bins named after the kinds it times, not a selection.
-KNOWN_LISTS = {
-    "bench.py": 3,
-    "engines/fast_support.py": 1,  # OWN_KERNEL_SPECS: the kinds with a kernel of their own
-}
+KNOWN_LISTS = {"bench.py": 3}
 
 
 def test_the_list_finder_sees_a_second_list_of_kinds():

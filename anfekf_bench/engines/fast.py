@@ -37,7 +37,7 @@ from ..filters.kalmannet import KalmanNetSpec
 from ..filters.kalmannet_net import KalmanNetWeights
 from ..filters.registry import SPECS as REGISTERED_SPECS
 from ..filters.registry import kind_of, register_engine
-from ..filters.spec import FilterContext, FilterSpec, fast_family_of
+from ..filters.spec import FilterContext, FilterSpec, fast_family_of, fast_kernel_of
 from ..filters.swvb import SWVBSpec
 from ..filters.vb_bank import R_RULE_CODE, VBIMMSpec, member_factors
 from ..models import Bicycle, Unicycle
@@ -121,7 +121,6 @@ def run_filter_fast(
         tl = from_run(tl, world, record_every)
     run = _run_args(tl, motion)
     n = int(np.count_nonzero(tl.record))
-    record = run[-1]
     x = np.full((n, 3), np.nan)
     P = np.full((n, 3, 3), np.nan)
     R = np.full((n, 2), np.nan)
@@ -131,40 +130,44 @@ def run_filter_fast(
         return run_augmented(spec, ctx, run, x, P, R, Qu, n, jit)[0]
     if families.for_spec(spec) is not None:
         return _run_family(spec, ctx, run, x, P, R, Qu, n, jit)
-    if isinstance(spec, KalmanNetSpec):
-        return _run_kalmannet(spec, ctx, run, x, P, R, Qu, n, jit)
-    if isinstance(spec, ALSSpec):
-        ka = _jit_kernels_als.pure_module() if (JIT and not jit) else _jit_kernels_als
-        diverged, j, nis_sum, n_updates, n_rejected = ka.run_als_kernel(
-            *_common_args(ctx, run),
-            "R" in spec.adapt, "Q" in spec.adapt, bool(spec.adaptation),
-            spec.adapt_from == "all", float(spec.bounds[0]), float(spec.bounds[1]),
-            int(spec.lags), int(spec.window), int(spec.every), int(spec.warmup),
-            record, x, P, R, Qu,
-        )  # fmt: skip
-        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
-    bank_args = (
-        _vb_imm_args if isinstance(spec, VBIMMSpec)
-        else _bank_args if isinstance(spec, MMAESpec)
-        else None
+    return KERNEL_RUNNERS[fast_kernel_of(spec)](spec, ctx, run, x, P, R, Qu, n, jit)
+
+
+def _run_bank(spec: FilterSpec, ctx: FilterContext, run: tuple, x, P, R, Qu, n, jit) -> dict:
+    """A bank (filters.bank.BankEKF, filters.vb_bank.VBIMMEKF) on the one bank kernel,
+    `kernels_bank.run_bank_kernel`."""
+    kb = _jit_kernels_bank.pure_module() if (JIT and not jit) else _jit_kernels_bank
+    bank_args = _vb_imm_args if isinstance(spec, VBIMMSpec) else _bank_args
+    diverged, j, nis_sum, n_updates, n_rejected = kb.run_bank_kernel(
+        *run[:8], *bank_args(kb, spec, ctx), run[8], x, P, R, Qu
+    )
+    return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+
+
+def _run_als(spec: ALSSpec, ctx: FilterContext, run: tuple, x, P, R, Qu, n, jit) -> dict:
+    """filters.als.ALSEKF on `kernels_als.run_als_kernel`."""
+    ka = _jit_kernels_als.pure_module() if (JIT and not jit) else _jit_kernels_als
+    diverged, j, nis_sum, n_updates, n_rejected = ka.run_als_kernel(
+        *_common_args(ctx, run),
+        "R" in spec.adapt, "Q" in spec.adapt, bool(spec.adaptation),
+        spec.adapt_from == "all", float(spec.bounds[0]), float(spec.bounds[1]),
+        int(spec.lags), int(spec.window), int(spec.every), int(spec.warmup),
+        run[-1], x, P, R, Qu,
     )  # fmt: skip
-    if bank_args is not None:  # every bank on the one bank kernel
-        kb = _jit_kernels_bank.pure_module() if (JIT and not jit) else _jit_kernels_bank
-        diverged, j, nis_sum, n_updates, n_rejected = kb.run_bank_kernel(
-            *run[:8], *bank_args(kb, spec, ctx), run[8], x, P, R, Qu
-        )
-        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
-    if isinstance(spec, SWVBSpec):
-        ks = _jit_kernels_swvb.pure_module() if (JIT and not jit) else _jit_kernels_swvb
-        diverged, j, nis_sum, n_updates, n_rejected = ks.run_swvb_kernel(
-            *_common_args(ctx, run),
-            bool(spec.adaptation), spec.adapt_from == "all",
-            float(spec.bounds[0]), float(spec.bounds[1]),
-            float(spec.rho), int(spec.iterations), float(spec.a0),
-            record, x, P, R, Qu,
-        )  # fmt: skip
-        return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
-    raise AssertionError(f"{type(spec).__name__}: supported, yet no kernel runs it")
+    return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
+
+
+def _run_swvb(spec: SWVBSpec, ctx: FilterContext, run: tuple, x, P, R, Qu, n, jit) -> dict:
+    """filters.swvb.SWVBEKF on `kernels_swvb.run_swvb_kernel`."""
+    ks = _jit_kernels_swvb.pure_module() if (JIT and not jit) else _jit_kernels_swvb
+    diverged, j, nis_sum, n_updates, n_rejected = ks.run_swvb_kernel(
+        *_common_args(ctx, run),
+        bool(spec.adaptation), spec.adapt_from == "all",
+        float(spec.bounds[0]), float(spec.bounds[1]),
+        float(spec.rho), int(spec.iterations), float(spec.a0),
+        run[-1], x, P, R, Qu,
+    )  # fmt: skip
+    return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected)
 
 
 def _run_family(spec: FilterSpec, ctx: FilterContext, run: tuple, x, P, R, Qu, n, jit) -> dict:
@@ -268,6 +271,18 @@ def augmented_run(spec: FilterSpec, ctx: FilterContext, tl: Timeline, *, jit: bo
     x, P = np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan)
     R, Qu = np.full((n, 2), np.nan), np.full((n, 2), np.nan)
     return run_augmented(spec, ctx, run, x, P, R, Qu, n, jit)
+
+
+def _run_augmented(spec: FilterSpec, ctx: FilterContext, run: tuple, x, P, R, Qu, n, jit):
+    return run_augmented(spec, ctx, run, x, P, R, Qu, n, jit)[0]
+
+
+# The kernels of their own by the module a spec class names (`FilterSpec.fast_kernel`), each
+# called as (spec, ctx, run, x, P, R, Qu, n, jit) -> the run's dict.
+KERNEL_RUNNERS = {
+    "kernels_bank": _run_bank, "kernels_swvb": _run_swvb, "kernels_als": _run_als,
+    "kernels_kalmannet": _run_kalmannet, "kernels_augmented": _run_augmented,
+}  # fmt: skip
 
 
 def _bank_args(kb, spec: MMAESpec, ctx: FilterContext) -> tuple:

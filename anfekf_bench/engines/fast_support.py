@@ -8,32 +8,21 @@ from __future__ import annotations
 
 import sys
 
-from ..filters.als import ALSSpec
-from ..filters.augmented import AugmentedSpec, CalibratedAugmentedSpec
-from ..filters.bank import IMMSpec, MMAESpec
-from ..filters.kalmannet import KalmanNetSpec
 from ..filters.registry import SPECS, register_engine
-from ..filters.spec import FilterSpec, fast_family_of
-from ..filters.swvb import SWVBSpec
-from ..filters.vb_bank import VBIMMSpec
+from ..filters.spec import FilterSpec, fast_family_of, fast_kernel_of
 
-# The kinds with a kernel of their own (exactly these classes: a subclass may build a different
-# filter); a kind on the one loop names its family module on its spec class instead
-# (`FilterSpec.fast_family`: the EKF and its fitted and oracle forms, a recorded scenario's
-# ekf-tuned, the adaptive families of engines/families).
-OWN_KERNEL_SPECS: tuple[type[FilterSpec], ...] = (
-    MMAESpec, IMMSpec, SWVBSpec, ALSSpec, KalmanNetSpec, AugmentedSpec, CalibratedAugmentedSpec,
-    VBIMMSpec,
-)  # fmt: skip
 # Every registered spec class the fast engine runs (for tests and docs; `supported_type` decides).
 SUPPORTED_SPECS: tuple[type[FilterSpec], ...] = tuple(
-    cls for cls in SPECS if cls in OWN_KERNEL_SPECS or fast_family_of(cls) is not None
+    cls for cls in SPECS if fast_family_of(cls) is not None or fast_kernel_of(cls) is not None
 )
 
 
-def supported_type(spec: FilterSpec) -> bool:
-    """Whether the fast engine implements this spec's filter (on some motion model)."""
-    return fast_family_of(spec) is not None or type(spec) in OWN_KERNEL_SPECS
+def supported_type(spec: FilterSpec | type[FilterSpec]) -> bool:
+    """Whether the fast engine implements this spec's filter (on some motion model): its class
+    names a family module on the one loop (`FilterSpec.fast_family`: the EKF and its fitted
+    and oracle forms, the adaptive families of engines/families) or a kernel of its own
+    (`FilterSpec.fast_kernel`: the banks, swvb, als, kalmannet, the augmented EKFs)."""
+    return fast_family_of(spec) is not None or fast_kernel_of(spec) is not None
 
 
 def register() -> None:

@@ -376,6 +376,7 @@ class ALSSpec(AdaptiveSpec):
     """Online LTV autocovariance least squares on Qu and R (module doc)."""
 
     kind: Literal["als"]
+    fast_kernel: ClassVar[str | None] = "kernels_als"
     problems: ClassVar[frozenset[str]] = frozenset({"robot", "linear", "module"})
     problem_form: ClassVar[str | None] = "als:ALSSpec"  # problems/als.py
     robot_only_because: ClassVar[str] = (

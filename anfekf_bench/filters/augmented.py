@@ -110,6 +110,7 @@ class AugmentedSpec(FilterSpec, AugmentParams):
     states: errors that are not white noise (SPEC 18)."""
 
     kind: Literal["ekf-aug"]
+    fast_kernel: ClassVar[str | None] = "kernels_augmented"
     role: ClassVar[Role] = "adaptive"
 
     @property
@@ -215,6 +216,7 @@ class CalibratedAugmentedSpec(FittedSpec, AugmentedSpec):
     means, the chosen candidate start and every candidate's training RMSE."""
 
     kind: Literal["ekf-aug-calibrated"]
+    fast_kernel: ClassVar[str | None] = "kernels_augmented"
     role: ClassVar[Role] = "fitted"
     fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated"})
     estimate: list[Parameter] = Field(

@@ -417,6 +417,7 @@ class MMAESpec(AdaptiveSpec):
     Maybeck 1982): one EKF per hypothesis, likelihood weights, the moment-matched mixture."""
 
     kind: Literal["mmae"]
+    fast_kernel: ClassVar[str | None] = "kernels_bank"
     robot_only_because: ClassVar[str] = (
         "its grid of hypotheses is over the robot's four noise sigmas"
     )
@@ -488,6 +489,7 @@ class IMMSpec(MMAESpec):
     """Interacting multiple models over the same grid: Markov switching once per scan."""
 
     kind: Literal["imm"]
+    fast_kernel: ClassVar[str | None] = "kernels_bank"
     p_stay: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = Field(
         0.98,
         description="probability that the noise stays in its hypothesis from one scan to the"

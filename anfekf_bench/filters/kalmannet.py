@@ -40,6 +40,7 @@ class KalmanNetSpec(FittedSpec):
     experiment caches by fingerprint and records in the manifest's `training` key."""
 
     kind: Literal["kalmannet"]
+    fast_kernel: ClassVar[str | None] = "kernels_kalmannet"
     robot_only_because: ClassVar[str] = "its features, network sizes and training are the robot's"
     role: ClassVar[Role] = "trained"
     fit_sources: ClassVar[frozenset[str]] = frozenset({"simulated", "recorded"})

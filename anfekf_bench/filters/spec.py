@@ -108,6 +108,10 @@ class FilterSpec(StrictModel):
     # (engines/loop.py), or None. Read on the exact class (`fast_family_of`): a subclass that
     # does not name one (it may build another filter) runs on filterpy.
     fast_family: ClassVar[str | None] = None
+    # The module under engines/ of the fast engine's kernel of its own for a kind that is not one
+    # EKF on the loop (a bank's M members, swvb's passes over a scan, ...; engines/fast.py runs
+    # it through `KERNEL_RUNNERS`), or None. Read on the exact class too (`fast_kernel_of`).
+    fast_kernel: ClassVar[str | None] = None
     fit_sources: ClassVar[frozenset[str]] = frozenset()  # of FIT_SOURCES; empty: no fit
 
     def build(self, ctx: FilterContext):
@@ -140,6 +144,13 @@ def fast_family_of(spec) -> str | None:
     (`FilterSpec.fast_family`); None: not on the fast engine's loop."""
     cls = spec if isinstance(spec, type) else type(spec)
     return cls.__dict__.get("fast_family")
+
+
+def fast_kernel_of(spec) -> str | None:
+    """The fast engine's kernel of its own for a spec (or spec class), declared on exactly its
+    class (`FilterSpec.fast_kernel`); None: none (on the loop, or on filterpy only)."""
+    cls = spec if isinstance(spec, type) else type(spec)
+    return cls.__dict__.get("fast_kernel")
 
 
 class FilterParams(StrictModel):

@@ -81,6 +81,7 @@ class SWVBSpec(AdaptiveSpec):
     simplification: see the module doc)."""
 
     kind: Literal["swvb"]
+    fast_kernel: ClassVar[str | None] = "kernels_swvb"
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     rho: float = Field(
         RHO, gt=0, le=1, allow_inf_nan=False,

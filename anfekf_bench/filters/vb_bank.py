@@ -80,6 +80,7 @@ class VBIMMSpec(AdaptiveSpec):
     per-scenario settings, no training runs."""
 
     kind: Literal["vb-imm"]
+    fast_kernel: ClassVar[str | None] = "kernels_bank"
     adapts_noise: ClassVar[frozenset[str]] = frozenset({"R", "Q"})
     default_filter: ClassVar[bool] = True
     qu_factors: Factors = Field(

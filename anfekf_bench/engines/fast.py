@@ -274,6 +274,7 @@ def augmented_run(spec: FilterSpec, ctx: FilterContext, tl: Timeline, *, jit: bo
 
 
 def _run_augmented(spec: FilterSpec, ctx: FilterContext, run: tuple, x, P, R, Qu, n, jit):
+    """`run_augmented`'s run dict, without the parameters' records."""
     return run_augmented(spec, ctx, run, x, P, R, Qu, n, jit)[0]
 
 

@@ -55,7 +55,8 @@ if JIT and not _PURE_COPY:
     for _rule in (
         _bank._wrap, _bank.innovation_loglik, _bank.log_sum_exp, _bank.normalise_log_weights,
         _bank.most_probable, _bank.mixture_weights, _bank.mix_moments, _bank.weighted_noise,
-        _bank.imm_mix, _bank.mixed_start, _bank.imm_mix_by_sums, _bank.active_members,
+        _bank.imm_mix, _bank.predicted_weights, _bank.heavy_members, _bank.mixed_start,
+        _bank.imm_mix_by_sums, _bank.active_members,
         _bank.mix_moments_at, _vb_bank.predictive_loglik,
     ):  # fmt: skip
         register_jitable(_rule)

@@ -23,8 +23,11 @@ from its mixed start with its own Qu (the textbook interaction / predict / updat
 
 The rules are plain module-level functions on floats and float arrays (members' x as (M, 3),
 P as (M, 9) row-major), so that the filterpy-engine class below and the fast engine's compiled
-bank kernel (engines/kernels.py) call the same code. Design decisions (the gate, the counts,
-adaptation off) are in docs/DESIGN.md ("Multiple-model banks").
+bank kernel (engines/kernels_bank.py) call the same code; the one exception is B.4's form: the
+filterpy engine mixes by the dense rule (`imm_mix`), the fast engine by running sums
+(`imm_mix_by_sums`: the same starts in O(M log h + h), equal to rounding). Design decisions
+(the gate, the counts, adaptation off, the sums' tolerance) are in docs/DESIGN.md
+("Multiple-model banks").
 """
 
 from __future__ import annotations
@@ -199,6 +202,22 @@ def imm_mix(logw, p_stay, threshold, X, P, X0, P0, w, c, mu, x_tmp, P_tmp, heavy
     and is left out of every start without its division; the others are computed as the dense
     rule computes them, in the same order (the same bits)."""
     M = logw.shape[0]
+    p_off, _, cut = predicted_weights(logw, p_stay, threshold, w, c)
+    n_heavy = heavy_members(p_off, w, cut, heavy)
+    for j in range(M):
+        mixed_start(j, p_stay, p_off, threshold, X, P, X0, P0, w, c[j], mu, x_tmp, P_tmp, heavy,
+                     n_heavy, members)  # fmt: skip
+    for j in range(M):
+        logw[j] = math.log(c[j])
+
+
+def predicted_weights(logw, p_stay, threshold, w, c):
+    """B.4's weights: w_i = exp(logw_i) and the predicted c_j = sum_i p_ij w_i (O(1) per member)
+    into w, c (M,). Returns (p_off, their total, cut): p_off = (1 - p_stay) / (M - 1), and the
+    cut below which p_off w_i leaves member i out of every start but its own (half of
+    threshold * min c: the half covers the roundings; -inf where it is not finite: every member
+    counts, as the dense rule)."""
+    M = logw.shape[0]
     p_off = (1.0 - p_stay) / (M - 1) if M > 1 else 0.0
     total = 0.0
     for i in range(M):
@@ -206,23 +225,24 @@ def imm_mix(logw, p_stay, threshold, X, P, X0, P0, w, c, mu, x_tmp, P_tmp, heavy
         total += w[i]
     c_min = math.inf
     for j in range(M):
-        # c_j = sum_i p_ij w_i, in O(1) per member
         c[j] = p_off * (total - w[j]) + p_stay * w[j]
         if c[j] < c_min:
             c_min = c[j]
     cut = 0.5 * threshold * c_min
     if not (cut >= 0.0 and cut < math.inf):
-        cut = -math.inf  # NaN or inf weights: every member computed, as the dense rule
-    n_heavy = 0
-    for i in range(M):
+        cut = -math.inf  # NaN or inf weights
+    return p_off, total, cut
+
+
+def heavy_members(p_off, w, cut, heavy):
+    """Into `heavy`: the members i with p_off w_i at `cut` or above, in increasing order;
+    returns how many."""
+    n = 0
+    for i in range(w.shape[0]):
         if not p_off * w[i] < cut:
-            heavy[n_heavy] = i
-            n_heavy += 1
-    for j in range(M):
-        mixed_start(j, p_stay, p_off, threshold, X, P, X0, P0, w, c[j], mu, x_tmp, P_tmp, heavy,
-                     n_heavy, members)  # fmt: skip
-    for j in range(M):
-        logw[j] = math.log(c[j])
+            heavy[n] = i
+            n += 1
+    return n
 
 
 def mixed_start(j, p_stay, p_off, threshold, X, P, X0, P0, w, cj, mu, x_tmp, P_tmp, heavy,
@@ -287,23 +307,8 @@ def imm_mix_by_sums(logw, p_stay, threshold, X, P, X0, P0, w, c, mu, x_tmp, P_tm
     the dense rule (the wraps could differ), as do weights that are not finite. Scratch as
     imm_mix's, and order (M,) int, W (M + 1,), E (M + 1, 3), Q (M + 1, 9), spread (M + 1,)."""
     M = logw.shape[0]
-    p_off = (1.0 - p_stay) / (M - 1) if M > 1 else 0.0
-    total = 0.0
-    for i in range(M):
-        w[i] = math.exp(logw[i])
-        total += w[i]
-    c_min = math.inf
-    for j in range(M):
-        c[j] = p_off * (total - w[j]) + p_stay * w[j]
-        if c[j] < c_min:
-            c_min = c[j]
-    cut = 0.5 * threshold * c_min
-    n_heavy = 0
-    if cut >= 0.0 and cut < math.inf and total < math.inf:
-        for i in range(M):
-            if not p_off * w[i] < cut:
-                heavy[n_heavy] = i
-                n_heavy += 1
+    p_off, total, cut = predicted_weights(logw, p_stay, threshold, w, c)
+    n_heavy = heavy_members(p_off, w, cut, heavy) if cut > -math.inf and total < math.inf else 0
     if n_heavy == 0:  # weights not finite, or no member in another's start (p_stay 1)
         imm_mix(logw, p_stay, threshold, X, P, X0, P0, w, c, mu, x_tmp, P_tmp, heavy, members)
         return
@@ -374,11 +379,7 @@ def imm_mix_by_sums(logw, p_stay, threshold, X, P, X0, P0, w, c, mu, x_tmp, P_tm
         # members listed for it from here)
         for k in range(n_dense):
             order[k] = members[k]
-        n_heavy = 0
-        for i in range(M):
-            if not p_off * w[i] < cut:
-                heavy[n_heavy] = i
-                n_heavy += 1
+        n_heavy = heavy_members(p_off, w, cut, heavy)
         for k in range(n_dense):
             j = order[k]
             mixed_start(j, p_stay, p_off, threshold, X, P, X0, P0, w, c[j], mu, x_tmp, P_tmp,

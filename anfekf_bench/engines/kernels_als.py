@@ -31,6 +31,7 @@ maybe_njit = _k.maybe_njit
 jacobians, noise_scale, interval_step = _k.jacobians, _k.noise_scale, _k.interval_step
 predict_with = _k.predict_with
 innovation, nis, gain, correct = _k.innovation, _k.nis, _k.gain, _k.correct
+feeds_adaptation = _k.feeds_adaptation
 healthy, record, clip_to_bounds = _k.healthy, _k.record, _k.clip_to_bounds
 
 MOTION_BICYCLE, MOTION_UNICYCLE = _k.MOTION_BICYCLE, _k.MOTION_UNICYCLE
@@ -454,12 +455,9 @@ def run_als_kernel(
             if pending:
                 M, n_past = _finish(M, past_nu, past_D, n_past, pend_nu, pend_H, no_gain, R_basis)
                 pending = False
-            feeds = True
-            if not from_all and has_gate:
-                ok, v = nis(HPHt, R, nu[0], nu[1])
-                if not ok:
-                    return True, j, nis_sum, n_updates, n_rejected
-                feeds = v <= gate
+            ok, feeds = feeds_adaptation(HPHt, R, nu, from_all, gate, has_gate)
+            if not ok:
+                return True, j, nis_sum, n_updates, n_rejected
             if feeds:
                 if steps:  # ALSEKF._catch_up
                     _fill(F_scan_a, F_scan)

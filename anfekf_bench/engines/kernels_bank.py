@@ -31,8 +31,8 @@ maybe_njit = _k.maybe_njit
 step_terms, jacobians_at, noise_scale, predict_from = (
     _k.step_terms, _k.jacobians_at, _k.noise_scale, _k.predict_from,
 )  # fmt: skip
-innovation, nis, correct, healthy, record, hph_diag = (
-    _k.innovation, _k.nis, _k.correct, _k.healthy, _k.record, _k.hph_diag,
+innovation, nis, correct, healthy, record, hph_diag, feeds_adaptation = (
+    _k.innovation, _k.nis, _k.correct, _k.healthy, _k.record, _k.hph_diag, _k.feeds_adaptation,
 )  # fmt: skip
 clip_to_bounds = _k.clip_to_bounds
 vb_r_predict, vb_r_beta, vb_r_bounded_beta = _k.vb_r_predict, _k.vb_r_beta, _k.vb_r_bounded_beta
@@ -260,12 +260,9 @@ def run_bank_kernel(
                         R_prior = (Rm[i, 0], 0.0, 0.0, Rm[i, 1])
                     R = R_prior
                     if rule != RULE_GRID:
-                        feeds = True
-                        if not from_all and has_gate:
-                            ok, nis_a = nis(HPHt, R, nu[0], nu[1])
-                            if not ok:
-                                return True, j, nis_sum, n_updates, n_rejected
-                            feeds = nis_a <= gate
+                        ok, feeds = feeds_adaptation(HPHt, R, nu, from_all, gate, has_gate)
+                        if not ok:
+                            return True, j, nis_sum, n_updates, n_rejected
                         if feeds and rule == RULE_VB:  # VBREKF.before_gain
                             a0 = Ra[i, 0]
                             a1 = Ra[i, 1]

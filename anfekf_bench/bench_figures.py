@@ -74,6 +74,12 @@ DEFINITIONS = {
     "default_over_ekf_fast_step_cost": "per-step time of the default filter (a kind whose spec"
     " says `default_filter`, with its defaults: vb-imm, 9 members) over the EKF's, both on the"
     " fast engine (engine_step_us)",
+    "fast_e2e_paper_total_s": "the paper's four scenario files on the fast engine end to end"
+    " (`experiment.execute` in this process, caches warm, process start excluded), each the"
+    " median of its breakdown.E2E_REPEATS walls (fast_e2e_breakdown's e2e_walls_s), summed",
+    "fast_e2e_over_filter": "the largest over the paper scenarios of that median end-to-end wall"
+    " over the filters' own time (the breakdown's filter phase: every filter instance on every"
+    " run, one after the other in this process)",
     "report_paper_total_s": "the report of each paper scenario's fast-engine result (figures and"
     " HTML included), in this process, summed (the breakdown's report phases)",
     "make_zoo_s": "`make zoo` as it runs: `anfekf run configs/zoo` then `anfekf report` on it,"

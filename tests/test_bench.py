@@ -5,12 +5,14 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from statistics import median
 
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
 from anfekf_bench import bench
+from anfekf_bench import breakdown as breakdown_module
 from anfekf_bench.cli import app
 from anfekf_bench.config import parse_scenario, resolve_world
 
@@ -124,6 +126,8 @@ def test_quick_bench_writes_every_figure(tmp_path):
         }  # fmt: skip
         assert all(_finite_positive(v) for v in b["phases_s"].values()), name
         assert b["e2e_over_filter"] == pytest.approx(b["e2e_s"] / b["phases_s"]["filter"])
+        walls = b["e2e_walls_s"]  # the end-to-end figure is the median of its repeats
+        assert len(walls) == breakdown_module.E2E_REPEATS and b["e2e_s"] == median(walls)
     assert breakdown["e2e_total_s"] == pytest.approx(
         sum(b["e2e_s"] for b in breakdown["scenarios"].values())
     )

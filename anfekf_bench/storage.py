@@ -55,12 +55,7 @@ STAGING_DIR = "result"  # in RUNS_DIR: a finished batch's files before they repl
 RESULT_FORMAT = "anfekf-bench result v1"  # manifest.json's "format": what marks a folder as ours
 # A problem beyond the robot's result (SPEC 17, problems.experiment): its manifest's format, tables
 PROBLEM_FORMAT = "anfekf-bench problem result v1"
-PROBLEM_TABLES = {
-    "summary": "problem_summary.parquet",
-    "runs": "problem_runs.parquet",
-    "noise": "problem_noise.parquet",
-    "timing": "problem_timing.parquet",
-}
+PROBLEM_TABLES = {t: f"problem_{t}.parquet" for t in ("summary", "runs", "noise", "timing")}
 # The drive audit's tables (drive_audit, SPEC 18): a `protocol: drives` result only
 AUDIT_FILES = {
     "drives": "audit_drives.parquet",
@@ -363,12 +358,13 @@ def _open_result(path: Path, limit: int) -> BinaryIO:
         raise ResultsError(f"{path}: {exc}") from None
 
 
-def read_parquet(path: Path) -> pd.DataFrame:
+def read_parquet(path: Path, columns: list[str] | None = None) -> pd.DataFrame:
+    """A result's Parquet table, or only its `columns` (a missing one: ResultsError)."""
     pa, pq = _arrow()
     path = Path(path)
     with _open_result(path, PARQUET_LIMIT) as fh, _arrow_file(fh) as source:
         try:
-            return pq.read_table(source).to_pandas()
+            return pq.read_table(source, columns=columns).to_pandas()
         except (pa.ArrowException, OSError, ValueError) as exc:
             first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             raise ResultsError(f"{path}: not a readable Parquet file ({first})") from None
@@ -656,8 +652,9 @@ def read_steps(scenario_dir: Path) -> pd.DataFrame:
         if df[column].isna().any():
             raise ResultsError(f"{Path(scenario_dir) / STEPS_FILE}: {column}: empty cells")
     if not isinstance(df["filter"].dtype, pd.CategoricalDtype):
-        # the filters in order of first appearance (pd.unique: not a Python loop over the rows)
-        df["filter"] = pd.Categorical(df["filter"], categories=list(pd.unique(df["filter"])))
+        # the filters in order of first appearance (one hash pass over the rows, no Python loop)
+        codes, names = pd.factorize(df["filter"])
+        df["filter"] = pd.Categorical.from_codes(codes, categories=list(names))
     return df
 
 

@@ -172,3 +172,32 @@ def test_a_table_of_another_batch_is_refused_on_read(tmp_path):
         result.read(SUMMARY_PARQUET)
     with pytest.raises(ResultsError, match="phases.parquet: missing"):
         result.read("phases.parquet")
+
+
+def _steps_of_a_batch(runs: int = 3, steps: int = 4) -> pd.DataFrame:
+    rows = [
+        {"scenario": "s", "filter": f, "run": r, "step": 8 * (k + 1)}
+        for f in ("ekf", "anfekf") for r in range(runs) for k in range(steps)
+    ]  # fmt: skip
+    df = pd.DataFrame(rows)
+    df["filter"] = pd.Categorical(df["filter"], categories=["ekf", "anfekf"])
+    return df
+
+
+@pytest.mark.parametrize("shuffled", [False, True])
+def test_a_batch_table_passes_the_saved_result_checks_in_any_row_order(tmp_path, shuffled):
+    from anfekf_bench.report.consistency import check_saved_result
+
+    manifest = {"scenario": {"name": "s"}, "runs": 3, "filters": [{"name": "ekf"}]}
+    steps = _steps_of_a_batch()
+    if shuffled:  # not as a batch writes it: the check sorts before comparing the steps
+        steps = steps.sample(frac=1.0, random_state=3).reset_index(drop=True)
+    check_saved_result(tmp_path, steps, manifest)
+    ragged = steps.copy()
+    ragged.loc[(ragged["run"] == 2) & (ragged["filter"] == "anfekf"), "step"] += 1
+    with pytest.raises(ResultsError, match="recorded at different steps"):
+        check_saved_result(tmp_path, ragged, manifest)
+    one = (steps["filter"] == "ekf") & (steps["run"] == 1) & (steps["step"] == 16)
+    dup = pd.concat([steps, steps[one]], ignore_index=True)
+    with pytest.raises(ResultsError, match=r"duplicated rows \(filter 'ekf', run 1, step 16"):
+        check_saved_result(tmp_path, dup, manifest)

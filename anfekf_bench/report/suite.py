@@ -38,7 +38,7 @@ def suite_input(sc: ScenarioData) -> SuiteScenario | None:
     path = sc.folder / "steps.parquet"
     if oracle is None or not path.exists():
         return None
-    steps = read_parquet(path)[_COLUMNS]
+    steps = read_parquet(path, columns=_COLUMNS)
     steps = steps.assign(filter=steps["filter"].astype(str)).sort_values(["filter", "run", "step"])
     filters = {}
     for name, sub in steps.groupby("filter", sort=False):

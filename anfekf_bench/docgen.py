@@ -8,8 +8,8 @@ comments (`TARGETS` says which file holds which):
   (docs/reference/filters.md);
 - `cli-reference`: every `anfekf` command with its usage, arguments and options, read from the
   command tree of the typer app (docs/reference/cli.md);
-- `bench-timing` and `bench-figures`: the latest `make bench` figures and the machine they were
-  measured on, read from results/bench.json (README.md, docs/results/).
+- `bench-timing`, `bench-figures` and `bench-fast`: the latest `make bench` figures and the
+  machine they were measured on, read from results/bench.json (README.md, docs/results/).
 It also writes the JSON Schemas of a scenario file (`SCHEMAS`: docs/scenario.schema.json,
 docs/recorded-scenario.schema.json and docs/problem-scenario.schema.json) that editors use
 for completion and checking.
@@ -399,6 +399,43 @@ def bench_figures_markdown(root: Path) -> str:
     return "\n".join([head, "", *_table(("figure", "value", "target", "met"), rows)])
 
 
+def bench_fast_markdown(root: Path) -> str:
+    """The latest bench's fast-engine figures end to end: compile and cache load, the step
+    scenario, the sweep, the command, the paper's four (the breakdown), `make zoo`."""
+    bench = _bench(root)
+
+    def row(figure: str, key: str, value: str) -> tuple[str, ...]:
+        return (figure, value, *_target(bench, key))
+
+    def s(key: str) -> str:
+        v = bench.get(key)
+        return "-" if v is None else f"{v:.{0 if v >= 100 else 1 if v >= 10 else 2}f} s"
+
+    zoo = bench.get("make_zoo") or {}
+    split = f" (run {zoo['run_s']:.0f} s, report {zoo['report_s']:.0f} s)" if zoo else ""
+    worst = bench.get("fast_e2e_over_filter")
+    rows = [
+        row("every kernel compiled from an empty cache (`fast_compile_s`)", "fast_compile_s",
+            s("fast_compile_s")),
+        row("the same loaded from numba's cache (`fast_cache_load_s`)", "fast_cache_load_s",
+            s("fast_cache_load_s")),
+        row("a 50-run paper scenario, 4 filters, 2 workers (`fast_e2e_scenario_s`)",
+            "fast_e2e_scenario_s", s("fast_e2e_scenario_s")),
+        row("1500 filter-runs with summaries only (`fast_sweep_batch_s`)", "fast_sweep_batch_s",
+            s("fast_sweep_batch_s")),
+        row("`anfekf run` of that scenario from a fresh shell (`fast_e2e_cli_s`)",
+            "fast_e2e_cli_s", s("fast_e2e_cli_s")),
+        row("the paper's four scenarios end to end (`fast_e2e_paper_total_s`)",
+            "fast_e2e_paper_total_s", s("fast_e2e_paper_total_s")),
+        row("the worst end to end / filters' own time (`fast_e2e_over_filter`)",
+            "fast_e2e_over_filter", "-" if worst is None else f"{worst:.2f} x"),
+        row("`make zoo` (`make_zoo_s`)", "make_zoo_s", s("make_zoo_s") + split),
+        row("functions compiled by the first run after `make setup` (`first_run_compiled`)",
+            "first_run_compiled", str(bench.get("first_run_compiled", "-"))),
+    ]  # fmt: skip
+    return "\n".join(_table(("figure", "value", "target", "met"), rows))
+
+
 def _filter_count(path: Path) -> int:
     import yaml
 
@@ -442,6 +479,7 @@ BLOCKS: dict[str, tuple[str, Callable[[Path], str]]] = {
     "cli-reference": ("the commands", lambda root: cli_reference_markdown()),
     "bench-timing": (str(BENCH_FILE), bench_timing_markdown),
     "bench-figures": (str(BENCH_FILE), bench_figures_markdown),
+    "bench-fast": (str(BENCH_FILE), bench_fast_markdown),
 }
 # The files that hold generated blocks, and the blocks each must hold.
 TARGETS: dict[str, tuple[str, ...]] = {
@@ -450,7 +488,7 @@ TARGETS: dict[str, tuple[str, ...]] = {
     "docs/reference/filters.md": ("filter-kinds",),
     "docs/reference/cli.md": ("cli-reference",),
     "docs/results/paper.md": ("bench-timing",),
-    "docs/results/performance.md": ("bench-figures",),
+    "docs/results/performance.md": ("bench-figures", "bench-fast"),
 }
 
 

@@ -52,3 +52,18 @@ def test_key_columns_as_text_equal_astype_str() -> None:
         got, want = _as_str(col), col.astype(str)
         assert got.dtype == want.dtype
         pd.testing.assert_series_equal(got, want, check_names=False)
+
+
+def test_in_key_order_is_whether_lexsort_would_leave_the_rows_as_they_are():
+    from anfekf_bench.analysis.tables import in_key_order
+
+    rng = np.random.default_rng(7)
+    for _ in range(500):
+        n = int(rng.integers(1, 9))
+        keys = [rng.integers(0, 3, n) for _ in range(int(rng.integers(1, 4)))]
+        stacked = np.stack(keys)
+        unchanged = np.array_equal(stacked[:, np.lexsort(keys[::-1])], stacked)
+        assert in_key_order(*keys) == unchanged, keys
+    assert in_key_order(np.array([0, 0, 1]), np.array([2, 3, 0]))
+    assert not in_key_order(np.array([0, 0, 1]), np.array([3, 2, 0]))  # the second key decides
+    assert not in_key_order(np.array([1, 0]), np.array([0, 1]))  # the first key comes first

@@ -83,6 +83,15 @@ def steps_frame(
     return pd.DataFrame(cols, columns=STEP_COLUMNS, copy=False)
 
 
+def in_key_order(*keys: np.ndarray) -> bool:
+    """Whether rows given by equal-length key columns (most significant first) are sorted by
+    them, ties allowed: what np.lexsort of the reversed keys would leave as it is."""
+    ok = keys[-1][1:] >= keys[-1][:-1]
+    for key in reversed(keys[:-1]):
+        ok = (key[1:] > key[:-1]) | ((key[1:] == key[:-1]) & ok)
+    return bool(np.all(ok))
+
+
 def filter_arrays(steps: pd.DataFrame, name: str) -> dict[str, np.ndarray]:
     """(runs, steps) arrays of one filter's pos_err, heading_err, nees, R/Q and run ids."""
     # The columns it needs, picked by one mask and one stable (run, step) order: what
@@ -95,9 +104,7 @@ def filter_arrays(steps: pd.DataFrame, name: str) -> dict[str, np.ndarray]:
     if len(found) and found[-1] - found[0] + 1 == len(found):
         rows = slice(int(found[0]), int(found[-1]) + 1)
     run, step = steps["run"].to_numpy()[rows], steps["step"].to_numpy()[rows]
-    later = run[1:] > run[:-1]
-    in_order = np.all(later | ((run[1:] == run[:-1]) & (step[1:] >= step[:-1])))
-    order = slice(None) if in_order else np.lexsort((step, run))  # in order: no copy
+    order = slice(None) if in_key_order(run, step) else np.lexsort((step, run))  # no copy
 
     def col(c: str) -> np.ndarray:
         view = steps[c].to_numpy()[rows][order]

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ..analysis.tables import in_key_order
 from ..config import FILTER_NAME_PATTERN
 from ..storage import MANIFEST_FILE, STEPS_FILE, ResultsError, scenario_name_problem
 
@@ -87,7 +88,8 @@ def check_saved_result(folder: Path, steps: pd.DataFrame, manifest: dict) -> Non
             f"{steps_path}: filter {str(absent[0])[:40]!r} of {manifest_path} has no rows"
         )
     # the filter as its position in `filters`: the checks below compare integers, not names
-    key = pd.DataFrame({"filter": codes, "run": steps["run"].to_numpy(), "step": steps["step"]})
+    run, step = steps["run"].to_numpy(), steps["step"].to_numpy()
+    key = pd.DataFrame({"filter": codes, "run": run, "step": step})
     if key.duplicated().any():
         dup = key[key.duplicated()].iloc[0]
         raise ResultsError(
@@ -113,12 +115,8 @@ def check_saved_result(folder: Path, steps: pd.DataFrame, manifest: dict) -> Non
     counts = key.groupby(["filter", "run"], sort=False).size()
     if counts.nunique() != 1:
         raise ResultsError(f"{steps_path}: filters or runs have different numbers of steps")
-    f, r, st = (key[c].to_numpy() for c in ("filter", "run", "step"))
-    in_order = np.all(
-        (f[1:] > f[:-1])
-        | ((f[1:] == f[:-1]) & ((r[1:] > r[:-1]) | ((r[1:] == r[:-1]) & (st[1:] >= st[:-1]))))
-    )  # as a batch writes its table: no sort
-    ordered = st if in_order else st[np.lexsort((st, r, f))]
+    # as a batch writes its table, in (filter, run, step) order: no sort
+    ordered = step if in_key_order(codes, run, step) else step[np.lexsort((step, run, codes))]
     grid = ordered.reshape(len(counts), int(counts.iloc[0]))
     if not (grid == grid[0]).all():
         raise ResultsError(f"{steps_path}: filters or runs were recorded at different steps")

@@ -13,8 +13,8 @@ $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e ".[dev,dask,fast]"
-	@# numba compiles on one core: two processes side by side (CPU measured: 137 + 84 s, 169 s),
-	@# the robot's one loop (every family on it) and then the problems' loops (SPEC 17) in one,
+	@# numba compiles on one core: two processes side by side (measured 2026-11-28: 37 + 34 s
+	@# beside 73 s), the robot's families' loops and then the problems' loops (SPEC 17) in one,
 	@# the robot's other kernels in the other (cache writes locked: fast.serialise_cache_writes).
 	$(PY) -m anfekf_bench.engines.fast --warm-up --part kernels & kernels=$$!; \
 	    $(PY) -m anfekf_bench.engines.fast --warm-up --part loop \

@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from anfekf_bench.config import parse_scenario, resolve_world
-from anfekf_bench.engines import fast, kernels, loop
+from anfekf_bench.engines import families, fast, kernels, loop
 from anfekf_bench.engines.filterpy_engine import _healthy, run_filter
 from anfekf_bench.filters import (
     ANFEKFSpec,
@@ -172,11 +172,45 @@ def test_kernels_are_compiled_when_numba_is_installed():
     numba = pytest.importorskip("numba")
     assert fast.JIT and kernels.JIT
     assert isinstance(kernels.correct, numba.core.registry.CPUDispatcher)
-    assert isinstance(loop.run_loop, numba.core.registry.CPUDispatcher)
+    anfekf = families.module("anfekf")
+    assert isinstance(loop.compiled_loop(anfekf), numba.core.registry.CPUDispatcher)
+    assert loop.compiled_loop(anfekf) is loop.compiled_loop(anfekf)  # one per family
+    assert not isinstance(loop.run_loop, numba.core.registry.CPUDispatcher)  # the template
     pure = KERNELS["pure"]
     assert not pure.JIT
     assert not isinstance(pure.correct, numba.core.registry.CPUDispatcher)
-    assert not isinstance(loop.pure_module().run_loop, numba.core.registry.CPUDispatcher)
+    pure_loop = loop.pure_module()
+    assert pure_loop.compiled_loop(families.module("anfekf", pure=True)) is pure_loop.run_loop
+
+
+def test_a_family_loop_is_generated_once_from_the_template_and_named_by_its_sources(
+    tmp_path, monkeypatch
+):
+    """`compiled_loop`'s module: run_loop's own source with the family's hooks, written where
+    NUMBA_CACHE_DIR says, never rewritten (numba's cache checks the file's time stamp), named by
+    a digest of every source the loop reaches (the family's hooks and the filters' rules)."""
+    import inspect
+
+    config = pytest.importorskip("numba.core.config")
+    monkeypatch.setattr(config, "CACHE_DIR", str(tmp_path))
+    sage_husa = families.module("sage_husa")
+    generated = loop._generated_module(sage_husa)
+    path = Path(generated.__file__)
+    assert path.parent == tmp_path / "anfekf_loops"
+    text = path.read_text()
+    assert text == loop._loop_source(sage_husa) and inspect.getsource(loop.run_loop) in text
+    assert generated.end_scan.py_func is sage_husa.end_scan  # the family's hook, inlined
+    assert generated.rejected.py_func is loop.DEFAULTS["rejected"]  # a hook it leaves out
+    reached = {m.__name__ for m in loop._reached_modules(sage_husa, loop)}
+    assert {"anfekf_bench.filters.sage_husa", "anfekf_bench.engines.kernels"} <= reached
+    stamp = path.stat().st_mtime_ns
+    again = loop._generated_module(sage_husa)
+    assert again.__file__ == generated.__file__ and path.stat().st_mtime_ns == stamp
+    loop._write_once(path, "other text")  # another process's write never replaces the file
+    assert path.read_text() == text and path.stat().st_mtime_ns == stamp
+    assert list(path.parent.glob(".tmp-*")) == []
+    other = loop._generated_module(families.module("iae"))
+    assert other.__file__ != generated.__file__
 
 
 _WITHOUT_NUMBA = """
@@ -617,8 +651,8 @@ def test_every_kernel_a_spec_names_has_its_runner_and_no_kind_names_two_ways():
 
 
 def test_the_warm_up_parts_are_the_whole_warm_up_split_by_the_loop():
-    """`make setup` compiles the parts side by side: every family on the one loop in "loop"
-    (one function's cache entries from one process), every other kernel in "kernels"."""
+    """`make setup` compiles the parts side by side: every family's loop in "loop", every
+    other kernel in "kernels"."""
     from anfekf_bench.filters.spec import fast_family_of
 
     whole = [type(s) for s in fast.warm_up_specs()]

@@ -9,12 +9,12 @@ What it runs (`supports`): every built-in kind (fast_support.py), on both motion
 bicycle of the simulated scenarios, the unicycle of recorded logs: a kernel argument). A family
 that runs as one EKF (the EKF and its fitted and oracle forms, the ANFEKF, cm-scale, sage-husa,
 iae, akhlaghi, vb-r, vbakf, fading) runs on the one loop (`loop.run_loop`, its steps in
-`engines/families/`); the banks `mmae`, `imm` and `vb-imm` on one bank kernel
-(`kernels_bank.run_bank_kernel`); `swvb`, `als`, the augmented EKFs and the trained `kalmannet`
-on kernels of their own (`kernels_swvb`, `kernels_als`, `kernels_augmented`,
-`kernels_kalmannet`, its weights passed as arrays). Each family's rules are the plain functions
-of its filter module, called by both engines. Anything else (a user's own filter) is not
-implemented here: the caller runs it on filterpy.
+`engines/families/`, compiled per family by `loop.compiled_loop`); the banks `mmae`, `imm` and
+`vb-imm` on one bank kernel (`kernels_bank.run_bank_kernel`); `swvb`, `als`, the augmented EKFs
+and the trained `kalmannet` on kernels of their own (`kernels_swvb`, `kernels_als`,
+`kernels_augmented`, `kernels_kalmannet`, its weights passed as arrays). Each family's rules
+are the plain functions of its filter module, called by both engines. Anything else (a user's
+own filter) is not implemented here: the caller runs it on filterpy.
 
 Its input is the one contract of a run, a `timeline.Timeline` (a simulated run through
 `timeline.from_run`, a recorded span through `timeline.timeline`): every kernel loops over its
@@ -171,15 +171,15 @@ def _run_swvb(spec: SWVBSpec, ctx: FilterContext, run: tuple, x, P, R, Qu, n, ji
 
 
 def _run_family(spec: FilterSpec, ctx: FilterContext, run: tuple, x, P, R, Qu, n, jit) -> dict:
-    """A family of the loop (`engines/families`, `loop.run_loop`)."""
+    """A family of the loop (`engines/families`, `loop.compiled_loop`)."""
     pure = JIT and not jit
     family = families.for_spec(spec, pure)
-    lp = _loop.pure_module() if pure else _loop
+    run_loop = _loop.pure_module().run_loop if pure else _loop.compiled_loop(family)
     P_infl = np.full(n, np.nan)
     fam = family.params(spec, ctx)
     if hasattr(family, "for_run"):  # arrays sized by the run (loop.py: the optional `for_run`)
         fam = family.for_run(fam, run[2])
-    diverged, j, nis_sum, n_updates, n_rejected = lp.run_loop(
+    diverged, j, nis_sum, n_updates, n_rejected = run_loop(
         fam, *_common_args(ctx, run), run[-1], x, P, R, Qu, P_infl
     )
     return _result(x, P, R, Qu, n, diverged, j, nis_sum, n_updates, n_rejected, P_infl)
@@ -324,9 +324,9 @@ def _vb_imm_args(kb, spec: VBIMMSpec, ctx: FilterContext) -> tuple:
     )  # fmt: skip
 
 
-# The kernels `warm_up` calls directly (their callees compile, and are cached, with them).
+# The kernels `warm_up` calls directly besides the families' loops (their callees compile, and
+# are cached, with them).
 WARM_UP_KERNELS = (
-    (_loop, "run_loop"),
     (_jit_kernels_swvb, "run_swvb_kernel"),
     (_jit_kernels_als, "run_als_kernel"),
     (_jit_kernels_kalmannet, "run_kalmannet_kernel"),
@@ -345,18 +345,17 @@ def kernels_cached() -> bool | None:
     if not JIT:
         return None
     try:
-        return all(
-            bool(getattr(module, name)._cache._cache_file._load_index())
-            for module, name in WARM_UP_KERNELS
-        )
+        loops = [_loop.compiled_loop(families.for_spec(s)) for s in warm_up_specs("loop")]
+        kernels = [getattr(module, name) for module, name in WARM_UP_KERNELS]
+        return all(bool(k._cache._cache_file._load_index()) for k in loops + kernels)
     except Exception:  # a private numba API: any change means "unknown"
         return None
 
 
 # `make setup` compiles the warm-up in two processes side by side (numba compiles on one core):
-# "loop", every family on the one loop (one function, `loop.run_loop`, specialised per family:
-# its cache entries must come from one process), and "kernels", the kernels of their own, the
-# fits' kernels and the simulator's truth loop.
+# "loop", every family's loop (`loop.compiled_loop`), then the problems' loops, and "kernels",
+# the kernels of their own, the fits' kernels and the simulator's truth loop (about 70 s each,
+# 2026-11-28).
 WARM_UP_PARTS = ("loop", "kernels")
 
 

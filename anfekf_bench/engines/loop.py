@@ -8,18 +8,15 @@ then the record. The family's per-event steps are plain numeric functions in its
 `corrected`, `end_scan`, `inflation`: the protocol below), called on the family's parameters
 `fam` (a namedtuple of the module, `Params`) and its state `st` (a tuple the hooks return anew).
 
-How the loop reaches a family's hooks (docs/DESIGN.md, "One loop, one module per family"): each
-hook name here is a stub that, compiled, numba resolves by the TYPE of `fam` (`overload`: the
-namedtuple's class names its module, whose function of that name is inlined into the loop's
-numba IR: numba then prunes the reference counts of the state passing through it), so
-`run_loop` is compiled once per family, as one kernel per family was, and numba's disk cache
-keeps every specialisation (a loop that took the hooks as function arguments would be compiled
-again in every process: numba does not cache such signatures). Run as plain Python (no numba, or
-`pure_module()`), the stubs call the same functions by the same lookup.
-
-numba's disk cache is keyed on THIS file's contents: after editing a family's hooks, delete
-__pycache__/loop.*.nbi so that the loop is compiled again (the equivalence tests fail on a
-stale cache).
+How the loop reaches a family's hooks (docs/DESIGN.md, "One loop, one module per family"):
+run as plain Python (no numba, or `pure_module()`), each hook name here is a stub that calls the
+function of that name in the module of `fam`'s class. Compiled, `compiled_loop(module)` writes
+`run_loop`'s source into a module of its own with the family's hooks bound to those names as
+numba functions that numba inlines into the loop's IR (`inline_hook`); numba compiles that
+module's `run_loop` once per family and caches it on disk like any kernel (a loop that took the
+hooks as function arguments would be compiled again in every process: numba does not cache such
+signatures). The generated file's name carries a digest of every source the loop reaches, so an
+edit of a family's hooks or of a rule they call compiles its loop anew.
 """
 
 from __future__ import annotations
@@ -95,12 +92,6 @@ DEFAULTS = {
 HOOKS = tuple(DEFAULTS)
 
 
-# numba IR inlining of the hooks ("never": LLVM's inlining of a call, which leaves the reference
-# counts of a state with arrays; the families on the loop took 1.1-1.3 times their former
-# kernels' time per step that way, docs/DESIGN.md)
-INLINE = "always"
-
-
 def family_of(fam):
     """The module holding the hooks of parameters `fam` (its namedtuple's module)."""
     return sys.modules[type(fam).__module__]
@@ -112,51 +103,45 @@ _REGISTERED: set = set()
 JIT_OPTIONS = {"error_model": "numpy"}
 
 
-def _hook(module, name: str):
-    """The hook `name` of a family module (or the default), every function the module defines
-    registered with numba first (once), so that compiled code calls the hooks and their
-    helpers."""
+def _register(module) -> None:
+    """Register every function `module` defines with numba (once), so that compiled code can
+    call the family's helpers (its hooks are inlined: `inline_hook`)."""
     import inspect
 
     from numba.extending import register_jitable
 
-    if not _REGISTERED:
-        for fn in DEFAULTS.values():
-            register_jitable(**JIT_OPTIONS)(fn)
-        _REGISTERED.add(__name__)
     if module.__name__ not in _REGISTERED:
         for fn in vars(module).values():
             if inspect.isfunction(fn) and fn.__module__ == module.__name__:
                 register_jitable(**JIT_OPTIONS)(fn)
         _REGISTERED.add(module.__name__)
-    return getattr(module, name, DEFAULTS[name])
+
+
+_INLINE_HOOKS: dict = {}
+
+
+def inline_hook(module, name: str):
+    """The hook `name` of family `module` (or the default) as a numba function that numba
+    inlines into its caller's IR before typing it (`inline="always"`): typed once, in the loop,
+    where numba prunes the reference counts of the state passing through it."""
+    key = (module.__name__, name)
+    if key not in _INLINE_HOOKS:
+        from numba import njit
+
+        _register(module)
+        hook = getattr(module, name, DEFAULTS[name])
+        _INLINE_HOOKS[key] = njit(inline="always", **JIT_OPTIONS)(hook)
+    return _INLINE_HOOKS[key]
 
 
 def _stub(name: str):
-    """The stub of hook `name`: its default's arguments spelt out (numba inlines an overload
-    into the loop's IR only for a function without `*args`), calling the family's hook."""
-    import inspect
+    """The hook `name` of the family that defines `fam` (run as plain Python)."""
 
-    params = ", ".join(inspect.signature(DEFAULTS[name]).parameters)
-    src = (
-        f"def {name}({params}):\n"
-        f"    return getattr(family_of(fam), {name!r}, DEFAULTS[{name!r}])({params})\n"
-    )
-    scope = {"family_of": family_of, "DEFAULTS": DEFAULTS}
-    exec(src, scope)
-    stub = scope[name]
-    stub.__doc__ = f"The family's `{name}` hook (resolved by the type of `fam`)."
-    if JIT and not _PURE_COPY:
-        from numba.extending import overload
+    def stub(fam, *args):
+        return getattr(family_of(fam), name, DEFAULTS[name])(fam, *args)
 
-        def _resolve(*types):
-            hook = _hook(sys.modules[types[0].instance_class.__module__], name)
-            return hook
-
-        typing: dict = {"_resolve": _resolve}  # the typer: the stub's signature, spelt out
-        exec(f"def typer({params}):\n    return _resolve({params})\n", typing)
-        overload(stub, inline=INLINE)(typing["typer"])
-
+    stub.__name__ = stub.__qualname__ = name
+    stub.__doc__ = f"The family's `{name}` hook (resolved by the module of `fam`'s class)."
     return stub
 
 
@@ -165,7 +150,6 @@ start, predicted, begin_scan, before_gain, rejected, corrected, end_scan, inflat
 )
 
 
-@maybe_njit
 def run_loop(
     fam, u_odo, dt, scan_start, scan_lm, scan_z, motion, B, T0, x0, P0, Qu0, R0, gate, has_gate,
     record_at, out_x, out_P, out_R, out_Q, out_infl,
@@ -238,6 +222,140 @@ def run_loop(
             bad_record = bad_record or bad
     # health is checked at scans; a blow-up after the last one shows in the records
     return bad_record, j, nis_sum, n_updates, n_rejected
+
+
+# The compiled loop of a family: run_loop's source above, written with the family's hooks into a
+# module of its own (`_loop_source`), which numba compiles and caches on disk like any kernel.
+# One module per family, not one `run_loop` specialised by the type of `fam` through `overload`
+# stubs (the way before): numba compiles an overload's implementation whole before inlining it
+# and compiles the hooks' callees a second time under the loop's flags, so that way took 1.4
+# times as long to compile, for the same machine code (docs/DESIGN.md, "One loop, one module
+# per family").
+_COMPILED: dict = {}
+
+
+def compiled_loop(module):
+    """`run_loop` for family `module`: numba-compiled (and cached) when numba is in use, else
+    this module's plain-Python `run_loop`."""
+    if not JIT or _PURE_COPY:
+        return run_loop
+    if module.__name__ not in _COMPILED:
+        _COMPILED[module.__name__] = _generated_module(module).run_loop
+    return _COMPILED[module.__name__]
+
+
+def _loop_source(module) -> str:
+    """The source of the module that compiles `run_loop` for family `module`."""
+    import inspect
+
+    code = run_loop.__code__
+    names = [n for n in code.co_names if n in globals() and n not in HOOKS]
+    return (
+        f"# Generated by {__name__}.compiled_loop from its run_loop, for the family\n"
+        f"# {module.__name__}; not to be edited (written anew under another name when\n"
+        "# either source changes).\n"
+        "import importlib\n\n"
+        f"from {__name__} import HOOKS, inline_hook, maybe_njit\n"
+        f"from {__name__} import {', '.join(names)}  # noqa: F401\n\n"
+        f"_family = importlib.import_module({module.__name__!r})\n"
+        f"{', '.join(HOOKS)} = (inline_hook(_family, name) for name in HOOKS)\n\n\n"
+        f"@maybe_njit\n{inspect.getsource(run_loop)}"
+    )
+
+
+def _generated_module(module):
+    """Import (writing it first if need be) the module of `_loop_source(module)`. Its file's
+    name carries a digest of its text and of the sources of every module the loop can reach
+    (`_reached_modules`: the family's, the kernels, the filters' rules), so that an edit of any
+    of them compiles anew; the file is never rewritten (numba's cache checks its time stamp)."""
+    import hashlib
+    import importlib.util
+
+    text = _loop_source(module)
+    digest = hashlib.sha256(text.encode())
+    for reached in _reached_modules(module, sys.modules[__name__]):
+        digest.update(open(reached.__file__, "rb").read())
+    digest = digest.hexdigest()[:16]
+    name = f"{module.__name__.rsplit('.', 1)[-1]}_{digest}"
+    path = _generated_folder() / f"loop_{name}.py"
+    if not path.is_file():
+        _write_once(path, text)
+    spec = importlib.util.spec_from_file_location(f"{__name__}_{name}", path)
+    generated = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = generated
+    spec.loader.exec_module(generated)
+    return generated
+
+
+def _reached_modules(*roots) -> list:
+    """This package's modules whose functions a compiled loop can call, from `roots`: each
+    module's globals that are modules or functions of the package, followed to the end."""
+    import inspect
+    import types
+
+    seen: dict = {}
+    todo = list(roots)
+    while todo:
+        mod = todo.pop()
+        if mod.__name__ in seen:
+            continue
+        seen[mod.__name__] = mod
+        for value in vars(mod).values():
+            if isinstance(value, types.ModuleType):
+                name = value.__name__
+            elif inspect.isfunction(value) or hasattr(value, "py_func"):
+                name = getattr(value, "__module__", None) or ""
+            else:
+                continue
+            if name.startswith(f"{__package__.split('.')[0]}.") and name in sys.modules:
+                todo.append(sys.modules[name])
+    return [seen[name] for name in sorted(seen)]
+
+
+def _generated_folder():
+    """Where the generated loops go: beside numba's cache when NUMBA_CACHE_DIR names one, else
+    this package's __pycache__ (numba's cache of them goes beside them), else the user's
+    cache folder (a read-only install)."""
+    import os
+    from pathlib import Path
+
+    from numba.core.config import CACHE_DIR
+
+    folders = [Path(CACHE_DIR) / "anfekf_loops"] if CACHE_DIR else []
+    folders += [
+        Path(__file__).parent / "__pycache__" / "loops",
+        Path.home() / ".cache" / "anfekf-bench" / "loops",
+    ]
+    for folder in folders:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            continue
+        if os.access(folder, os.W_OK):
+            return folder
+    raise OSError(f"no writable folder for the fast engine's loops (tried {folders[0]})")
+
+
+def _write_once(path, text: str) -> None:
+    """Create `path` holding `text`, whole, unless it exists: a hard link of a complete
+    temporary file, so that a process writing it beside another never changes the time stamp
+    that the other's numba cache recorded."""
+    import os
+    import tempfile
+
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".py")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            pass
+        except OSError:  # no hard links here: the rename is atomic too
+            os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
 
 
 def pure_module():

@@ -93,12 +93,15 @@ class PlanError(ValueError):
 
 
 @functools.cache  # the imported code cannot change under a running process; hashing it is ~50 ms
-def code_version() -> str:
-    """Hash of this package's source: runs saved by other code must not be resumed into a batch."""
+def code_version(package: Path | None = None) -> str:
+    """Hash of this package's source: runs saved by other code must not be resumed into a batch.
+    Files under __pycache__ are not source (the fast engine writes its generated loops there:
+    engines/loop.py), so a first fast run does not change the version mid-batch."""
     digest = hashlib.sha256()
-    package = Path(__file__).parent
+    package = Path(__file__).parent if package is None else package
     for path in sorted(package.rglob("*.py")):
-        digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes())
+        if "__pycache__" not in path.relative_to(package).parts:
+            digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes())
     return digest.hexdigest()[:16]
 
 

@@ -213,6 +213,25 @@ def test_a_family_loop_is_generated_once_from_the_template_and_named_by_its_sour
     assert other.__file__ != generated.__file__
 
 
+def test_the_code_version_ignores_the_generated_loops(tmp_path):
+    """A batch's fingerprint holds the package's code version: the loops a first fast run
+    writes under __pycache__ must not change it between one process and the next."""
+    from anfekf_bench import outputs
+
+    def package(name: str, files: dict[str, str]) -> Path:  # code_version is cached per folder
+        for rel, text in files.items():
+            (tmp_path / name / rel).parent.mkdir(parents=True, exist_ok=True)
+            (tmp_path / name / rel).write_text(text)
+        return tmp_path / name
+
+    before = outputs.code_version(package("before", {"a.py": "x = 1\n"}))
+    generated = {"a.py": "x = 1\n", "__pycache__/loops/loop_fading_0123.py": "y = 2\n"}
+    assert outputs.code_version(package("generated", generated)) == before
+    edited = {"a.py": "x = 1\n", "b.py": "y = 2\n"}
+    assert outputs.code_version(package("edited", edited)) != before
+    assert outputs.code_version() == outputs.code_version(Path(outputs.__file__).parent)
+
+
 _WITHOUT_NUMBA = """
 import json, sys
 sys.modules["numba"] = None  # `import numba` now raises ImportError, as when it is not installed

@@ -208,7 +208,7 @@ def test_a_family_loop_is_generated_once_from_the_template_and_named_by_its_sour
     assert again.__file__ == generated.__file__ and path.stat().st_mtime_ns == stamp
     loop._write_once(path, "other text")  # another process's write never replaces the file
     assert path.read_text() == text and path.stat().st_mtime_ns == stamp
-    assert list(path.parent.glob(".tmp-*")) == []
+    assert list(path.parent.glob(".tmp-*")) == [] and path.stat().st_mode & 0o777 == 0o644
     other = loop._generated_module(families.module("iae"))
     assert other.__file__ != generated.__file__
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 
 from . import kernels as _kernels
 
@@ -228,10 +229,11 @@ def run_loop(
 # module of its own (`_loop_source`), which numba compiles and caches on disk like any kernel.
 # One module per family, not one `run_loop` specialised by the type of `fam` through `overload`
 # stubs (the way before): numba compiles an overload's implementation whole before inlining it
-# and compiles the hooks' callees a second time under the loop's flags, so that way took 1.4
-# times as long to compile, for the same machine code (docs/DESIGN.md, "One loop, one module
-# per family").
+# and compiles the hooks' callees a second time under the loop's flags, so that way took about
+# 1.35 times as long to compile, for the same machine code (docs/DESIGN.md, "One loop, one
+# module per family").
 _COMPILED: dict = {}
+_GENERATING = threading.Lock()  # runs on threads may ask for the same family's loop at once
 
 
 def compiled_loop(module):
@@ -239,8 +241,9 @@ def compiled_loop(module):
     this module's plain-Python `run_loop`."""
     if not JIT or _PURE_COPY:
         return run_loop
-    if module.__name__ not in _COMPILED:
-        _COMPILED[module.__name__] = _generated_module(module).run_loop
+    with _GENERATING:
+        if module.__name__ not in _COMPILED:
+            _COMPILED[module.__name__] = _generated_module(module).run_loop
     return _COMPILED[module.__name__]
 
 
@@ -347,6 +350,7 @@ def _write_once(path, text: str) -> None:
     try:
         with os.fdopen(fd, "w") as fh:
             fh.write(text)
+        os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide it from another user of the install
         try:
             os.link(tmp, path)
         except FileExistsError:

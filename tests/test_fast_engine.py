@@ -22,6 +22,7 @@ import math
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -211,6 +212,12 @@ def test_a_family_loop_is_generated_once_from_the_template_and_named_by_its_sour
     assert list(path.parent.glob(".tmp-*")) == [] and path.stat().st_mode & 0o777 == 0o644
     other = loop._generated_module(families.module("iae"))
     assert other.__file__ != generated.__file__
+    rule = tmp_path / "rule.py"  # a source the loop reaches, edited: another file, compiled anew
+    rule.write_text("a = 1\n")
+    monkeypatch.setattr(loop, "_reached_modules", lambda *roots: [SimpleNamespace(__file__=rule)])
+    before = loop._generated_module(sage_husa).__file__
+    rule.write_text("a = 2\n")
+    assert loop._generated_module(sage_husa).__file__ != before
 
 
 def test_the_code_version_ignores_the_generated_loops(tmp_path):

@@ -273,13 +273,13 @@ def _generated_module(module):
     of them compiles anew; the file is never rewritten (numba's cache checks its time stamp)."""
     import hashlib
     import importlib.util
+    from pathlib import Path
 
     text = _loop_source(module)
     digest = hashlib.sha256(text.encode())
     for reached in _reached_modules(module, sys.modules[__name__]):
-        digest.update(open(reached.__file__, "rb").read())
-    digest = digest.hexdigest()[:16]
-    name = f"{module.__name__.rsplit('.', 1)[-1]}_{digest}"
+        digest.update(Path(reached.__file__).read_bytes())
+    name = f"{module.__name__.rsplit('.', 1)[-1]}_{digest.hexdigest()[:16]}"
     path = _generated_folder() / f"loop_{name}.py"
     if not path.is_file():
         _write_once(path, text)

@@ -79,7 +79,7 @@ gate: setup
 	$(ANFEKF) check $(GATE_OUT) --baseline $(GATE_BASELINE) $(GATE_FLAGS)
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache
+	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache anfekf_bench/engines/__pycache__/loops
 
 ## Beyond the paper (docs/results/): the adaptive-filter zoo, the mismatch sweeps, the real robot log.
 zoo: setup

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -188,8 +189,10 @@ def test_a_family_loop_is_generated_once_from_the_template_and_named_by_its_sour
     tmp_path, monkeypatch
 ):
     """`compiled_loop`'s module: run_loop's own source with the family's hooks, written where
-    NUMBA_CACHE_DIR says, never rewritten (numba's cache checks the file's time stamp), named by
-    a digest of every source the loop reaches (the family's hooks and the filters' rules)."""
+    NUMBA_CACHE_DIR says, never rewritten (numba's cache is keyed on the file), named by a
+    digest of every source the loop reaches (the family's hooks and the filters' rules); it
+    runs the text made here, not what the file holds; a source edited after the process
+    imported it is refused."""
     import inspect
 
     config = pytest.importorskip("numba.core.config")
@@ -212,12 +215,41 @@ def test_a_family_loop_is_generated_once_from_the_template_and_named_by_its_sour
     assert list(path.parent.glob(".tmp-*")) == [] and path.stat().st_mode & 0o777 == 0o644
     other = loop._generated_module(families.module("iae"))
     assert other.__file__ != generated.__file__
+    path.chmod(0o644)  # a file changed behind the process's back is not what it runs
+    path.write_text(text.replace("def run_loop(", "def run_loop_planted("))
+    assert callable(loop._generated_module(sage_husa).run_loop)
     rule = tmp_path / "rule.py"  # a source the loop reaches, edited: another file, compiled anew
     rule.write_text("a = 1\n")
     monkeypatch.setattr(loop, "_reached_modules", lambda *roots: [SimpleNamespace(__file__=rule)])
     before = loop._generated_module(sage_husa).__file__
     rule.write_text("a = 2\n")
+    monkeypatch.setitem(loop._SOURCE_TIMES, rule.resolve(), rule.stat().st_mtime_ns)
     assert loop._generated_module(sage_husa).__file__ != before
+    os.utime(rule, ns=(1, rule.stat().st_mtime_ns + 10**9))  # edited after the process saw it
+    with pytest.raises(RuntimeError, match="changed after this process imported it"):
+        loop._generated_module(sage_husa)
+
+
+def test_threads_asking_for_one_familys_loop_get_one_loop(tmp_path, monkeypatch):
+    """Runs on threads may ask for a family's loop at once: one module is made, not several."""
+    import threading
+
+    config = pytest.importorskip("numba.core.config")
+    monkeypatch.setattr(config, "CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(loop, "_COMPILED", {})
+    made = []
+    generate = loop._generated_module
+    monkeypatch.setattr(loop, "_generated_module", lambda m: made.append(m) or generate(m))
+    fading = families.module("fading")
+    got = []
+    threads = [
+        threading.Thread(target=lambda: got.append(loop.compiled_loop(fading))) for _ in range(8)
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(made) == 1 and len(got) == 8 and all(g is got[0] for g in got)
 
 
 def test_the_code_version_ignores_the_generated_loops(tmp_path):
@@ -245,12 +277,13 @@ sys.modules["numba"] = None  # `import numba` now raises ImportError, as when it
 from pathlib import Path
 import numpy as np
 from anfekf_bench.config import parse_scenario, resolve_world
-from anfekf_bench.engines import fast, kernels, loop
+from anfekf_bench.engines import families, fast, kernels, loop
 from anfekf_bench.engines.filterpy_engine import run_filter
 from anfekf_bench.filters.context import build_filter
 from anfekf_bench.runner import simulate
 
-assert not fast.JIT and not kernels.JIT and type(loop.run_loop).__name__ == "function"
+assert not fast.JIT and not kernels.JIT
+assert loop.compiled_loop(families.module("anfekf")) is loop.run_loop  # plain Python
 scenario = parse_scenario(json.loads(sys.argv[1]))
 world = resolve_world(scenario.world, Path("small.yaml"))
 data = simulate(scenario, world, np.random.SeedSequence(3))

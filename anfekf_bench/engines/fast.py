@@ -353,9 +353,9 @@ def kernels_cached() -> bool | None:
 
 
 # `make setup` compiles the warm-up in two processes side by side (numba compiles on one core):
-# "loop", every family's loop (`loop.compiled_loop`), then the problems' loops, and "kernels",
-# the kernels of their own, the fits' kernels and the simulator's truth loop (about 70 s each,
-# 2026-11-28).
+# "loop", every family's loop (`loop.compiled_loop`; the Makefile then compiles the problems'
+# loops in that process), and "kernels", the kernels of their own, the fits' kernels and the
+# simulator's truth loop (about 70 s each, 2026-11-28).
 WARM_UP_PARTS = ("loop", "kernels")
 
 

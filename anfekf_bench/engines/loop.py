@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import sys
 import threading
+from pathlib import Path
 
 from . import kernels as _kernels
 
@@ -233,6 +234,20 @@ def run_loop(
 # 1.35 times as long to compile, for the same machine code (docs/DESIGN.md, "One loop, one
 # module per family").
 _COMPILED: dict = {}
+
+
+def _source_times() -> dict:
+    """The package's sources' modification times now (at this module's import): a source
+    edited later is not the code this process runs."""
+    package = Path(__file__).resolve().parents[1]
+    return {
+        path: path.stat().st_mtime_ns
+        for path in package.rglob("*.py")
+        if "__pycache__" not in path.relative_to(package).parts
+    }
+
+
+_SOURCE_TIMES = _source_times() if JIT and not _PURE_COPY else {}
 _GENERATING = threading.Lock()  # runs on threads may ask for the same family's loop at once
 
 
@@ -270,15 +285,23 @@ def _generated_module(module):
     """Import (writing it first if need be) the module of `_loop_source(module)`. Its file's
     name carries a digest of its text and of the sources of every module the loop can reach
     (`_reached_modules`: the family's, the kernels, the filters' rules), so that an edit of any
-    of them compiles anew; the file is never rewritten (numba's cache checks its time stamp)."""
+    of them compiles anew; the file is never rewritten (numba's cache is keyed on it)."""
     import hashlib
     import importlib.util
-    from pathlib import Path
 
     text = _loop_source(module)
     digest = hashlib.sha256(text.encode())
     for reached in _reached_modules(module, sys.modules[__name__]):
-        digest.update(Path(reached.__file__).read_bytes())
+        source = Path(reached.__file__).resolve()
+        modified = source.stat().st_mtime_ns
+        if modified != _SOURCE_TIMES.setdefault(source, modified):
+            # this process runs the code it imported, the digest would name the edited file's:
+            # the cache would hand the old code to every later process
+            raise RuntimeError(
+                f"{source} changed after this process imported it: start a new process to run"
+                " the fast engine on the edited code"
+            )
+        digest.update(source.read_bytes())
     name = f"{module.__name__.rsplit('.', 1)[-1]}_{digest.hexdigest()[:16]}"
     path = _generated_folder() / f"loop_{name}.py"
     if not path.is_file():
@@ -286,7 +309,8 @@ def _generated_module(module):
     spec = importlib.util.spec_from_file_location(f"{__name__}_{name}", path)
     generated = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = generated
-    spec.loader.exec_module(generated)
+    # the text made here, not what the file holds now: the file only names the code for numba
+    exec(compile(text, str(path), "exec"), generated.__dict__)
     return generated
 
 
@@ -320,29 +344,32 @@ def _generated_folder():
     this package's __pycache__ (numba's cache of them goes beside them), else the user's
     cache folder (a read-only install)."""
     import os
-    from pathlib import Path
 
     from numba.core.config import CACHE_DIR
 
     folders = [Path(CACHE_DIR) / "anfekf_loops"] if CACHE_DIR else []
-    folders += [
-        Path(__file__).parent / "__pycache__" / "loops",
-        Path.home() / ".cache" / "anfekf-bench" / "loops",
-    ]
+    folders += [Path(__file__).parent / "__pycache__" / "loops", "~/.cache/anfekf-bench/loops"]
+    tried = []
     for folder in folders:
         try:
+            folder = Path(folder).expanduser()  # no home folder: RuntimeError, next
             folder.mkdir(parents=True, exist_ok=True)
-        except OSError:
+        except (OSError, RuntimeError):
+            tried.append(str(folder))
             continue
         if os.access(folder, os.W_OK):
             return folder
-    raise OSError(f"no writable folder for the fast engine's loops (tried {folders[0]})")
+        tried.append(str(folder))
+    raise OSError(
+        f"no writable folder for the fast engine's compiled loops (tried {', '.join(tried)});"
+        " set NUMBA_CACHE_DIR to one"
+    )
 
 
 def _write_once(path, text: str) -> None:
     """Create `path` holding `text`, whole, unless it exists: a hard link of a complete
-    temporary file, so that a process writing it beside another never changes the time stamp
-    that the other's numba cache recorded."""
+    temporary file, so that a process writing it beside another never changes the file that
+    the other's numba cache recorded."""
     import os
     import tempfile
 

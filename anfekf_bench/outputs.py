@@ -28,6 +28,7 @@ from .analysis.tables import (
     parquet_frame,
 )
 from .config import one_line
+from .provenance import source_files
 from .storage import (
     CLAIMS_FILE,
     COMPARISONS_FILE,
@@ -99,9 +100,8 @@ def code_version(package: Path | None = None) -> str:
     engines/loop.py), so a first fast run does not change the version mid-batch."""
     digest = hashlib.sha256()
     package = Path(__file__).parent if package is None else package
-    for path in sorted(package.rglob("*.py")):
-        if "__pycache__" not in path.relative_to(package).parts:
-            digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes())
+    for path in source_files(package):
+        digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes())
     return digest.hexdigest()[:16]
 
 

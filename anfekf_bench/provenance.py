@@ -15,6 +15,17 @@ PACKAGE = "anfekf-bench"
 _SOURCE = Path(__file__).resolve().parent
 
 
+def source_files(package: Path | None = None) -> list[Path]:
+    """The Python sources of this package (or of folder `package`), sorted: every `*.py` but
+    those under `__pycache__`, which hold no source (the fast engine's generated loops)."""
+    package = _SOURCE if package is None else package
+    return sorted(
+        path
+        for path in package.rglob("*.py")
+        if "__pycache__" not in path.relative_to(package).parts
+    )
+
+
 @functools.lru_cache(maxsize=1)
 def package_version() -> str:
     """The installed version of anfekf-bench, or 'unknown'."""

@@ -21,6 +21,7 @@ from anfekf_bench.filters.registry import (
 from anfekf_bench.filters.spec import ROLES, FilterSpec
 from anfekf_bench.problems.filters import ProblemFilterSpec
 from anfekf_bench.problems.forms import FORMS, FormError, resolve
+from anfekf_bench.provenance import source_files
 from anfekf_bench.sources.recorded import REAL_SPECS
 
 PACKAGE = Path(__file__).resolve().parents[1] / "anfekf_bench"
@@ -80,8 +81,8 @@ def test_the_finder_sees_each_form_of_a_kind_comparison():
 
 def test_no_module_outside_the_registry_compares_a_filter_kind_with_a_string():
     offenders = {}
-    for path in sorted(PACKAGE.rglob("*.py")):
-        if path == PACKAGE / "filters" / "registry.py" or "__pycache__" in path.parts:
+    for path in source_files(PACKAGE):
+        if path == PACKAGE / "filters" / "registry.py":
             continue
         found = kind_comparisons(path.read_text(encoding="utf-8"))
         if found:
@@ -161,8 +162,8 @@ def package_nodes() -> dict[str, list[ast.AST]]:
     parsed once for the scans below."""
     return {
         str(path.relative_to(PACKAGE)): list(ast.walk(ast.parse(path.read_text(encoding="utf-8"))))
-        for path in sorted(PACKAGE.rglob("*.py"))
-        if path != PACKAGE / "filters" / "registry.py" and "__pycache__" not in path.parts
+        for path in source_files(PACKAGE)
+        if path != PACKAGE / "filters" / "registry.py"
     }
 
 

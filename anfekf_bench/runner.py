@@ -170,7 +170,7 @@ def run_one(
         trace = run_spec(engine, spec, ctx, inputs.timeline, name=name)
         for key in TRACE_ARRAYS:
             trace[key] = pad_to(trace[key], n)
-        filters[name] = add_trace_metrics(trace, inputs.x_true)
+        filters[name] = add_trace_metrics(trace, inputs.x_true, compiled=engine == "fast")
     return {
         "run": inputs.run,
         "control_steps": inputs.control_steps,

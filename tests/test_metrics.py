@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from anfekf_bench.analysis.metrics import (
+    TRACE_METRICS_COMPILED,
+    add_trace_metrics,
     nees,
     nees_bounds,
     pose_errors,
@@ -62,3 +64,49 @@ def test_summary_by_hand_and_diverged_runs_left_out():
     lo, hi = nees_bounds(2)
     assert (rec["nees_lo"], rec["nees_hi"]) == (lo, hi)
     assert rec["nees_in_bounds"] == 0.5
+
+
+@pytest.mark.skipif(not TRACE_METRICS_COMPILED, reason="numba is not in use")
+def test_compiled_trace_metrics_match_numpys():
+    """The fast engine's one-pass metrics (`trace_metrics`) against numpy's: the errors bit for
+    bit, the NEES (its own LU against LAPACK's) within 1e-12; non-finite rows NaN on both, an
+    exactly singular P through the same pseudo-inverse, headings wrapped across +-pi."""
+    rng = np.random.default_rng(5)
+    n = 400
+    A = rng.standard_normal((n, 3, 3))
+    P = A @ A.transpose(0, 2, 1) + np.diag([1e-2, 1e-2, 1e-6])  # ill-conditioned, as late P is
+    x_true = rng.standard_normal((n, 3)) * [50.0, 50.0, 3.0]
+    x = x_true + rng.standard_normal((n, 3)) * [0.5, 0.5, 0.1]
+    x_true[:20, 2], x[:20, 2] = math.pi - 0.01, -math.pi + 0.01  # across the wrap
+    P[30] = 0.0  # p0 = 0 before the first updates
+    P[31] = np.diag([1.0, 2.0, 0.0])
+    P[32, 0, 2] = P[32, 2, 0] = np.inf
+    x[33, 1] = np.nan
+    x_true[34] = np.nan  # a recorded step without ground truth
+    P[35] = np.nan  # a padded step
+    ours = add_trace_metrics({"x": x.copy(), "P": P.copy()}, x_true, compiled=True)
+    numpys = add_trace_metrics({"x": x.copy(), "P": P.copy()}, x_true)
+    for key in ("pos_err", "heading_err"):
+        np.testing.assert_array_equal(ours[key], numpys[key])
+    np.testing.assert_array_equal(np.isnan(ours["nees"]), np.isnan(numpys["nees"]))
+    np.testing.assert_allclose(ours["nees"], numpys["nees"], rtol=1e-12, atol=0)
+    assert np.isnan(ours["nees"][32:36]).all() and np.isfinite(ours["nees"][30:32]).all()
+    assert ours["heading_err"][:20] == pytest.approx(0.02)
+
+
+def test_the_fast_engine_scores_its_runs_with_the_compiled_metrics(monkeypatch):
+    """runner.run_one asks for them on the fast engine only (the filterpy engine's tables keep
+    numpy's bits)."""
+    from anfekf_bench import runner
+
+    asked = []
+    monkeypatch.setattr(
+        runner, "add_trace_metrics", lambda trace, x_true, compiled: asked.append(compiled)
+    )
+    monkeypatch.setattr(
+        runner, "run_spec", lambda *a, **k: {key: np.zeros((2, 3)) for key in runner.TRACE_ARRAYS}
+    )
+    inputs = runner.RunInputs(0, None, np.arange(2), np.arange(2.0), np.zeros((2, 3)), 2)
+    for engine in ("fast", "filterpy"):
+        runner.run_one(inputs, [("ekf", None, None)], engine)
+    assert asked == [True, False]

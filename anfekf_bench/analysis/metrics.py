@@ -9,7 +9,8 @@ import warnings
 import numpy as np
 from scipy.stats import chi2
 
-from ..models import wrap_angle
+from ..compiled import is_compiled, maybe_njit
+from ..models import TWO_PI, wrap_angle
 
 # A run that did not diverge is counted `inconsistent` when the time mean of its NEES exceeds
 # this: its errors average sqrt(1e4 / 3) ~ 58 of its own standard deviations, where a consistent
@@ -85,13 +86,94 @@ def nees_single_run(nees: np.ndarray, dim: int = 3, confidence: float = 0.95) ->
     }
 
 
-def add_trace_metrics(trace: dict, x_true: np.ndarray) -> dict:
-    """Per-step pos_err, heading_err and NEES of a filter's trace, in bulk from its arrays."""
+def add_trace_metrics(trace: dict, x_true: np.ndarray, *, compiled: bool = False) -> dict:
+    """Per-step pos_err, heading_err and NEES of a filter's trace, in bulk from its arrays.
+    `compiled` (the fast engine's runs): in one compiled pass (`trace_metrics`) where numba is
+    in use; numpy's otherwise (the filterpy engine's tables keep numpy's bits)."""
+    if compiled and TRACE_METRICS_COMPILED:
+        return _add_compiled_trace_metrics(trace, x_true)
     e = pose_errors(x_true, trace["x"])
     trace["pos_err"] = np.hypot(e[:, 0], e[:, 1])
     trace["heading_err"] = np.abs(e[:, 2])
     trace["nees"] = _nees_where_finite(e, trace["P"])
     return trace
+
+
+def _add_compiled_trace_metrics(trace: dict, x_true: np.ndarray) -> dict:
+    x_true = np.ascontiguousarray(x_true, dtype=float)
+    x = np.ascontiguousarray(trace["x"], dtype=float)
+    P = np.ascontiguousarray(trace["P"], dtype=float)
+    n = len(x)
+    pos_err, heading_err, eps = np.empty(n), np.empty(n), np.empty(n)
+    singular = trace_metrics(x_true, x, P, pos_err, heading_err, eps)
+    if singular.any():  # an exactly singular P (p0 = 0 before the first updates): as numpy's path
+        e = pose_errors(x_true[singular], x[singular])
+        eps[singular] = _nees_rows(e, P[singular])
+    trace["pos_err"], trace["heading_err"], trace["nees"] = pos_err, heading_err, eps
+    return trace
+
+
+# A run's metrics on the fast engine: on numpy they are a dozen passes over its steps and a
+# LAPACK solve per step, about 0.5 ms a trace, which on threads held the GIL that the compiled
+# filters of the other runs wait for (a tenth of a paper scenario's end-to-end time). One pass,
+# without the GIL; the NEES by the same LU with partial pivoting as LAPACK's dgesv, whose sums may
+# round differently: tests/test_metrics.py holds it to numpy's path within 1e-12 (relative).
+@maybe_njit
+def trace_metrics(x_true, x, P, pos_err, heading_err, nees_out):
+    """pos_err, heading_err and nees (`add_trace_metrics`) of each step, written to the outputs;
+    returns the steps whose P is exactly singular (their nees is left to the caller)."""
+    n = x.shape[0]
+    singular = np.zeros(n, dtype=np.bool_)
+    A = np.empty((3, 3))
+    b = np.empty(3)
+    for k in range(n):
+        e0 = x_true[k, 0] - x[k, 0]
+        e1 = x_true[k, 1] - x[k, 1]
+        e2 = -((-(x_true[k, 2] - x[k, 2]) + math.pi) % TWO_PI - math.pi)  # wrap_angle
+        pos_err[k] = np.hypot(e0, e1)
+        heading_err[k] = abs(e2)
+        finite = math.isfinite(e0) and math.isfinite(e1) and math.isfinite(e2)
+        for i in range(3):
+            for j in range(3):
+                A[i, j] = P[k, i, j]
+                finite = finite and math.isfinite(A[i, j])
+        if not finite:
+            nees_out[k] = math.nan
+            continue
+        b[0], b[1], b[2] = e0, e1, e2
+        nees_out[k] = _lu_quadratic_form(A, b, singular, k)
+    return singular
+
+
+@maybe_njit
+def _lu_quadratic_form(A, b, singular, k):
+    """b^T A^-1 b for 3x3 A (overwritten) by LU with partial pivoting; NaN and singular[k]
+    set when a pivot is exactly zero."""
+    e0, e1, e2 = b[0], b[1], b[2]
+    for c in range(3):
+        p = c
+        for r in range(c + 1, 3):
+            if abs(A[r, c]) > abs(A[p, c]):
+                p = r
+        if A[p, c] == 0.0:
+            singular[k] = True
+            return math.nan
+        if p != c:
+            for j in range(3):
+                A[c, j], A[p, j] = A[p, j], A[c, j]
+            b[c], b[p] = b[p], b[c]
+        for r in range(c + 1, 3):
+            f = A[r, c] / A[c, c]
+            for j in range(c + 1, 3):
+                A[r, j] -= f * A[c, j]
+            b[r] -= f * b[c]
+    s2 = b[2] / A[2, 2]
+    s1 = (b[1] - A[1, 2] * s2) / A[1, 1]
+    s0 = (b[0] - A[0, 1] * s1 - A[0, 2] * s2) / A[0, 0]
+    return e0 * s0 + e1 * s1 + e2 * s2
+
+
+TRACE_METRICS_COMPILED: bool = is_compiled(trace_metrics)
 
 
 def _nees_where_finite(e: np.ndarray, P: np.ndarray) -> np.ndarray:

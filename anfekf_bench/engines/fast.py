@@ -28,6 +28,7 @@ import math
 
 import numpy as np
 
+from ..analysis import metrics as _metrics
 from ..analysis import run_means as _run_means
 from ..config import World
 from ..filters.als import ALSSpec
@@ -333,6 +334,7 @@ WARM_UP_KERNELS = (
     (_jit_kernels_augmented, "run_augmented_kernel"),
     (_jit_kernels_bank, "run_bank_kernel"),
     (_run_means, "time_means"),
+    (_metrics, "trace_metrics"),
 )  # fmt: skip
 COMPILE_ESTIMATE = "a few minutes"  # one process: about 4 min of CPU (lead, 2026-11-27, load 12)
 
@@ -426,6 +428,8 @@ def warm_up(jit: bool = True, part: str | None = None) -> float:
     simulate_truth(dataclasses.replace(world, max_steps=10_000))  # the simulator's truth loop
     block = np.ones((1, 2))  # the tables' bootstrap (statistics._resampled_by_weights)
     _run_means.time_means(block, block, True, True, np.empty(1))
+    x3, P3, out = np.zeros((1, 3)), np.eye(3)[None], np.empty(1)  # a fast run's metrics
+    _metrics.trace_metrics(x3, x3, P3, out, out.copy(), out.copy())
     return time.perf_counter() - t0
 
 

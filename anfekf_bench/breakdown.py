@@ -6,8 +6,9 @@ times, its median wall the figure (the first execute of a file in a process pays
 and the machine's noise moved a single wall by a third: 0.47-0.78 s on one file), then the same
 runs once more phase by phase, each timed on its own: simulate (the truth path and every run's
 odometry and scans), filter (every filter instance on every run, its timeline included),
-metrics (per-step errors and NEES), store (each run saved to the run store, as `execute` saves
-it for a resume), tables (every table computed and written), and report (the report of the
+metrics (per-step errors and NEES), store (each run kept for a resume as `execute` keeps it:
+`outputs.RunStore`, which saves none of a batch's first second of runs unless it is
+interrupted), tables (every table computed and written), and report (the report of the
 result `execute` wrote, figures included, drawn in worker processes as `anfekf report` draws
 them). `e2e_over_filter` is the end-to-end wall over the
 filters' own time: issue 37 asks for at most 3x on a 50-run paper scenario.
@@ -35,12 +36,12 @@ import numpy as np
 from .analysis.metrics import add_trace_metrics, recorded_steps
 from .config import World
 from .experiment import execute, make_plan, result_tables
-from .outputs import write_result_tables
+from .outputs import STORE_AFTER_S, RunStore, write_result_tables
 from .report import write_report
 from .runner import run_filter_on, simulate
 from .scenarios import load_scenario
 from .sources.simulator import world_path
-from .storage import MANIFEST_FILE, read_json, sync_files, write_run_file
+from .storage import MANIFEST_FILE, read_json, sync_files
 
 PHASES = ("simulate", "filter", "metrics", "store", "tables", "report")
 E2E_REPEATS = 3
@@ -82,8 +83,7 @@ def scenario_breakdown(
     lap("simulate")
     ordered = []
     fingerprint = plan.fingerprint()
-    store = tmp / "store"
-    store.mkdir(parents=True, exist_ok=True)
+    store = RunStore(tmp / "store", fingerprint, STORE_AFTER_S)  # as execute's on the fast engine
     for run, seed in enumerate(np.random.SeedSequence(plan.seed).spawn(plan.runs)):
         data = simulate(sc, world_, seed, wp)
         steps = recorded_steps(len(data.u_odo), sc.record_every)
@@ -93,15 +93,13 @@ def scenario_breakdown(
         for name, spec, start in sc.instances():
             trace = run_filter_on("fast", spec, sc, world_, data, start, name)
             lap("filter")
-            filters[name] = add_trace_metrics(trace, x_true)
+            filters[name] = add_trace_metrics(trace, x_true, compiled=True)
             lap("metrics")
         ordered.append({
             "run": run, "control_steps": len(data.u_odo), "step": steps,
             "t": steps * world_.T, "x_true": x_true, "filters": filters,
         })  # fmt: skip
-        # one file a run, as execute's run store holds them (replacing one file run after run
-        # would make ext4 flush each replaced file's data: a cost execute never pays)
-        write_run_file(store / f"run-{run:06d}.npz", ordered[-1], fingerprint)
+        store.keep(ordered[-1])  # one file a run, as execute's run store holds them
         lap("store")
     tables = result_tables(plan, ordered)
     with tempfile.TemporaryDirectory(dir=tmp) as staging:  # as execute stages and flushes them

@@ -56,16 +56,17 @@ from .filters.context import build_filter
 from .filters.custom import CustomFilterFailed, CustomSpec
 from .fitting.simulated import TrainingSet, fit_filters, fitted_filters
 from .outputs import (
+    STORE_AFTER_S,
     OutputExists,
     PlanError,
     ResultTables,
+    RunStore,
     code_version,
     finish_result,
     machine_info,
     package_versions,
     prepare_output,
     result_staging,
-    save_run,
     scenario_folder,
     survey_output,
     write_result_table,
@@ -526,40 +527,46 @@ def execute(
 
 def _execute_locked(plan, out_dir, force, client, started, on_start, on_result, progress=None):
     target, done, action = prepare_output(plan, out_dir, force)
-    fingerprint = plan.fingerprint()
-
-    def keep(result: dict) -> None:
-        save_run(target, result, fingerprint)
-        if on_result is not None:
-            on_result(result)
-
     prepared = plan.source.prepare(plan, target / RUNS_DIR, progress)
     if on_start is not None:
         on_start(action + prepared.action, len(done), plan.runs)
     run_started = time.perf_counter()
+    store = RunStore(target, plan.fingerprint(), STORE_AFTER_S if plan.engine == "fast" else 0.0)
+
+    def keep(result: dict) -> None:
+        store.keep(result)
+        if on_result is not None:
+            on_result(result)
+
     results = dict(done)
     placement: dict = {}
-    batch = dispatch_runs(
-        [call for run, call in sorted(prepared.items.items()) if run not in done],
-        jobs=plan.jobs,
-        on_result=keep,
-        backend=plan.backend.kind,
-        scheduler=plan.backend.scheduler,
-        connect_timeout_s=plan.backend.connect_timeout_s,
-        engine=plan.engine,
-        client=client,
-        placement=placement,
-        in_threads=runs_in_threads(plan.engine, plan.source.engines(plan)),
-    )
-    for result in batch:
-        results[result["run"]] = result
-    run_seconds = time.perf_counter() - run_started
-    ordered = [results[i] for i in range(plan.runs)]
-    tables, steps_written = tables_writing_steps(plan, ordered, result_staging(target))
-    write_result(
-        plan, target, tables, prepared, sorted(done), started, run_seconds, placement,
-        steps_written=steps_written,
-    )  # fmt: skip
+    try:
+        batch = dispatch_runs(
+            [call for run, call in sorted(prepared.items.items()) if run not in done],
+            jobs=plan.jobs,
+            on_result=keep,
+            backend=plan.backend.kind,
+            scheduler=plan.backend.scheduler,
+            connect_timeout_s=plan.backend.connect_timeout_s,
+            engine=plan.engine,
+            client=client,
+            placement=placement,
+            in_threads=runs_in_threads(plan.engine, plan.source.engines(plan)),
+        )
+        for result in batch:
+            results[result["run"]] = result
+        run_seconds = time.perf_counter() - run_started
+        ordered = [results[i] for i in range(plan.runs)]
+        tables, steps_written = tables_writing_steps(plan, ordered, result_staging(target))
+        write_result(
+            plan, target, tables, prepared, sorted(done), started, run_seconds, placement,
+            steps_written=steps_written, store=store,
+        )  # fmt: skip
+    except BaseException:  # interrupted or failed before the result was in place (finish_result
+        # empties the store then): the runs it holds are saved for a resume
+        with contextlib.suppress(Exception):  # the first error is the one to report
+            store.flush()
+        raise
     return tables.summary, target
 
 
@@ -573,10 +580,11 @@ def write_result(
     run_seconds: float,
     placement: dict | None = None,
     steps_written: bool = False,
+    store: RunStore | None = None,
 ) -> None:
     """The batch's tables and manifest, staged and then swapped in whole (finish_result).
     `placement`: where the runs ran and why (`runner.place_runs`; empty when none was run).
-    `steps_written`: steps.parquet is staged already."""
+    `steps_written`: steps.parquet is staged already. `store`: the batch's run store."""
     fingerprint = plan.fingerprint()
     staging = result_staging(target)
     write_result_tables(
@@ -617,7 +625,7 @@ def write_result(
         "wall_time_s": round(time.time() - started, 3),
     }
     write_json(staging / MANIFEST_FILE, manifest, durable=False)
-    finish_result(target, staging)
+    finish_result(target, staging, store)
 
 
 def tables_writing_steps(

@@ -199,6 +199,66 @@ def test_ctrl_c_in_process_then_resume(small, tmp_path) -> None:
     pd.testing.assert_frame_equal(read_steps(out / "small"), reference)
 
 
+def test_fast_batch_holds_its_first_second_and_saves_it_when_interrupted(small, tmp_path) -> None:
+    """On the fast engine the runs of a batch's first second are held (outputs.RunStore): a
+    batch that ends within it writes no run file; one interrupted there saves every run it
+    held, and the resume says so and gives the uninterrupted result."""
+    import anfekf_bench.experiment as experiment
+    import anfekf_bench.outputs as outputs
+
+    path, _ = small
+    plan = make_plan(*load_scenario(path), None, None, 1, engine="fast")
+    written = []
+    real_save = outputs.save_run
+
+    def counting_save(target, result, fingerprint):
+        written.append(result["run"])
+        real_save(target, result, fingerprint)
+
+    reference = tmp_path / "reference"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(outputs, "save_run", counting_save)
+        mp.setattr(experiment, "STORE_AFTER_S", 60.0)  # the batch's "first second", whatever
+        # a loaded machine makes of its runs (and of loading the compiled kernels)
+        _, target = execute(plan, reference)
+        assert written == [], "a batch that ends within its first second saves no run"
+        out = tmp_path / "out"
+        with pytest.raises(CtrlC):
+            execute(plan, out, on_result=_interrupt_after(3))
+    assert sorted(written) == [0, 1, 2], "every run held when Ctrl-C came is saved"
+    assert assert_nothing_looks_complete(out / "small", 4) == [0, 1, 2]
+    rerun = cli("run", str(path), "--out", str(out), "--engine", "fast")
+    assert rerun.exit_code == 0, rerun.output
+    assert "small: resuming: 3 of 4 runs" in rerun.stdout
+    pd.testing.assert_frame_equal(read_steps(out / "small"), read_steps(target))
+
+
+def test_run_store_holds_until_its_time_then_saves_every_run(tmp_path, monkeypatch) -> None:
+    import anfekf_bench.outputs as outputs
+
+    saved = []
+    monkeypatch.setattr(outputs, "save_run", lambda target, result, fp: saved.append(result["run"]))
+    clock = [100.0]
+    monkeypatch.setattr(outputs.time, "perf_counter", lambda: clock[0])
+    store = outputs.RunStore(tmp_path, "fp", hold_s=1.0)
+    store.keep({"run": 0})
+    clock[0] = 100.9
+    store.keep({"run": 1})
+    assert saved == [] and [r["run"] for r in store.held] == [0, 1]
+    clock[0] = 101.0
+    store.keep({"run": 2})
+    assert saved == [0, 1, 2] and store.held == [], "the held runs go with the first after"
+    store.keep({"run": 3})
+    assert saved == [0, 1, 2, 3], "then each run at once"
+    at_once = outputs.RunStore(tmp_path, "fp")  # hold_s 0: the filterpy engine's batches
+    at_once.keep({"run": 4})
+    assert saved[-1] == 4
+    held = outputs.RunStore(tmp_path, "fp", hold_s=60.0)
+    held.keep({"run": 5})
+    held.flush()
+    assert saved[-1] == 5 and held.held == []
+
+
 def test_torn_run_file_and_stray_temporaries_are_redone(small, tmp_path) -> None:
     """A run file cut short (not by us: we rename) is redone; *.tmp leftovers are removed."""
     path, reference = small

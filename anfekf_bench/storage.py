@@ -341,14 +341,14 @@ def write_parquet(
         for k, v in found.items()
     }
     table = table.replace_schema_metadata({**(table.schema.metadata or {}), **ours})
-    # Dictionary pages pay off for the names and counters, not for measured floats (nearly all
-    # distinct): trying them there took 7x the time of the whole write and gave a larger file.
-    coded = [f.name for f in table.schema if not pa.types.is_floating(f.type)]
-    write_atomic(
-        path,
-        lambda tmp: pq.write_table(table, tmp, compression="zstd", use_dictionary=coded),
-        durable=durable,
-    )
+    # Dictionary pages for the names and counters, not for measured floats (nearly all distinct:
+    # 7x the whole write's time, a larger file); the floats' bytes split by significance, then
+    # LZ4: on a zoo scenario's steps (1.6 M rows), against zstd, 142 MB not 156, written in
+    # 0.74 s not 0.87 and read in 0.21 s not 0.81 (lead, 2026-11-28).
+    floats = [f.name for f in table.schema if pa.types.is_floating(f.type)]
+    coded = [f.name for f in table.schema if f.name not in floats]
+    options = {"compression": "lz4", "use_dictionary": coded, "use_byte_stream_split": floats}
+    write_atomic(path, lambda tmp: pq.write_table(table, tmp, **options), durable=durable)
 
 
 def _open_result(path: Path, limit: int) -> BinaryIO:
@@ -591,8 +591,7 @@ def install_result(target: Path, staging: Path) -> None:
     the old result stays whole, whatever fails during a batch. The old
     manifest goes first, so a kill during these few renames leaves a folder that reads as
     incomplete (never a mix under an old manifest); the run store is still there, and the same
-    command resumes from it (every run saved, but those of a fast batch that took under a second:
-    `outputs.RunStore`) and writes the result again.
+    command resumes from it (every run saved, but a fast batch's first second: RunStore).
     """
     target, staging = Path(target), Path(staging)
     new = {p.name for p in staging.iterdir()}

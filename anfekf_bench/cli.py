@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import sys
@@ -687,9 +688,12 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
     except KeyboardInterrupt:
         if debug:
             raise
+        store = Path(out) / plan.name / RUNS_DIR  # what is there (held runs are saved on Ctrl-C)
+        with contextlib.suppress(OSError):
+            saved = sum(1 for _ in store.glob("run-*.npz"))
         fail(
             f"{plan.name}: interrupted; {saved} of {plan.runs} runs are saved in"
-            f" {Path(out) / plan.name / RUNS_DIR}: run the same command again to resume",
+            f" {store}: run the same command again to resume",
             code=130,
         )
     tables = table_console()

@@ -447,14 +447,16 @@ class RunStore:
     0), with every run held before then; `flush()` saves the held runs now (the batch was
     interrupted or failed)."""
 
-    def __init__(self, target: Path, fingerprint: str, hold_s: float = 0.0) -> None:
-        self.target, self.fingerprint = Path(target), fingerprint
-        self.until = time.perf_counter() + hold_s
+    def __init__(
+        self, target: Path, fingerprint: str, hold_s: float = 0.0, clock=time.perf_counter
+    ) -> None:
+        self.target, self.fingerprint, self.clock = Path(target), fingerprint, clock
+        self.until = clock() + hold_s
         self.held: list[dict] = []
 
     def keep(self, result: dict) -> None:
         self.held.append(result)
-        if time.perf_counter() >= self.until:
+        if self.clock() >= self.until:
             self.flush()
 
     def flush(self) -> None:

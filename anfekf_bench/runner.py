@@ -77,11 +77,10 @@ def run_spec(
     carries the true noise of every step (the oracle under a noise schedule, SPEC 14: the
     kernels take constant noise). `name`: the instance name a custom filter's errors are
     reported under."""
-    if engine == "fast" and ctx.true_noise is None:
-        from .engines import fast  # numba (when installed) is imported only for this engine
+    if runs_fast(engine, spec, ctx):
+        from .engines import fast
 
-        if fast.supports(spec, ctx.model):
-            return fast.run_filter_fast(spec, ctx, tl)
+        return fast.run_filter_fast(spec, ctx, tl)
     if isinstance(spec, CustomSpec):
         # A user's filter gets its own copy of the run's arrays (it could write into the scans
         # every other filter reads), and anything it raises is one line naming it.
@@ -89,6 +88,15 @@ def run_spec(
         hook = "predict/update"
         return contained(name or spec.name, spec.class_path, hook, run_filter, flt, mine)
     return run_filter(spec.build(ctx), tl)
+
+
+def runs_fast(engine: Engine, spec: FilterSpec, ctx: FilterContext) -> bool:
+    """Whether `run_spec` runs `spec` in `ctx` on the fast engine's kernels (see there)."""
+    if engine != "fast" or ctx.true_noise is not None:
+        return False
+    from .engines import fast  # numba (when installed) is imported only for this engine
+
+    return fast.supports(spec, ctx.model)
 
 
 def follows_schedule(spec: FilterSpec, scenario) -> bool:
@@ -170,7 +178,10 @@ def run_one(
         trace = run_spec(engine, spec, ctx, inputs.timeline, name=name)
         for key in TRACE_ARRAYS:
             trace[key] = pad_to(trace[key], n)
-        filters[name] = add_trace_metrics(trace, inputs.x_true, compiled=engine == "fast")
+        # scored as the engine that ran it scores: a filter on filterpy keeps numpy's bits
+        filters[name] = add_trace_metrics(
+            trace, inputs.x_true, compiled=runs_fast(engine, spec, ctx)
+        )
     return {
         "run": inputs.run,
         "control_steps": inputs.control_steps,
@@ -299,7 +310,7 @@ def dispatch_runs(
 ) -> Iterator[dict]:
     """Run results as they finish (any order), whatever the source: `items` are picklable
     calls, one run each (simulated: `simulated_items`; recorded: real_experiment's segments or
-    drives); `on_result` sees each result as it arrives (execute saves it there at once).
+    drives); `on_result` sees each result as it arrives (execute keeps it there for a resume).
 
     backend "local" runs the first two runs in this process, timing the second, then the rest
     here or on up to `jobs` local processes, whichever `place_runs` estimates to be faster (a
@@ -356,7 +367,7 @@ def _run_local(
     if not rest:
         return
     if decision["where"] == "in-process":
-        for item in rest:  # one at a time: progress and the run store move with every run
+        for item in rest:  # one at a time: progress (and the run store) move with every run
             yield run_chunk([item])
         return
     # A filterpy run takes a good part of a second: one task per run (progress and resume move

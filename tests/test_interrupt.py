@@ -239,8 +239,7 @@ def test_run_store_holds_until_its_time_then_saves_every_run(tmp_path, monkeypat
     saved = []
     monkeypatch.setattr(outputs, "save_run", lambda target, result, fp: saved.append(result["run"]))
     clock = [100.0]
-    monkeypatch.setattr(outputs.time, "perf_counter", lambda: clock[0])
-    store = outputs.RunStore(tmp_path, "fp", hold_s=1.0)
+    store = outputs.RunStore(tmp_path, "fp", hold_s=1.0, clock=lambda: clock[0])
     store.keep({"run": 0})
     clock[0] = 100.9
     store.keep({"run": 1})

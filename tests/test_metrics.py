@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -84,6 +85,8 @@ def test_compiled_trace_metrics_match_numpys():
     x[33, 1] = np.nan
     x_true[34] = np.nan  # a recorded step without ground truth
     P[35] = np.nan  # a padded step
+    G = rng.standard_normal((3, 2))
+    P[36:40] = G @ np.diag([0.09, 3e-4]) @ G.T  # p0 = 0 after one predict: rank 2, not diagonal
     ours = add_trace_metrics({"x": x.copy(), "P": P.copy()}, x_true, compiled=True)
     numpys = add_trace_metrics({"x": x.copy(), "P": P.copy()}, x_true)
     for key in ("pos_err", "heading_err"):
@@ -94,11 +97,20 @@ def test_compiled_trace_metrics_match_numpys():
     assert ours["heading_err"][:20] == pytest.approx(0.02)
 
 
-def test_the_fast_engine_scores_its_runs_with_the_compiled_metrics(monkeypatch):
-    """runner.run_one asks for them on the fast engine only (the filterpy engine's tables keep
-    numpy's bits)."""
-    from anfekf_bench import runner
+def test_a_run_is_scored_as_the_engine_that_ran_each_filter(monkeypatch):
+    """runner.run_one asks for the compiled metrics where the fast engine's kernels ran the
+    filter, numpy's elsewhere: the filterpy engine, and a filter the fast engine hands to filterpy
+    (here the oracle told the true noise of every step), keep numpy's bits."""
+    import dataclasses
 
+    from anfekf_bench import runner
+    from anfekf_bench.filters.context import filter_context
+    from anfekf_bench.scenarios import load_scenario
+
+    scenario, world = load_scenario(Path(__file__).parents[1] / "configs" / "correct.yaml")
+    spec = scenario.filters[0]
+    ctx = filter_context(spec, scenario, world)
+    scheduled = dataclasses.replace(ctx, true_noise=object())
     asked = []
     monkeypatch.setattr(
         runner, "add_trace_metrics", lambda trace, x_true, compiled: asked.append(compiled)
@@ -107,6 +119,6 @@ def test_the_fast_engine_scores_its_runs_with_the_compiled_metrics(monkeypatch):
         runner, "run_spec", lambda *a, **k: {key: np.zeros((2, 3)) for key in runner.TRACE_ARRAYS}
     )
     inputs = runner.RunInputs(0, None, np.arange(2), np.arange(2.0), np.zeros((2, 3)), 2)
-    for engine in ("fast", "filterpy"):
-        runner.run_one(inputs, [("ekf", None, None)], engine)
-    assert asked == [True, False]
+    for engine, context in (("fast", ctx), ("filterpy", ctx), ("fast", scheduled)):
+        runner.run_one(inputs, [(spec.name, spec, context)], engine)
+    assert asked == [True, False, False]

@@ -10,7 +10,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from ..compiled import is_compiled, maybe_njit
-from ..models import TWO_PI, wrap_angle
+from ..models import wrap_angle, wrap_scalar
 
 # A run that did not diverge is counted `inconsistent` when the time mean of its NEES exceeds
 # this: its errors average sqrt(1e4 / 3) ~ 58 of its own standard deviations, where a consistent
@@ -124,6 +124,7 @@ def _add_compiled_trace_metrics(trace: dict, x_true: np.ndarray) -> dict:
 # one path and a rounding error on the other, so a pivot below NEAR_SINGULAR of P's largest entry
 # leaves the step to numpy's path (its solve, or its pseudo-inverse where LAPACK finds a zero).
 NEAR_SINGULAR = 1e-9
+_wrap = maybe_njit(wrap_scalar)
 
 
 @maybe_njit
@@ -137,7 +138,7 @@ def trace_metrics(x_true, x, P, pos_err, heading_err, nees_out):
     for k in range(n):
         e0 = x_true[k, 0] - x[k, 0]
         e1 = x_true[k, 1] - x[k, 1]
-        e2 = -((-(x_true[k, 2] - x[k, 2]) + math.pi) % TWO_PI - math.pi)  # wrap_angle
+        e2 = _wrap(x_true[k, 2] - x[k, 2])
         pos_err[k] = np.hypot(e0, e1)
         heading_err[k] = abs(e2)
         finite = math.isfinite(e0) and math.isfinite(e1) and math.isfinite(e2)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import math
 import os
 import sys
 import warnings
@@ -24,14 +23,14 @@ from rich.progress import (
     TimeElapsedColumn,
     TimeRemainingColumn,
 )
-from rich.table import Table
 from rich.text import Text
 from typer.core import TyperArgument, TyperGroup, TyperOption
 
 # Only light modules at import: `anfekf --version`, `-h` and `kinds` must not pay for numpy,
 # pandas, scipy, numba or matplotlib (about 3 s of CPU). Each command imports what it runs.
 from .provenance import version_line
-from .text import one_line
+from .run_tables import print_comparisons, summary_table, sweep_summary_table
+from .text import one_line, plural
 
 # click's exception classes as typer raises them (typer >= 0.17 vendors its own click): found
 # through typer's public BadParameter, so this works with either.
@@ -275,40 +274,6 @@ def one_line_errors(
         if debug or os_error is None or writing_stdout(exc):  # stdout's: said at the top
             raise
         fail(f"{os_error}: {exc}")
-
-
-def summary_table(title: str, records: list[dict]) -> Table:
-    from .analysis.metrics import format_number, format_share
-
-    table = Table(title=title, title_justify="left")
-    for col in (
-        "filter",
-        "runs",
-        "diverged",
-        "inconsistent",
-        "RMSE pos (m)",
-        "RMSE head (deg)",
-        "ANEES",
-        "in bounds",
-    ):
-        table.add_column(col, justify="left" if col == "filter" else "right")
-    for r in records:
-        table.add_row(
-            Text(one_line(str(r["filter"]))),  # plain text: no markup, no control characters
-            str(r["runs"]),
-            str(r["diverged"]),
-            str(r.get("inconsistent", "-")),
-            format_number(r["rmse_pos"], 3),
-            format_number(math.degrees(r["rmse_heading"]), 3),
-            format_number(r["anees"], 2),
-            format_share(r["nees_in_bounds"]),
-        )
-    return table
-
-
-def plural(n: int, noun: str) -> str:
-    """'1 scenario', '2 scenarios'."""
-    return f"{n} {noun}" + ("" if n == 1 else "s")
 
 
 def _check_out_dir(out: Path) -> None:
@@ -556,29 +521,6 @@ def run_progress() -> Progress:
     )
 
 
-def sweep_summary_table(name: str, table, runs: int) -> Table:
-    """The end of a sweep: per filter, its position RMSE over the oracle's across the cells
-    (best, median, worst cell) and the cells within 1.5 x, with divergences."""
-    from .analysis.metrics import format_number
-
-    out = Table(title=f"sweep {name}: {plural(table['cell'].nunique(), 'cell')} x {runs} runs",
-                title_justify="left")  # fmt: skip
-    for col in ("filter", "RMSE / oracle best", "median", "worst", "cells <= 1.5x", "diverged"):
-        out.add_column(col, justify="left" if col == "filter" else "right")
-    for name_, rows in table.groupby("filter", observed=True, sort=False):
-        ratio = rows["rmse_pos_vs_oracle"].astype(float)
-        ok = int((ratio <= 1.5).sum())
-        out.add_row(
-            Text(one_line(str(name_))),
-            format_number(ratio.min(), 3),
-            format_number(ratio.median(), 3),
-            format_number(ratio.max(), 3),
-            f"{ok}/{len(rows)}",
-            str(int(rows["diverged"].fillna(0).sum())),
-        )
-    return out
-
-
 def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
     """Every cell of a sweep with one progress bar over all its runs, then the sweep table."""
     from .experiment import FolderBusy, OutputExists, PlanError
@@ -702,59 +644,6 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
     console.print(
         one_line(f"results written to {target}"), markup=False, highlight=False, soft_wrap=True
     )
-
-
-def format_interval(estimate: float, lo: float, hi: float, digits: int = 3) -> str:
-    """'0.496 [0.452, 0.543]', '0.0536 [0.0395, 0.0670]' (significant digits, as in the report),
-    or the estimate alone when it has no interval."""
-    from .analysis.metrics import format_sig
-
-    text = format_sig(estimate, digits)
-    if math.isfinite(lo) and math.isfinite(hi):
-        text += f" [{format_sig(lo, digits)}, {format_sig(hi, digits)}]"
-    return text
-
-
-def print_comparisons(out: Console, target: Path) -> None:
-    """The paired ratios (95 % bootstrap intervals) and the claims' verdicts of a result."""
-    from .analysis.metrics import format_number
-    from .report.results import load_result
-    from .storage import CLAIMS_FILE, COMPARISONS_FILE
-
-    result = load_result(target)  # the report's one loader of results
-    comparisons = result.read(COMPARISONS_FILE)
-    if len(comparisons):
-        table = Table(
-            title="paired ratios over runs, 95 % bootstrap interval (p: Wilcoxon signed-rank)",
-            title_justify="left",
-        )
-        for col in ("filter", "vs", "RMSE pos ratio", "p", "ANEES ratio", "runs"):
-            table.add_column(col, justify="left" if col in ("filter", "vs") else "right")
-        for (name, ref), rows in comparisons.groupby(["filter", "vs"], sort=False):
-            by = rows.set_index("metric")
-            rmse, anees = by.loc["rmse_pos"], by.loc["anees"]
-            table.add_row(
-                name, ref, format_interval(rmse.estimate, rmse.lo, rmse.hi),
-                format_number(rmse.p_value, 4), format_interval(anees.estimate, anees.lo, anees.hi),
-                str(int(rmse.runs_used)),
-            )  # fmt: skip
-        out.print(table)
-        if int(comparisons["runs_used"].min()) < 10:
-            out.print(
-                "warning: fewer than 10 runs: intervals are wide and the NEES bounds hardly"
-                " discriminate",
-                highlight=False,
-            )
-    claims = result.read(CLAIMS_FILE)
-    if claims:
-        table = Table(title="claims (decided on the interval)", title_justify="left")
-        for col in ("claim", "estimate [95 % interval]", "verdict", "note"):
-            table.add_column(col)
-        for c in claims:
-            # summary JSON writes NaN as null
-            est, lo, hi = (math.nan if c[k] is None else c[k] for k in ("estimate", "lo", "hi"))
-            table.add_row(c["claim"], format_interval(est, lo, hi), c["verdict"], c["warning"])
-        out.print(table)
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:

@@ -30,6 +30,7 @@ from typer.core import TyperArgument, TyperGroup, TyperOption
 # pandas, scipy, numba or matplotlib (about 3 s of CPU). Each command imports what it runs.
 from .provenance import version_line
 from .run_tables import print_comparisons, summary_table, sweep_summary_table
+from .signals import exit_code, stop_on_termination, stopped_by
 from .text import one_line, plural
 
 # click's exception classes as typer raises them (typer >= 0.17 vendors its own click): found
@@ -79,8 +80,8 @@ class OneLineUsageErrors(TyperGroup):
     def make_context(self, *args, **kwargs):
         try:  # parsing the command line (a Ctrl-C in its first instants lands here)
             return super().make_context(*args, **kwargs)
-        except KeyboardInterrupt:
-            interrupted()
+        except KeyboardInterrupt as exc:
+            interrupted(exc)
 
     def invoke(self, ctx):
         # The reader of our output went away (`anfekf ... | head`): stop quietly with the code a
@@ -91,12 +92,11 @@ class OneLineUsageErrors(TyperGroup):
         except BrokenPipeError:
             stdout_gone()
             raise typer.Exit(EXIT_BROKEN_PIPE) from None
-        except KeyboardInterrupt:
-            interrupted()
+        except KeyboardInterrupt as exc:
+            interrupted(exc)
 
 
 EXIT_BROKEN_PIPE = 128 + 13  # as a process killed by SIGPIPE
-EXIT_INTERRUPTED = 128 + 2  # as a shell reports a command ended by SIGINT
 EXIT_OUTPUT_LOST = 74  # sysexits' EX_IOERR: stdout cannot be written (a full disk, /dev/full)
 
 
@@ -116,12 +116,12 @@ def writing_stdout(exc: BaseException) -> bool:
     return False
 
 
-def interrupted() -> None:
-    """A Ctrl-C while the command line is parsed or a command imports what it runs (this module
-    imports little, so the entry point's own handler no longer sees it): typer would exit 130
-    without a word."""
-    err_console.print("error: interrupted", markup=False, highlight=False)
-    raise typer.Exit(EXIT_INTERRUPTED) from None
+def interrupted(exc: KeyboardInterrupt) -> None:
+    """A Ctrl-C (or SIGTERM, SIGHUP: signals.py) while the command line is parsed or a command
+    imports what it runs (this module imports little, so the entry point's own handler no
+    longer sees it): typer would exit 130 without a word."""
+    err_console.print(f"error: {stopped_by(exc)}", markup=False, highlight=False)
+    raise typer.Exit(exit_code(exc)) from None
 
 
 def stdout_gone() -> None:
@@ -570,13 +570,13 @@ def _run_sweep(plan, cells, plans, out: Path, force: bool, debug: bool) -> None:
                 on_cell=on_cell, on_start=on_start, on_result=lambda _: progress.advance(task),
             )  # fmt: skip
             progress.update(task, description=f"{plan.name}: {plural(len(cells), 'cell')}")
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         if debug:
             raise
         fail(
-            f"{plan.name}: interrupted; finished cells and runs are saved in"
+            f"{plan.name}: {stopped_by(exc)}; finished cells and runs are saved in"
             f" {Path(out) / plan.name}: run the same command again to resume",
-            code=130,
+            code=exit_code(exc),
         )
     table_console().print(sweep_summary_table(plan.name, table, plans[0].runs))
     again = f" ({reused} complete already: reused)" if reused else ""
@@ -627,16 +627,16 @@ def _run_plan(plan, out: Path, force: bool, debug: bool) -> None:
                 plan, out, force=force, on_start=on_start, on_result=on_result,
                 progress=progress,
             )  # fmt: skip
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         if debug:
             raise
         store = Path(out) / plan.name / RUNS_DIR  # what is there (held runs are saved on Ctrl-C)
         with contextlib.suppress(OSError):
             saved = sum(1 for _ in store.glob("run-*.npz"))
         fail(
-            f"{plan.name}: interrupted; {saved} of {plan.runs} runs are saved in"
+            f"{plan.name}: {stopped_by(exc)}; {saved} of {plan.runs} runs are saved in"
             f" {store}: run the same command again to resume",
-            code=130,
+            code=exit_code(exc),
         )
     tables = table_console()
     tables.print(summary_table(f"{plan.name}: {plan.runs} runs, seed {plan.seed}", records))
@@ -886,4 +886,5 @@ def init(
 
 
 def main() -> None:  # pragma: no cover - console entry point
+    stop_on_termination()
     app()

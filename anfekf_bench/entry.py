@@ -14,34 +14,37 @@ A Ctrl-C can also land inside a callback the interpreter runs for itself (a weak
 the import system's module locks use): Python then prints "Exception ignored in ..." with a
 traceback and drops the interruption, so the command would go on. `_redeliver_interrupts` makes
 such a KeyboardInterrupt arrive again in the main thread, where it is reported as any other.
+
+SIGTERM and SIGHUP stop the command as a Ctrl-C does (`signals.py`), from the first instant too.
 """
 
 from __future__ import annotations
 
 import sys
 
-EXIT_INTERRUPTED = 130  # as a shell reports a command ended by SIGINT
 
-
-def caused_by_interrupt(exc: BaseException) -> bool:
-    """Whether `exc` is a KeyboardInterrupt or was raised from (or while handling) one."""
+def interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
+    """The KeyboardInterrupt (a Ctrl-C, or `signals.Terminated`) that `exc` is or was raised
+    from (or while handling), else None."""
     seen: set[int] = set()
     current: BaseException | None = exc
     while current is not None and id(current) not in seen:
         if isinstance(current, KeyboardInterrupt):
-            return True
+            return current
         seen.add(id(current))
         current = current.__cause__ or current.__context__
-    return False
+    return None
 
 
-def _report_interrupt() -> None:
+def _report_interrupt(exc: KeyboardInterrupt) -> None:
+    from .signals import exit_code, stopped_by
+
     try:
-        sys.stderr.write("error: interrupted\n")
+        sys.stderr.write(f"error: {stopped_by(exc)}\n")
         sys.stderr.flush()
     except (OSError, ValueError):
         pass
-    sys.exit(EXIT_INTERRUPTED)
+    sys.exit(exit_code(exc))
 
 
 def _redeliver_interrupts() -> None:
@@ -75,16 +78,20 @@ def _redeliver_interrupts() -> None:
 
 
 def main() -> None:  # pragma: no cover - exercised through a subprocess in the tests
+    from .signals import stop_on_termination
+
     _redeliver_interrupts()
+    stop_on_termination()
     try:
         from .cli import main as cli_main
 
         cli_main()
-    except KeyboardInterrupt:
-        _report_interrupt()
+    except KeyboardInterrupt as exc:
+        _report_interrupt(exc)
     except Exception as exc:
-        if caused_by_interrupt(exc):
-            _report_interrupt()
+        found = interrupt_behind(exc)
+        if found is not None:
+            _report_interrupt(found)
         raise
 
 

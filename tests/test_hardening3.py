@@ -671,7 +671,7 @@ def test_ctrl_c_in_the_first_second_is_one_line(tmp_path, after_s: float) -> Non
 def test_an_import_error_raised_from_a_ctrl_c_counts_as_the_ctrl_c() -> None:
     """pybind11 extensions (scipy's HiGHS) turn a Ctrl-C during their initialisation into
     `ImportError: initialization failed` raised from the KeyboardInterrupt (CI saw it once)."""
-    from anfekf_bench.entry import caused_by_interrupt
+    from anfekf_bench.entry import interrupt_behind
 
     def raised_from(inner: BaseException, outer: Exception) -> Exception:
         try:
@@ -682,15 +682,16 @@ def test_an_import_error_raised_from_a_ctrl_c_counts_as_the_ctrl_c() -> None:
         except Exception as exc:
             return exc
 
-    assert caused_by_interrupt(KeyboardInterrupt())
-    assert caused_by_interrupt(raised_from(KeyboardInterrupt(), ImportError("init failed")))
+    assert interrupt_behind(KeyboardInterrupt())
+    ctrl_c = KeyboardInterrupt()
+    assert interrupt_behind(raised_from(ctrl_c, ImportError("init failed"))) is ctrl_c
     nested = raised_from(KeyboardInterrupt(), ImportError("inner"))
-    assert caused_by_interrupt(raised_from(nested, RuntimeError("outer")))
-    assert not caused_by_interrupt(ImportError("initialization failed"))
-    assert not caused_by_interrupt(raised_from(ValueError("x"), ImportError("y")))
+    assert interrupt_behind(raised_from(nested, RuntimeError("outer")))
+    assert not interrupt_behind(ImportError("initialization failed"))
+    assert not interrupt_behind(raised_from(ValueError("x"), ImportError("y")))
     looped = ImportError("loop")
     looped.__context__ = looped
-    assert not caused_by_interrupt(looped)
+    assert not interrupt_behind(looped)
 
 
 # A command whose work is a weak reference's callback raising KeyboardInterrupt, as a Ctrl-C that

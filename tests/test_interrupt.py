@@ -95,17 +95,22 @@ def kill_scenario(tmp_path_factory) -> tuple[Path, pd.DataFrame]:
 
 
 def as_from_a_terminal() -> None:
-    """Ctrl-C as a shell's command gets it: SIGINT at its default and not blocked. A test
+    """Ctrl-C (and SIGTERM) as a shell's command gets it: at its default and not blocked. A test
     worker's mask or disposition is inherited by the command otherwise (in the full suite the
     command once went on to finish its batch, as if the signal had never come)."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
+
+
+# How the command ends after each signal: its exit code and what it calls the stop.
+STOPPED = {signal.SIGINT: (130, "interrupted"), signal.SIGTERM: (143, "terminated (SIGTERM)")}
 
 
 @pytest.mark.parametrize(
     ("sig", "jobs"),
-    [(signal.SIGKILL, 2), (signal.SIGINT, 1)],
-    ids=["kill-9-two-workers", "ctrl-c-one-worker"],
+    [(signal.SIGKILL, 2), (signal.SIGINT, 1), (signal.SIGTERM, 2)],
+    ids=["kill-9-two-workers", "ctrl-c-one-worker", "sigterm-two-workers"],
 )
 def test_killed_run_leaves_nothing_complete_and_resumes(
     kill_scenario, tmp_path, monkeypatch, sig, jobs
@@ -141,10 +146,11 @@ def test_killed_run_leaves_nothing_complete_and_resumes(
     assert live_group_members(proc.pid) == [], "worker processes outlived the command"
 
     saved = assert_nothing_looks_complete(target, KILL_RUNS)
-    if sig == signal.SIGINT:
-        assert proc.returncode == 130
+    if sig in STOPPED:  # the whole group got it (as from systemd or a batch manager)
+        code, word = STOPPED[sig]
+        assert proc.returncode == code, stderr
         assert stderr.splitlines() == [
-            f"error: killed: interrupted; {len(saved)} of {KILL_RUNS} runs are saved in"
+            f"error: killed: {word}; {len(saved)} of {KILL_RUNS} runs are saved in"
             f" {target / RUNS_DIR}: run the same command again to resume"
         ]
     else:
@@ -231,6 +237,68 @@ def test_fast_batch_holds_its_first_second_and_saves_it_when_interrupted(small, 
     assert rerun.exit_code == 0, rerun.output
     assert "small: resuming: 3 of 4 runs" in rerun.stdout
     pd.testing.assert_frame_equal(read_steps(out / "small"), read_steps(target))
+
+
+# `anfekf run` on the fast engine whose run store holds every run (as in a batch's first
+# second), and which, once it holds three, touches the file argv[1] names and waits.
+HOLDS_THREE_THEN_WAITS = """
+import pathlib, sys, time
+import anfekf_bench.experiment as experiment, anfekf_bench.outputs as outputs
+experiment.STORE_AFTER_S = 600.0
+keep = outputs.RunStore.keep
+marker = pathlib.Path(sys.argv.pop(1))
+def keep_then_wait(self, result):
+    keep(self, result)
+    if len(self.held) == 3:
+        marker.touch()
+        time.sleep(120)
+outputs.RunStore.keep = keep_then_wait
+from anfekf_bench.cli import main
+main()
+"""
+
+
+def test_sigterm_saves_the_runs_a_fast_batch_holds(small, tmp_path) -> None:
+    """`kill PID` (SIGTERM, as `timeout`, `docker stop` or a batch manager send it) stops the
+    command as a Ctrl-C does: the runs held in memory are saved, the message counts them, the
+    exit code is 143, and the resume gives the uninterrupted tables. Its default action would
+    lose them (signals.py)."""
+    path, _ = small
+    _, reference = execute(
+        make_plan(*load_scenario(path), None, None, 1, engine="fast"), tmp_path / "reference"
+    )
+    out = tmp_path / "out"
+    target = out / "small"
+    marker = tmp_path / "holding-three"
+    args = [sys.executable, "-c", HOLDS_THREE_THEN_WAITS, str(marker), "run", str(path),
+            "--out", str(out), "--engine", "fast", "--jobs", "1"]  # fmt: skip
+    proc = subprocess.Popen(
+        args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=as_from_a_terminal,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while not marker.exists():
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "three runs not held within 120 s"
+            time.sleep(0.01)
+        assert not list((target / RUNS_DIR).glob("run-*.npz")), "the runs are held, not saved"
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 143, stderr
+    assert stderr.splitlines() == [
+        f"error: small: terminated (SIGTERM); 3 of 4 runs are saved in {target / RUNS_DIR}:"
+        " run the same command again to resume"
+    ]
+    assert assert_nothing_looks_complete(target, 4) == [0, 1, 2]
+    rerun = cli("run", str(path), "--out", str(out), "--engine", "fast")
+    assert rerun.exit_code == 0, rerun.output
+    assert "small: resuming: 3 of 4 runs" in rerun.stdout
+    pd.testing.assert_frame_equal(read_steps(target), read_steps(reference))
 
 
 def test_run_store_holds_until_its_time_then_saves_every_run(tmp_path, monkeypatch) -> None:

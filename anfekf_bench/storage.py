@@ -167,11 +167,13 @@ def read_regular_bytes(path: Path, limit: int) -> bytes:
     return data
 
 
+_UMASK = os.umask(0o022)  # read once, at import: os.umask reads by setting (threads race)
+os.umask(_UMASK)
+
+
 def _file_mode() -> int:
     """The mode `open()` would give a new file: mkstemp's private 0600 is not wanted for results."""
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
+    return 0o666 & ~_UMASK
 
 
 def write_atomic(path: Path, write: Callable[[Path], None], *, durable: bool = True) -> None:

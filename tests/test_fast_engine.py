@@ -47,6 +47,7 @@ from anfekf_bench.models import Bicycle, Unicycle
 from anfekf_bench.runner import simulate
 from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.sources.simulator import RunData, Scan
+from anfekf_bench.storage import write_new
 
 from .conftest import corrupted_half_way, small_scenario
 
@@ -210,9 +211,13 @@ def test_a_family_loop_is_generated_once_from_the_template_and_named_by_its_sour
     stamp = path.stat().st_mtime_ns
     again = loop._generated_module(sage_husa)
     assert again.__file__ == generated.__file__ and path.stat().st_mtime_ns == stamp
-    loop._write_once(path, "other text")  # another process's write never replaces the file
+    with pytest.raises(FileExistsError):  # another process's write never replaces the file
+        write_new(path, b"other text")
     assert path.read_text() == text and path.stat().st_mtime_ns == stamp
-    assert list(path.parent.glob(".tmp-*")) == [] and path.stat().st_mode & 0o777 == 0o644
+    umask = os.umask(0o022)
+    os.umask(umask)
+    assert [p.name for p in path.parent.iterdir() if p.name.startswith(".")] == []
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask, "as open() makes it: readable to all"
     other = loop._generated_module(families.module("iae"))
     assert other.__file__ != generated.__file__
     path.chmod(0o644)  # a file changed behind the process's back is not what it runs

@@ -21,12 +21,14 @@ edit of a family's hooks or of a rule they call compiles its loop anew.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
 import threading
 from pathlib import Path
 
 from ..provenance import source_files
+from ..storage import write_new
 from . import kernels as _kernels
 
 _PURE_COPY: bool = globals().get("_PURE", False)
@@ -301,7 +303,10 @@ def _generated_module(module):
     name = f"{module.__name__.rsplit('.', 1)[-1]}_{digest.hexdigest()[:16]}"
     path = _generated_folder() / f"loop_{name}.py"
     if not path.is_file():
-        _write_once(path, text)
+        # created whole, once (a hard link of a complete file): a process writing it beside
+        # another never changes the file the other's numba cache recorded
+        with contextlib.suppress(FileExistsError):
+            write_new(path, text.encode())
     spec = importlib.util.spec_from_file_location(f"{__name__}_{name}", path)
     generated = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = generated
@@ -360,29 +365,6 @@ def _generated_folder():
         f"no writable folder for the fast engine's compiled loops (tried {', '.join(tried)});"
         " set NUMBA_CACHE_DIR to one"
     )
-
-
-def _write_once(path, text: str) -> None:
-    """Create `path` holding `text`, whole, unless it exists: a hard link of a complete
-    temporary file, so that a process writing it beside another never changes the file that
-    the other's numba cache recorded."""
-    import os
-    import tempfile
-
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".py")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide it from another user of the install
-        try:
-            os.link(tmp, path)
-        except FileExistsError:
-            pass
-        except OSError:  # no hard links here: the rename is atomic too
-            os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def pure_module():

@@ -48,6 +48,17 @@ def maybe_njit(fn):
     return _NJIT(**NJIT_OPTIONS)(fn)
 
 
+def jitable(*rules):
+    """`rules`, functions as written in the filters' modules, registered with numba when it is in
+    use (compiled code then calls them, compiled as its callees); returned as given."""
+    if _NJIT is not None:
+        from numba.extending import register_jitable
+
+        for rule in rules:
+            register_jitable(rule)
+    return rules
+
+
 def pure_copy(name: str, path: str):
     """A fresh copy of the kernel module `name` (file `path`) whose kernels are plain Python,
     whatever is installed (kept in sys.modules as `name`_pure)."""
@@ -570,25 +581,14 @@ def hqh_diag(H, Qi, HPH0, HPH1):
 
 from ..filters import cm_scale as _cm_scale  # noqa: E402
 
-if _NJIT is not None:
-    from numba.extending import register_jitable
-
-    for _rule in (_cm_scale.proportional_step, _cm_scale.mean_mismatch):
-        register_jitable(_rule)
-
-proportional_step = _cm_scale.proportional_step
-mean_mismatch = _cm_scale.mean_mismatch
+proportional_step, mean_mismatch = jitable(_cm_scale.proportional_step, _cm_scale.mean_mismatch)
 
 # ---------------------------------------------------------------------------------------------
 # The fading-factor EKF (filters.fading), its rule as written there
 
 from ..filters import fading as _fading  # noqa: E402
 
-if _NJIT is not None:
-    register_jitable(_fading.fading_factor)
-    register_jitable(_fading.fading_event)
-
-fading_factor = _fading.fading_factor
+fading_factor, _ = jitable(_fading.fading_factor, _fading.fading_event)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -751,23 +751,16 @@ if _NJIT is not None:
 
         return impl
 
-    for _rule in (
-        _adaptive.clip_to_bounds, _adaptive.qu_least_squares,
-        _sage_husa.next_beta, _sage_husa.fading_mean, _sage_husa.r_sample, _sage_husa.q_sample,
-    ):  # fmt: skip
-        register_jitable(_rule)
 
-clip_to_bounds = _adaptive.clip_to_bounds
+clip_to_bounds, qu_least_squares = jitable(_adaptive.clip_to_bounds, _adaptive.qu_least_squares)
 matmul = _adaptive.matmul
 outer = _adaptive.outer
 trace_of_product = _adaptive.trace_of_product
 inv = _adaptive.inv
 lstsq = _adaptive.lstsq
-qu_least_squares = _adaptive.qu_least_squares
-next_beta = _sage_husa.next_beta
-fading_mean = _sage_husa.fading_mean
-r_sample = _sage_husa.r_sample
-q_sample = _sage_husa.q_sample
+next_beta, fading_mean, r_sample, q_sample = jitable(
+    _sage_husa.next_beta, _sage_husa.fading_mean, _sage_husa.r_sample, _sage_husa.q_sample
+)
 
 
 @maybe_njit
@@ -824,6 +817,18 @@ def qu_estimate(Q_hat, A_v, A_g, P):
     return True, (q[0], q[1])
 
 
+# What a run's kernel returns, before its first stamp: (a recorded row not finite, rows
+# written, NIS sum, updates, measurements rejected by the gate).
+NO_TALLY = (False, 0, 0.0, 0, 0)
+
+
+@maybe_njit
+def stamp_input(u_odo, dt, k):
+    """Stamp k of a timeline (timeline.Timeline): its odometry, the speed and the steering angle
+    (bicycle) or turn rate (unicycle), and its step dt."""
+    return u_odo[k, 0], u_odo[k, 1], dt[k]
+
+
 @maybe_njit
 def record(j, x, P, R, Qu, out_x, out_P, out_R, out_Q):
     """Row j of the records (out_x, out_P, out_R, out_Q); returns (j + 1, whether x or P has a
@@ -857,13 +862,9 @@ def hph_diag(H, P):
 
 from ..filters import vb as _vb  # noqa: E402
 
-if _NJIT is not None:
-    for _rule in (_vb.vb_r_predict, _vb.vb_r_beta, _vb.vb_r_bounded_beta):
-        register_jitable(_rule)
-
-vb_r_predict = _vb.vb_r_predict
-vb_r_beta = _vb.vb_r_beta
-vb_r_bounded_beta = _vb.vb_r_bounded_beta
+vb_r_predict, vb_r_beta, vb_r_bounded_beta = jitable(
+    _vb.vb_r_predict, _vb.vb_r_beta, _vb.vb_r_bounded_beta
+)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -872,29 +873,18 @@ vb_r_bounded_beta = _vb.vb_r_bounded_beta
 
 from ..filters import akhlaghi as _akhlaghi  # noqa: E402
 
-if _NJIT is not None:
-    for _rule in (_akhlaghi.forget, _akhlaghi.residual_variance, _akhlaghi.state_noise_estimate):
-        register_jitable(_rule)
-
-forget = _akhlaghi.forget
-residual_variance = _akhlaghi.residual_variance
-state_noise_estimate = _akhlaghi.state_noise_estimate
+forget, residual_variance, state_noise_estimate = jitable(
+    _akhlaghi.forget, _akhlaghi.residual_variance, _akhlaghi.state_noise_estimate
+)
 
 
 # ---------------------------------------------------------------------------------------------
 # Huang et al.'s VBAKF (filters.vb.VBAKF): inverse-Wishart on P- and R, its rules as written in
 # filters/vb.py.
 
-if _NJIT is not None:
-    for _rule in (
-        _vb.vbakf_predict, _vb.vbakf_prior, _vb.inflation_cap, _vb.clip_covariance_2,
-    ):  # fmt: skip
-        register_jitable(_rule)
-
-vbakf_predict = _vb.vbakf_predict
-vbakf_prior = _vb.vbakf_prior
-inflation_cap = _vb.inflation_cap
-clip_covariance_2 = _vb.clip_covariance_2
+vbakf_predict, vbakf_prior, inflation_cap, clip_covariance_2 = jitable(
+    _vb.vbakf_predict, _vb.vbakf_prior, _vb.inflation_cap, _vb.clip_covariance_2
+)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -906,15 +896,7 @@ clip_covariance_2 = _vb.clip_covariance_2
 
 from ..filters import iae as _iae  # noqa: E402
 
-if _NJIT is not None:
-    for _rule in (
-        _iae.window_covariance, _iae.window_mean, _iae.r_estimate, _iae.hold_nonpositive,
-        _iae.q_estimate,
-    ):  # fmt: skip
-        register_jitable(_rule)
-
-window_covariance = _iae.window_covariance
-window_mean = _iae.window_mean
-r_estimate = _iae.r_estimate
-hold_nonpositive = _iae.hold_nonpositive
-q_estimate = _iae.q_estimate
+window_covariance, window_mean, r_estimate, hold_nonpositive, q_estimate = jitable(
+    _iae.window_covariance, _iae.window_mean, _iae.r_estimate, _iae.hold_nonpositive,
+    _iae.q_estimate,
+)  # fmt: skip

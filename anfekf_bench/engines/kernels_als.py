@@ -33,6 +33,7 @@ predict_with = _k.predict_with
 innovation, nis, gain, correct = _k.innovation, _k.nis, _k.gain, _k.correct
 feeds_adaptation = _k.feeds_adaptation
 healthy, record, clip_to_bounds = _k.healthy, _k.record, _k.clip_to_bounds
+stamp_input, NO_TALLY = _k.stamp_input, _k.NO_TALLY
 
 MOTION_BICYCLE, MOTION_UNICYCLE = _k.MOTION_BICYCLE, _k.MOTION_UNICYCLE
 
@@ -425,16 +426,10 @@ def run_als_kernel(
     K = np.empty((3, 2))
     S = np.empty((2, 2))
     scans = 0
-    nis_sum = 0.0
-    n_updates = 0
-    n_rejected = 0
+    bad_record, j, nis_sum, n_updates, n_rejected = NO_TALLY
     n_records = out_x.shape[0]
-    j = 0
-    bad_record = False
     for i in range(n_stamps):
-        u0 = u[i, 0]
-        u1 = u[i, 1]
-        h = dt[i]
+        u0, u1, h = stamp_input(u, dt, i)
         f02, f12, G = jacobians(x[2], u0, u1, h, motion, B)  # once for both
         c = noise_scale(h, motion, T0)
         A_v, A_g, F_scan = interval_step(A_v, A_g, F_scan, f02, f12, G, c)

@@ -18,7 +18,6 @@ import math
 
 import numpy as np
 
-from ..filters import adaptive as _adaptive
 from ..filters import augmented as _aug
 from ..filters import sage_husa as _sh
 from ..filters import vb as _vb
@@ -32,22 +31,13 @@ jacobians = _k.jacobians
 noise_scale = _k.noise_scale
 wrap = _k.wrap
 feeds_adaptation = _k.feeds_adaptation
+stamp_input, NO_TALLY = _k.stamp_input, _k.NO_TALLY
 MOTION_BICYCLE, MOTION_UNICYCLE = _k.MOTION_BICYCLE, _k.MOTION_UNICYCLE
 
-if JIT and not _PURE_COPY:
-    from numba.extending import register_jitable
-
-    for _rule in (
-        _aug.true_controls, _aug.control_derivative, _adaptive.clip_to_bounds, _sh.r_sample,
-        _sh.fading_mean, _sh.next_beta, _vb.vb_r_predict, _vb.vb_r_beta, _vb.vb_r_bounded_beta,
-    ):  # fmt: skip
-        register_jitable(_rule)
-
-true_controls = _aug.true_controls
-control_derivative = _aug.control_derivative
-clip_to_bounds = _adaptive.clip_to_bounds
-r_sample, fading_mean, next_beta = _sh.r_sample, _sh.fading_mean, _sh.next_beta
-vb_r_predict, vb_r_beta, vb_r_bounded_beta = _vb.vb_r_predict, _vb.vb_r_beta, _vb.vb_r_bounded_beta
+true_controls, control_derivative = _k.jitable(_aug.true_controls, _aug.control_derivative)
+clip_to_bounds = _k.clip_to_bounds
+r_sample, fading_mean, next_beta = _k.r_sample, _k.fading_mean, _k.next_beta
+vb_r_predict, vb_r_beta, vb_r_bounded_beta = _k.vb_r_predict, _k.vb_r_beta, _k.vb_r_bounded_beta
 
 # The R rule the state is combined with (`augment:` on an adaptive family's spec), and the
 # layout of its parameters `rp` (float64, 8): rule, adaptation, adapt_from all, floor,
@@ -282,11 +272,7 @@ def run_augmented_kernel(
     Kg = np.zeros((n, 2))
     A = np.zeros((n, n))
     n_rows = out_x.shape[0]
-    nis_sum = 0.0
-    n_updates = 0
-    n_rejected = 0
-    j = 0
-    bad_record = False
+    bad_record, j, nis_sum, n_updates, n_rejected = NO_TALLY
     range_col = -1
     for i in range(m):
         if est[i] == 3:
@@ -294,8 +280,8 @@ def run_augmented_kernel(
     for k in range(K):
         # -- predict: the model on the corrected controls, F and Q of the augmented step
         theta = _parameters(x, theta0, est)
-        ut0, ut1, kv, kw = true_controls(u_odo[k, 0], u_odo[k, 1], theta)
-        h_dt = dt[k]
+        u0, u1, h_dt = stamp_input(u_odo, dt, k)
+        ut0, ut1, kv, kw = true_controls(u0, u1, theta)
         f02, f12, G = jacobians(x[2], ut0, ut1, h_dt, motion, B)
         g00, g01, g10, g11, g20, g21 = G
         if motion == MOTION_UNICYCLE:

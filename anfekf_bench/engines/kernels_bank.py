@@ -35,6 +35,7 @@ innovation, nis, correct, healthy, record, hph_diag, feeds_adaptation = (
     _k.innovation, _k.nis, _k.correct, _k.healthy, _k.record, _k.hph_diag, _k.feeds_adaptation,
 )  # fmt: skip
 clip_to_bounds = _k.clip_to_bounds
+stamp_input, NO_TALLY = _k.stamp_input, _k.NO_TALLY
 vb_r_predict, vb_r_beta, vb_r_bounded_beta = _k.vb_r_predict, _k.vb_r_beta, _k.vb_r_bounded_beta
 next_beta, fading_mean, r_sample = _k.next_beta, _k.fading_mean, _k.r_sample
 MOTION_UNICYCLE = _k.MOTION_UNICYCLE
@@ -49,28 +50,18 @@ def pure_module():
     return _kernels.pure_copy(__name__, __file__)
 
 
-if JIT and not _PURE_COPY:
-    from numba.extending import register_jitable
-
-    for _rule in (
-        _bank._wrap, _bank.innovation_loglik, _bank.log_sum_exp, _bank.normalise_log_weights,
-        _bank.most_probable, _bank.mixture_weights, _bank.mix_moments, _bank.weighted_noise,
-        _bank.imm_mix, _bank.predicted_weights, _bank.heavy_members, _bank.mixed_start,
-        _bank.imm_mix_by_sums, _bank.active_members,
-        _bank.mix_moments_at, _vb_bank.predictive_loglik,
-    ):  # fmt: skip
-        register_jitable(_rule)
-
-innovation_loglik = _bank.innovation_loglik
-normalise_log_weights = _bank.normalise_log_weights
-most_probable = _bank.most_probable
-mixture_weights = _bank.mixture_weights
-mix_moments = _bank.mix_moments
-mix_moments_at = _bank.mix_moments_at
-active_members = _bank.active_members
-weighted_noise = _bank.weighted_noise
-imm_mix_by_sums = _bank.imm_mix_by_sums
-predictive_loglik = _vb_bank.predictive_loglik
+_k.jitable(  # what the rules below call
+    _bank._wrap, _bank.log_sum_exp, _bank.mix_moments, _bank.imm_mix, _bank.predicted_weights,
+    _bank.heavy_members, _bank.mixed_start,
+)  # fmt: skip
+(
+    innovation_loglik, normalise_log_weights, most_probable, mixture_weights, mix_moments_at,
+    active_members, weighted_noise, imm_mix_by_sums, predictive_loglik,
+) = _k.jitable(
+    _bank.innovation_loglik, _bank.normalise_log_weights, _bank.most_probable,
+    _bank.mixture_weights, _bank.mix_moments_at, _bank.active_members, _bank.weighted_noise,
+    _bank.imm_mix_by_sums, _vb_bank.predictive_loglik,
+)  # fmt: skip
 
 
 @maybe_njit
@@ -209,16 +200,10 @@ def run_bank_kernel(
     scratch = imm_scratch(M)
     active = np.empty(M, np.int64)
     n_active = mixture(logw, threshold, X, Pm, Rm, Qu_m, w, active, Rw, Qw, xm, Pmix)
-    nis_sum = 0.0
-    n_updates = 0
-    n_rejected = 0
+    bad_record, j, nis_sum, n_updates, n_rejected = NO_TALLY
     n_rows = out_x.shape[0]
-    j = 0
-    bad_record = False
     for k in range(K):
-        u0 = u_odo[k, 0]
-        u1 = u_odo[k, 1]
-        dt_k = dt[k]
+        u0, u1, dt_k = stamp_input(u_odo, dt, k)
         terms = step_terms(u0, u1, dt_k, motion, B)
         q_scale = noise_scale(dt_k, motion, T0) if motion == MOTION_UNICYCLE else 1.0
         predict_members(X, Pm, Qu_m, terms, q_scale)  # the bank's, member by member

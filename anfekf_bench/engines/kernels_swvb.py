@@ -27,6 +27,7 @@ jacobians, noise_scale, predict_with, interval_step = (
 innovation, nis, correct, healthy, record, wrap = (
     _k.innovation, _k.nis, _k.correct, _k.healthy, _k.record, _k.wrap,
 )  # fmt: skip
+stamp_input, NO_TALLY = _k.stamp_input, _k.NO_TALLY
 as_matrix, matmul, inv, qu_least_squares, clip_to_bounds = (
     _k.as_matrix, _k.matmul, _k.inv, _k.qu_least_squares, _k.clip_to_bounds,
 )  # fmt: skip
@@ -38,14 +39,7 @@ def pure_module():
     return _kernels.pure_copy(__name__, __file__)
 
 
-if JIT and not _PURE_COPY:
-    from numba.extending import register_jitable
-
-    for _rule in (_swvb.interval_prior, _swvb.process_noise_moment):
-        register_jitable(_rule)
-
-interval_prior = _swvb.interval_prior
-process_noise_moment = _swvb.process_noise_moment
+interval_prior, process_noise_moment = _k.jitable(_swvb.interval_prior, _swvb.process_noise_moment)
 
 
 @maybe_njit
@@ -122,16 +116,10 @@ def run_swvb_kernel(
     F_scan = EYE9
     P_s = P  # P+ at the previous Q event
     fed = np.zeros(max(scan_lm.shape[0], 1), np.bool_)
-    nis_sum = 0.0
-    n_updates = 0
-    n_rejected = 0
+    bad_record, j, nis_sum, n_updates, n_rejected = NO_TALLY
     n_rows = out_x.shape[0]
-    j = 0
-    bad_record = False
     for k in range(K):
-        u0 = u_odo[k, 0]
-        u1 = u_odo[k, 1]
-        dt_k = dt[k]
+        u0, u1, dt_k = stamp_input(u_odo, dt, k)
         f02, f12, G = jacobians(x[2], u0, u1, dt_k, motion, B)  # F, G before the predict
         A_v, A_g, F_scan = interval_step(
             A_v, A_g, F_scan, f02, f12, G, noise_scale(dt_k, motion, T0)

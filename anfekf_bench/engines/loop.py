@@ -39,6 +39,7 @@ jacobians, noise_scale, predict_with = _k.jacobians, _k.noise_scale, _k.predict_
 innovation, nis, correct, healthy, record = (
     _k.innovation, _k.nis, _k.correct, _k.healthy, _k.record,
 )  # fmt: skip
+stamp_input, NO_TALLY = _k.stamp_input, _k.NO_TALLY
 
 # The hooks, in the order the loop calls them, with what they receive and return:
 #   start(fam, x, P, Qu, R, scan_start) -> st
@@ -174,16 +175,10 @@ def run_loop(
     Qu = (Qu0[0], Qu0[1], Qu0[2], Qu0[3])
     R = (R0[0], R0[1], R0[2], R0[3])
     st = start(fam, x, P, Qu, R, scan_start)
-    nis_sum = 0.0
-    n_updates = 0
-    n_rejected = 0
+    bad_record, j, nis_sum, n_updates, n_rejected = NO_TALLY
     n_rows = out_x.shape[0]
-    j = 0
-    bad_record = False
     for k in range(K):
-        u0 = u_odo[k, 0]
-        u1 = u_odo[k, 1]
-        dt_k = dt[k]
+        u0, u1, dt_k = stamp_input(u_odo, dt, k)
         f02, f12, G = jacobians(x[2], u0, u1, dt_k, motion, B)
         x, P, Q = predict_with(x, P, f02, f12, G, u0, u1, dt_k, motion, B, T0, Qu)
         st = predicted(fam, st, f02, f12, G, noise_scale(dt_k, motion, T0), Q)

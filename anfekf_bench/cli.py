@@ -30,7 +30,13 @@ from typer.core import TyperArgument, TyperGroup, TyperOption
 # pandas, scipy, numba or matplotlib (about 3 s of CPU). Each command imports what it runs.
 from .provenance import version_line
 from .run_tables import print_comparisons, summary_table, sweep_summary_table
-from .signals import exit_code, stop_on_termination, stopped_by
+from .signals import (
+    exit_code,
+    interrupt_behind,
+    restore_termination,
+    stop_on_termination,
+    stopped_by,
+)
 from .text import one_line, plural
 
 # click's exception classes as typer raises them (typer >= 0.17 vendors its own click): found
@@ -61,9 +67,11 @@ class OneLineUsageErrors(TyperGroup):
                 one_line(f"error: {message}"), markup=False, highlight=False, soft_wrap=True
             )
             sys.exit(exc.exit_code)
-        except typer.Abort:
-            err_console.print("error: aborted", markup=False, highlight=False)
-            sys.exit(1)
+        except typer.Abort as exc:  # click's, for a Ctrl-C outside the command's own handlers
+            found = interrupt_behind(exc)
+            word = "aborted" if found is None else stopped_by(found)
+            err_console.print(f"error: {word}", markup=False, highlight=False)
+            sys.exit(1 if found is None else exit_code(found))
         except OSError as exc:
             if not writing_stdout(exc):
                 raise
@@ -887,4 +895,7 @@ def init(
 
 def main() -> None:  # pragma: no cover - console entry point
     stop_on_termination()
-    app()
+    try:
+        app()
+    finally:
+        restore_termination()

@@ -23,19 +23,6 @@ from __future__ import annotations
 import sys
 
 
-def interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
-    """The KeyboardInterrupt (a Ctrl-C, or `signals.Terminated`) that `exc` is or was raised
-    from (or while handling), else None."""
-    seen: set[int] = set()
-    current: BaseException | None = exc
-    while current is not None and id(current) not in seen:
-        if isinstance(current, KeyboardInterrupt):
-            return current
-        seen.add(id(current))
-        current = current.__cause__ or current.__context__
-    return None
-
-
 def _report_interrupt(exc: KeyboardInterrupt) -> None:
     from .signals import exit_code, stopped_by
 
@@ -48,27 +35,34 @@ def _report_interrupt(exc: KeyboardInterrupt) -> None:
 
 
 def _redeliver_interrupts() -> None:
-    """Install an unraisable-exception hook that hands a swallowed Ctrl-C back to the main thread.
+    """Install an unraisable-exception hook that hands a swallowed Ctrl-C (or SIGTERM, SIGHUP)
+    back to the main thread.
 
     The hook itself must not be interrupted: a KeyboardInterrupt raised there is "ignored" again.
-    So a bare thread (which the hook need not wait for) sends SIGINT to the main thread a moment
-    after the hook has returned; a real signal also wakes a main thread blocked in a system call.
+    So a bare thread (which the hook need not wait for) sends the signal again to the main thread
+    a moment after the hook has returned; a real signal also wakes a main thread blocked in a
+    system call.
     """
     import _thread
     import signal
     import time
 
+    from .signals import rearm
+
     main_thread = _thread.get_ident()
     previous = sys.unraisablehook
 
-    def send_sigint() -> None:
+    def send_signal(signum: int) -> None:
         time.sleep(0.02)
-        signal.pthread_kill(main_thread, signal.SIGINT)
+        signal.pthread_kill(main_thread, signum)
 
     def hook(unraisable) -> None:
         if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
+            # a swallowed SIGTERM or SIGHUP comes again as itself (its one-shot handler re-armed)
+            signum = getattr(unraisable.exc_value, "signum", signal.SIGINT)
+            rearm(signum)
             try:
-                _thread.start_new_thread(send_sigint, ())
+                _thread.start_new_thread(send_signal, (signum,))
             except RuntimeError:  # the interpreter is shutting down: nothing left to stop
                 pass
             return
@@ -89,6 +83,8 @@ def main() -> None:  # pragma: no cover - exercised through a subprocess in the 
     except KeyboardInterrupt as exc:
         _report_interrupt(exc)
     except Exception as exc:
+        from .signals import interrupt_behind
+
         found = interrupt_behind(exc)
         if found is not None:
             _report_interrupt(found)

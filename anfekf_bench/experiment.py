@@ -81,6 +81,7 @@ from .runner import (
     runs_in_threads,
     simulated_items,
 )
+from .signals import deferred
 from .sources.simulator import RouteNotCompleted, simulate_truth, world_path
 from .storage import (
     MANIFEST_FILE,
@@ -563,8 +564,9 @@ def _execute_locked(plan, out_dir, force, client, started, on_start, on_result, 
             steps_written=steps_written, store=store,
         )  # fmt: skip
     except BaseException:  # interrupted or failed before the result was in place (finish_result
-        # empties the store then): the runs it holds are saved for a resume
-        with contextlib.suppress(Exception):  # the first error is the one to report
+        # empties the store then): the runs it holds are saved for a resume, whole (a second
+        # Ctrl-C or SIGTERM meanwhile is held, then dropped: the first is the one to report)
+        with contextlib.suppress(Exception, KeyboardInterrupt), deferred():
             store.flush()
         raise
     return tables.summary, target

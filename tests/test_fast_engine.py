@@ -217,7 +217,7 @@ def test_a_family_loop_is_generated_once_from_the_template_and_named_by_its_sour
     umask = os.umask(0o022)
     os.umask(umask)
     assert [p.name for p in path.parent.iterdir() if p.name.startswith(".")] == []
-    assert path.stat().st_mode & 0o777 == 0o666 & ~umask, "as open() makes it: readable to all"
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask, "the mode open() gives (the umask's)"
     other = loop._generated_module(families.module("iae"))
     assert other.__file__ != generated.__file__
     path.chmod(0o644)  # a file changed behind the process's back is not what it runs

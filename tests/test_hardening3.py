@@ -671,7 +671,7 @@ def test_ctrl_c_in_the_first_second_is_one_line(tmp_path, after_s: float) -> Non
 def test_an_import_error_raised_from_a_ctrl_c_counts_as_the_ctrl_c() -> None:
     """pybind11 extensions (scipy's HiGHS) turn a Ctrl-C during their initialisation into
     `ImportError: initialization failed` raised from the KeyboardInterrupt (CI saw it once)."""
-    from anfekf_bench.entry import interrupt_behind
+    from anfekf_bench.signals import interrupt_behind
 
     def raised_from(inner: BaseException, outer: Exception) -> Exception:
         try:
@@ -698,14 +698,14 @@ def test_an_import_error_raised_from_a_ctrl_c_counts_as_the_ctrl_c() -> None:
 # lands in the import system's module-lock callback does (CI saw "Exception ignored in
 # <function _get_module_lock.<locals>.cb>"); then it would go on working for a minute.
 SWALLOWED_CTRL_C = """
-import sys, time, types, weakref
-from anfekf_bench import entry
+import signal, sys, time, types, weakref
+from anfekf_bench import entry, signals
 
 class Held:
     pass
 
 def interrupt(_):
-    raise KeyboardInterrupt
+    raise signals.Terminated(signal.SIGTERM) if sys.argv[1] == "term" else KeyboardInterrupt
 
 def main():
     held = Held()
@@ -719,15 +719,21 @@ entry.main()
 """
 
 
-def test_a_ctrl_c_swallowed_by_an_interpreter_callback_still_ends_the_command() -> None:
+@pytest.mark.parametrize(
+    ("how", "code", "said"), [("ctrl-c", 130, "interrupted"), ("term", 143, "terminated (SIGTERM)")]
+)
+def test_a_ctrl_c_swallowed_by_an_interpreter_callback_still_ends_the_command(
+    how: str, code: int, said: str
+) -> None:
     from .test_interrupt import as_from_a_terminal
 
     start = time.monotonic()
-    proc = subprocess.run([sys.executable, "-c", SWALLOWED_CTRL_C], preexec_fn=as_from_a_terminal,
-                          capture_output=True, text=True, timeout=90)  # fmt: skip
+    proc = subprocess.run([sys.executable, "-c", SWALLOWED_CTRL_C, how],
+                          preexec_fn=as_from_a_terminal, capture_output=True, text=True,
+                          timeout=90)  # fmt: skip
     assert time.monotonic() - start < 30, (proc.stdout, proc.stderr)  # a loaded machine's start
-    assert proc.returncode == 130, (proc.returncode, proc.stdout, proc.stderr)
-    assert proc.stderr == "error: interrupted\n"
+    assert proc.returncode == code, (proc.returncode, proc.stdout, proc.stderr)
+    assert proc.stderr == f"error: {said}\n"
     assert "went on" not in proc.stdout
 
 

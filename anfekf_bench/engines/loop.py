@@ -298,8 +298,8 @@ def _generated_module(module):
     name = f"{module.__name__.rsplit('.', 1)[-1]}_{digest.hexdigest()[:16]}"
     path = _generated_folder() / f"loop_{name}.py"
     if not path.is_file():
-        # created whole, once (a hard link of a complete file): a process writing it beside
-        # another never changes the file the other's numba cache recorded
+        # created once, exclusively (storage.write_new): a process writing it beside another
+        # never changes the file the other's numba cache recorded
         with contextlib.suppress(FileExistsError):
             write_new(path, text.encode())
     spec = importlib.util.spec_from_file_location(f"{__name__}_{name}", path)

@@ -6,10 +6,10 @@ processes while the report builds the next ones: about two thirds of a report's 
 matplotlib's drawing at save time (the layout, the ticks, the PNG), and the figures are
 independent.
 
-A worker imports only this module (and matplotlib and numpy): everything a figure holds by
-reference (the tick locators and formatters below) is defined here, at module level, so that a
-figure pickles and a worker starts in about a second without the package's scenarios, filters
-or tables.
+A worker imports only this module (and matplotlib, numpy and the tiny signals.py): everything a
+figure holds by reference (the tick locators and formatters below) is defined here, at module
+level, so that a figure pickles and a worker starts in about a second without the package's
+scenarios, filters or tables.
 """
 
 from __future__ import annotations
@@ -32,6 +32,8 @@ matplotlib.use("Agg")  # files only; never open a window
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.ticker import Locator, MaxNLocator  # noqa: E402
+
+from ..signals import deferred  # noqa: E402
 
 DPI = 110
 RC = {
@@ -131,15 +133,23 @@ class RenderPool:
         # The workers start with Ctrl-C ignored (an ignored signal stays ignored through fork
         # and exec, and Python then installs no handler of its own): one that arrives while a
         # worker imports must not print its traceback. Here it waits, blocked, meanwhile.
-        with _sigint_held():
-            self._executor = ProcessPoolExecutor(
-                max_workers=workers,
-                mp_context=multiprocessing.get_context("spawn"),
-                initializer=_start_worker,
-                initargs=(os.getpid(),),
-            )
-            for _ in range(workers):  # spawns them (not forked: pyarrow's threads)
-                self._executor.submit(_ready)
+        # A SIGTERM meanwhile waits too (signals.deferred), or a worker started before the
+        # executor's management thread would be left waiting, and the command with it; once
+        # they are all up, it ends them.
+        try:
+            with deferred(), _sigint_held():
+                self._executor = ProcessPoolExecutor(
+                    max_workers=workers,
+                    mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_start_worker,
+                    initargs=(os.getpid(),),
+                )
+                for _ in range(workers):  # spawns them (not forked: pyarrow's threads)
+                    self._executor.submit(_ready)
+        except KeyboardInterrupt:
+            if hasattr(self, "_executor"):
+                self.stop()
+            raise
 
     def submit(self, fig: Figure, fmt: str, dpi: int, png_copy: bool) -> Rendering | None:
         """`figure_files` of `fig` in a worker; None where `fig` does not pickle (the caller then

@@ -104,13 +104,17 @@ def deferred():
         yield
         return
     ctrl_c: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: ctrl_c.append(signum))
+    previous = signal.getsignal(signal.SIGINT)
+    hold_ctrl_c = previous not in (signal.SIG_IGN, None)  # ignored (a background job): it stays so
+    if hold_ctrl_c:
+        signal.signal(signal.SIGINT, lambda signum, frame: ctrl_c.append(signum))
     _deferring += 1
     try:
         yield
     finally:
         _deferring -= 1
-        signal.signal(signal.SIGINT, previous)
+        if hold_ctrl_c:
+            signal.signal(signal.SIGINT, previous)
     if _deferring == 0 and _pending:
         raise Terminated(_pending.pop(0))
     if ctrl_c:

@@ -75,6 +75,7 @@ def test_off_the_main_thread_nothing_changes(handlers) -> None:
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["sigterm", "ctrl-c"])
 def test_deferred_holds_a_request_to_the_end_of_its_block(handlers, sig) -> None:
     signals.stop_on_termination()
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # SIG_IGN in a background job
     done = []
     with pytest.raises(KeyboardInterrupt) as caught:
         with signals.deferred():
@@ -83,6 +84,14 @@ def test_deferred_holds_a_request_to_the_end_of_its_block(handlers, sig) -> None
     assert done == ["the block went on"]
     assert isinstance(caught.value, signals.Terminated) == (sig == signal.SIGTERM)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler, "Ctrl-C's handler back"
+
+
+def test_deferred_leaves_an_ignored_ctrl_c_ignored(handlers) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # as a background job of a script starts
+    with signals.deferred():
+        signal.raise_signal(signal.SIGINT)
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
 
 
 def test_a_ctrl_c_or_sigterm_click_turns_into_abort_is_said_as_such() -> None:

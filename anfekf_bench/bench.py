@@ -52,7 +52,13 @@ from rich.table import Table
 
 from .analysis.metrics import add_trace_metrics, recorded_steps
 from .bench_figures import DEFINITIONS, TARGETS
-from .breakdown import breakdown_rows, first_run_compiles, make_zoo_wall, paper_breakdown
+from .breakdown import (
+    breakdown_rows,
+    compiled_signatures,
+    first_run_compiles,
+    make_zoo_wall,
+    paper_breakdown,
+)  # fmt: skip
 from .config import Scenario, World, parse_scenario, scenario_files
 from .engines.filterpy_engine import run_filter
 from .experiment import execute, machine_info, make_plan, package_versions
@@ -422,7 +428,8 @@ _COMPILE_CODE = (
 
 def compile_probe(cache_dir: Path) -> dict:
     """numba compiling every kernel into an empty on-disk cache, then a second fresh interpreter
-    loading them from it: {"compile_s", "cache_load_s"} (None without numba)."""
+    loading them from it: {"compile_s", "cache_load_s", "signatures"} (None without numba;
+    signatures: `breakdown.compiled_signatures` of the compile)."""
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache_dir))
     out = []
     for _ in range(2):
@@ -435,8 +442,11 @@ def compile_probe(cache_dir: Path) -> dict:
             raise BenchError(f"fast-engine compile probe failed: {tail}")
         out.append(json.loads(proc.stdout.strip().splitlines()[-1]))
     if not out[0]["jit"]:
-        return {"compile_s": None, "cache_load_s": None}
-    return {"compile_s": out[0]["warm_up_s"], "cache_load_s": out[1]["warm_up_s"]}
+        return {"compile_s": None, "cache_load_s": None, "signatures": None}
+    return {
+        "compile_s": out[0]["warm_up_s"], "cache_load_s": out[1]["warm_up_s"],
+        "signatures": compiled_signatures(cache_dir),
+    }  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------
@@ -779,7 +789,7 @@ def run_bench(
     engine_s = time_engine_costs(setup, sizes.repeats, sizes.fast_inner)
     prep_s = time_scan_flattening(setup, max(sizes.repeats, 5))
     engine_us = engine_figures(engine_s, prep_s, K)
-    compiled = {"compile_s": None, "cache_load_s": None}
+    compiled = {"compile_s": None, "cache_load_s": None, "signatures": None}
     first_run = None
     zoo = configs / "zoo"
     if sizes.compile_probe and fast.JIT:
@@ -852,6 +862,8 @@ def run_bench(
         "fast_warm_up_s": fast_warm_up_s,
         "fast_compile_s": compiled["compile_s"],
         "fast_cache_load_s": compiled["cache_load_s"],
+        "fast_compiled_signatures": (compiled["signatures"] or {}).get("signatures"),
+        "fast_compiled_twice": (compiled["signatures"] or {}).get("compiled_twice"),
         "fast_e2e_scenario_s": e2e["wall_s"],
         "fast_e2e": e2e,
         "fast_e2e_cli_s": statistics.median(e2e["cli_wall_s"]) if e2e["cli_wall_s"] else None,
@@ -937,6 +949,7 @@ def bench_table(report: dict) -> Table:
         ("fast_warm_up_s", "s"),
         ("fast_compile_s", "s"),
         ("fast_cache_load_s", "s"),
+        ("fast_compiled_signatures", ""),
         ("fast_e2e_scenario_s", "s"),
         ("fast_e2e_cli_s", "s"),
         ("fast_summary_max_rel_diff", ""),
@@ -949,6 +962,9 @@ def bench_table(report: dict) -> Table:
         ("default_over_ekf_fast_step_cost", "x"),
     ):
         row(key, report.get(key), unit)
+    twice = report.get("fast_compiled_twice")
+    if twice is not None:  # functions the compile probe compiled for two signatures or more
+        table.add_row("fast_compiled_twice", ", ".join(twice) or "none", "-", "-")
     table.add_section()
     for figure, value in breakdown_rows(report.get("fast_e2e_breakdown", {"scenarios": {}})):
         table.add_row(figure, value, "-", "-")

@@ -61,6 +61,10 @@ DEFINITIONS = {
     " (import excluded); null at quick sizes or without numba",
     "fast_cache_load_s": "the same kernels loaded from numba's on-disk cache in a fresh"
     " interpreter (import excluded)",
+    "fast_compiled_signatures": "the compiled signatures that compile wrote to numba's cache"
+    " (every jitted function, callees included, once per signature)",
+    "fast_compiled_twice": "the functions it compiled for more than one signature (a constant"
+    " argument typed as a literal compiles its callee again): none expected",
     "fast_engine_max_abs_diff": "largest |fast - filterpy| of x, P, R_diag, Q_diag over the timed"
     " run and filter kinds (the same update, rejection and divergence counts are required)",
     "fast_e2e_scenario_s": "experiment.execute wall time of the step scenario file's runs on the"

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 from statistics import median
 
@@ -281,3 +284,55 @@ def test_first_run_compiles_reads_numba_cache_log(monkeypatch, tmp_path) -> None
     monkeypatch.setattr(breakdown, "_cli", lambda args, env=None: (2.0 + len(args), ""))
     zoo = breakdown.make_zoo_wall(Path("zoo"), tmp_path)
     assert zoo["total_s"] == zoo["run_s"] + zoo["report_s"] and zoo["run_s"] > zoo["report_s"]
+
+
+def test_compiled_signatures_counts_each_functions_signatures(tmp_path) -> None:
+    """From numba's cache file names (NAME-LINE.pyXY.N.nbc): every signature counted, the
+    functions with two or more listed; index files and other files ignored."""
+    names = [
+        "kernels.record-832.py311.1.nbc", "kernels.record-832.py311.2.nbc",
+        "kernels.record-832.py311.nbi", "loop_fading_0a.run_loop-13.py311.1.nbc",
+        "motion_terms.step_terms-31.py312.1.nbc", "notes.txt",
+    ]  # fmt: skip
+    for i, name in enumerate(names):
+        (tmp_path / f"sub{i % 2}").mkdir(exist_ok=True)
+        (tmp_path / f"sub{i % 2}" / name).write_bytes(b"")
+    got = breakdown_module.compiled_signatures(tmp_path)
+    assert got == {"signatures": 4, "compiled_twice": ["kernels.record"]}
+    assert breakdown_module.compiled_signatures(tmp_path / "none") == {
+        "signatures": 0, "compiled_twice": [],
+    }  # fmt: skip
+
+
+_LITERAL_CODE = """
+import numpy as np
+from numba import njit
+
+@njit(cache=True)
+def scale(x, k):
+    return x * k
+
+@njit(cache=True)
+def literal():
+    return scale(2.0, 3)
+
+@njit(cache=True)
+def not_literal():
+    return scale(2.0, np.int64(3))
+
+assert literal() == 6.0 and not_literal() == 6.0
+"""
+
+
+def test_a_literal_argument_compiles_its_callee_again(tmp_path) -> None:
+    """Why the kernels pass constants as np.int64(...) (docs/DESIGN.md, "Engines"): a constant
+    argument is typed as a literal and compiles the callee for it besides the int64 signature,
+    and `compiled_signatures` sees it."""
+    pytest.importorskip("numba")
+    (tmp_path / "literal_args.py").write_text(_LITERAL_CODE)
+    cache = tmp_path / "cache"
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), PYTHONPATH=str(tmp_path))
+    subprocess.run([sys.executable, "-c", "import literal_args"], env=env, check=True)
+    got = breakdown_module.compiled_signatures(cache)
+    assert got["compiled_twice"] == ["literal_args.scale"]
+    assert got["signatures"] == 4  # scale twice, literal, not_literal

@@ -402,7 +402,7 @@ def run_als_kernel(
     F_scan_a = np.empty((3, 3))
     past_nu = np.zeros((lags, 2))
     past_D = np.zeros((lags * 4, 3, 2))
-    n_past = 0
+    n_past = np.int64(0)  # not the literal 0: numba would compile _finish for it as well
     rows = np.empty((rows_per_innovation(2, lags), 5))
     # The window's factors; no more than the run's measurements can fill it (a smaller ring
     # that never wraps holds the same innovations).

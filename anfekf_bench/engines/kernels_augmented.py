@@ -273,7 +273,7 @@ def run_augmented_kernel(
     A = np.zeros((n, n))
     n_rows = out_x.shape[0]
     bad_record, j, nis_sum, n_updates, n_rejected = NO_TALLY
-    range_col = -1
+    range_col = np.int64(-1)  # not the literal -1: numba would compile the rule for it as well
     for i in range(m):
         if est[i] == 3:
             range_col = 3 + i

@@ -327,6 +327,10 @@ def run_bank_kernel(
                 return True, j, nis_sum, n_updates, n_rejected
         if record_at[k] and j < n_rows:
             R4 = (Rw[0], 0.0, 0.0, Rw[1])
-            j, bad = record(j, xm, Pmix, R4, (Qw[0], 0.0, 0.0, Qw[1]), out_x, out_P, out_R, out_Q)
+            x3 = (xm[0], xm[1], xm[2])  # tuples, as the other kernels: record compiles once
+            P9 = (
+                Pmix[0], Pmix[1], Pmix[2], Pmix[3], Pmix[4], Pmix[5], Pmix[6], Pmix[7], Pmix[8],
+            )  # fmt: skip
+            j, bad = record(j, x3, P9, R4, (Qw[0], 0.0, 0.0, Qw[1]), out_x, out_P, out_R, out_Q)
             bad_record = bad_record or bad
     return bad_record, j, nis_sum, n_updates, n_rejected

@@ -290,6 +290,7 @@ def grid_kernel(
     Qu = np.zeros(4)
     R = np.zeros(4)
     best = bound
+    motion = np.int64(MOTION_UNICYCLE)  # not the literal: numba would compile the kernel twice
     for g in range(len(sigmas)):
         Qu[0] = sigmas[g, 0] * sigmas[g, 0]
         Qu[3] = sigmas[g, 1] * sigmas[g, 1]
@@ -317,7 +318,7 @@ def grid_kernel(
                 nu, nr = int(resume[17]), int(resume[18])
             else:
                 status, sq, mx, _, nu, nr = ekf_fit_kernel(
-                    MOTION_UNICYCLE, dt[a:b], u[a:b], lm[marks[r] : marks[r + 1]], z[lo:hi],
+                    motion, dt[a:b], u[a:b], lm[marks[r] : marks[r + 1]], z[lo:hi],
                     xy[lo:hi], record[a:b], x0[r], P0, Qu, R, gate, has_gate, T0, 0.0,
                     truth[c:d], scored[c:d], limit, out_sq, out_nees, terms[a:b], resume.copy(),
                     partial[g, r],

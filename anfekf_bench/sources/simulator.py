@@ -113,6 +113,7 @@ def _drive(wp, state, params, xs, us):
     iwp, loops_left = int(state[4]), int(state[5])
     xs[0, 0], xs[0, 1], xs[0, 2] = x, y, phi
     n, done = 0, False
+    bicycle = np.int64(MOTION_BICYCLE)  # not the literal: step_terms compiles once, as the kernels'
     while n < len(us):
         if (wp[iwp, 0] - x) ** 2 + (wp[iwp, 1] - y) ** 2 < tol2:
             iwp += 1
@@ -125,7 +126,7 @@ def _drive(wp, state, params, xs, us):
         delta = _wrap(math.atan2(wp[iwp, 1] - y, wp[iwp, 0] - x) - phi - gamma)
         delta = min(max(delta, -max_delta), max_delta)
         gamma = min(max(gamma + delta, -max_steer), max_steer)
-        terms = _step_terms(V, gamma, T, MOTION_BICYCLE, B)
+        terms = _step_terms(V, gamma, T, bicycle, B)
         f02, f12, _ = _jacobians_at(phi, terms)
         x, y, phi = x + f12, y - f02, _wrap(phi + terms[8])
         n += 1

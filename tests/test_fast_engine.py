@@ -28,6 +28,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from anfekf_bench.compiled import reached_modules
 from anfekf_bench.config import parse_scenario, resolve_world
 from anfekf_bench.engines import families, fast, kernels, loop
 from anfekf_bench.engines.filterpy_engine import _healthy, run_filter
@@ -206,7 +207,7 @@ def test_a_family_loop_is_generated_once_from_the_template_and_named_by_its_sour
     assert text == loop._loop_source(sage_husa) and inspect.getsource(loop.run_loop) in text
     assert generated.end_scan.py_func is sage_husa.end_scan  # the family's hook, inlined
     assert generated.rejected.py_func is loop.DEFAULTS["rejected"]  # a hook it leaves out
-    reached = {m.__name__ for m in loop._reached_modules(sage_husa, loop)}
+    reached = {m.__name__ for m in reached_modules(sage_husa, loop)}
     assert {"anfekf_bench.filters.sage_husa", "anfekf_bench.engines.kernels"} <= reached
     stamp = path.stat().st_mtime_ns
     again = loop._generated_module(sage_husa)
@@ -225,7 +226,7 @@ def test_a_family_loop_is_generated_once_from_the_template_and_named_by_its_sour
     assert callable(loop._generated_module(sage_husa).run_loop)
     rule = tmp_path / "rule.py"  # a source the loop reaches, edited: another file, compiled anew
     rule.write_text("a = 1\n")
-    monkeypatch.setattr(loop, "_reached_modules", lambda *roots: [SimpleNamespace(__file__=rule)])
+    monkeypatch.setattr(loop, "reached_modules", lambda *roots: [SimpleNamespace(__file__=rule)])
     before = loop._generated_module(sage_husa).__file__
     rule.write_text("a = 2\n")
     monkeypatch.setitem(loop._SOURCE_TIMES, rule.resolve(), rule.stat().st_mtime_ns)

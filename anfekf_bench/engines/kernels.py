@@ -574,10 +574,9 @@ def hqh_diag(H, Qi, HPH0, HPH1):
 
 # ---------------------------------------------------------------------------------------------
 # The rules of the adaptive families, as written in their modules (filters/*.py) and registered
-# with numba so that compiled code calls them. numba's disk cache of a kernel is keyed on the
-# contents of the file that defines it (numba >= 0.59 hashes them: touching it is not enough):
-# after editing a rule there, delete engines/__pycache__/*.nbi so that the kernels and the loop
-# are compiled again; the equivalence tests fail on a stale cache.
+# with numba so that compiled code calls them. numba's disk cache of a kernel is stamped with
+# every source it reaches, these modules included (compiled.use_reached_sources_stamp; the
+# loops' files are named by them), so an edited rule compiles the kernels that call it anew.
 
 from ..filters import cm_scale as _cm_scale  # noqa: E402
 

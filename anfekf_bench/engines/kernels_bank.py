@@ -9,9 +9,9 @@ vb-imm's grid rule) or adapt it (`RULE_VB`, `RULE_SAGE_HUSA`: vb-imm's members),
 Gaussian (`dof` inf) or Student-t predictive likelihood, interacting once per scan or not.
 
 `pure_module()` gives a never-compiled copy (plain Python, kernels.py's pure copy underneath).
-numba's disk cache is keyed on THIS file's contents: after editing a rule in filters/bank.py or
-filters/vb_bank.py, delete __pycache__/kernels_bank.*.nbi (tests/test_fast_bank.py fails on a
-stale cache).
+numba's disk cache of the kernel is stamped with every source it reaches (this file, kernels.py,
+filters/bank.py, filters/vb_bank.py, ...: compiled.use_reached_sources_stamp), so an edited
+rule compiles it anew.
 """
 
 from __future__ import annotations

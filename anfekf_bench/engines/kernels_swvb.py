@@ -4,8 +4,8 @@ primitives. Not on the one loop (`engines/loop.py`): every scan runs `iterations
 sequential updates from the same x-, where the loop runs each landmark once.
 
 `pure_module()` gives a never-compiled copy (plain Python, kernels.py's pure copy underneath).
-numba's disk cache is keyed on THIS file's contents: after editing a rule in filters/swvb.py,
-delete __pycache__/kernels_swvb.*.nbi (the equivalence tests fail on a stale cache).
+numba's disk cache of the kernel is stamped with every source it reaches (filters/swvb.py
+included: compiled.use_reached_sources_stamp), so an edited rule compiles it anew.
 """
 
 from __future__ import annotations

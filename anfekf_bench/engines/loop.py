@@ -27,6 +27,7 @@ import sys
 import threading
 from pathlib import Path
 
+from ..compiled import reached_modules
 from ..provenance import source_files
 from ..storage import write_new
 from . import kernels as _kernels
@@ -277,14 +278,14 @@ def _loop_source(module) -> str:
 def _generated_module(module):
     """Import (writing it first if need be) the module of `_loop_source(module)`. Its file's
     name carries a digest of its text and of the sources of every module the loop can reach
-    (`_reached_modules`: the family's, the kernels, the filters' rules), so that an edit of any
-    of them compiles anew; the file is never rewritten (numba's cache is keyed on it)."""
+    (`compiled.reached_modules`: the family's, the kernels, the filters' rules), so that an edit
+    of any of them compiles anew; the file is never rewritten (numba's cache is keyed on it)."""
     import hashlib
     import importlib.util
 
     text = _loop_source(module)
     digest = hashlib.sha256(text.encode())
-    for reached in _reached_modules(module, sys.modules[__name__]):
+    for reached in reached_modules(module, sys.modules[__name__]):
         source = Path(reached.__file__).resolve()
         modified = source.stat().st_mtime_ns
         if modified != _SOURCE_TIMES.setdefault(source, modified):
@@ -308,31 +309,6 @@ def _generated_module(module):
     # the text made here, not what the file holds now: the file only names the code for numba
     exec(compile(text, str(path), "exec"), generated.__dict__)
     return generated
-
-
-def _reached_modules(*roots) -> list:
-    """This package's modules whose functions a compiled loop can call, from `roots`: each
-    module's globals that are modules or functions of the package, followed to the end."""
-    import inspect
-    import types
-
-    seen: dict = {}
-    todo = list(roots)
-    while todo:
-        mod = todo.pop()
-        if mod.__name__ in seen:
-            continue
-        seen[mod.__name__] = mod
-        for value in vars(mod).values():
-            if isinstance(value, types.ModuleType):
-                name = value.__name__
-            elif inspect.isfunction(value) or hasattr(value, "py_func"):
-                name = getattr(value, "__module__", None) or ""
-            else:
-                continue
-            if name.startswith(f"{__package__.split('.')[0]}.") and name in sys.modules:
-                todo.append(sys.modules[name])
-    return [seen[name] for name in sorted(seen)]
 
 
 def _generated_folder():

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..compiled import use_reached_sources_stamp
 from .base import NotCompilable
 
 try:
@@ -47,6 +48,7 @@ except ImportError:  # pragma: no cover - numba is installed wherever CI runs th
     raise ImportError(
         "the fast engine of problems needs numba (pip install -e '.[fast]')"
     ) from None
+use_reached_sources_stamp()  # the package's one cache stamp, whichever module comes first
 
 A1, A2, A3 = types.float64[::1], types.float64[:, ::1], types.float64[:, :, ::1]
 VECTOR_FN = A1(A1, types.int64, A1)

@@ -13,12 +13,15 @@ import math
 
 import numpy as np
 
+from ..compiled import use_reached_sources_stamp
 from .base import Problem, wrap
 
 LOG_2PI = math.log(2.0 * math.pi)
 
 try:  # numba is optional (the `fast` extra): the same code runs as Python without it
     from numba import njit as _njit
+
+    use_reached_sources_stamp()  # the package's one cache stamp, whichever module comes first
 
     def compiled(fn):
         return _njit(cache=True)(fn)

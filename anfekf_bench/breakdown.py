@@ -185,19 +185,22 @@ def first_run_compiles(cache_dir: Path, folders: list[Path], tmp: Path, runs: in
     return {"compiled": sorted(set(compiled)), "count": len(set(compiled)), "wall_s": wall}
 
 
-# A compiled function's file in numba's disk cache: NAME-LINE.pyXY.N.nbc, N its Nth signature
-_CACHED_SIGNATURE = re.compile(r"(?P<name>.+)-\d+\.py\d+\.\d+\.nbc")
+# A compiled function's file in numba's disk cache: NAME-LINE.pyXY[flags].N.nbc, N its Nth
+# signature
+_CACHED_SIGNATURE = re.compile(r"(?P<name>.+-\d+)\.py\d+\w*\.\d+\.nbc")
 
 
 def compiled_signatures(cache_dir: Path) -> dict:
     """What numba compiled into the cache `cache_dir` (empty before): how many signatures, and
     the functions it compiled for more than one (a constant argument typed as a literal of its
-    own compiles the callee again: docs/DESIGN.md, "Engines"), by their cache names."""
+    own compiles the callee again: docs/DESIGN.md, "Engines"), as FOLDER/NAME-LINE of their
+    cache files."""
     per_function: dict[str, int] = {}
     for path in Path(cache_dir).rglob("*.nbc"):
         match = _CACHED_SIGNATURE.fullmatch(path.name)
-        if match:
-            per_function[match["name"]] = per_function.get(match["name"], 0) + 1
+        if match:  # one function: its folder (a hash of its source's), name and line
+            name = f"{path.parent.name}/{match['name']}"
+            per_function[name] = per_function.get(name, 0) + 1
     twice = sorted(name for name, count in per_function.items() if count > 1)
     return {"signatures": sum(per_function.values()), "compiled_twice": twice}
 

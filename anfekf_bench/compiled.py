@@ -11,6 +11,7 @@ import functools
 import hashlib
 import os
 import sys
+import threading
 from pathlib import Path
 
 # numba's cache keeps one entry per function and signature, whatever the options: one set for
@@ -82,17 +83,38 @@ def _file_digest(path: str, mtime_ns: int, size: int) -> bytes:
     return hashlib.sha256(Path(path).read_bytes()).digest()
 
 
+# The package's sources' modification times when the stamp was installed (or, for a source
+# first seen later, when first seen): a source edited afterwards is not the code this process
+# compiles.
+_SOURCE_TIMES: dict = {}
+
+
+def _source_times() -> dict:
+    return {
+        str(path.resolve()): path.stat().st_mtime_ns
+        for path in _PACKAGE_ROOT.rglob("*.py")
+        if "__pycache__" not in path.relative_to(_PACKAGE_ROOT).parts
+    }
+
+
 def reached_sources_digest(module) -> str:
-    """A digest of the sources of every package module `module` reaches (itself included)."""
+    """A digest of the sources of every package module `module` reaches (itself included); a
+    stamp that no process matches where one of them changed after this process saw it (its
+    compiled code would otherwise be cached under the edited sources' stamp). OSError where a
+    source cannot be read."""
     digest = hashlib.sha256()
     for reached in reached_modules(module):
         path = getattr(reached, "__file__", None)
         if path:
+            path = str(Path(path).resolve())
             st = os.stat(path)
+            if st.st_mtime_ns != _SOURCE_TIMES.setdefault(path, st.st_mtime_ns):
+                return f"{path} changed after this process read it ({os.urandom(8).hex()})"
             digest.update(_file_digest(path, st.st_mtime_ns, st.st_size))
     return digest.hexdigest()
 
 
+_STAMP_LOCK = threading.Lock()
 _STAMP_INSTALLED: list = []
 
 
@@ -102,14 +124,20 @@ def use_reached_sources_stamp() -> None:
     files into its cached code (engines/kernels.py's steps, filters/'s rules, the motion model),
     so an edit there, or a `git pull` that changes only them, would otherwise leave the kernel
     running the old code. Functions of other packages, and a NUMBA_CACHE_LOCATOR_CLASSES of the
-    user's, are left as numba has them. Once per process."""
-    if _STAMP_INSTALLED:
-        return
-    _STAMP_INSTALLED.append(True)
+    user's, are left as numba has them. Once per process, before the package's first compiled
+    function is decorated (compiled.numba_njit and the problems' modules call it)."""
+    with _STAMP_LOCK:
+        if not _STAMP_INSTALLED:
+            _SOURCE_TIMES.update(_source_times())
+            _install_locator()
+            _STAMP_INSTALLED.append(True)
+
+
+def _install_locator() -> None:
     from numba.core import caching
 
-    # numba's locators (numba.core.caching, 0.68: `CacheImpl`, earlier `_CacheImpl`); a numba
-    # without them keeps its own stamp
+    # numba's locators (numba.core.caching: `CacheImpl` and `_CacheLocator` in 0.59-0.68); a
+    # numba without them keeps its own stamp
     impl = getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl", None)
     base = getattr(caching, "_CacheLocator", None)
     locators = getattr(impl, "_locator_classes", None)
@@ -118,12 +146,16 @@ def use_reached_sources_stamp() -> None:
 
     class ReachedSourcesLocator(base):
         """numba's own locator for a function of this package (the same cache folder and file
-        names), whose freshness stamp is numba's for its file and `reached_sources_digest` of
-        its module, taken when the function is decorated."""
+        names; any other attribute numba reads is its too), whose freshness stamp is numba's for
+        its file and `reached_sources_digest` of its module, taken when the function is
+        decorated."""
 
-        def __init__(self, inner, module):
+        def __init__(self, inner, digest: str):
             self._inner = inner
-            self._stamp = (inner.get_source_stamp(), reached_sources_digest(module))
+            self._stamp = (inner.get_source_stamp(), digest)
+
+        def __getattr__(self, name):  # e.g. _py_file, read where numba cannot cache a function
+            return getattr(self.__dict__["_inner"], name)
 
         def ensure_cache_path(self):
             return self._inner.ensure_cache_path()
@@ -150,7 +182,10 @@ def use_reached_sources_stamp() -> None:
                 if other is not cls:
                     inner = other.from_function(py_func, py_file)
                     if inner is not None:
-                        return cls(inner, module)
+                        try:
+                            return cls(inner, reached_sources_digest(module))
+                        except OSError:  # a source that cannot be read (a zipped install)
+                            return inner
             return None
 
     locators.insert(0, ReachedSourcesLocator)

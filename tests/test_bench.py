@@ -289,16 +289,17 @@ def test_first_run_compiles_reads_numba_cache_log(monkeypatch, tmp_path) -> None
 def test_compiled_signatures_counts_each_functions_signatures(tmp_path) -> None:
     """From numba's cache file names (NAME-LINE.pyXY.N.nbc): every signature counted, the
     functions with two or more listed; index files and other files ignored."""
-    names = [
-        "kernels.record-832.py311.1.nbc", "kernels.record-832.py311.2.nbc",
-        "kernels.record-832.py311.nbi", "loop_fading_0a.run_loop-13.py311.1.nbc",
-        "motion_terms.step_terms-31.py312.1.nbc", "notes.txt",
+    files = [
+        "a/kernels.record-832.py311.1.nbc", "a/kernels.record-832.py311.2.nbc",
+        "a/kernels.record-832.py311.nbi", "b/loop_fading_0a.run_loop-13.py311.1.nbc",
+        "b/motion_terms.step_terms-31.py313t.1.nbc", "b/notes.txt",
+        "a/fast.run-77.py311.1.nbc", "b/fast.run-77.py311.1.nbc",  # two files' functions
     ]  # fmt: skip
-    for i, name in enumerate(names):
-        (tmp_path / f"sub{i % 2}").mkdir(exist_ok=True)
-        (tmp_path / f"sub{i % 2}" / name).write_bytes(b"")
+    for name in files:
+        (tmp_path / name).parent.mkdir(exist_ok=True)
+        (tmp_path / name).write_bytes(b"")
     got = breakdown_module.compiled_signatures(tmp_path)
-    assert got == {"signatures": 4, "compiled_twice": ["kernels.record"]}
+    assert got == {"signatures": 6, "compiled_twice": ["a/kernels.record-832"]}
     assert breakdown_module.compiled_signatures(tmp_path / "none") == {
         "signatures": 0, "compiled_twice": [],
     }  # fmt: skip
@@ -334,5 +335,5 @@ def test_a_literal_argument_compiles_its_callee_again(tmp_path) -> None:
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), PYTHONPATH=str(tmp_path))
     subprocess.run([sys.executable, "-c", "import literal_args"], env=env, check=True)
     got = breakdown_module.compiled_signatures(cache)
-    assert got["compiled_twice"] == ["literal_args.scale"]
+    assert [name.split("/")[-1] for name in got["compiled_twice"]] == ["literal_args.scale-5"]
     assert got["signatures"] == 4  # scale twice, literal, not_literal

@@ -5,6 +5,7 @@ leave the kernel running the old code."""
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import shutil
@@ -72,11 +73,35 @@ def test_an_edited_callee_file_compiles_the_caller_anew(tmp_path) -> None:
     assert edited != first, "the edited step runs, not the cached old one"
 
 
-def test_the_stamp_covers_the_modules_a_function_reaches() -> None:
+def test_every_stamp_covers_what_its_module_reaches_once_imported(monkeypatch) -> None:
+    """A function's stamp is taken when it is decorated, before the rest of its module runs: a
+    package module imported further down the file would be missing from it. After importing
+    every compiled module, each package function's stamp is still its module's whole digest."""
     reached = {m.__name__ for m in compiled.reached_modules(simulator)}
     assert {"anfekf_bench.sources.simulator", "anfekf_bench.models.motion_terms"} <= reached
     if compiled.numba_njit() is None:
         pytest.skip("numba is not in use")
-    locator = simulator._drive._cache._impl.locator
-    own, digest = locator.get_source_stamp()
-    assert digest == compiled.reached_sources_digest(simulator)
+    for name in (
+        "engines.fast", "engines.kernels_bank", "engines.kernels_als", "engines.kernels_swvb",
+        "engines.kernels_augmented", "engines.kernels_kalmannet", "engines.tuning",
+        "analysis.metrics", "analysis.run_means", "problems.fast", "problems.kalman",
+    ):  # fmt: skip
+        importlib.import_module(f"anfekf_bench.{name}")
+    checked = 0
+    for module in [m for n, m in sys.modules.items() if n.startswith("anfekf_bench.")]:
+        for value in list(vars(module).values()):
+            cache = getattr(value, "_cache", None)
+            locator = getattr(getattr(cache, "_impl", None), "locator", None)
+            if locator is None or getattr(value, "__module__", None) != module.__name__:
+                continue
+            assert type(locator).__name__ == "ReachedSourcesLocator", value
+            assert locator.get_source_stamp()[1] == compiled.reached_sources_digest(module), value
+            assert locator._py_file == module.__file__  # numba's own attributes reach through
+            checked += 1
+    assert checked >= 40
+    # a source edited after the process saw it: a stamp no process matches, never the edit's
+    path = str(Path(simulator.__file__).resolve())
+    monkeypatch.setitem(compiled._SOURCE_TIMES, path, compiled._SOURCE_TIMES[path] - 1)
+    first = compiled.reached_sources_digest(simulator)
+    assert "changed after this process read it" in first
+    assert compiled.reached_sources_digest(simulator) != first

@@ -33,6 +33,13 @@ import sys
 import numpy as np
 
 from ..compiled import NJIT_OPTIONS, numba_njit
+from ..filters import adaptive as _adaptive
+from ..filters import akhlaghi as _akhlaghi
+from ..filters import cm_scale as _cm_scale
+from ..filters import fading as _fading
+from ..filters import iae as _iae
+from ..filters import sage_husa as _sage_husa
+from ..filters import vb as _vb
 from ..models import motion_terms as _motion_terms
 
 # numba.njit, or None when numba is missing, switched off (compiled.numba_njit) or this is the
@@ -578,14 +585,12 @@ def hqh_diag(H, Qi, HPH0, HPH1):
 # every source it reaches, these modules included (compiled.use_reached_sources_stamp; the
 # loops' files are named by them), so an edited rule compiles the kernels that call it anew.
 
-from ..filters import cm_scale as _cm_scale  # noqa: E402
 
 proportional_step, mean_mismatch = jitable(_cm_scale.proportional_step, _cm_scale.mean_mismatch)
 
 # ---------------------------------------------------------------------------------------------
 # The fading-factor EKF (filters.fading), its rule as written there
 
-from ..filters import fading as _fading  # noqa: E402
 
 fading_factor, _ = jitable(_fading.fading_factor, _fading.fading_event)
 
@@ -594,8 +599,6 @@ fading_factor, _ = jitable(_fading.fading_factor, _fading.fading_event)
 # What the adaptive families share (filters.adaptive): the bounds, the interval's process-noise
 # accumulators A_v, A_g and the least-squares map of a state-space Q to Qu
 
-from ..filters import adaptive as _adaptive  # noqa: E402
-from ..filters import sage_husa as _sage_husa  # noqa: E402
 
 if _NJIT is not None:
     from numba.extending import overload
@@ -859,7 +862,6 @@ def hph_diag(H, P):
 # state update is `correct` above (the Joseph update of the filter itself), so only the noise
 # posterior's rules come from filters/vb.py and the bounds from filters/adaptive.py.
 
-from ..filters import vb as _vb  # noqa: E402
 
 vb_r_predict, vb_r_beta, vb_r_bounded_beta = jitable(
     _vb.vb_r_predict, _vb.vb_r_beta, _vb.vb_r_bounded_beta
@@ -870,7 +872,6 @@ vb_r_predict, vb_r_beta, vb_r_bounded_beta = jitable(
 # Akhlaghi et al. (filters.akhlaghi): residual-based R, innovation-based Qu, their rules as
 # written there; the Qu least squares and the interval's accumulators from filters/adaptive.py.
 
-from ..filters import akhlaghi as _akhlaghi  # noqa: E402
 
 forget, residual_variance, state_noise_estimate = jitable(
     _akhlaghi.forget, _akhlaghi.residual_variance, _akhlaghi.state_noise_estimate
@@ -893,7 +894,6 @@ vbakf_predict, vbakf_prior, inflation_cap, clip_covariance_2 = jitable(
 # ---------------------------------------------------------------------------------------------
 # Innovation-based adaptive estimation (filters.iae)
 
-from ..filters import iae as _iae  # noqa: E402
 
 window_covariance, window_mean, r_estimate, hold_nonpositive, q_estimate = jitable(
     _iae.window_covariance, _iae.window_mean, _iae.r_estimate, _iae.hold_nonpositive,

@@ -15,8 +15,9 @@ measurement at the last scan that saw landmarks: it is kept in two small buffers
 and the last one's) sized by the run's largest scan, found by the landmark's map position.
 
 `pure_module()` gives a never-compiled copy (plain Python, kernels.py's pure copy underneath).
-numba's disk cache of the kernel is stamped with every source it reaches (filters/kalmannet.py
-included: compiled.use_reached_sources_stamp), so an edit there compiles it anew.
+numba's disk cache of the kernel is stamped with every source it reaches
+(filters/kalmannet_net.py included: compiled.use_reached_sources_stamp), so an edit there
+compiles it anew.
 """
 
 from __future__ import annotations

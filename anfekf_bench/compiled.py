@@ -155,7 +155,10 @@ def _install_locator() -> None:
             self._stamp = (inner.get_source_stamp(), digest)
 
         def __getattr__(self, name):  # e.g. _py_file, read where numba cannot cache a function
-            return getattr(self.__dict__["_inner"], name)
+            inner = self.__dict__.get("_inner")
+            if inner is None:  # (not built through __init__: a copy being made)
+                raise AttributeError(name)
+            return getattr(inner, name)
 
         def ensure_cache_path(self):
             return self._inner.ensure_cache_path()

@@ -58,7 +58,7 @@ from .breakdown import (
     first_run_compiles,
     make_zoo_wall,
     paper_breakdown,
-)  # fmt: skip
+)
 from .config import Scenario, World, parse_scenario, scenario_files
 from .engines.filterpy_engine import run_filter
 from .experiment import execute, machine_info, make_plan, package_versions

@@ -97,6 +97,14 @@ def _source_times() -> dict:
     }
 
 
+def unchanged_source_stat(path: str) -> os.stat_result | None:
+    """os.stat of the source at `path` (resolved), or None where it changed since this process
+    first saw it (when the stamp was installed, else at this call): the code this process runs
+    is not the edited file's."""
+    st = os.stat(path)
+    return st if st.st_mtime_ns == _SOURCE_TIMES.setdefault(path, st.st_mtime_ns) else None
+
+
 def reached_sources_digest(module) -> str:
     """A digest of the sources of every package module `module` reaches (itself included); a
     stamp that no process matches where one of them changed after this process saw it (its
@@ -107,8 +115,8 @@ def reached_sources_digest(module) -> str:
         path = getattr(reached, "__file__", None)
         if path:
             path = str(Path(path).resolve())
-            st = os.stat(path)
-            if st.st_mtime_ns != _SOURCE_TIMES.setdefault(path, st.st_mtime_ns):
+            st = unchanged_source_stat(path)
+            if st is None:
                 return f"{path} changed after this process read it ({os.urandom(8).hex()})"
             digest.update(_file_digest(path, st.st_mtime_ns, st.st_size))
     return digest.hexdigest()

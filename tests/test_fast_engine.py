@@ -28,6 +28,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from anfekf_bench import compiled
 from anfekf_bench.compiled import reached_modules
 from anfekf_bench.config import parse_scenario, resolve_world
 from anfekf_bench.engines import families, fast, kernels, loop
@@ -229,7 +230,7 @@ def test_a_family_loop_is_generated_once_from_the_template_and_named_by_its_sour
     monkeypatch.setattr(loop, "reached_modules", lambda *roots: [SimpleNamespace(__file__=rule)])
     before = loop._generated_module(sage_husa).__file__
     rule.write_text("a = 2\n")
-    monkeypatch.setitem(loop._SOURCE_TIMES, rule.resolve(), rule.stat().st_mtime_ns)
+    monkeypatch.setitem(compiled._SOURCE_TIMES, str(rule.resolve()), rule.stat().st_mtime_ns)
     assert loop._generated_module(sage_husa).__file__ != before
     os.utime(rule, ns=(1, rule.stat().st_mtime_ns + 10**9))  # edited after the process saw it
     with pytest.raises(RuntimeError, match="changed after this process imported it"):

@@ -27,8 +27,7 @@ import sys
 import threading
 from pathlib import Path
 
-from ..compiled import reached_modules
-from ..provenance import source_files
+from ..compiled import reached_modules, unchanged_source_stat
 from ..storage import write_new
 from . import kernels as _kernels
 
@@ -235,13 +234,6 @@ def run_loop(
 _COMPILED: dict = {}
 
 
-def _source_times() -> dict:
-    """The package's sources' modification times now (at this module's import): a source
-    edited later is not the code this process runs."""
-    return {path: path.stat().st_mtime_ns for path in source_files()}
-
-
-_SOURCE_TIMES = _source_times() if JIT and not _PURE_COPY else {}
 _GENERATING = threading.Lock()  # runs on threads may ask for the same family's loop at once
 
 
@@ -287,8 +279,7 @@ def _generated_module(module):
     digest = hashlib.sha256(text.encode())
     for reached in reached_modules(module, sys.modules[__name__]):
         source = Path(reached.__file__).resolve()
-        modified = source.stat().st_mtime_ns
-        if modified != _SOURCE_TIMES.setdefault(source, modified):
+        if unchanged_source_stat(str(source)) is None:
             # this process runs the code it imported, the digest would name the edited file's:
             # the cache would hand the old code to every later process
             raise RuntimeError(

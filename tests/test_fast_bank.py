@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from anfekf_bench.config import parse_scenario, resolve_world
-from anfekf_bench.engines import fast
+from anfekf_bench.engines import fast, kernels, kernels_bank
 from anfekf_bench.filters.bank import IMMSpec, MMAESpec
 from anfekf_bench.filters.ekf import EKFSpec
 from anfekf_bench.filters.fading import FadingSpec
@@ -106,6 +106,46 @@ def test_forced_divergence(small, changes):
     ref, out = both(spec, ctx, runs[0], world, 1)
     assert ref["diverged"] and out["diverged"]
     assert_same_run(ref, out, what=str(changes))
+
+
+@pytest.mark.parametrize("motion", ["bicycle", "unicycle"])
+@pytest.mark.parametrize("steps", [1, 2, 13, 400])
+def test_interval_predict_is_the_steps_predicts(motion, steps):
+    """The bank's shared predict over an interval (kernels_bank.interval_add, then
+    predict_members_over) against each member's predicts step by step (kernels.predict): the
+    same states and covariances to 1e-12 of their scale, headings all round the circle, each
+    member its own Qu, controls that turn both ways (and, unicycle, steps of no length)."""
+    code = {"bicycle": kernels.MOTION_BICYCLE, "unicycle": kernels.MOTION_UNICYCLE}[motion]
+    rng = np.random.default_rng(steps)
+    M, B, T0 = 9, 2.8, 0.025
+    X = np.column_stack([rng.normal(0, 50, M), rng.normal(0, 50, M), np.linspace(-3.1, 3.14, M)])
+    Pm = np.empty((M, 9))
+    for i in range(M):
+        L = rng.normal(0, 0.3, (3, 3))
+        Pm[i] = (L @ L.T + 0.01 * np.eye(3)).ravel()
+    Pm[0, 1] += 1e-3  # a covariance that is not exactly symmetric keeps its own entries
+    Qu = rng.uniform(0.001, 0.5, (M, 2))
+    u = np.column_stack([rng.uniform(0.5, 4.0, steps), rng.uniform(-0.5, 0.5, steps)])
+    dt = rng.uniform(0.01, 0.1, steps)
+    if motion == "unicycle" and steps > 2:
+        dt[1] = 0.0
+    want_x, want_P = X.copy(), Pm.copy()
+    for i in range(M):
+        x, P = tuple(want_x[i]), tuple(want_P[i])
+        for k in range(steps):
+            x, P, _ = kernels.predict(x, P, u[k, 0], u[k, 1], dt[k], code, B, T0,
+                                      (Qu[i, 0], 0.0, 0.0, Qu[i, 1]))  # fmt: skip
+        want_x[i], want_P[i] = x, P
+    acc = np.zeros(kernels_bank.ACC_SIZE)
+    for k in range(steps):
+        terms = kernels.step_terms(u[k, 0], u[k, 1], dt[k], code, B)
+        kernels_bank.interval_add(acc, terms, kernels.noise_scale(dt[k], code, T0))
+    kernels_bank.predict_members_over(X, Pm, Qu, acc)
+    assert not acc.any()  # ready for the next interval
+    heading = (X[:, 2] - want_x[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    np.testing.assert_allclose(X[:, :2], want_x[:, :2], rtol=0, atol=1e-12 * np.abs(want_x).max())
+    np.testing.assert_allclose(heading, 0.0, atol=1e-12)
+    np.testing.assert_allclose(Pm, want_P, rtol=0, atol=1e-12 * np.abs(want_P).max())
 
 
 @pytest.mark.slow

@@ -8,6 +8,10 @@ One kernel runs every bank: members that hold their R hypothesis (`RULE_GRID`: m
 vb-imm's grid rule) or adapt it (`RULE_VB`, `RULE_SAGE_HUSA`: vb-imm's members), weighted by the
 Gaussian (`dof` inf) or Student-t predictive likelihood, interacting once per scan or not.
 
+Between two events (a scan, a record) the members' predicts are shared (`interval_add`,
+`predict_members_over`): the same predicts as member by member in exact arithmetic, one sin and
+cos a member per interval instead of one a step (docs/DESIGN.md, "Multiple-model banks").
+
 `pure_module()` gives a never-compiled copy (plain Python, kernels.py's pure copy underneath).
 numba's disk cache of the kernel is stamped with every source it reaches (this file, kernels.py,
 filters/bank.py, filters/vb_bank.py, ...: compiled.use_reached_sources_stamp), so an edited
@@ -28,9 +32,7 @@ _PURE_COPY: bool = globals().get("_PURE", False)
 _k = _kernels.pure_module() if _PURE_COPY else _kernels
 JIT: bool = _k.JIT  # True: the kernel below is numba-compiled
 maybe_njit = _k.maybe_njit
-step_terms, jacobians_at, noise_scale, predict_from = (
-    _k.step_terms, _k.jacobians_at, _k.noise_scale, _k.predict_from,
-)  # fmt: skip
+step_terms, noise_scale, wrap = _k.step_terms, _k.noise_scale, _k.wrap
 innovation, nis, correct, healthy, record, hph_diag, feeds_adaptation = (
     _k.innovation, _k.nis, _k.correct, _k.healthy, _k.record, _k.hph_diag, _k.feeds_adaptation,
 )  # fmt: skip
@@ -64,23 +66,130 @@ _k.jitable(  # what the rules below call
 )  # fmt: skip
 
 
+# The members' predicts between two events (a scan, a record), shared: every member takes the
+# same controls, and a member's heading enters a step only through cos and sin of (its heading +
+# a turn common to all), so each step's Jacobians, position step and noise are polynomials in
+# (c, s) = (cos, sin) of the member's heading at the interval's start (F is a shear, and shears
+# compose by adding their columns). `interval_add` accumulates their coefficients once per step
+# for the whole bank; `predict_members_over` gives every member the interval's predict from its
+# own (c, s) and Qu diagonal at the interval's end: one sin and cos a member per interval instead
+# of one per step. The same predicts in exact arithmetic; in floating point the sums run in
+# another order (tests/test_fast_bank.py: to 1e-12 of the per-step predict's scale, and the
+# whole runs to the filterpy engine's 1e-9).
+#
+# The accumulator (floats): the heading's step H, the coefficients on (c, s) of the steps'
+# f02 sums (A; y -= A) and f12 sums (B; x += B), and the noise accumulated over the interval R,
+# per control channel (0: speed, 1: steering; a member scales them by its Qu diagonal): R00, R01,
+# R11 on (cc, cs, ss), R02, R12 on (c, s), R22 on 1.
+ACC_H, ACC_A, ACC_B = 0, 1, 3
+ACC_R00, ACC_R01, ACC_R11, ACC_R02, ACC_R12, ACC_R22 = 5, 11, 17, 23, 27, 31
+ACC_SIZE = 33
+
+
 @maybe_njit
-def predict_members(X, Pm, Qu_m, terms, q_scale):
-    """`predict` of every member i in place (its state X[i], covariance Pm[i] row-major, its
-    control noise Qu_m[i]); `terms` (step_terms) hold what does not depend on the heading."""
-    dh = terms[8]
+def interval_add(acc, terms, q_scale):
+    """One step's predict (its `step_terms`, its factor `q_scale` on G Qu G^T) added to the
+    interval's accumulator `acc`: R <- F R F^T + Q with F, Q as polynomials in (c, s)."""
+    turn, cf0, cf1, cg0, cg1, cg3, g20, g21, dh = terms
+    phi = acc[ACC_H] + turn
+    C = math.cos(phi)
+    S = math.sin(phi)
+    # a member's cos(a) = c C - s S and sin(a) = s C + c S; f02 = cf0 sin(a), f12 = cf1 cos(a)
+    ac = cf0 * S
+    as_ = cf0 * C
+    bc = cf1 * C
+    bs = -cf1 * S
+    for q in range(2):
+        if q == 0:  # G's speed column: (cg0 cos a, cg0 sin a, g20)
+            uc, us, vc, vs, z = cg0 * C, -cg0 * S, cg0 * S, cg0 * C, g20
+        else:  # its steering column: (cg1 sin a, cg3 cos a, g21)
+            uc, us, vc, vs, z = cg1 * S, cg1 * C, cg3 * C, -cg3 * S, g21
+        o02 = ACC_R02 + 2 * q
+        o12 = ACC_R12 + 2 * q
+        r02c = acc[o02]
+        r02s = acc[o02 + 1]
+        r12c = acc[o12]
+        r12s = acc[o12 + 1]
+        r22 = acc[ACC_R22 + q]
+        kz = q_scale * z
+        o = ACC_R00 + 3 * q  # R00 + 2 f02 R02 + f02^2 R22 + Q00
+        acc[o] += 2.0 * ac * r02c + ac * ac * r22 + q_scale * uc * uc
+        acc[o + 1] += (2.0 * (ac * r02s + as_ * r02c) + 2.0 * ac * as_ * r22
+                       + 2.0 * q_scale * uc * us)  # fmt: skip
+        acc[o + 2] += 2.0 * as_ * r02s + as_ * as_ * r22 + q_scale * us * us
+        o = ACC_R01 + 3 * q  # R01 + f02 R12 + f12 R02 + f02 f12 R22 + Q01
+        acc[o] += ac * r12c + bc * r02c + ac * bc * r22 + q_scale * uc * vc
+        acc[o + 1] += (ac * r12s + as_ * r12c + bc * r02s + bs * r02c
+                       + (ac * bs + as_ * bc) * r22 + q_scale * (uc * vs + us * vc))  # fmt: skip
+        acc[o + 2] += as_ * r12s + bs * r02s + as_ * bs * r22 + q_scale * us * vs
+        o = ACC_R11 + 3 * q  # R11 + 2 f12 R12 + f12^2 R22 + Q11
+        acc[o] += 2.0 * bc * r12c + bc * bc * r22 + q_scale * vc * vc
+        acc[o + 1] += (2.0 * (bc * r12s + bs * r12c) + 2.0 * bc * bs * r22
+                       + 2.0 * q_scale * vc * vs)  # fmt: skip
+        acc[o + 2] += 2.0 * bs * r12s + bs * bs * r22 + q_scale * vs * vs
+        acc[o02] = r02c + ac * r22 + kz * uc  # R02 + f02 R22 + Q02
+        acc[o02 + 1] = r02s + as_ * r22 + kz * us
+        acc[o12] = r12c + bc * r22 + kz * vc  # R12 + f12 R22 + Q12
+        acc[o12 + 1] = r12s + bs * r22 + kz * vs
+        acc[ACC_R22 + q] = r22 + kz * z
+    acc[ACC_A] += ac
+    acc[ACC_A + 1] += as_
+    acc[ACC_B] += bc
+    acc[ACC_B + 1] += bs
+    acc[ACC_H] += dh
+
+
+@maybe_njit
+def predict_members_over(X, Pm, Qu_m, acc):
+    """The interval's predict (`interval_add`'s `acc`) of every member i in place: its state
+    X[i], covariance Pm[i] row-major, its control noise diagonal Qu_m[i]; then `acc` zeroed
+    for the next interval. P <- S P S^T + R, S = I + (A, B, 0) e2^T the steps' F composed."""
+    H = acc[ACC_H]
     for i in range(X.shape[0]):
-        f02, f12, G = jacobians_at(X[i, 2], terms)
-        x, P, _ = predict_from(
-            (X[i, 0], X[i, 1], X[i, 2]),
-            (Pm[i, 0], Pm[i, 1], Pm[i, 2], Pm[i, 3], Pm[i, 4], Pm[i, 5], Pm[i, 6], Pm[i, 7],
-             Pm[i, 8]),
-            f02, f12, G, dh, q_scale, (Qu_m[i, 0], 0.0, 0.0, Qu_m[i, 1]),
-        )  # fmt: skip
-        for c in range(3):
-            X[i, c] = x[c]
-        for c in range(9):
-            Pm[i, c] = P[c]
+        th = X[i, 2]
+        c = math.cos(th)
+        s = math.sin(th)
+        cc = c * c
+        cs = c * s
+        ss = s * s
+        q0 = Qu_m[i, 0]
+        q1 = Qu_m[i, 1]
+        A = acc[ACC_A] * c + acc[ACC_A + 1] * s
+        B = acc[ACC_B] * c + acc[ACC_B + 1] * s
+        o = ACC_R00
+        R00 = (q0 * (acc[o] * cc + acc[o + 1] * cs + acc[o + 2] * ss)
+               + q1 * (acc[o + 3] * cc + acc[o + 4] * cs + acc[o + 5] * ss))  # fmt: skip
+        o = ACC_R01
+        R01 = (q0 * (acc[o] * cc + acc[o + 1] * cs + acc[o + 2] * ss)
+               + q1 * (acc[o + 3] * cc + acc[o + 4] * cs + acc[o + 5] * ss))  # fmt: skip
+        o = ACC_R11
+        R11 = (q0 * (acc[o] * cc + acc[o + 1] * cs + acc[o + 2] * ss)
+               + q1 * (acc[o + 3] * cc + acc[o + 4] * cs + acc[o + 5] * ss))  # fmt: skip
+        o = ACC_R02
+        R02 = q0 * (acc[o] * c + acc[o + 1] * s) + q1 * (acc[o + 2] * c + acc[o + 3] * s)
+        o = ACC_R12
+        R12 = q0 * (acc[o] * c + acc[o + 1] * s) + q1 * (acc[o + 2] * c + acc[o + 3] * s)
+        R22 = q0 * acc[ACC_R22] + q1 * acc[ACC_R22 + 1]
+        # (S P S^T)_rs = P_rs + w_r P_2s + P_r2 w_s + w_r w_s P_22, w = (A, B, 0)
+        p02 = Pm[i, 2]
+        p12 = Pm[i, 5]
+        p20 = Pm[i, 6]
+        p21 = Pm[i, 7]
+        p22 = Pm[i, 8]
+        Pm[i, 0] = Pm[i, 0] + A * p20 + p02 * A + A * A * p22 + R00
+        Pm[i, 1] = Pm[i, 1] + A * p21 + p02 * B + A * B * p22 + R01
+        Pm[i, 2] = p02 + A * p22 + R02
+        Pm[i, 3] = Pm[i, 3] + B * p20 + p12 * A + B * A * p22 + R01
+        Pm[i, 4] = Pm[i, 4] + B * p21 + p12 * B + B * B * p22 + R11
+        Pm[i, 5] = p12 + B * p22 + R12
+        Pm[i, 6] = p20 + p22 * A + R02
+        Pm[i, 7] = p21 + p22 * B + R12
+        Pm[i, 8] = p22 + R22
+        X[i, 0] = X[i, 0] + B
+        X[i, 1] = X[i, 1] - A
+        X[i, 2] = wrap(th + H)
+    for r in range(ACC_SIZE):
+        acc[r] = 0.0
 
 
 @maybe_njit
@@ -199,6 +308,7 @@ def run_bank_kernel(
     nis_m = np.zeros(M)
     scratch = imm_scratch(M)
     active = np.empty(M, np.int64)
+    acc = np.zeros(ACC_SIZE)  # the members' predicts since the last event (interval_add)
     n_active = mixture(logw, threshold, X, Pm, Rm, Qu_m, w, active, Rw, Qw, xm, Pmix)
     bad_record, j, nis_sum, n_updates, n_rejected = NO_TALLY
     n_rows = out_x.shape[0]
@@ -206,9 +316,11 @@ def run_bank_kernel(
         u0, u1, dt_k = stamp_input(u_odo, dt, k)
         terms = step_terms(u0, u1, dt_k, motion, B)
         q_scale = noise_scale(dt_k, motion, T0) if motion == MOTION_UNICYCLE else 1.0
-        predict_members(X, Pm, Qu_m, terms, q_scale)  # the bank's, member by member
+        interval_add(acc, terms, q_scale)
         first = scan_start[k]
         last = scan_start[k + 1]
+        if last > first or (record_at[k] and j < n_rows):  # an event: the members' predicts
+            predict_members_over(X, Pm, Qu_m, acc)
         if last == first and record_at[k] and j < n_rows:
             mix_moments_at(w, active, n_active, X, Pm, X[most_probable(logw), 2], xm, Pmix)
         if last > first:

@@ -22,7 +22,6 @@ import math
 import os
 import re
 import stat
-import tempfile
 import zipfile
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -167,13 +166,19 @@ def read_regular_bytes(path: Path, limit: int) -> bytes:
     return data
 
 
-_UMASK = os.umask(0o022)  # read once, at import: os.umask reads by setting (threads race)
-os.umask(_UMASK)
-
-
-def _file_mode() -> int:
-    """The mode `open()` would give a new file: mkstemp's private 0600 is not wanted for results."""
-    return 0o666 & ~_UMASK
+def _new_temp(folder: Path, prefix: str) -> str:
+    """Create a new empty file of a random name in `folder` and return its path, with the mode
+    `open()` gives (0666 less the process's umask now, applied by the system: os.umask could
+    only read it by setting it, a race with other threads; mkstemp's 0600 is not for results)."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
+    for _ in range(100):
+        name = os.path.join(folder, f"{prefix}{os.urandom(6).hex()}.tmp")
+        try:
+            os.close(os.open(name, flags, 0o666))
+            return name
+        except FileExistsError:
+            continue
+    raise FileExistsError(errno.EEXIST, "no free temporary file name", str(folder))
 
 
 def write_atomic(path: Path, write: Callable[[Path], None], *, durable: bool = True) -> None:
@@ -183,15 +188,12 @@ def write_atomic(path: Path, write: Callable[[Path], None], *, durable: bool = T
     power cut leaves the old file or the new one, not a renamed file with missing data."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
+    tmp = Path(_new_temp(path.parent, f".{path.name}."))
     try:
         write(tmp)
         if durable:
             with open(tmp, "rb") as fh:
                 os.fsync(fh.fileno())
-        os.chmod(tmp, _file_mode())
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -206,20 +208,19 @@ def write_new(path: Path, data: bytes) -> None:
     succeeds and no reader sees a partial file (no check-then-rename race). On a file system
     without hard links, `O_CREAT | O_EXCL` (exclusive as well; the bytes follow the creation)."""
     path = Path(path)
-    fd, tmp_name = tempfile.mkstemp(prefix=".anfekf-new-", suffix=".tmp", dir=path.parent)
+    tmp_name = _new_temp(path.parent, ".anfekf-new-")
     try:
-        with os.fdopen(fd, "wb") as fh:
+        with open(tmp_name, "wb") as fh:
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
-        os.chmod(tmp_name, _file_mode())
         try:
             os.link(tmp_name, path)
         except OSError as exc:
             if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK):
                 raise
             flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
-            with os.fdopen(os.open(path, flags, _file_mode()), "wb") as fh:
+            with os.fdopen(os.open(path, flags, 0o666), "wb") as fh:
                 fh.write(data)
     finally:
         os.unlink(tmp_name)

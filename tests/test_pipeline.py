@@ -472,3 +472,20 @@ def test_a_simulated_run_imports_neither_problems_nor_recorded_sources():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("umask", [0o077, 0o002])
+def test_new_files_follow_the_umask_of_the_moment(tmp_path, umask):
+    """The mode comes from the umask when the file is made, not when the package was imported
+    (a program may change its umask after importing us)."""
+    from anfekf_bench.storage import write_atomic, write_new
+
+    before = os.umask(umask)
+    try:
+        write_atomic(tmp_path / "a.json", lambda tmp: tmp.write_text("{}"))
+        write_new(tmp_path / "b.txt", b"text")
+    finally:
+        os.umask(before)
+    for name in ("a.json", "b.txt"):
+        assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o666 & ~umask
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.txt"]  # no temporary left

@@ -166,16 +166,14 @@ def read_regular_bytes(path: Path, limit: int) -> bytes:
     return data
 
 
-def _new_temp(folder: Path, prefix: str) -> str:
-    """Create a new empty file of a random name in `folder` and return its path, with the mode
-    `open()` gives (0666 less the process's umask now, applied by the system: os.umask could
-    only read it by setting it, a race with other threads; mkstemp's 0600 is not for results)."""
+def _new_temp(folder: Path, prefix: str) -> tuple[int, str]:
+    """A new empty file of a random name in `folder`: (a descriptor open for writing, its path),
+    mode 0666 less the umask of the moment as `open()` gives (never mkstemp's 0600)."""
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
     for _ in range(100):
-        name = os.path.join(folder, f"{prefix}{os.urandom(6).hex()}.tmp")
+        name = os.path.join(folder, f"{prefix}{os.urandom(4).hex()}.tmp")  # mkstemp's length
         try:
-            os.close(os.open(name, flags, 0o666))
-            return name
+            return os.open(name, flags, 0o666), name
         except FileExistsError:
             continue
     raise FileExistsError(errno.EEXIST, "no free temporary file name", str(folder))
@@ -188,7 +186,9 @@ def write_atomic(path: Path, write: Callable[[Path], None], *, durable: bool = T
     power cut leaves the old file or the new one, not a renamed file with missing data."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(_new_temp(path.parent, f".{path.name}."))
+    fd, tmp_name = _new_temp(path.parent, f".{path.name}.")
+    os.close(fd)  # `write` opens it by name
+    tmp = Path(tmp_name)
     try:
         write(tmp)
         if durable:
@@ -208,9 +208,9 @@ def write_new(path: Path, data: bytes) -> None:
     succeeds and no reader sees a partial file (no check-then-rename race). On a file system
     without hard links, `O_CREAT | O_EXCL` (exclusive as well; the bytes follow the creation)."""
     path = Path(path)
-    tmp_name = _new_temp(path.parent, ".anfekf-new-")
+    fd, tmp_name = _new_temp(path.parent, ".anfekf-new-")
     try:
-        with open(tmp_name, "wb") as fh:
+        with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())

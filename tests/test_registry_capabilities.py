@@ -19,6 +19,7 @@ from anfekf_bench.filters import registry
 from anfekf_bench.filters.ekf import RobotEKF
 from anfekf_bench.filters.spec import AdaptiveSpec, FilterContext
 from anfekf_bench.report import plots
+from anfekf_bench.report.data import Band
 from anfekf_bench.report.report import load_scenario_data
 from anfekf_bench.scenarios import load_scenario
 from anfekf_bench.storage import read_steps
@@ -188,3 +189,28 @@ def test_the_noise_figure_has_a_line_for_every_adaptive_filter_and_none_for_fixe
     with plots.palette([f.name for f in few.filters]):
         one_row = plots.noise_figure(few)
     assert all(ax.yaxis.get_minorticklocs().size for ax in one_row.axes if ax.get_visible())
+
+
+def test_the_noise_figure_panels_span_one_time_axis(zoo_result):
+    """Every panel of the small multiples spans the same times (as shared axes did), a panel
+    whose filter has no finite value included, and only the bottom row labels them."""
+    sc = load_scenario_data(zoo_result)
+    lost = next(f for f in sc.filters if f.name == "vbakf")
+    nan = np.full_like(lost.t, np.nan)
+    lost = dataclasses.replace(lost, noise={c: Band(nan, nan, nan, nan) for c in lost.noise})
+    filters = [lost if f.name == "vbakf" else f for f in sc.filters]
+    for case in (sc, dataclasses.replace(sc, filters=[f for f in filters if f.name != "ekf"])):
+        with plots.palette([f.name for f in case.filters]):
+            fig = plots.noise_figure(case)
+        shown = [ax for ax in fig.axes if ax.get_visible()]
+        assert len(shown) > 8 and len({ax.get_xlim() for ax in shown}) == 1
+        lo, hi = shown[0].get_xlim()
+        assert (
+            lo <= sc.filters[0].t[0]
+            and hi >= sc.filters[0].t[-1]
+            and hi - lo < 1.2 * (sc.filters[0].t[-1] - sc.filters[0].t[0])
+        )
+        rows = fig.axes[0].get_gridspec().nrows
+        for ax in shown:
+            labelled = ax.xaxis.get_tick_params()["labelbottom"]
+            assert labelled == (ax.get_subplotspec().rowspan.stop == rows), ax.get_title()

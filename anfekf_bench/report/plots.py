@@ -689,6 +689,13 @@ def noise_figure(sc: ScenarioData) -> Figure:
             ax.set_ylabel(f"{col} [{unit}]", fontsize=8)
     for ax in axes.ravel()[len(groups) * per_group * ncols :]:
         ax.set_visible(False)
+    # One time axis for all, as sharex gave: the union of the panels' own (a panel with no finite
+    # value, its runs all diverged, would span 0..1 on its own)
+    spans = [ax.get_xlim() for ax in axes.ravel()
+             if ax.get_visible() and np.isfinite(ax.dataLim.intervalx).all()]  # fmt: skip
+    if spans:
+        for ax in axes.ravel():
+            ax.set_xlim(min(lo for lo, _ in spans), max(hi for _, hi in spans))
     for g in range(len(groups)):  # unused cells of a group's last row
         for j in range(len(columns), per_group * ncols):
             axes[g * per_group + j // ncols, j % ncols].set_visible(False)

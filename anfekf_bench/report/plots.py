@@ -694,8 +694,9 @@ def noise_figure(sc: ScenarioData) -> Figure:
     spans = [ax.get_xlim() for ax in axes.ravel()
              if ax.get_visible() and np.isfinite(ax.dataLim.intervalx).all()]  # fmt: skip
     if spans:
+        start, end = min(a for a, _ in spans), max(b for _, b in spans)
         for ax in axes.ravel():
-            ax.set_xlim(min(lo for lo, _ in spans), max(hi for _, hi in spans))
+            ax.set_xlim(start, end)
     for g in range(len(groups)):  # unused cells of a group's last row
         for j in range(len(columns), per_group * ncols):
             axes[g * per_group + j // ncols, j % ncols].set_visible(False)

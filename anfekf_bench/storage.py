@@ -47,6 +47,7 @@ PHASES_FILE = "phases.parquet"  # per-phase metrics of a noise schedule (analysi
 RUNS_DIR = ".runs"  # finished runs of an unfinished batch (experiment.py)
 RUN_FILE_PATTERN = "run-*.npz"  # a finished run in RUNS_DIR (write_run_file)
 LOCK_FILE = ".lock"  # held (flock) by the batch writing a scenario folder
+_NEW_FILE = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC  # where none is
 SWEEP_KIND = "anfekf-bench sweep"  # a sweep folder's manifest.json says `kind: SWEEP_KIND`
 SWEEP_CELLS_DIR = "cells"  # a sweep's cells: <sweep>/cells/<cell>/, each a scenario result
 SWEEP_FILE = "sweep.parquet"  # a sweep's table: one row per cell and filter
@@ -169,11 +170,10 @@ def read_regular_bytes(path: Path, limit: int) -> bytes:
 def _new_temp(folder: Path, prefix: str) -> tuple[int, str]:
     """A new empty file of a random name in `folder`: (a descriptor open for writing, its path),
     mode 0666 less the umask of the moment as `open()` gives (never mkstemp's 0600)."""
-    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
     for _ in range(100):
         name = os.path.join(folder, f"{prefix}{os.urandom(4).hex()}.tmp")  # mkstemp's length
         try:
-            return os.open(name, flags, 0o666), name
+            return os.open(name, _NEW_FILE, 0o666), name
         except FileExistsError:
             continue
     raise FileExistsError(errno.EEXIST, "no free temporary file name", str(folder))
@@ -219,8 +219,7 @@ def write_new(path: Path, data: bytes) -> None:
         except OSError as exc:
             if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK):
                 raise
-            flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
-            with os.fdopen(os.open(path, flags, 0o666), "wb") as fh:
+            with os.fdopen(os.open(path, _NEW_FILE, 0o666), "wb") as fh:
                 fh.write(data)
     finally:
         os.unlink(tmp_name)

@@ -585,12 +585,10 @@ def hqh_diag(H, Qi, HPH0, HPH1):
 # every source it reaches, these modules included (compiled.use_reached_sources_stamp; the
 # loops' files are named by them), so an edited rule compiles the kernels that call it anew.
 
-
 proportional_step, mean_mismatch = jitable(_cm_scale.proportional_step, _cm_scale.mean_mismatch)
 
 # ---------------------------------------------------------------------------------------------
 # The fading-factor EKF (filters.fading), its rule as written there
-
 
 fading_factor, _ = jitable(_fading.fading_factor, _fading.fading_event)
 
@@ -598,7 +596,6 @@ fading_factor, _ = jitable(_fading.fading_factor, _fading.fading_event)
 # ---------------------------------------------------------------------------------------------
 # What the adaptive families share (filters.adaptive): the bounds, the interval's process-noise
 # accumulators A_v, A_g and the least-squares map of a state-space Q to Qu
-
 
 if _NJIT is not None:
     from numba.extending import overload
@@ -862,7 +859,6 @@ def hph_diag(H, P):
 # state update is `correct` above (the Joseph update of the filter itself), so only the noise
 # posterior's rules come from filters/vb.py and the bounds from filters/adaptive.py.
 
-
 vb_r_predict, vb_r_beta, vb_r_bounded_beta = jitable(
     _vb.vb_r_predict, _vb.vb_r_beta, _vb.vb_r_bounded_beta
 )
@@ -871,7 +867,6 @@ vb_r_predict, vb_r_beta, vb_r_bounded_beta = jitable(
 # ---------------------------------------------------------------------------------------------
 # Akhlaghi et al. (filters.akhlaghi): residual-based R, innovation-based Qu, their rules as
 # written there; the Qu least squares and the interval's accumulators from filters/adaptive.py.
-
 
 forget, residual_variance, state_noise_estimate = jitable(
     _akhlaghi.forget, _akhlaghi.residual_variance, _akhlaghi.state_noise_estimate
@@ -893,7 +888,6 @@ vbakf_predict, vbakf_prior, inflation_cap, clip_covariance_2 = jitable(
 
 # ---------------------------------------------------------------------------------------------
 # Innovation-based adaptive estimation (filters.iae)
-
 
 window_covariance, window_mean, r_estimate, hold_nonpositive, q_estimate = jitable(
     _iae.window_covariance, _iae.window_mean, _iae.r_estimate, _iae.hold_nonpositive,

@@ -840,3 +840,22 @@ def test_the_worst_case_table_ranks_by_the_worst_ratio_over_the_scenarios(report
     assert list(table["worst"]) == sorted(table["worst"])
     assert (out / "worst_case.parquet").is_file()
     assert "Worst case across scenarios" in (out / "report.md").read_text(encoding="utf-8")
+
+
+def test_the_worst_case_reads_each_filter_block_as_sorting_the_rows_would(results):
+    """report/suite.py reads a steps table written in (filter, run, step) blocks where it lies;
+    rows in any other order are sorted first: the same (runs, steps) arrays either way."""
+    from anfekf_bench.report.suite import _COLUMNS, _filter_rows
+    from anfekf_bench.storage import read_parquet
+
+    steps = read_parquet(results / "tiny_q" / "steps.parquet", columns=_COLUMNS)
+    as_written = {name: (runs, rows) for name, runs, rows in _filter_rows(steps)}
+    assert list(as_written) == ["ekf", "anfekf", "ekf-oracle"]
+    shuffled = steps.sample(frac=1.0, random_state=3).reset_index(drop=True)
+    for name, runs, rows in _filter_rows(shuffled):
+        assert runs == as_written[name][0] == RUNS
+        mine = steps[steps["filter"] == name].sort_values(["run", "step"])
+        for column, values in rows.items():
+            expected = mine[column].to_numpy()
+            assert np.array_equal(values, expected, equal_nan=True), (name, column)
+            assert np.array_equal(as_written[name][1][column], expected, equal_nan=True)

@@ -201,3 +201,7 @@ def test_a_batch_table_passes_the_saved_result_checks_in_any_row_order(tmp_path,
     dup = pd.concat([steps, steps[one]], ignore_index=True)
     with pytest.raises(ResultsError, match=r"duplicated rows \(filter 'ekf', run 1, step 16"):
         check_saved_result(tmp_path, dup, manifest)
+    # the repeated row next to its twin (a table otherwise in the order a batch writes)
+    beside = pd.concat([steps, steps[one]]).sort_index(kind="stable").reset_index(drop=True)
+    with pytest.raises(ResultsError, match=r"duplicated rows \(filter 'ekf', run 1, step 16"):
+        check_saved_result(tmp_path, beside, manifest)

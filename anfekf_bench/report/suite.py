@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from ..analysis.suite import LOST_LOCK_FACTOR, LOST_LOCK_M, FilterRuns, SuiteScenario, suite_table
+from ..analysis.tables import in_key_order
 from ..filters.registry import role_of
 from ..storage import read_parquet, write_atomic
 from . import real
@@ -25,6 +26,7 @@ from .document import Block, Cell, Heading, Paragraph, TableBlock
 
 TABLE_FILE = "worst_case"  # .parquet and .csv in the report folder
 _COLUMNS = ["filter", "run", "step", "pos_err", "nees", "diverged"]
+_SERIES = (("pos_err", float), ("nees", float), ("diverged", bool))  # of each filter, by run
 
 
 def _oracle(sc: ScenarioData) -> str | None:
@@ -38,21 +40,37 @@ def suite_input(sc: ScenarioData) -> SuiteScenario | None:
     path = sc.folder / "steps.parquet"
     if oracle is None or not path.exists():
         return None
-    steps = read_parquet(path, columns=_COLUMNS)
-    steps = steps.assign(filter=steps["filter"].astype(str)).sort_values(["filter", "run", "step"])
-    filters = {}
-    for name, sub in steps.groupby("filter", sort=False):
-        runs = sub["run"].nunique()
-        n = len(sub) // max(runs, 1)
-        filters[str(name)] = FilterRuns(
-            pos_err=sub["pos_err"].to_numpy(float).reshape(runs, n),
-            nees=sub["nees"].to_numpy(float).reshape(runs, n),
-            diverged=sub["diverged"].to_numpy(bool).reshape(runs, n)[:, 0],
+    filters = {
+        name: FilterRuns(
+            pos_err=rows["pos_err"].reshape(runs, -1),
+            nees=rows["nees"].reshape(runs, -1),
+            diverged=rows["diverged"].reshape(runs, -1)[:, 0],
         )
+        for name, runs, rows in _filter_rows(read_parquet(path, columns=_COLUMNS))
+    }
     changing = sc.schedule is not None
     kinds = {f.name: f.kind for f in sc.filters}
     order = [f.name for f in sc.filters if f.name in filters]
     return SuiteScenario(sc.name, oracle, changing, {n: filters[n] for n in order}, kinds)
+
+
+def _filter_rows(steps: pd.DataFrame):
+    """(name, runs, its pos_err / nees / diverged in (run, step) order) of each filter of a steps
+    table. As a batch writes the table (each filter's rows one block, in (run, step) order) the
+    blocks are read where they lie, else the rows are sorted first: the same arrays."""
+    codes, names = pd.factorize(steps["filter"])
+    run, step = steps["run"].to_numpy(), steps["step"].to_numpy()
+    if len(codes) and codes.min() >= 0 and in_key_order(codes, run, step):
+        columns = {c: steps[c].to_numpy(t) for c, t in _SERIES}
+        ends = [*(np.flatnonzero(np.diff(codes)) + 1).tolist(), len(codes)]
+        for start, end in zip([0, *ends[:-1]], ends, strict=True):
+            rows = slice(start, end)
+            blocks = {c: v[rows] for c, v in columns.items()}
+            yield str(names[codes[start]]), np.unique(run[rows]).size, blocks
+        return
+    steps = steps.assign(filter=steps["filter"].astype(str)).sort_values(["filter", "run", "step"])
+    for name, sub in steps.groupby("filter", sort=False):
+        yield str(name), sub["run"].nunique(), {c: sub[c].to_numpy(t) for c, t in _SERIES}
 
 
 def drive_ratios(recorded: Sequence[real.RealData]) -> dict[str, float]:

@@ -147,6 +147,20 @@ def test_a_drawing_whose_worker_was_killed_is_drawn_by_the_report(results):  # n
     assert expected[1].startswith(b"\x89PNG")
 
 
+def test_stopping_the_workers_waits_for_the_executors_thread():
+    """`RenderPool.stop` (Ctrl-C) returns once the executor's management thread has closed its
+    wake-up pipe: an exit racing that thread printed a traceback after the command's one line
+    (Python's exit hook writes to the pipe without the executor's lock)."""
+    pool = render.RenderPool(1)
+    manager = pool._executor._executor_manager_thread
+    wakeup = pool._executor._executor_manager_thread_wakeup
+    assert manager is not None and manager.is_alive() and not wakeup._closed
+    pool.stop()
+    assert not manager.is_alive()
+    assert wakeup._closed
+    assert pool.broken
+
+
 def test_a_figure_that_does_not_pickle_is_drawn_by_the_report(results, tmp_path):  # noqa: F811
     fig = plots.nees_figure(load_scenario_data(results / "tiny_q"))
     fig.axes[0].xaxis.set_major_formatter(plots.FuncFormatter(lambda v, pos: f"{v:g}"))

@@ -169,12 +169,21 @@ class RenderPool:
         """End the workers now, drawing or not (Ctrl-C: the command is on its way out and
         would otherwise wait for the drawings they hold)."""
         self.broken = True
-        processes = list(getattr(self._executor, "_processes", {}).values())
+        processes = list((getattr(self._executor, "_processes", None) or {}).values())
+        # (shutdown forgets the executor's management thread: taken first)
+        manager = getattr(self._executor, "_executor_manager_thread", None)
         self._executor.shutdown(wait=False, cancel_futures=True)
         for process in processes:
             process.terminate()
+        # That thread closes its wake-up pipe on its way out, and Python's exit hook writes to
+        # the pipe unlocked (concurrent.futures.process on 3.11): a command that ended while
+        # the thread was closing it printed "Bad file descriptor" with a traceback after its
+        # one line. The thread ends once the workers are gone.
+        if manager is not None and manager is not threading.current_thread():
+            manager.join(timeout=STOP_WAIT_S)
 
 
+STOP_WAIT_S = 10.0  # at most, for the management thread of stopped workers (see `stop`)
 _POOLS: dict[int, RenderPool] = {}
 
 

@@ -7,7 +7,7 @@ and the machine's noise moved a single wall by a third: 0.47-0.78 s on one file)
 runs once more phase by phase, each timed on its own: simulate (the truth path and every run's
 odometry and scans), filter (every filter instance on every run, its timeline included),
 metrics (per-step errors and NEES), store (each run kept for a resume as `execute` keeps it:
-`outputs.RunStore`, which saves none of a batch's first second of runs unless it is
+`outputs.RunStore`, which saves none of a batch's first ten seconds of runs unless it is
 interrupted), tables (every table computed and written), and report (the report of the
 result `execute` wrote, figures included, drawn in worker processes as `anfekf report` draws
 them). `e2e_over_filter` is the end-to-end wall over the

@@ -432,13 +432,14 @@ def save_run(target: Path, result: dict, fingerprint: str) -> None:
     write_run_file(target / RUNS_DIR / f"run-{result['run']:06d}.npz", result, fingerprint)
 
 
-# A fast-engine batch's first second of runs is held in memory, not saved (RunStore). A run file
-# costs a few milliseconds (its checksum, the archive, the rename): as much as a fast-engine run,
-# a fifth of a 50-run paper scenario's end-to-end time, spent on files that the finished batch
-# removes unread (a filterpy-engine run takes a tenth of a second or more: its runs are saved at
-# once). What a kill -9 in that second loses is at most that second of runs (a resume redoes
-# them, with the same bytes); an interruption or an error saves them first.
-STORE_AFTER_S = 1.0
+# A fast-engine batch's first ten seconds of runs are held in memory, not saved (RunStore). A run
+# file costs a few milliseconds (its checksum, the archive, the rename): as much as a fast-engine
+# run, a fifth of a 50-run paper scenario's end-to-end time and a tenth of a zoo scenario's CPU
+# (29 filters, 5 MB a run), spent on files that the finished batch removes unread (a
+# filterpy-engine run takes a tenth of a second or more: its runs are saved at once). What a
+# kill -9 in those seconds loses is at most those seconds of runs (a resume redoes them, with the
+# same bytes); an interruption or an error saves them first.
+STORE_AFTER_S = 10.0
 
 
 class RunStore:

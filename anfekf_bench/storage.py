@@ -593,7 +593,7 @@ def install_result(target: Path, staging: Path) -> None:
     the old result stays whole, whatever fails during a batch. The old
     manifest goes first, so a kill during these few renames leaves a folder that reads as
     incomplete (never a mix under an old manifest); the run store is still there, and the same
-    command resumes from it (every run saved, but a fast batch's first second: RunStore).
+    command resumes from it (every run saved, but a fast batch's first ten seconds: RunStore).
     """
     target, staging = Path(target), Path(staging)
     new = {p.name for p in staging.iterdir()}

@@ -205,9 +205,9 @@ def test_ctrl_c_in_process_then_resume(small, tmp_path) -> None:
     pd.testing.assert_frame_equal(read_steps(out / "small"), reference)
 
 
-def test_fast_batch_holds_its_first_second_and_saves_it_when_interrupted(small, tmp_path) -> None:
-    """On the fast engine the runs of a batch's first second are held (outputs.RunStore): a
-    batch that ends within it writes no run file; one interrupted there saves every run it
+def test_fast_batch_holds_its_first_seconds_and_saves_them_if_interrupted(small, tmp_path) -> None:
+    """On the fast engine the runs of a batch's first seconds are held (outputs.RunStore): a
+    batch that ends within them writes no run file; one interrupted there saves every run it
     held, and the resume says so and gives the uninterrupted result."""
     import anfekf_bench.experiment as experiment
     import anfekf_bench.outputs as outputs
@@ -224,10 +224,10 @@ def test_fast_batch_holds_its_first_second_and_saves_it_when_interrupted(small, 
     reference = tmp_path / "reference"
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(outputs, "save_run", counting_save)
-        mp.setattr(experiment, "STORE_AFTER_S", 60.0)  # the batch's "first second", whatever
+        mp.setattr(experiment, "STORE_AFTER_S", 60.0)  # the batch's "first seconds", whatever
         # a loaded machine makes of its runs (and of loading the compiled kernels)
         _, target = execute(plan, reference)
-        assert written == [], "a batch that ends within its first second saves no run"
+        assert written == [], "a batch that ends within its first seconds saves no run"
         out = tmp_path / "out"
         with pytest.raises(CtrlC):
             execute(plan, out, on_result=_interrupt_after(3))
@@ -240,7 +240,7 @@ def test_fast_batch_holds_its_first_second_and_saves_it_when_interrupted(small, 
 
 
 # `anfekf run` on the fast engine whose run store holds every run (as in a batch's first
-# second), and which, once it holds three, touches the file argv[1] names and waits.
+# seconds), and which, once it holds three, touches the file argv[1] names and waits.
 HOLDS_THREE_THEN_WAITS = """
 import pathlib, sys, time
 import anfekf_bench.experiment as experiment, anfekf_bench.outputs as outputs

@@ -64,6 +64,10 @@ def test_in_key_order_is_whether_lexsort_would_leave_the_rows_as_they_are():
         stacked = np.stack(keys)
         unchanged = np.array_equal(stacked[:, np.lexsort(keys[::-1])], stacked)
         assert in_key_order(*keys) == unchanged, keys
+        distinct = len({tuple(row) for row in stacked.T}) == n
+        assert in_key_order(*keys, strict=True) == (unchanged and distinct), keys
     assert in_key_order(np.array([0, 0, 1]), np.array([2, 3, 0]))
     assert not in_key_order(np.array([0, 0, 1]), np.array([3, 2, 0]))  # the second key decides
     assert not in_key_order(np.array([1, 0]), np.array([0, 1]))  # the first key comes first
+    assert not in_key_order(np.array([0, 0, 1]), np.array([2, 2, 0]), strict=True)  # a repeat
+    assert in_key_order(np.array([0, 1, 1]), np.array([2, 2, 3]), strict=True)

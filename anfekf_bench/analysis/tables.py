@@ -83,10 +83,12 @@ def steps_frame(
     return pd.DataFrame(cols, columns=STEP_COLUMNS, copy=False)
 
 
-def in_key_order(*keys: np.ndarray) -> bool:
+def in_key_order(*keys: np.ndarray, strict: bool = False) -> bool:
     """Whether rows given by equal-length key columns (most significant first) are sorted by
-    them, ties allowed: what np.lexsort of the reversed keys would leave as it is."""
-    ok = keys[-1][1:] >= keys[-1][:-1]
+    them, ties allowed: what np.lexsort of the reversed keys would leave as it is. `strict`:
+    and no two rows have the same keys (sorted, a repeated row would sit beside its twin)."""
+    last = keys[-1]
+    ok = last[1:] > last[:-1] if strict else last[1:] >= last[:-1]
     for key in reversed(keys[:-1]):
         ok = (key[1:] > key[:-1]) | ((key[1:] == key[:-1]) & ok)
     return bool(np.all(ok))

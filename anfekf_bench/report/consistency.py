@@ -31,14 +31,6 @@ def _distinct(column: pd.Series) -> tuple[np.ndarray, list[str]]:
     return position[codes], names
 
 
-def _neighbours_differ(*keys: np.ndarray) -> bool:
-    """Whether no two consecutive rows have equal keys (equal-length key columns)."""
-    differ = np.zeros(max(len(keys[0]) - 1, 0), dtype=bool)
-    for key in keys:
-        differ |= key[1:] != key[:-1]
-    return bool(differ.all())
-
-
 def _manifest_runs(manifest: dict, where: Path) -> int:
     runs = manifest.get("runs")
     if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
@@ -98,10 +90,11 @@ def check_saved_result(folder: Path, steps: pd.DataFrame, manifest: dict) -> Non
     # the filter as its position in `filters`: the checks below compare integers, not names
     run, step = steps["run"].to_numpy(), steps["step"].to_numpy()
     key = pd.DataFrame({"filter": codes, "run": run, "step": step})
-    # as a batch writes its table, in (filter, run, step) order: a repeated row would sit next
-    # to its twin, so no row repeats where no two neighbours are equal (no hashing of the keys)
-    in_order = in_key_order(codes, run, step)
-    if not (in_order and _neighbours_differ(codes, run, step)) and key.duplicated().any():
+    # as a batch writes its table, strictly in (filter, run, step) order: no row repeats, and
+    # the keys need no hashing
+    strictly = in_key_order(codes, run, step, strict=True)
+    in_order = strictly or in_key_order(codes, run, step)
+    if not strictly and key.duplicated().any():
         dup = key[key.duplicated()].iloc[0]
         raise ResultsError(
             f"{steps_path}: duplicated rows (filter {filters[dup['filter']][:40]!r}, run"

@@ -639,11 +639,14 @@ def _is_result_dir(path: Path) -> bool:
     )
 
 
-def read_steps(scenario_dir: Path) -> pd.DataFrame:
+def read_steps(scenario_dir: Path, columns: list[str] | None = None) -> pd.DataFrame:
+    """A result's steps table (or only its `columns`), its filter column categorical in the
+    filters' order of appearance."""
     import pandas as pd
 
-    df = read_parquet(Path(scenario_dir) / STEPS_FILE)
-    missing = {"scenario", "filter", "run", "step", "pos_err", "nees"} - set(df.columns)
+    df = read_parquet(Path(scenario_dir) / STEPS_FILE, columns)
+    needed = {"scenario", "filter", "run", "step", "pos_err", "nees"}
+    missing = needed - set(df.columns) if columns is None else set()  # read_parquet: the named
     if missing:
         raise ResultsError(
             f"{Path(scenario_dir) / STEPS_FILE}: missing columns {', '.join(sorted(missing))}"
@@ -651,7 +654,7 @@ def read_steps(scenario_dir: Path) -> pd.DataFrame:
     if len(df) == 0:
         raise ResultsError(f"{Path(scenario_dir) / STEPS_FILE}: holds no rows")
     for column in ("scenario", "filter", "run", "step"):
-        if df[column].isna().any():
+        if column in df.columns and df[column].isna().any():
             raise ResultsError(f"{Path(scenario_dir) / STEPS_FILE}: {column}: empty cells")
     if not isinstance(df["filter"].dtype, pd.CategoricalDtype):
         # the filters in order of first appearance (one hash pass over the rows, no Python loop)

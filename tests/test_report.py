@@ -842,20 +842,25 @@ def test_the_worst_case_table_ranks_by_the_worst_ratio_over_the_scenarios(report
     assert "Worst case across scenarios" in (out / "report.md").read_text(encoding="utf-8")
 
 
-def test_the_worst_case_reads_each_filter_block_as_sorting_the_rows_would(results):
-    """report/suite.py reads a steps table written in (filter, run, step) blocks where it lies;
-    rows in any other order are sorted first: the same (runs, steps) arrays either way."""
-    from anfekf_bench.report.suite import _COLUMNS, _filter_rows
-    from anfekf_bench.storage import read_parquet
+def test_the_worst_case_takes_each_filters_runs_as_sorting_the_rows_would(results, tmp_path):
+    """report/suite.py takes each filter's (runs, steps) arrays from the six columns it reads of
+    a steps table (`filter_arrays` of those), the table in the order a batch writes it or in any
+    other: the same arrays as a sort of the filter's rows by (run, step)."""
+    import dataclasses
 
-    steps = read_parquet(results / "tiny_q" / "steps.parquet", columns=_COLUMNS)
-    as_written = {name: (runs, rows) for name, runs, rows in _filter_rows(steps)}
-    assert list(as_written) == ["ekf", "anfekf", "ekf-oracle"]
-    shuffled = steps.sample(frac=1.0, random_state=3).reset_index(drop=True)
-    for name, runs, rows in _filter_rows(shuffled):
-        assert runs == as_written[name][0] == RUNS
-        mine = steps[steps["filter"] == name].sort_values(["run", "step"])
-        for column, values in rows.items():
-            expected = mine[column].to_numpy()
-            assert np.array_equal(values, expected, equal_nan=True), (name, column)
-            assert np.array_equal(as_written[name][1][column], expected, equal_nan=True)
+    from anfekf_bench.report.suite import suite_input
+
+    sc = load_scenario_data(results / "tiny_q")
+    steps = pd.read_parquet(results / "tiny_q" / "steps.parquet")
+    shuffled = tmp_path / "tiny_q"
+    shuffled.mkdir()
+    steps.sample(frac=1.0, random_state=3).to_parquet(shuffled / "steps.parquet")
+    for folder in (sc.folder, shuffled):
+        got = suite_input(dataclasses.replace(sc, folder=folder))
+        assert list(got.filters) == ["ekf", "anfekf", "ekf-oracle"]
+        for name, runs in got.filters.items():
+            mine = steps[steps["filter"] == name].sort_values(["run", "step"])
+            for column in ("pos_err", "nees"):
+                expected = mine[column].to_numpy().reshape(RUNS, -1)
+                assert np.array_equal(getattr(runs, column), expected, equal_nan=True)
+            assert np.array_equal(runs.diverged, mine["diverged"].to_numpy()[:: len(mine) // RUNS])

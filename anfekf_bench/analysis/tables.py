@@ -94,8 +94,14 @@ def in_key_order(*keys: np.ndarray, strict: bool = False) -> bool:
     return bool(np.all(ok))
 
 
-def filter_arrays(steps: pd.DataFrame, name: str) -> dict[str, np.ndarray]:
-    """(runs, steps) arrays of one filter's pos_err, heading_err, nees, R/Q and run ids."""
+FILTER_SERIES = ("pos_err", "heading_err", "nees", "R_rr", "R_bb", "Q_vv", "Q_gg")
+
+
+def filter_arrays(
+    steps: pd.DataFrame, name: str, series: tuple[str, ...] = FILTER_SERIES
+) -> dict[str, np.ndarray]:
+    """(runs, steps) arrays of one filter's `series` (pos_err, heading_err, nees, R/Q), its run
+    ids, steps, times and divergence flags."""
     # The columns it needs, picked by one mask and one stable (run, step) order: what
     # `steps[mask].sort_values(["run", "step"])` gives, without copying the other columns (the
     # comparisons and the summary call this once per filter). As steps_frame writes the table
@@ -117,7 +123,7 @@ def filter_arrays(steps: pd.DataFrame, name: str) -> dict[str, np.ndarray]:
     runs = pd.unique(run)
     n = len(run) // max(len(runs), 1)
     out = {"run": runs, "step": step[order][:n], "t": col("t")[:n]}
-    for c in ("pos_err", "heading_err", "nees", "R_rr", "R_bb", "Q_vv", "Q_gg"):
+    for c in series:
         out[c] = col(c).reshape(len(runs), n)
     out["diverged"] = col("diverged").reshape(len(runs), n)[:, 0]
     return out

@@ -17,16 +17,15 @@ import numpy as np
 import pandas as pd
 
 from ..analysis.suite import LOST_LOCK_FACTOR, LOST_LOCK_M, FilterRuns, SuiteScenario, suite_table
-from ..analysis.tables import in_key_order
+from ..analysis.tables import filter_arrays, filter_names
 from ..filters.registry import role_of
-from ..storage import read_parquet, write_atomic
+from ..storage import read_steps, write_atomic
 from . import real
 from .data import ScenarioData
 from .document import Block, Cell, Heading, Paragraph, TableBlock
 
 TABLE_FILE = "worst_case"  # .parquet and .csv in the report folder
-_COLUMNS = ["filter", "run", "step", "pos_err", "nees", "diverged"]
-_SERIES = (("pos_err", float), ("nees", float), ("diverged", bool))  # of each filter, by run
+_COLUMNS = ["filter", "run", "step", "t", "pos_err", "nees", "diverged"]
 
 
 def _oracle(sc: ScenarioData) -> str | None:
@@ -40,37 +39,15 @@ def suite_input(sc: ScenarioData) -> SuiteScenario | None:
     path = sc.folder / "steps.parquet"
     if oracle is None or not path.exists():
         return None
-    filters = {
-        name: FilterRuns(
-            pos_err=rows["pos_err"].reshape(runs, -1),
-            nees=rows["nees"].reshape(runs, -1),
-            diverged=rows["diverged"].reshape(runs, -1)[:, 0],
-        )
-        for name, runs, rows in _filter_rows(read_parquet(path, columns=_COLUMNS))
-    }
+    steps = read_steps(sc.folder, columns=_COLUMNS)
+    filters = {}
+    for name in filter_names(steps):
+        runs = filter_arrays(steps, name, series=("pos_err", "nees"))
+        filters[name] = FilterRuns(runs["pos_err"], runs["nees"], runs["diverged"])
     changing = sc.schedule is not None
     kinds = {f.name: f.kind for f in sc.filters}
     order = [f.name for f in sc.filters if f.name in filters]
     return SuiteScenario(sc.name, oracle, changing, {n: filters[n] for n in order}, kinds)
-
-
-def _filter_rows(steps: pd.DataFrame):
-    """(name, runs, its pos_err / nees / diverged in (run, step) order) of each filter of a steps
-    table. As a batch writes the table (each filter's rows one block, in (run, step) order) the
-    blocks are read where they lie, else the rows are sorted first: the same arrays."""
-    codes, names = pd.factorize(steps["filter"])
-    run, step = steps["run"].to_numpy(), steps["step"].to_numpy()
-    if len(codes) and codes.min() >= 0 and in_key_order(codes, run, step):
-        columns = {c: steps[c].to_numpy(t) for c, t in _SERIES}
-        ends = [*(np.flatnonzero(np.diff(codes)) + 1).tolist(), len(codes)]
-        for start, end in zip([0, *ends[:-1]], ends, strict=True):
-            rows = slice(start, end)
-            blocks = {c: v[rows] for c, v in columns.items()}
-            yield str(names[codes[start]]), np.unique(run[rows]).size, blocks
-        return
-    steps = steps.assign(filter=steps["filter"].astype(str)).sort_values(["filter", "run", "step"])
-    for name, sub in steps.groupby("filter", sort=False):
-        yield str(name), sub["run"].nunique(), {c: sub[c].to_numpy(t) for c, t in _SERIES}
 
 
 def drive_ratios(recorded: Sequence[real.RealData]) -> dict[str, float]:

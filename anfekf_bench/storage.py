@@ -640,14 +640,12 @@ def _is_result_dir(path: Path) -> bool:
 
 
 def read_steps(scenario_dir: Path, columns: list[str] | None = None) -> pd.DataFrame:
-    """A result's steps table (or only its `columns`), its filter column categorical in the
-    filters' order of appearance."""
+    """A result's steps table (or its `columns`: read_parquet refuses a missing one)."""
     import pandas as pd
 
     df = read_parquet(Path(scenario_dir) / STEPS_FILE, columns)
-    needed = {"scenario", "filter", "run", "step", "pos_err", "nees"}
-    missing = needed - set(df.columns) if columns is None else set()  # read_parquet: the named
-    if missing:
+    missing = {"scenario", "filter", "run", "step", "pos_err", "nees"} - set(df.columns)
+    if missing and columns is None:
         raise ResultsError(
             f"{Path(scenario_dir) / STEPS_FILE}: missing columns {', '.join(sorted(missing))}"
         )
